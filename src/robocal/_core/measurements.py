@@ -1,0 +1,265 @@
+"""Measurement sets and their CSV files.
+
+CSV layout (a header row; comma separated; mm and degrees)::
+
+    pose_id,q1,q2,...,qN,x,y,z[,sx,sy,sz]
+
+``q1..qN`` are joint values (deg), ``x, y, z`` the reflector position in the tracker frame
+(mm), ``sx, sy, sz`` optional per-point standard deviations (mm), ``pose_id`` optional.
+Other columns are ignored. Inside robocal everything is SI (rad, m).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal.errors import DataError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MeasurementSet:
+    """Joint values and measured reflector positions of n poses.
+
+    ``q``: (n, dof) rad. ``p``: (n, 3) m, tracker frame. ``sigma``: (n, 3) m per-axis standard
+    deviations or None. ``pose_id``: n labels.
+    """
+
+    q: Array
+    p: Array
+    sigma: Array | None = None
+    pose_id: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        q = np.atleast_2d(np.asarray(self.q, dtype=float))
+        p = np.atleast_2d(np.asarray(self.p, dtype=float))
+        if q.shape[0] != p.shape[0] or p.shape[1] != 3:
+            raise DataError(f"q has {q.shape[0]} rows and p has shape {p.shape}; need (n, 3)")
+        object.__setattr__(self, "q", q)
+        object.__setattr__(self, "p", p)
+        if self.sigma is not None:
+            s = np.atleast_2d(np.asarray(self.sigma, dtype=float))
+            if s.shape != p.shape:
+                raise DataError(f"sigma has shape {s.shape}, expected {p.shape}")
+            object.__setattr__(self, "sigma", s)
+        if not self.pose_id:
+            object.__setattr__(self, "pose_id", tuple(f"P{i:04d}" for i in range(len(q))))
+        elif len(self.pose_id) != len(q):
+            raise DataError("pose_id length differs from the number of poses")
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    @property
+    def dof(self) -> int:
+        """Number of joints."""
+        return int(self.q.shape[1])
+
+    def subset(self, idx: Sequence[int] | NDArray[np.intp] | NDArray[np.bool_]) -> MeasurementSet:
+        """Return the poses selected by an index array or boolean mask."""
+        idx = np.asarray(idx)
+        if idx.dtype == bool:
+            idx = np.flatnonzero(idx)
+        return MeasurementSet(
+            q=self.q[idx], p=self.p[idx],
+            sigma=None if self.sigma is None else self.sigma[idx],
+            pose_id=tuple(self.pose_id[i] for i in idx),
+        )
+
+    def split(self, fraction: float, seed: int = 0) -> tuple[MeasurementSet, MeasurementSet]:
+        """Random split into (first, rest) with ``fraction`` of the poses in the first."""
+        rng = np.random.default_rng(seed)
+        perm = rng.permutation(len(self))
+        k = int(round(fraction * len(self)))
+        return self.subset(np.sort(perm[:k])), self.subset(np.sort(perm[k:]))
+
+    def concat(self, other: MeasurementSet) -> MeasurementSet:
+        """Append another set with the same joint count."""
+        if self.sigma is None or other.sigma is None:
+            sig = None
+        else:
+            sig = np.vstack([self.sigma, other.sigma])
+        return MeasurementSet(np.vstack([self.q, other.q]), np.vstack([self.p, other.p]), sig,
+                              self.pose_id + other.pose_id)
+
+    def digest(self) -> str:
+        """SHA-256 of the numerical content (joint values and points), hex."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.q).tobytes())
+        h.update(np.ascontiguousarray(self.p).tobytes())
+        return h.hexdigest()
+
+    # -- files --------------------------------------------------------------------------------
+    def to_csv_text(self) -> str:
+        """Render as CSV text (mm, deg)."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        head = ["pose_id", *(f"q{i + 1}" for i in range(self.dof)), "x", "y", "z"]
+        if self.sigma is not None:
+            head += ["sx", "sy", "sz"]
+        w.writerow(head)
+        qd = np.degrees(self.q)
+        pm = self.p * 1e3
+        sm = None if self.sigma is None else self.sigma * 1e3
+        for i in range(len(self)):
+            row = [self.pose_id[i], *(f"{v:.9f}" for v in qd[i]), *(f"{v:.6f}" for v in pm[i])]
+            if sm is not None:
+                row += [f"{v:.6f}" for v in sm[i]]
+            w.writerow(row)
+        return buf.getvalue()
+
+    def write_csv(self, path: str | Path) -> None:
+        """Write atomically (temporary file, then rename)."""
+        _atomic_write(Path(path), self.to_csv_text())
+
+    @classmethod
+    def read_csv(cls, path: str | Path, *, dof: int | None = None) -> MeasurementSet:
+        """Read a measurement CSV; raise :class:`DataError` naming the file, column and row."""
+        src = str(path)
+        header, rows = _read_table(path)
+        qcols = _joint_columns(header, src, dof)
+        for c in ("x", "y", "z"):
+            if c not in header:
+                raise DataError("required column is missing", source=src, key=c)
+        q = _numeric(rows, header, qcols, src) * (math.pi / 180.0)
+        p = _numeric(rows, header, ["x", "y", "z"], src) * 1e-3
+        sigma = None
+        scols = [c for c in ("sx", "sy", "sz") if c in header]
+        if scols:
+            if len(scols) != 3:
+                missing = sorted({"sx", "sy", "sz"} - set(scols))[0]
+                raise DataError("sx, sy, sz must be given together", source=src, key=missing)
+            sigma = _numeric(rows, header, ["sx", "sy", "sz"], src) * 1e-3
+            if np.any(sigma <= 0):
+                r = int(np.argwhere(sigma <= 0)[0, 0])
+                raise DataError(f"row {r + 2}: standard deviations must be positive",
+                                source=src, key="sx")
+        ids: tuple[str, ...] = ()
+        if "pose_id" in header:
+            k = header.index("pose_id")
+            ids = tuple(r[k].strip() for r in rows)
+        return cls(q=q, p=p, sigma=sigma, pose_id=ids)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
+    src = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError as err:
+        raise DataError("file not found", source=src) from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise DataError(f"cannot read: {err}", source=src) from err
+    sample = text[:4096]
+    delim = ";" if sample.count(";") > sample.count(",") else ","
+    reader = csv.reader(io.StringIO(text), delimiter=delim)
+    try:
+        rows = [r for r in reader if r and any(c.strip() for c in r)]
+    except csv.Error as err:
+        raise DataError(f"not a valid CSV file: {err}", source=src) from err
+    if not rows:
+        raise DataError("file is empty (a header row is required)", source=src)
+    header = [h.strip() for h in rows[0]]
+    body = rows[1:]
+    if delim == ";":  # European CSV: decimal comma
+        body = [[c.replace(",", ".") for c in r] for r in body]
+    if not body:
+        raise DataError("no data rows after the header", source=src)
+    for i, r in enumerate(body):
+        if len(r) < len(header):
+            raise DataError(f"row {i + 2} has {len(r)} fields, the header has {len(header)}",
+                            source=src)
+    return header, body
+
+
+def _joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
+    present = []
+    i = 1
+    while f"q{i}" in header:
+        present.append(f"q{i}")
+        i += 1
+    if not present:
+        raise DataError("no joint columns (q1..qN) found", source=src, key="q1")
+    if dof is not None and len(present) != dof:
+        key = f"q{len(present) + 1}" if len(present) < dof else f"q{len(present)}"
+        raise DataError(f"found {len(present)} joint columns (q1..q{len(present)}), the robot "
+                        f"has {dof} joints", source=src, key=key)
+    return present
+
+
+def _numeric(rows: list[list[str]], header: list[str], cols: Sequence[str], src: str) -> Array:
+    idx = [header.index(c) for c in cols]
+    out = np.empty((len(rows), len(cols)))
+    for r, row in enumerate(rows):
+        for k, i in enumerate(idx):
+            cell = row[i].strip()
+            try:
+                v = float(cell)
+            except ValueError:
+                raise DataError(f"row {r + 2}: {cell!r} is not a number", source=src,
+                                key=cols[k]) from None
+            if not math.isfinite(v):
+                raise DataError(f"row {r + 2}: value is {cell!r} (must be finite)", source=src,
+                                key=cols[k])
+            out[r, k] = v
+    return out
+
+
+def read_joints_csv(path: str | Path, *, dof: int | None = None) -> Array:
+    """Read ``q1..qN`` (deg) from a CSV; return (n, dof) rad."""
+    header, rows = _read_table(path)
+    cols = _joint_columns(header, str(path), dof)
+    return _numeric(rows, header, cols, str(path)) * (math.pi / 180.0)
+
+
+def write_joints_csv(path: str | Path, q: Array, extra: dict[str, Sequence[object]] | None = None
+                     ) -> None:
+    """Write joint values (n, dof) rad as ``q1..qN`` in degrees, plus optional extra columns."""
+    q = np.atleast_2d(q)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    extra = extra or {}
+    w.writerow([*(f"q{i + 1}" for i in range(q.shape[1])), *extra])
+    qd = np.degrees(q)
+    for i in range(q.shape[0]):
+        w.writerow([*(f"{v:.9f}" for v in qd[i]), *(_fmt(col[i]) for col in extra.values())])
+    _atomic_write(Path(path), buf.getvalue())
+
+
+def write_points_csv(path: str | Path, p: Array, extra: dict[str, Sequence[object]] | None = None
+                     ) -> None:
+    """Write points (n, 3) m as ``x, y, z`` in mm, plus optional extra columns."""
+    p = np.atleast_2d(p)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    extra = extra or {}
+    w.writerow(["x", "y", "z", *extra])
+    for i in range(p.shape[0]):
+        w.writerow([*(f"{v * 1e3:.6f}" for v in p[i]), *(_fmt(col[i]) for col in extra.values())])
+    _atomic_write(Path(path), buf.getvalue())
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.6f}"
+    return str(v)

@@ -1,0 +1,60 @@
+"""Robot and tracker drivers: capability protocols, registry, retry helper.
+
+Drivers are found by name through the entry-point groups ``robocal.robots`` and
+``robocal.trackers`` and imported lazily; this package imports none of them (nor the
+simulators in :mod:`robocal.drivers.sim`).
+
+>>> from robocal.drivers import available
+>>> "mock" in available()["robots"]
+True
+"""
+
+from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._registry import (
+    ROBOT_GROUP,
+    TRACKER_GROUP,
+    available,
+    driver_class,
+    load_robot,
+    load_tracker,
+)
+from robocal.drivers._retry import RETRYABLE, measure_with_retry
+from robocal.drivers.api import (
+    CompensationSink,
+    Connectable,
+    JointMover,
+    JointReader,
+    JointReading,
+    PointMeasurer,
+    RobotDriver,
+    TrackerDriver,
+    TrackerReading,
+    check_joint_target,
+    require,
+)
+
+__all__ = [
+    "RETRYABLE",
+    "ROBOT_GROUP",
+    "TRACKER_GROUP",
+    "CompensationSink",
+    "Connectable",
+    "DriverBase",
+    "DriverOptions",
+    "JointMover",
+    "JointReader",
+    "JointReading",
+    "PointMeasurer",
+    "RobotDriver",
+    "RobotDriverBase",
+    "RobotOptions",
+    "TrackerDriver",
+    "TrackerReading",
+    "available",
+    "check_joint_target",
+    "driver_class",
+    "load_robot",
+    "load_tracker",
+    "measure_with_retry",
+    "require",
+]

@@ -1,0 +1,120 @@
+"""Driver registry: names resolved lazily through ``importlib.metadata`` entry points.
+
+Groups ``robocal.robots`` and ``robocal.trackers``; a third-party package adds a driver with::
+
+    [project.entry-points."robocal.trackers"]
+    leica-emscon = "mypkg.leica:LeicaTracker"
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, Literal
+
+from robocal.drivers._base import validate_options
+from robocal.drivers.api import RobotDriver, TrackerDriver
+from robocal.errors import ConfigError, DriverImportError, DriverNotFound
+
+__all__ = [
+    "ROBOT_GROUP",
+    "TRACKER_GROUP",
+    "available",
+    "driver_class",
+    "load_robot",
+    "load_tracker",
+]
+
+ROBOT_GROUP = "robocal.robots"
+TRACKER_GROUP = "robocal.trackers"
+Role = Literal["robot", "tracker"]
+_GROUPS: dict[Role, str] = {"robot": ROBOT_GROUP, "tracker": TRACKER_GROUP}
+
+
+def _entry_points(group: str) -> dict[str, EntryPoint]:
+    return {ep.name: ep for ep in entry_points(group=group)}
+
+
+def available() -> dict[str, list[str]]:
+    """Return the installed driver names: ``{"robots": [...], "trackers": [...]}``.
+
+    Nothing is imported; this only reads package metadata.
+    """
+    return {
+        "robots": sorted(_entry_points(ROBOT_GROUP)),
+        "trackers": sorted(_entry_points(TRACKER_GROUP)),
+    }
+
+
+def driver_class(kind: str, *, role: Role) -> type:
+    """Import and return the driver class registered as ``kind``.
+
+    Raises
+    ------
+    DriverNotFound
+        If no entry point of that name exists in the role's group.
+    DriverImportError
+        If importing the module or class fails, or the object is not a driver class.
+    """
+    group = _GROUPS[role]
+    eps = _entry_points(group)
+    ep = eps.get(kind)
+    if ep is None:
+        known = ", ".join(sorted(eps)) or "none"
+        raise DriverNotFound(f"no {role} driver named {kind!r} (installed: {known})", kind=kind)
+    try:
+        cls = ep.load()
+    except Exception as err:
+        raise DriverImportError(
+            f"cannot import {ep.value} for {role} driver {kind!r}: {type(err).__name__}: {err}",
+            kind=kind,
+        ) from err
+    options = getattr(cls, "Options", None)
+    if not isinstance(cls, type) or options is None or not hasattr(options, "model_validate"):
+        raise DriverImportError(
+            f"{ep.value} is not a driver class with a pydantic Options model", kind=kind
+        )
+    return cls
+
+
+def _load(kind: str, options: Mapping[str, Any] | None, role: Role) -> Any:
+    cls = driver_class(kind, role=role)
+    opts = validate_options(cls.Options, options, kind=kind)
+    try:
+        driver = cls(opts)
+    except ConfigError:
+        raise
+    except Exception as err:
+        raise DriverImportError(
+            f"{cls.__qualname__}(options) failed: {type(err).__name__}: {err}", kind=kind
+        ) from err
+    expected = RobotDriver if role == "robot" else TrackerDriver
+    if not isinstance(driver, expected):
+        raise DriverImportError(
+            f"{cls.__qualname__} does not implement the {role} driver protocols", kind=kind
+        )
+    return driver
+
+
+def load_robot(kind: str, options: Mapping[str, Any] | None = None) -> RobotDriver:
+    """Build (not connect) the robot driver ``kind`` with validated ``options``.
+
+    Raises
+    ------
+    DriverNotFound, DriverImportError
+        See :func:`driver_class`.
+    ConfigError
+        If ``options`` do not validate against the driver's ``Options`` (the key is named).
+    """
+    return _load(kind, options, "robot")
+
+
+def load_tracker(kind: str, options: Mapping[str, Any] | None = None) -> TrackerDriver:
+    """Build (not connect) the tracker driver ``kind`` with validated ``options``.
+
+    Raises
+    ------
+    DriverNotFound, DriverImportError, ConfigError
+        As :func:`load_robot`.
+    """
+    return _load(kind, options, "tracker")

@@ -1,0 +1,544 @@
+"""FANUC robot over RMI (Remote Motion Interface, option R912): JSON lines over TCP.
+
+Session: ``FRC_Connect`` on the connect port (16001) names the session port; on it
+``FRC_GetStatus`` then ``FRC_Initialize``; instructions carry consecutive SequenceIDs from 1,
+at most 8 in flight. Motions are ``FRC_JointMotionJRep`` with ``TermType FINE``, whose reply
+arrives when the robot is in position; actual joints come from ``FRC_ReadJointAngles``,
+which returns encoder positions only from RMI MajorVersion 6 on, so older controllers are
+refused. A HOLD (SequenceID gap, buffer overrun, system fault) is recovered with
+``FRC_GetStatus`` (NextSequenceID) and ``FRC_Reset`` before the next motion.
+
+Compensation: ``frames`` tables go to ``FRC_WriteUFrameData``/``FRC_WriteUToolData``;
+``targets`` tables to position registers PR[pr_base + index] with joint angles J1..J6 in
+the X..R slots (robocal's convention; RMI writes PRs only in Cartesian form, so a TP helper
+program reads them back element-wise with ``PR[i,j]``). Everything is read back and compared.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+from pydantic import Field
+
+from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
+from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._compensation import table_diff
+from robocal.drivers.api import JointReading, check_joint_target
+from robocal.errors import (
+    CompensationError,
+    ConnectFailed,
+    DriverTimeout,
+    FramingError,
+    MotionRejected,
+    OperationError,
+    ProtocolError,
+    TransportError,
+    TransportTimeout,
+    VerificationMismatch,
+)
+from robocal.protocols import LineStream, TcpTransport
+from robocal.protocols import fanuc_rmi as rmi
+
+__all__ = ["FanucRmiOptions", "FanucRmiRobot"]
+
+MIN_MAJOR_VERSION = 6
+_SEQUENCE_ERRORS = frozenset({rmi.rmit(24), rmi.rmit(28), rmi.rmit(29)})
+
+
+class FanucRmiOptions(RobotOptions):
+    """Options of :class:`FanucRmiRobot`.
+
+    Attributes
+    ----------
+    host, connect_port
+        Controller address; the session port comes from the ``FRC_Connect`` reply.
+    group
+        Motion group (1 or 2).
+    reply_timeout_s
+        Timeout for command replies, seconds.
+    min_major_version
+        Oldest accepted RMI MajorVersion (never below 6: older ones report commanded joints).
+    uframe_number, utool_number
+        Frames written by a ``frames`` compensation table.
+    pr_base, pr_count
+        Position registers available to a ``targets`` table: PR[pr_base + index].
+    verify_tol
+        Read-back tolerance, mm and degrees.
+    override_pct
+        Speed override set after connecting (None leaves it).
+    """
+
+    host: str = "127.0.0.1"
+    connect_port: int = Field(default=rmi.DEFAULT_CONNECT_PORT, ge=1, le=65535)
+    group: int = Field(default=1, ge=1, le=2)
+    reply_timeout_s: float = Field(default=5.0, gt=0.0)
+    min_major_version: int = Field(default=MIN_MAJOR_VERSION, ge=MIN_MAJOR_VERSION)
+    uframe_number: int = Field(default=1, ge=1, le=9)
+    utool_number: int = Field(default=1, ge=1, le=10)
+    pr_base: int = Field(default=1, ge=1)
+    pr_count: int = Field(default=100, ge=1)
+    verify_tol: float = Field(default=1e-3, ge=0.0)
+    override_pct: int | None = Field(default=None, ge=1, le=100)
+
+
+class FanucRmiRobot(RobotDriverBase):
+    """FANUC R-30iB Plus controller through RMI.
+
+    Parameters
+    ----------
+    options : FanucRmiOptions or mapping
+        Validated options (``joint_limits_deg`` is required).
+    """
+
+    kind: ClassVar[str] = "fanuc_rmi"
+    Options: ClassVar[type[DriverOptions]] = FanucRmiOptions
+    options: FanucRmiOptions
+    supported_compensation: ClassVar[frozenset[str]] = frozenset({"frames", "targets"})
+
+    def __init__(self, options: FanucRmiOptions | Mapping[str, Any] | None = None) -> None:
+        super().__init__(options)
+        self.controller_version: tuple[int, int] | None = None
+        self.session_port: int | None = None
+        self.bad_packets = 0
+        self._stream: LineStream | None = None
+        self._reader: asyncio.Task[None] | None = None
+        self._cmd_lock = asyncio.Lock()
+        self._cmd_future: asyncio.Future[rmi.Packet] | None = None
+        self._cmd_name = ""
+        self._instr: dict[int, asyncio.Future[rmi.Packet]] = {}
+        self._in_flight = asyncio.Semaphore(rmi.MAX_IN_FLIGHT)
+        self._seq_lock = asyncio.Lock()
+        self._next_seq = 1
+        self._needs_recovery = False
+        self._lost: Exception | None = None
+        self._disconnected: asyncio.Future[None] | None = None
+        self._last_table: CompensationTable | None = None
+
+    # --- connection ----------------------------------------------------------------------------
+    async def _connect_impl(self, timeout: float) -> None:
+        o = self.options
+        deadline = time.monotonic() + timeout
+        self._lost = None
+        self._needs_recovery = False
+        conn = TcpTransport(o.host, o.connect_port)
+        await conn.open(timeout=timeout)
+        try:
+            stream = LineStream(conn, max_length=rmi.MAX_LINE)
+            await stream.write_line(rmi.encode({"Communication": "FRC_Connect"}))
+            reply = await self._read_packet(stream, "FRC_Connect", deadline)
+        finally:
+            await conn.close()
+        if reply.error_id:
+            raise ConnectFailed(
+                f"FRC_Connect refused: {rmi.describe_error(reply.error_id)}", kind=self.kind
+            )
+        major = reply.get_int("MajorVersion")
+        minor = _int_or(reply.body.get("MinorVersion"), 0)
+        self.controller_version = (major, minor)
+        if major < o.min_major_version:
+            raise ConnectFailed(
+                f"controller runs RMI MajorVersion {major}; robocal needs {o.min_major_version} "
+                "or later because older versions make FRC_ReadJointAngles return commanded, "
+                "not actual (encoder) joint angles, which is useless for calibration",
+                kind=self.kind,
+            )
+        self.session_port = reply.get_int("PortNumber")
+        main = TcpTransport(o.host, self.session_port)
+        await main.open(timeout=max(0.1, deadline - time.monotonic()))
+        self._stream = LineStream(main, max_length=rmi.MAX_LINE)
+        self._reader = asyncio.create_task(self._read_loop(self._stream), name="rmi-reader")
+        status = await self._command("FRC_GetStatus")
+        self.log.info(
+            "rmi session",
+            version=f"{major}.{minor}",
+            port=self.session_port,
+            servo_ready=status.body.get("ServoReady"),
+            tp_mode=status.body.get("TPMode"),
+        )
+        init = await self._command("FRC_Initialize", check=False, GroupMask=1 << (o.group - 1))
+        if init.error_id == rmi.rmit(15):
+            # An earlier session left RMI running: abort it and initialise afresh.
+            await self._command("FRC_Abort", check=False)
+            init = await self._command("FRC_Initialize", check=False, GroupMask=1 << (o.group - 1))
+        if init.error_id in (7004, 7015):
+            raise ConnectFailed(
+                "FRC_Initialize refused: RMI_MOVE is the selected TP program; select another "
+                "program on the teach pendant and connect again",
+                kind=self.kind,
+            )
+        if init.error_id:
+            raise ConnectFailed(
+                f"FRC_Initialize refused: {rmi.describe_error(init.error_id)}", kind=self.kind
+            )
+        self._next_seq = 1
+        if o.override_pct is not None:
+            await self._command("FRC_SetOverRide", Value=o.override_pct)
+
+    async def _read_packet(self, stream: LineStream, name: str, deadline: float) -> rmi.Packet:
+        """Read until the packet ``name`` arrives, skipping garbage; bounded by ``deadline``."""
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DriverTimeout(f"no {name} reply in time", kind=self.kind)
+            try:
+                packet = rmi.decode(await stream.read_line(timeout=remaining))
+            except (FramingError, ProtocolError) as err:
+                if isinstance(err, TransportError | TransportTimeout):
+                    raise
+                self.bad_packets += 1
+                self.log.warning("malformed RMI line ignored", error=str(err)[:120])
+                continue
+            if packet.name == name:
+                return packet
+            self.log.warning("unexpected RMI packet ignored", packet=packet.name)
+
+    async def _close_impl(self) -> None:
+        stream = self._stream
+        if stream is not None and stream.transport.is_open and self._lost is None:
+            with contextlib.suppress(Exception):
+                await self._command("FRC_Abort", check=False, timeout=1.0)
+            with contextlib.suppress(Exception):
+                self._disconnected = asyncio.get_running_loop().create_future()
+                await stream.write_line(rmi.encode({"Communication": "FRC_Disconnect"}))
+                async with asyncio.timeout(1.0):
+                    await self._disconnected
+        if self._reader is not None:
+            self._reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._reader
+            self._reader = None
+        if stream is not None:
+            await stream.transport.close()
+        self._stream = None
+        self._fail_pending(ConnectFailed("driver closed", kind=self.kind))
+
+    def _fail_pending(self, exc: Exception) -> None:
+        futures = [*self._instr.values()]
+        if self._cmd_future is not None:
+            futures.append(self._cmd_future)
+        for fut in futures:
+            if not fut.done():
+                fut.set_exception(exc)
+                # Mark retrieved: nobody may be awaiting any more.
+                fut.exception()
+
+    # --- reader --------------------------------------------------------------------------------
+    async def _read_loop(self, stream: LineStream) -> None:
+        while True:
+            try:
+                line = await stream.read_line(timeout=3600.0)
+            except TransportTimeout:
+                continue
+            except TransportError as err:
+                self._lost = ConnectFailed(f"connection lost: {err}", kind=self.kind)
+                self._fail_pending(self._lost)
+                return
+            except FramingError as err:
+                self.bad_packets += 1
+                self.log.warning("over-long RMI line skipped", error=str(err)[:120])
+                continue
+            try:
+                packet = rmi.decode(line)
+            except ProtocolError as err:
+                self.bad_packets += 1
+                self.log.warning(
+                    "malformed RMI packet ignored", error=str(err)[:120], line=line[:80].hex()
+                )
+                continue
+            self._dispatch(packet)
+
+    def _dispatch(self, packet: rmi.Packet) -> None:
+        if packet.category == "Command":
+            fut = self._cmd_future
+            if fut is not None and not fut.done() and packet.name in (self._cmd_name, "Unknown"):
+                fut.set_result(packet)
+            else:
+                self.log.warning("unexpected command reply ignored", packet=packet.name)
+        elif packet.category == "Instruction":
+            seq = packet.sequence_id
+            fut = self._instr.get(seq) if seq is not None else None
+            if fut is not None and not fut.done():
+                fut.set_result(packet)
+            else:
+                self.log.warning("reply for unknown SequenceID ignored", sequence_id=seq)
+        elif packet.name == "FRC_SystemFault":
+            seq = packet.sequence_id
+            self._needs_recovery = True
+            self.log.warning("controller system fault", sequence_id=seq)
+            exc = MotionRejected(
+                f"controller system fault while executing SequenceID {seq}; "
+                "the controller holds until reset",
+                kind=self.kind,
+                code="FRC_SystemFault",
+            )
+            for fut in self._instr.values():
+                if not fut.done():
+                    fut.set_exception(exc)
+                    fut.exception()
+        elif packet.name == "FRC_Terminate":
+            self._lost = ConnectFailed("controller terminated the RMI session", kind=self.kind)
+            self._fail_pending(self._lost)
+        elif packet.name == "FRC_Disconnect":
+            if self._disconnected is not None and not self._disconnected.done():
+                self._disconnected.set_result(None)
+        else:
+            self.log.warning("unexpected communication packet ignored", packet=packet.name)
+
+    # --- requests ------------------------------------------------------------------------------
+    def _live_stream(self) -> LineStream:
+        self._ensure_connected()
+        if self._lost is not None:
+            raise self._lost
+        assert self._stream is not None
+        return self._stream
+
+    async def _command(
+        self, name: str, *, check: bool = True, timeout: float | None = None, **fields: Any
+    ) -> rmi.Packet:
+        """Send one command and wait for its reply (commands are strictly one at a time)."""
+        stream = self._stream
+        if stream is None or self._lost is not None:
+            raise self._lost or ConnectFailed("not connected", kind=self.kind)
+        wait = self.options.reply_timeout_s if timeout is None else timeout
+        async with self._cmd_lock:
+            fut: asyncio.Future[rmi.Packet] = asyncio.get_running_loop().create_future()
+            self._cmd_future, self._cmd_name = fut, name
+            try:
+                with self.translate_errors():
+                    await stream.write_line(rmi.encode({"Command": name, **fields}))
+                async with asyncio.timeout(wait):
+                    packet = await fut
+            except TimeoutError as err:
+                raise DriverTimeout(
+                    f"no reply to {name} within {wait:.3g} s", kind=self.kind
+                ) from err
+            finally:
+                self._cmd_future = None
+        if packet.name == "Unknown":
+            raise OperationError(
+                f"controller could not parse {name}: {rmi.describe_error(packet.error_id or 0)}",
+                kind=self.kind,
+            )
+        if check and packet.error_id:
+            raise OperationError(
+                f"{name} refused: {rmi.describe_error(packet.error_id)}", kind=self.kind
+            )
+        return packet
+
+    async def _recover(self) -> None:
+        """Leave HOLD: resynchronise the SequenceID from FRC_GetStatus, then FRC_Reset."""
+        status = await self._command("FRC_GetStatus")
+        nxt = _int_or(status.body.get("NextSequenceID"), 0)
+        await self._command("FRC_Reset")
+        if nxt >= 1:
+            self._next_seq = nxt
+        self._needs_recovery = False
+        self.log.info("recovered from HOLD", next_sequence_id=self._next_seq)
+
+    async def _instruction(self, build: Any, deadline: float) -> rmi.Packet:
+        """Send one instruction built by ``build(seq)``; wait for its completion reply."""
+        stream = self._live_stream()
+        async with self._in_flight:
+            async with self._seq_lock:
+                if self._needs_recovery:
+                    await self._recover()
+                seq = self._next_seq
+                fut: asyncio.Future[rmi.Packet] = asyncio.get_running_loop().create_future()
+                self._instr[seq] = fut
+                try:
+                    with self.translate_errors():
+                        await stream.write_line(rmi.encode(build(seq)))
+                except BaseException:
+                    self._instr.pop(seq, None)
+                    raise
+                self._next_seq = rmi.next_sequence_id(seq)
+            try:
+                async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
+                    return await fut
+            except TimeoutError as err:
+                raise DriverTimeout(
+                    f"instruction SequenceID {seq} not completed in time", kind=self.kind
+                ) from err
+            finally:
+                self._instr.pop(seq, None)
+
+    # --- robot API -----------------------------------------------------------------------------
+    async def move_to(
+        self, q_rad: Sequence[float], *, speed_pct: float | None = None, timeout: float = 60.0
+    ) -> JointReading:
+        """Move to ``q_rad`` (radians) with FINE termination; return the actual joints.
+
+        Raises
+        ------
+        LimitViolation
+            Target outside the configured joint limits (nothing is sent).
+        MotionRejected
+            The controller refused the motion or faulted while executing it.
+        DriverTimeout
+            The motion did not complete within ``timeout`` seconds.
+        """
+        q = self._check_target(q_rad)
+        self._live_stream()
+        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
+        q_deg = [math.degrees(v) for v in q]
+        deadline = time.monotonic() + timeout
+        for attempt in range(3):
+            packet = await self._instruction(
+                lambda seq: rmi.joint_motion_jrep(seq, q_deg, speed_pct=speed), deadline
+            )
+            eid = packet.error_id or 0
+            if eid == 0:
+                return await self.read_joints()
+            if eid in _SEQUENCE_ERRORS and attempt < 2:
+                self.log.warning(
+                    "instruction refused; resynchronising", error=rmi.describe_error(eid)
+                )
+                self._needs_recovery = True
+                continue
+            raise MotionRejected(
+                f"FRC_JointMotionJRep refused: {rmi.describe_error(eid)}", kind=self.kind, code=eid
+            )
+        raise MotionRejected("motion refused after recovery", kind=self.kind)
+
+    async def read_joints(self) -> JointReading:
+        """Return the actual joint angles from ``FRC_ReadJointAngles`` (radians)."""
+        self._live_stream()
+        packet = await self._command("FRC_ReadJointAngles", Group=self.options.group)
+        q_deg = rmi.joint_angles(packet.body, self.dof)
+        return JointReading(tuple(math.radians(v) for v in q_deg), time.time())
+
+    async def read_error(self) -> str:
+        """Return the controller's most recent alarm text (``FRC_ReadError``)."""
+        packet = await self._command("FRC_ReadError", Count=1)
+        return str(packet.body.get("ErrorData", ""))
+
+    # --- compensation --------------------------------------------------------------------------
+    async def write_compensation(self, table: CompensationTable) -> None:
+        """Write a ``frames`` or ``targets`` table, read it back and compare.
+
+        Raises
+        ------
+        CompensationError
+            The table kind is not supported or does not fit the configured registers.
+        LimitViolation
+            A target row lies outside the joint limits (nothing is written).
+        VerificationMismatch
+            The controller holds different values after writing.
+        """
+        self._live_stream()
+        if table.kind == "frames":
+            await self._write_frames(table)
+        elif table.kind == "targets":
+            await self._write_targets(table)
+        else:
+            raise CompensationError(
+                f"{self.kind} stores only 'frames' and 'targets' tables, not {table.kind!r}"
+            )
+        self._last_table = table
+        back = await self.read_compensation()
+        diff = table_diff(table, back, tol=self.options.verify_tol)
+        if diff:
+            raise VerificationMismatch(
+                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff
+            )
+
+    async def _write_frames(self, table: CompensationTable) -> None:
+        if table.frames is None:
+            raise CompensationError("frames table without a frames payload")
+        o = self.options
+        base, tool = table.frames.base, table.frames.tool
+        await self._command(
+            "FRC_WriteUFrameData",
+            FrameNumber=o.uframe_number,
+            Frame=rmi.frame_fields(base.x, base.y, base.z, base.w, base.p, base.r),
+            Group=o.group,
+        )
+        await self._command(
+            "FRC_WriteUToolData",
+            ToolNumber=o.utool_number,
+            Frame=rmi.frame_fields(tool.x, tool.y, tool.z, tool.w, tool.p, tool.r),
+            Group=o.group,
+        )
+
+    def _pr_rows(self, table: CompensationTable) -> list[TargetRow]:
+        rows = [r for r in (table.targets or []) if r.status == "ok"]
+        o = self.options
+        if self.dof > 6:
+            raise CompensationError("targets tables through PRs support at most 6 joints")
+        for r in rows:
+            if not 0 <= r.index < o.pr_count:
+                raise CompensationError(
+                    f"target index {r.index} outside PR[{o.pr_base}..{o.pr_base + o.pr_count - 1}]"
+                )
+            check_joint_target(
+                [math.radians(v) for v in r.q_deg], self.joint_limits_rad, kind=self.kind
+            )
+        return rows
+
+    async def _write_targets(self, table: CompensationTable) -> None:
+        rows = self._pr_rows(table)  # every row checked before anything is written
+        o = self.options
+        for r in rows:
+            slots = [*r.q_deg, *([0.0] * (6 - len(r.q_deg)))]
+            await self._command(
+                "FRC_WritePositionRegister",
+                RegisterNumber=o.pr_base + r.index,
+                Configuration={
+                    "UToolNumber": 0,
+                    "UFrameNumber": 0,
+                    "Front": 1,
+                    "Up": 1,
+                    "Left": 0,
+                    "Flip": 0,
+                    "Turn4": 0,
+                    "Turn5": 0,
+                    "Turn6": 0,
+                },
+                Position=rmi.frame_fields(*slots),
+                Group=o.group,
+            )
+
+    async def read_compensation(self) -> CompensationTable | None:
+        """Return the last table written in this session, its numbers re-read from the controller.
+
+        RMI has nowhere to keep a table's metadata, so without a table written in this session
+        there is nothing to read and the result is None.
+        """
+        self._live_stream()
+        table = self._last_table
+        if table is None:
+            return None
+        o = self.options
+        if table.kind == "frames":
+            uf = await self._command(
+                "FRC_ReadUFrameData", FrameNumber=o.uframe_number, Group=o.group
+            )
+            ut = await self._command("FRC_ReadUToolData", ToolNumber=o.utool_number, Group=o.group)
+            base = Frame(**dict(zip("xyzwpr", rmi.parse_frame(uf.body), strict=True)))
+            tool = Frame(**dict(zip("xyzwpr", rmi.parse_frame(ut.body), strict=True)))
+            update: dict[str, Any] = {"frames": FramesPayload(base=base, tool=tool)}
+        else:
+            rows = []
+            for r in table.targets or []:
+                if r.status != "ok":
+                    rows.append(r)
+                    continue
+                pr = await self._command(
+                    "FRC_ReadPositionRegister", RegisterNumber=o.pr_base + r.index, Group=o.group
+                )
+                pos = rmi.parse_frame(pr.body, "Position")
+                rows.append(r.model_copy(update={"q_deg": list(pos[: len(r.q_deg)])}))
+            update = {"targets": rows}
+        back = table.model_copy(update=update)
+        return back.model_copy(update={"checksum": back.compute_checksum()})
+
+
+def _int_or(value: Any, default: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        return default
+    return value

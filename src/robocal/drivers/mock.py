@@ -1,0 +1,224 @@
+"""In-process mock robot and tracker backed by the virtual robot (no I/O at all).
+
+A :class:`MockRobot` and a :class:`MockTracker` built with the same ``robot``, ``scenario``,
+``seed`` and ``world`` options share one :class:`~robocal.drivers.sim.world.SimWorld`, so the
+tracker measures where the robot actually is. They double as test doubles: faults can be
+injected through their options.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+from pydantic import Field
+
+from robocal.compensation import CompensationTable
+from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
+from robocal.drivers._compensation import table_diff
+from robocal.drivers.api import JointReading, TrackerReading
+from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
+from robocal.errors import BeamLost, ConfigError, Unstable, VerificationMismatch
+
+__all__ = ["MockRobot", "MockRobotOptions", "MockTracker", "MockTrackerOptions"]
+
+
+class _WorldOptions(DriverOptions):
+    robot: str = DEFAULT_ROBOT
+    scenario: str = "paper"
+    seed: int = 1
+    world: str = Field(default="default", description="name of the shared world")
+
+
+class MockRobotOptions(_WorldOptions):
+    """Options of :class:`MockRobot`.
+
+    ``joint_limits_deg`` defaults to the virtual robot's limits; ``move_time_s`` is the
+    simulated time per move; ``corrupt_readback`` makes the stored compensation table differ
+    from what was written (to exercise verification).
+    """
+
+    joint_limits_deg: tuple[tuple[float, float], ...] | None = None
+    default_speed_pct: float = Field(default=10.0, gt=0.0, le=100.0)
+    move_time_s: float = Field(default=0.0, ge=0.0)
+    corrupt_readback: bool = False
+
+
+class MockTrackerOptions(_WorldOptions):
+    """Options of :class:`MockTracker`: fault rates per measurement and a fault seed."""
+
+    beam_break_rate: float = Field(default=0.0, ge=0.0, le=1.0)
+    unstable_rate: float = Field(default=0.0, ge=0.0, le=1.0)
+    fault_seed: int = 0
+    measure_time_s: float = Field(default=0.0, ge=0.0)
+
+
+class MockRobot(RobotDriverBase):
+    """In-process robot: moves the shared virtual robot instantly (or after ``move_time_s``).
+
+    Parameters
+    ----------
+    options : MockRobotOptions or mapping
+        Validated options.
+    world : SimWorld, optional
+        Use this world instead of the shared one named by the options.
+    """
+
+    kind: ClassVar[str] = "mock"
+    Options: ClassVar[type[DriverOptions]] = MockRobotOptions
+    options: MockRobotOptions  # type: ignore[assignment]
+    supported_compensation: ClassVar[frozenset[str]] = frozenset({"targets", "joint", "frames"})
+
+    def __init__(
+        self,
+        options: MockRobotOptions | Mapping[str, Any] | None = None,
+        *,
+        world: SimWorld | None = None,
+    ) -> None:
+        super().__init__(options)
+        self._world = world
+        self._stored: str | None = None
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world (created on first use; pure computation, no I/O)."""
+        if self._world is None:
+            o = self.options
+            self._world = shared_world(o.robot, o.scenario, o.seed, o.world)
+        return self._world
+
+    @property
+    def dof(self) -> int:
+        """Number of joints."""
+        return len(self.joint_limits_rad)
+
+    @property
+    def joint_limits_rad(self) -> tuple[tuple[float, float], ...]:
+        """Configured limits, or the virtual robot's, radians."""
+        lim = self.options.joint_limits_deg
+        if lim is None:
+            return self.world.joint_limits_rad
+        return tuple((math.radians(lo), math.radians(hi)) for lo, hi in lim)
+
+    async def _connect_impl(self, timeout: float) -> None:
+        if self.dof != self.world.dof:
+            raise ConfigError(
+                f"{len(self.joint_limits_rad)} joint limits for a {self.world.dof}-joint robot",
+                source="mock options",
+                key="joint_limits_deg",
+            )
+
+    async def _close_impl(self) -> None:
+        return None
+
+    async def move_to(
+        self, q_rad: Sequence[float], *, speed_pct: float | None = None, timeout: float = 60.0
+    ) -> JointReading:
+        """Move the virtual robot to ``q_rad`` (radians) and return the actual joints."""
+        q = self._check_target(q_rad)
+        self._ensure_connected()
+        if self.options.move_time_s > 0:
+            await asyncio.sleep(min(self.options.move_time_s, timeout))
+        self.world.move(q)
+        return await self.read_joints()
+
+    async def read_joints(self) -> JointReading:
+        """Return the virtual robot's actual joints (radians)."""
+        self._ensure_connected()
+        await asyncio.sleep(0)
+        return JointReading(tuple(float(v) for v in self.world.q_actual_rad), time.time())
+
+    async def write_compensation(self, table: CompensationTable) -> None:
+        """Store ``table`` (as JSON), read it back and verify content and checksum."""
+        self._ensure_connected()
+        sealed = table if table.checksum else table.sealed()
+        stored = sealed
+        if self.options.corrupt_readback:
+            stored = sealed.model_copy(update={"predicted_residual_mm": 1e9})
+        self._stored = stored.model_dump_json()
+        back = await self.read_compensation()
+        diff = table_diff(sealed, back)
+        if back is not None and back.checksum != sealed.checksum:
+            diff.append("checksum differs")
+        if diff:
+            raise VerificationMismatch(
+                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff
+            )
+
+    async def read_compensation(self) -> CompensationTable | None:
+        """Return the stored table, or None."""
+        self._ensure_connected()
+        if self._stored is None:
+            return None
+        return CompensationTable.model_validate_json(self._stored)
+
+
+class MockTracker(DriverBase):
+    """In-process tracker measuring the shared virtual robot's reflector with noise.
+
+    Parameters
+    ----------
+    options : MockTrackerOptions or mapping
+        Validated options.
+    world : SimWorld, optional
+        Use this world instead of the shared one named by the options.
+    """
+
+    kind: ClassVar[str] = "mock"
+    Options: ClassVar[type[DriverOptions]] = MockTrackerOptions
+    options: MockTrackerOptions  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        options: MockTrackerOptions | Mapping[str, Any] | None = None,
+        *,
+        world: SimWorld | None = None,
+    ) -> None:
+        super().__init__(options)
+        self._world = world
+        self._faults = random.Random(self.options.fault_seed)
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world (created on first use)."""
+        if self._world is None:
+            o = self.options
+            self._world = shared_world(o.robot, o.scenario, o.seed, o.world)
+        return self._world
+
+    async def _connect_impl(self, timeout: float) -> None:
+        _ = self.world
+
+    async def _close_impl(self) -> None:
+        return None
+
+    async def measure(
+        self, *, samples: int = 10, timeout: float = 10.0, point_id: str | None = None
+    ) -> TrackerReading:
+        """Measure the reflector of the virtual robot (metres, tracker frame)."""
+        self._ensure_connected()
+        if samples < 1:
+            raise ConfigError("samples must be at least 1", source="measure", key="samples")
+        if self.options.measure_time_s > 0:
+            await asyncio.sleep(min(self.options.measure_time_s, timeout))
+        else:
+            await asyncio.sleep(0)
+        if self._faults.random() < self.options.beam_break_rate:
+            raise BeamLost("beam broken (injected)", kind=self.kind)
+        if self._faults.random() < self.options.unstable_rate:
+            raise Unstable("target not stable (injected)", kind=self.kind)
+        m = self.world.measure(samples)
+        return TrackerReading(
+            position_m=m.mean_m,
+            std_m=m.std_m,
+            n=m.n,
+            rms_m=m.rms_m,
+            timestamp=time.time(),
+            status="ok",
+            weather={"temp_c": 20.0, "press_hpa": 1013.25, "hum_pct": 45.0},
+            point_id=point_id,
+        )

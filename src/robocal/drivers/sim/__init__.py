@@ -1,0 +1,296 @@
+"""Protocol simulators on loopback, all driven by one shared :class:`SimWorld`.
+
+In-process (tests, benchmarks)::
+
+    async with SimCell(seed=1, ltp_pty=True) as cell:
+        robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+        tracker = load_tracker("ltp", cell.tracker_options("tcp"))
+
+As a process (``robocal sim ...`` calls :func:`main`; also ``python -m robocal.drivers.sim``)::
+
+    robocal sim all --seed 3 --pty --fault-rate 0.1 --ports-file ports.json
+
+prints the bound ports as one JSON line (and writes them to ``--ports-file``), then serves
+until SIGTERM or SIGINT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import structlog
+
+from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
+from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
+from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
+
+__all__ = [
+    "DEFAULT_ROBOT",
+    "FanucRmiSimulator",
+    "FanucSimOptions",
+    "FaultConfig",
+    "FaultInjector",
+    "LtpSimOptions",
+    "LtpTrackerSimulator",
+    "ModbusPlcSimulator",
+    "ModbusSimOptions",
+    "SimCell",
+    "SimWorld",
+    "main",
+    "shared_world",
+]
+
+_log = structlog.get_logger(__name__)
+
+
+class SimCell:
+    """Start any of the three simulators around one world; an async context manager.
+
+    Parameters
+    ----------
+    robot, scenario, seed
+        Virtual cell (``VirtualCell.create``); ignored when ``world`` is given.
+    world : SimWorld, optional
+        An existing world to serve.
+    fanuc, modbus, ltp : bool or options
+        Which simulators to run (True: default options; False: not at all).
+    ltp_tcp, ltp_pty : bool
+        Serve the tracker on TCP and/or on a pty pair.
+    faults : FaultConfig, optional
+        Injected faults, shared by all simulators (each draws with its own generator).
+    host : str
+        Listening address (loopback).
+    ports : dict, optional
+        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp`` (0: free port).
+
+    Attributes
+    ----------
+    fanuc_sim, modbus_sim, ltp_sim
+        The running simulators (None when not requested).
+    """
+
+    def __init__(
+        self,
+        *,
+        robot: str = DEFAULT_ROBOT,
+        scenario: str = "paper",
+        seed: int = 1,
+        world: SimWorld | None = None,
+        fanuc: bool | FanucSimOptions = True,
+        modbus: bool | ModbusSimOptions = True,
+        ltp: bool | LtpSimOptions = True,
+        ltp_tcp: bool = True,
+        ltp_pty: bool = False,
+        faults: FaultConfig | None = None,
+        host: str = "127.0.0.1",
+        ports: dict[str, int] | None = None,
+    ) -> None:
+        self.robot, self.scenario, self.seed = robot, scenario, seed
+        self._world = world
+        self._fanuc, self._modbus, self._ltp = fanuc, modbus, ltp
+        self.ltp_tcp, self.ltp_pty = ltp_tcp, ltp_pty
+        self.faults = faults
+        self.host = host
+        self._fixed = dict(ports or {})
+        self.fanuc_sim: FanucRmiSimulator | None = None
+        self.modbus_sim: ModbusPlcSimulator | None = None
+        self.ltp_sim: LtpTrackerSimulator | None = None
+
+    @property
+    def world(self) -> SimWorld:
+        """The shared world (created on first use)."""
+        if self._world is None:
+            self._world = SimWorld.create(self.robot, self.scenario, self.seed)
+        return self._world
+
+    async def start(self) -> SimCell:
+        """Start the requested simulators."""
+        world, p = self.world, self._fixed
+        try:
+            if self._fanuc is not False:
+                opts = self._fanuc if isinstance(self._fanuc, FanucSimOptions) else None
+                self.fanuc_sim = FanucRmiSimulator(world, opts, self.faults)
+                await self.fanuc_sim.start(
+                    self.host, p.get("fanuc_connect", 0), p.get("fanuc_main", 0)
+                )
+            if self._modbus is not False:
+                mopts = self._modbus if isinstance(self._modbus, ModbusSimOptions) else None
+                self.modbus_sim = ModbusPlcSimulator(world, mopts, self.faults)
+                await self.modbus_sim.start(self.host, p.get("modbus", 0))
+            if self._ltp is not False:
+                lopts = self._ltp if isinstance(self._ltp, LtpSimOptions) else None
+                self.ltp_sim = LtpTrackerSimulator(world, lopts, self.faults)
+                if self.ltp_tcp:
+                    await self.ltp_sim.start_tcp(self.host, p.get("ltp", 0))
+                if self.ltp_pty:
+                    await self.ltp_sim.start_pty()
+        except BaseException:
+            await self.stop()
+            raise
+        return self
+
+    async def stop(self) -> None:
+        """Stop every simulator; idempotent."""
+        for sim in (self.ltp_sim, self.modbus_sim, self.fanuc_sim):
+            if sim is not None:
+                await sim.stop()
+
+    async def __aenter__(self) -> SimCell:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    @property
+    def ports(self) -> dict[str, Any]:
+        """Bound endpoints as JSON-ready data."""
+        out: dict[str, Any] = {"host": self.host, "robot": self.world.robot_name}
+        if self.fanuc_sim is not None:
+            out["fanuc_rmi"] = {
+                "connect_port": self.fanuc_sim.connect_port,
+                "main_port": self.fanuc_sim.main_port,
+            }
+        if self.modbus_sim is not None:
+            out["modbus_plc"] = {"port": self.modbus_sim.port}
+        if self.ltp_sim is not None:
+            out["ltp_tracker"] = {
+                "port": self.ltp_sim.port or None,
+                "pty": self.ltp_sim.pty_path,
+            }
+        return out
+
+    def robot_options(self, kind: Literal["fanuc_rmi", "modbus_plc", "mock"]) -> dict[str, Any]:
+        """Options for ``load_robot(kind, ...)`` pointing at this cell's simulator."""
+        limits = [list(lim) for lim in self.world.joint_limits_deg]
+        if kind == "fanuc_rmi":
+            if self.fanuc_sim is None:
+                raise RuntimeError("the FANUC RMI simulator is not running")
+            return {
+                "host": self.host,
+                "connect_port": self.fanuc_sim.connect_port,
+                "joint_limits_deg": limits,
+            }
+        if kind == "modbus_plc":
+            if self.modbus_sim is None:
+                raise RuntimeError("the Modbus PLC simulator is not running")
+            return {
+                "host": self.host,
+                "port": self.modbus_sim.port,
+                "joint_limits_deg": limits,
+                "register_map": self.modbus_sim.map.model_dump(),
+                "poll_interval_s": 0.001,
+            }
+        return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
+
+    def tracker_options(self, via: Literal["tcp", "socket", "pty"] = "tcp") -> dict[str, Any]:
+        """Options for ``load_tracker("ltp", ...)`` over TCP, pyserial ``socket://`` or the pty."""
+        sim = self.ltp_sim
+        if sim is None:
+            raise RuntimeError("the LTP tracker simulator is not running")
+        if via == "pty":
+            if sim.pty_path is None:
+                raise RuntimeError("the tracker simulator has no pty (ltp_pty=False)")
+            return {"url": f"serial://{sim.pty_path}?baudrate=115200"}
+        if not sim.port:
+            raise RuntimeError("the tracker simulator has no TCP port (ltp_tcp=False)")
+        scheme = "tcp" if via == "tcp" else "socket"
+        return {"url": f"{scheme}://{self.host}:{sim.port}"}
+
+
+# --- process entry point -----------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="robocal sim",
+        description="Run protocol simulators on loopback until SIGTERM/SIGINT.",
+    )
+    p.add_argument("which", choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "all"])
+    p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
+    p.add_argument("--scenario", default="paper", help="planted-error scenario")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument(
+        "--port",
+        type=int,
+        default=0,
+        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3",
+    )
+    p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
+    p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
+    p.add_argument("--time-scale", type=float, default=0.001, help="simulated time factor")
+    p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
+    return p
+
+
+def _fixed_ports(which: str, port: int) -> dict[str, int]:
+    if port == 0:
+        return {}
+    if which == "fanuc-rmi":
+        return {"fanuc_connect": port, "fanuc_main": port + 1}
+    if which == "modbus-plc":
+        return {"modbus": port}
+    if which == "ltp-tracker":
+        return {"ltp": port}
+    return {"fanuc_connect": port, "fanuc_main": port + 1, "modbus": port + 2, "ltp": port + 3}
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    which = args.which
+    scale = args.time_scale
+    cell = SimCell(
+        robot=args.robot,
+        scenario=args.scenario,
+        seed=args.seed,
+        fanuc=FanucSimOptions(time_scale=scale) if which in ("fanuc-rmi", "all") else False,
+        modbus=ModbusSimOptions(time_scale=scale) if which in ("modbus-plc", "all") else False,
+        ltp=LtpSimOptions(time_scale=scale) if which in ("ltp-tracker", "all") else False,
+        ltp_pty=args.pty,
+        faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
+        host=args.host,
+        ports=_fixed_ports(which, args.port),
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        async with cell:
+            blob = json.dumps(cell.ports, sort_keys=True)
+            if args.ports_file is not None:
+                tmp = args.ports_file.with_name(args.ports_file.name + ".tmp")
+                tmp.write_text(blob + "\n")
+                os.replace(tmp, args.ports_file)
+            sys.stdout.write(blob + "\n")
+            sys.stdout.flush()
+            await stop.wait()
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(Exception):
+                loop.remove_signal_handler(sig)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|all [options]``; return the exit code."""
+    args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    if not structlog.is_configured():
+        # stdout carries the ports JSON; keep log lines off it.
+        structlog.configure(logger_factory=structlog.PrintLoggerFactory(file=sys.stderr))
+    if not 0.0 <= args.fault_rate <= 1.0:
+        sys.stderr.write("robocal sim: --fault-rate must be within [0, 1]\n")
+        return 2
+    try:
+        return asyncio.run(_serve(args))
+    except OSError as err:
+        sys.stderr.write(f"robocal sim: {err}\n")
+        return 1

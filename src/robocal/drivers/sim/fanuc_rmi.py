@@ -1,0 +1,577 @@
+"""An asyncio FANUC RMI controller simulator (protocols.md 1.1, "fidelity checklist").
+
+Two listening sockets on loopback: ``FRC_Connect`` is accepted only on the connect port, whose
+reply names the session port; the simulator then closes that connection. On the session port:
+commands reply at once; instructions are queued (at most 8 in flight, RMIT-028 beyond),
+SequenceIDs must be consecutive from 1 after ``FRC_Initialize`` (a gap gives RMIT-029 and
+HOLD until ``FRC_Reset``), and each instruction replies when its simulated motion ends.
+A target outside the joint limits, or an injected alarm, pushes ``FRC_SystemFault`` and holds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import structlog
+from pydantic import BaseModel, ConfigDict, Field
+
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.world import SimWorld
+from robocal.errors import FramingError, ProtocolError, UnexpectedReply
+from robocal.protocols import LineFramer
+from robocal.protocols import fanuc_rmi as rmi
+
+__all__ = ["FanucRmiSimulator", "FanucSimOptions"]
+
+_log = structlog.get_logger(__name__)
+
+
+class FanucSimOptions(BaseModel):
+    """Behaviour of the simulated controller.
+
+    ``time_scale`` multiplies simulated motion and wait times (0 = instantaneous, 1 = real
+    time); the default is fast. ``joint_limits_deg`` overrides the world's robot limits.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    major_version: int = 7
+    minor_version: int = 0
+    time_scale: float = Field(default=0.001, ge=0.0)
+    max_joint_speed_deg_s: float = Field(default=180.0, gt=0.0)
+    min_motion_s: float = Field(default=0.012, ge=0.0)
+    check_sequence_ids: bool = True
+    idle_timeout_s: float | None = Field(default=None, gt=0.0)
+    servo_ready: bool = True
+    tp_enabled: bool = False
+    rmi_move_selected: bool = False
+    n_uframes: int = 9
+    n_utools: int = 10
+    n_position_registers: int = 200
+    joint_limits_deg: tuple[tuple[float, float], ...] | None = None
+
+
+_ZERO_FRAME = {"X": 0.0, "Y": 0.0, "Z": 0.0, "W": 0.0, "P": 0.0, "R": 0.0}
+_ZERO_CONFIG = {
+    "UToolNumber": 0,
+    "UFrameNumber": 0,
+    "Front": 1,
+    "Up": 1,
+    "Left": 0,
+    "Flip": 0,
+    "Turn4": 0,
+    "Turn5": 0,
+    "Turn6": 0,
+}
+
+
+class _Session:
+    """One client on the session port."""
+
+    def __init__(
+        self,
+        sim: FanucRmiSimulator,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+    ) -> None:
+        self.sim = sim
+        self.reader = reader
+        self.writer = writer
+        self.framer = LineFramer(max_length=rmi.MAX_LINE)
+        self.write_lock = asyncio.Lock()
+        self.queue: asyncio.Queue[tuple[int, rmi.Packet]] = asyncio.Queue()
+        self.in_flight = 0
+        self.closed = False
+        self.executor: asyncio.Task[None] | None = None
+        self.paused = asyncio.Event()
+        self.paused.set()
+
+    # --- output --------------------------------------------------------------------------------
+    async def send(self, packet: Mapping[str, Any], *, delay_ok: bool = True) -> None:
+        if self.closed:
+            return
+        faults = self.sim.faults
+        if delay_ok and faults.fire("slow"):
+            await asyncio.sleep(faults.config.slow_s)
+        async with self.write_lock:
+            try:
+                if faults.fire("garbage"):
+                    self.writer.write(faults.garbage() + b"\r\n")
+                self.writer.write(rmi.encode(packet) + b"\r\n")
+                await self.writer.drain()
+            except (ConnectionError, RuntimeError):
+                self.closed = True
+
+    # --- input ---------------------------------------------------------------------------------
+    async def run(self) -> None:
+        self.executor = asyncio.create_task(self._execute(), name="rmi-sim-executor")
+        idle = self.sim.options.idle_timeout_s
+        try:
+            while not self.closed:
+                try:
+                    async with asyncio.timeout(idle):
+                        data = await self.reader.read(4096)
+                except TimeoutError:
+                    await self.send({"Communication": "FRC_Terminate"}, delay_ok=False)
+                    break
+                if not data:
+                    break
+                self.framer.feed(data)
+                for item in self.framer.lines():
+                    if isinstance(item, FramingError):
+                        await self.send({"Command": "Unknown", "ErrorID": rmi.rmit(22)})
+                        continue
+                    if self.sim.faults.fire("drop"):
+                        _log.info("rmi sim: dropping the connection (injected)")
+                        self.closed = True
+                        break
+                    await self.handle(item)
+                    if self.closed:
+                        break
+        except ConnectionError:
+            pass
+        finally:
+            await self.shutdown()
+
+    async def shutdown(self) -> None:
+        self.closed = True
+        if self.executor is not None:
+            self.executor.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self.executor
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            await self.writer.wait_closed()
+
+    async def handle(self, line: bytes) -> None:
+        try:
+            packet = rmi.decode(line)
+        except ProtocolError:
+            await self.send({"Command": "Unknown", "ErrorID": rmi.rmit(22)})
+            return
+        self.sim.received.append(dict(packet.body))
+        if packet.category == "Communication":
+            if packet.name == "FRC_Disconnect":
+                await self.send({"Communication": "FRC_Disconnect", "ErrorID": 0}, delay_ok=False)
+                self.closed = True
+            else:
+                await self.send({"Communication": packet.name, "ErrorID": rmi.rmit(26)})
+        elif packet.category == "Command":
+            await self.send(self.sim.command(packet, self))
+        else:
+            await self.instruction(packet)
+
+    async def instruction(self, packet: rmi.Packet) -> None:
+        sim = self.sim
+        try:
+            seq = packet.sequence_id
+        except UnexpectedReply:
+            seq = None
+        reply: dict[str, Any] = {"Instruction": packet.name}
+        if seq is not None:
+            reply["SequenceID"] = seq
+        if not sim.initialized:
+            await self.send({**reply, "ErrorID": rmi.rmit(9)})
+            return
+        if seq is None:
+            sim.hold = True
+            await self.send({**reply, "ErrorID": rmi.rmit(29)})
+            return
+        if sim.hold:
+            await self.send({**reply, "ErrorID": rmi.rmit(24)})
+            return
+        if self.in_flight >= rmi.MAX_IN_FLIGHT:
+            await self.send({**reply, "ErrorID": rmi.rmit(28)})
+            return
+        if sim.options.check_sequence_ids and seq != sim.next_sequence_id:
+            sim.hold = True
+            sim.last_alarm = f"RMIT-029 Invalid sequence ID {seq}, expected {sim.next_sequence_id}"
+            await self.send({**reply, "ErrorID": rmi.rmit(29)})
+            return
+        sim.next_sequence_id = rmi.next_sequence_id(seq)
+        self.in_flight += 1
+        await self.queue.put((seq, packet))
+
+    async def _execute(self) -> None:
+        sim = self.sim
+        while True:
+            seq, packet = await self.queue.get()
+            await self.paused.wait()
+            if not sim.initialized:
+                self.in_flight = max(0, self.in_flight - 1)
+                continue
+            sim.moving = True
+            try:
+                error_id = await sim.execute(seq, packet, self)
+            finally:
+                sim.moving = False
+                self.in_flight = max(0, self.in_flight - 1)
+            if error_id is None:  # faulted: no reply, queue flushed
+                self.flush()
+                continue
+            await self.send({"Instruction": packet.name, "ErrorID": error_id, "SequenceID": seq})
+
+    def flush(self) -> None:
+        while not self.queue.empty():
+            self.queue.get_nowait()
+        self.in_flight = 0
+
+
+class FanucRmiSimulator:
+    """Simulated R-30iB Plus controller with the RMI option, serving on loopback.
+
+    Parameters
+    ----------
+    world : SimWorld
+        The robot being moved.
+    options : FanucSimOptions, optional
+        Controller behaviour.
+    faults : FaultConfig, optional
+        Injected faults (garbage lines, slow replies, dropped connections, alarms).
+
+    Attributes
+    ----------
+    received : list of dict
+        Every packet received on the session port (tests assert on it).
+    uframes, utools : dict
+        Stored user and tool frames (mm, degrees), by number.
+    position_registers : dict
+        Stored PRs: number -> ``{"Configuration": ..., "Position": ...}``.
+    """
+
+    def __init__(
+        self,
+        world: SimWorld,
+        options: FanucSimOptions | None = None,
+        faults: FaultConfig | None = None,
+    ) -> None:
+        self.world = world
+        self.options = options or FanucSimOptions()
+        self.faults = FaultInjector(faults)
+        lim = self.options.joint_limits_deg or world.joint_limits_deg
+        self.joint_limits_deg = tuple(lim)
+        self.received: list[dict[str, Any]] = []
+        self.uframes: dict[int, dict[str, float]] = {}
+        self.utools: dict[int, dict[str, float]] = {}
+        self.position_registers: dict[int, dict[str, Any]] = {}
+        self.active_uframe = 0
+        self.active_utool = 1
+        self.override = 100
+        self.host = "127.0.0.1"
+        self.connect_port = 0
+        self.main_port = 0
+        self._servers: list[asyncio.Server] = []
+        self._session: _Session | None = None
+        self._session_task: asyncio.Task[None] | None = None
+        self._handshake_pending = False
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._t0 = time.monotonic()
+        self._reset_state()
+
+    def _reset_state(self) -> None:
+        self.initialized = False
+        self.hold = False
+        self.moving = False
+        self.next_sequence_id = 1
+        self.last_alarm = ""
+
+    # --- lifecycle -----------------------------------------------------------------------------
+    async def start(
+        self, host: str = "127.0.0.1", connect_port: int = 0, main_port: int = 0
+    ) -> tuple[int, int]:
+        """Listen on both ports (0 picks free ones); return ``(connect_port, main_port)``."""
+        self.host = host
+        main = await asyncio.start_server(self._on_main, host, main_port)
+        self._servers.append(main)
+        conn = await asyncio.start_server(self._on_connect, host, connect_port)
+        self._servers.append(conn)
+        self.main_port = main.sockets[0].getsockname()[1]
+        self.connect_port = conn.sockets[0].getsockname()[1]
+        _log.info("rmi sim listening", connect_port=self.connect_port, main_port=self.main_port)
+        return self.connect_port, self.main_port
+
+    async def stop(self) -> None:
+        """Close the listeners and any session; idempotent."""
+        for server in self._servers:
+            server.close()
+        if self._session is not None:
+            self._session.closed = True
+            self._session.writer.close()
+        tasks = [t for t in (self._session_task, *self._tasks) if t is not None]
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        for server in self._servers:
+            with contextlib.suppress(Exception):
+                async with asyncio.timeout(2.0):
+                    await server.wait_closed()
+        self._servers.clear()
+
+    def _track(self, coro: Any) -> None:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)
+        try:
+            framer = LineFramer(max_length=rmi.MAX_LINE)
+            async with asyncio.timeout(10.0):
+                while True:
+                    data = await reader.read(4096)
+                    if not data:
+                        return
+                    framer.feed(data)
+                    try:
+                        line = framer.next_line()
+                    except FramingError:
+                        line = b""
+                    if line is not None:
+                        break
+            try:
+                packet = rmi.decode(line)
+            except ProtocolError:
+                packet = None
+            if packet is None or packet.body != {"Communication": "FRC_Connect"}:
+                reply: dict[str, Any] = {"Communication": "FRC_Connect", "ErrorID": rmi.rmit(22)}
+            elif self._session is not None and not self._session.closed:
+                reply = {"Communication": "FRC_Connect", "ErrorID": rmi.rmit(26)}
+            else:
+                self._handshake_pending = True
+                reply = {
+                    "Communication": "FRC_Connect",
+                    "ErrorID": 0,
+                    "PortNumber": self.main_port,
+                    "MajorVersion": self.options.major_version,
+                    "MinorVersion": self.options.minor_version,
+                }
+            writer.write(rmi.encode(reply) + b"\r\n")
+            await writer.drain()
+        except (TimeoutError, ConnectionError):
+            pass
+        finally:
+            # The controller closes the connect-port connection itself after replying.
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+            if task is not None:
+                self._tasks.discard(task)
+
+    async def _on_main(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if not self._handshake_pending or (self._session is not None and not self._session.closed):
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+            return
+        self._handshake_pending = False
+        self._reset_state()
+        session = _Session(self, reader, writer)
+        self._session = session
+        self._session_task = asyncio.current_task()
+        try:
+            await session.run()
+        finally:
+            self._reset_state()
+            if self._session is session:
+                self._session = None
+
+    # --- commands ------------------------------------------------------------------------------
+    def _time_tag(self) -> int:
+        return int((time.monotonic() - self._t0) * 1000) & 0x7FFFFFFF
+
+    def command(self, packet: rmi.Packet, session: _Session) -> dict[str, Any]:
+        """Return the reply to one command packet."""
+        name, body = packet.name, packet.body
+        ok: dict[str, Any] = {"Command": name, "ErrorID": 0}
+
+        def err(n: int) -> dict[str, Any]:
+            return {"Command": name, "ErrorID": rmi.rmit(n)}
+
+        if name == "FRC_GetStatus":
+            return {
+                **ok,
+                "ServoReady": int(self.options.servo_ready),
+                "TPMode": int(self.options.tp_enabled),
+                "RMIMotionStatus": int(self.initialized),
+                "ProgramStatus": 0 if self.initialized and not self.hold else 1,
+                "SingleStepMode": 0,
+                "NumberUTool": self.options.n_utools,
+                "NumberUFrame": self.options.n_uframes,
+                "NextSequenceID": self.next_sequence_id,
+                "Override": self.override,
+            }
+        if name == "FRC_Initialize":
+            if self.options.tp_enabled:
+                return err(8)
+            if not self.options.servo_ready:
+                return err(7)
+            if self.options.rmi_move_selected:
+                return {"Command": name, "ErrorID": 7015}
+            if self.initialized:
+                return err(15)
+            self.initialized = True
+            self.hold = False
+            self.next_sequence_id = 1
+            return {**ok, "GroupMask": int(body.get("GroupMask", 1) or 1)}
+        if name == "FRC_Abort":
+            if not self.initialized:
+                return err(9)
+            self.initialized = False
+            session.flush()
+            return ok
+        if name == "FRC_Reset":
+            self.hold = False
+            self.last_alarm = ""
+            return ok
+        if name == "FRC_Pause":
+            session.paused.clear()
+            return ok
+        if name == "FRC_Continue":
+            session.paused.set()
+            return ok
+        if name == "FRC_ReadError":
+            return {**ok, "Count": 1, "ErrorData": self.last_alarm or ""}
+        if name == "FRC_SetOverRide":
+            value = body.get("Value")
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 100:
+                return err(5)
+            self.override = value
+            return ok
+        if name == "FRC_ReadJointAngles":
+            q = [math.degrees(v) for v in self.world.q_actual_rad]
+            angles = {f"J{i + 1}": (q[i] if i < len(q) else 0.0) for i in range(9)}
+            return {**ok, "TimeTag": self._time_tag(), "JointAngle": angles}
+        if name == "FRC_GetUFrameUTool":
+            return {**ok, "UFrameNumber": self.active_uframe, "UToolNumber": self.active_utool}
+        if name == "FRC_SetUFrameUTool":
+            uf, ut = body.get("UFrameNumber"), body.get("UToolNumber")
+            if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
+                return err(3)
+            if not isinstance(ut, int) or not 1 <= ut <= self.options.n_utools:
+                return err(2)
+            self.active_uframe, self.active_utool = uf, ut
+            return ok
+        if name in ("FRC_ReadUFrameData", "FRC_WriteUFrameData"):
+            return self._frame_cmd(
+                body, ok, err, "FrameNumber", self.uframes, 3, self.options.n_uframes
+            )
+        if name in ("FRC_ReadUToolData", "FRC_WriteUToolData"):
+            return self._frame_cmd(
+                body, ok, err, "ToolNumber", self.utools, 2, self.options.n_utools
+            )
+        if name in ("FRC_ReadPositionRegister", "FRC_WritePositionRegister"):
+            n = body.get("RegisterNumber")
+            if isinstance(n, bool) or not isinstance(n, int):
+                return err(4)
+            if not 1 <= n <= self.options.n_position_registers:
+                return err(4)
+            if name == "FRC_WritePositionRegister":
+                try:
+                    pos = rmi.parse_frame(body, "Position")
+                except ProtocolError:
+                    return err(23)
+                config = body.get("Configuration")
+                if not isinstance(config, Mapping):
+                    return err(23)
+                position = dict(zip("XYZWPR", pos, strict=True))
+                self.position_registers[n] = {"Configuration": dict(config), "Position": position}
+                return {**ok, "RegisterNumber": n}
+            stored = self.position_registers.get(
+                n, {"Configuration": dict(_ZERO_CONFIG), "Position": dict(_ZERO_FRAME)}
+            )
+            return {**ok, "RegisterNumber": n, **stored}
+        return err(13)
+
+    def _frame_cmd(
+        self,
+        body: Mapping[str, Any],
+        ok: dict[str, Any],
+        err: Any,
+        key: str,
+        store: dict[int, dict[str, float]],
+        bad: int,
+        count: int,
+    ) -> dict[str, Any]:
+        n = body.get(key)
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= count:
+            return err(bad)
+        if str(ok["Command"]).startswith("FRC_Write"):
+            if self.moving:
+                return err(15)
+            try:
+                frame = rmi.parse_frame(body, "Frame")
+            except ProtocolError:
+                return err(23)
+            store[n] = dict(zip("XYZWPR", frame, strict=True))
+        return {**ok, key: n, "Frame": dict(store.get(n, _ZERO_FRAME))}
+
+    # --- instructions --------------------------------------------------------------------------
+    def _fault(self, seq: int, text: str, session: _Session) -> None:
+        self.hold = True
+        self.last_alarm = text
+        _log.info("rmi sim: system fault", sequence_id=seq, alarm=text)
+        self._track(session.send({"Communication": "FRC_SystemFault", "SequenceID": seq}))
+
+    async def execute(self, seq: int, packet: rmi.Packet, session: _Session) -> int | None:
+        """Run one instruction; return its reply ErrorID, or None after a system fault."""
+        body = packet.body
+        scale = self.options.time_scale
+        if packet.name == "FRC_JointMotionJRep":
+            dof = self.world.dof
+            try:
+                q_deg = rmi.joint_angles(body, dof)
+            except ProtocolError:
+                return rmi.rmit(23)
+            if body.get("SpeedType", "Percent") != "Percent":
+                return rmi.rmit(30)
+            speed = body.get("Speed")
+            if (
+                isinstance(speed, bool)
+                or not isinstance(speed, int | float)
+                or not 0 < speed <= 100
+            ):
+                return rmi.rmit(31)
+            if body.get("TermType", "FINE") not in ("FINE", "CNT", "CR"):
+                return rmi.rmit(32)
+            for i, (v, (lo, hi)) in enumerate(zip(q_deg, self.joint_limits_deg, strict=True)):
+                if not lo <= v <= hi:
+                    self._fault(seq, f"MOTN-017 Limit error (G:1^J{i + 1})", session)
+                    return None
+            if self.faults.fire("alarm"):
+                self._fault(seq, "SRVO-050 Collision Detect alarm (injected)", session)
+                return None
+            current = [math.degrees(v) for v in self.world.q_cmd_rad]
+            dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
+            rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
+            duration = max(dist / rate, self.options.min_motion_s) * scale
+            if duration > 0:
+                await asyncio.sleep(duration)
+            self.world.move([math.radians(v) for v in q_deg])
+            return 0
+        if packet.name == "FRC_WaitTime":
+            t = body.get("Time", 0)
+            if isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
+                return rmi.rmit(21)
+            if t * scale > 0:
+                await asyncio.sleep(t * scale)
+            return 0
+        if packet.name in ("FRC_SetUFrame", "FRC_SetUTool"):
+            key = "FrameNumber" if packet.name == "FRC_SetUFrame" else "ToolNumber"
+            n = body.get(key)
+            if not isinstance(n, int):
+                return rmi.rmit(3 if key == "FrameNumber" else 2)
+            if key == "FrameNumber":
+                self.active_uframe = n
+            else:
+                self.active_utool = n
+            return 0
+        return rmi.rmit(13)

@@ -1,0 +1,159 @@
+"""The simulated world shared by every simulator and mock driver of one cell.
+
+One :class:`SimWorld` holds one virtual robot (a :class:`robocal.simulation.VirtualCell`) and
+its current pose, so the tracker simulator measures where the robot simulator actually put
+the reflector: commanded joints plus joint repeatability noise, through the true (planted)
+kinematics, plus tracker noise.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["DEFAULT_ROBOT", "SimWorld", "WorldMeasurement", "forget_shared_worlds", "shared_world"]
+
+DEFAULT_ROBOT = "fanuc_lrmate200id"
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class WorldMeasurement:
+    """An averaged simulated tracker measurement, tracker frame, metres.
+
+    ``std_m`` is the standard uncertainty of the mean (per-sample sigma / sqrt(n));
+    ``sigma_m`` the per-sample sigma of the noise model; ``rms_m`` the RMS distance of the
+    samples from their mean.
+    """
+
+    mean_m: tuple[float, float, float]
+    std_m: tuple[float, float, float]
+    sigma_m: tuple[float, float, float]
+    rms_m: float
+    n: int
+
+
+class SimWorld:
+    """A virtual robot and its current pose.
+
+    Parameters
+    ----------
+    cell : VirtualCell
+        The virtual robot and tracker (``robocal.simulation.VirtualCell``).
+    seed : int
+        Seed of the world's noise generator (joint repeatability, tracker noise).
+    """
+
+    def __init__(self, cell: Any, *, seed: int = 0) -> None:
+        self.cell = cell
+        self.rng = np.random.default_rng(seed)
+        robot = cell.robot
+        self.dof: int = int(robot.dof)
+        self.robot_name: str = str(getattr(robot, "name", "robot"))
+        limits = getattr(robot, "joint_limits_rad", None)
+        if limits is None:
+            limits = robot.joint_limits
+        lim = np.asarray(limits, dtype=float).reshape(self.dof, 2)
+        self.joint_limits_rad: tuple[tuple[float, float], ...] = tuple(
+            (float(lo), float(hi)) for lo, hi in lim
+        )
+        q0 = np.clip(np.zeros(self.dof), lim[:, 0], lim[:, 1])
+        self.q_cmd_rad: Array = q0.copy()
+        self.q_actual_rad: Array = q0.copy()
+        self.moves = 0
+        # Simulators of one world may run in different threads only via to_thread; keep it safe.
+        self._lock = threading.Lock()
+
+    @classmethod
+    def create(cls, robot: str = DEFAULT_ROBOT, scenario: str = "paper", seed: int = 1) -> SimWorld:
+        """Build a world around ``VirtualCell.create(robot, scenario, seed)``."""
+        from robocal.simulation import VirtualCell
+
+        return cls(VirtualCell.create(robot=robot, scenario=scenario, seed=seed), seed=seed + 1)
+
+    @property
+    def joint_limits_deg(self) -> tuple[tuple[float, float], ...]:
+        """Joint limits in degrees (the form driver options take)."""
+        return tuple((math.degrees(lo), math.degrees(hi)) for lo, hi in self.joint_limits_rad)
+
+    def within_limits(self, q_rad: Any) -> bool:
+        """True if every joint of ``q_rad`` is inside the limits."""
+        q = np.asarray(q_rad, dtype=float)
+        lim = np.asarray(self.joint_limits_rad)
+        return bool(
+            q.shape == (self.dof,)
+            and np.all(np.isfinite(q))
+            and np.all(q >= lim[:, 0])
+            and np.all(q <= lim[:, 1])
+        )
+
+    def move(self, q_cmd_rad: Any) -> Array:
+        """Put the robot at ``q_cmd_rad`` (radians); return the actual joints it reached."""
+        q = np.asarray(q_cmd_rad, dtype=float).reshape(self.dof)
+        with self._lock:
+            actual = np.asarray(self.cell.actual_joints(q[None, :], self.rng), dtype=float)[0]
+            self.q_cmd_rad = q.copy()
+            self.q_actual_rad = actual
+            self.moves += 1
+        return actual.copy()
+
+    def true_reflector_position(self) -> Array:
+        """True reflector centre (3,) for the current actual joints, tracker frame, metres."""
+        return np.asarray(self.cell.reflector_position(self.q_actual_rad[None, :]), dtype=float)[0]
+
+    def measure(self, n: int, *, glitch: bool = False) -> WorldMeasurement:
+        """Simulate ``n`` tracker samples of the reflector and average them.
+
+        ``glitch`` adds a beam-break glitch (a few mm) to the mean, as a real tracker that
+        re-locked on a wrong return would report.
+        """
+        n = max(1, int(n))
+        with self._lock:
+            q = np.repeat(self.q_actual_rad[None, :], n, axis=0)
+            points, sigma = self.cell.measure(q, self.rng)
+            points = np.asarray(points, dtype=float)
+            sigma = np.asarray(sigma, dtype=float)
+            mean = points.mean(axis=0)
+            if glitch:
+                mean = np.asarray(self.cell.outlier(mean[None, :], self.rng), dtype=float)[0]
+        rms = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+        s = sigma[0]
+        std = s / math.sqrt(n)
+        return WorldMeasurement(
+            mean_m=(float(mean[0]), float(mean[1]), float(mean[2])),
+            std_m=(float(std[0]), float(std[1]), float(std[2])),
+            sigma_m=(float(s[0]), float(s[1]), float(s[2])),
+            rms_m=rms,
+            n=n,
+        )
+
+
+_SHARED: dict[tuple[str, str, int, str], SimWorld] = {}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_world(
+    robot: str = DEFAULT_ROBOT, scenario: str = "paper", seed: int = 1, name: str = "default"
+) -> SimWorld:
+    """Return the process-wide world for these parameters, creating it once.
+
+    Mock robot and mock tracker drivers built with the same options share a world this way,
+    so the mock tracker measures where the mock robot is.
+    """
+    key = (robot, scenario, seed, name)
+    with _SHARED_LOCK:
+        world = _SHARED.get(key)
+        if world is None:
+            world = _SHARED[key] = SimWorld.create(robot, scenario, seed)
+        return world
+
+
+def forget_shared_worlds() -> None:
+    """Drop every shared world (tests use it for isolation)."""
+    with _SHARED_LOCK:
+        _SHARED.clear()

@@ -1,0 +1,174 @@
+"""The one exception tree of robocal.
+
+Every failure robocal raises derives from :class:`RobocalError`. Subclasses are split by
+phase (configuration, driver, protocol, identification, compensation, campaign) and mix in
+the builtin a caller would naturally catch (``ValueError``, ``TimeoutError``, ...).
+Numerical non-convergence of a solver is reported as a status, not raised, except where a
+command-line contract asks for an error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+
+class RobocalError(Exception):
+    """Root of every error robocal raises."""
+
+
+class RobocalWarning(UserWarning):
+    """Root of every warning robocal emits."""
+
+
+# --- input ------------------------------------------------------------------------------------
+class ConfigError(RobocalError, ValueError):
+    """A configuration, description or data file is invalid.
+
+    ``source`` names the file (or request), ``key`` the offending key or column.
+    """
+
+    def __init__(self, message: str, *, source: str | None = None, key: str | None = None):
+        self.source = source
+        self.key = key
+        parts = []
+        if source:
+            parts.append(str(source))
+        if key:
+            parts.append(f"key {key!r}")
+        prefix = ": ".join(parts)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class DataError(ConfigError):
+    """A measurement or joint file is unusable (missing columns, NaN, wrong joint count)."""
+
+
+# --- drivers ----------------------------------------------------------------------------------
+class DriverError(RobocalError):
+    """A driver failed. ``kind`` names the driver."""
+
+    def __init__(self, message: str, *, kind: str | None = None):
+        self.kind = kind
+        super().__init__(f"[{kind}] {message}" if kind else message)
+
+
+class DriverNotFound(DriverError, LookupError):
+    """No driver is registered under that name."""
+
+
+class DriverImportError(DriverError, ImportError):
+    """A registered driver could not be imported."""
+
+
+class ConnectFailed(DriverError, ConnectionError):
+    """Connecting to a device failed."""
+
+
+class DriverTimeout(DriverError, TimeoutError):
+    """A device did not answer in time."""
+
+
+class OperationError(DriverError):
+    """A device refused or failed an operation."""
+
+
+class MotionRejected(OperationError):
+    """The controller refused or faulted a motion. ``code`` is the controller's code."""
+
+    def __init__(self, message: str, *, kind: str | None = None, code: Any = None):
+        self.code = code
+        super().__init__(message, kind=kind)
+
+
+class LimitViolation(OperationError, ValueError):
+    """A joint target lies outside the joint limits; it was not sent."""
+
+
+class MeasurementError(OperationError):
+    """The tracker could not deliver a measurement."""
+
+
+class BeamLost(MeasurementError):
+    """The tracker beam was broken or the target was not found (recoverable)."""
+
+
+class Unstable(MeasurementError):
+    """The target did not become stable within the time allowed (recoverable)."""
+
+
+class VerificationMismatch(OperationError):
+    """Data read back from a device differs from what was written. ``diff`` holds details."""
+
+    def __init__(self, message: str, *, kind: str | None = None, diff: Any = None):
+        self.diff = diff
+        super().__init__(message, kind=kind)
+
+
+# --- wire protocols ---------------------------------------------------------------------------
+class ProtocolError(RobocalError):
+    """Bytes on the wire could not be understood. ``last_frames`` holds recent raw frames."""
+
+    def __init__(self, message: str, *, last_frames: Sequence[bytes] = ()):
+        self.last_frames = list(last_frames)
+        super().__init__(message)
+
+
+class FramingError(ProtocolError, ValueError):
+    """A frame was malformed (too long, truncated, bad characters)."""
+
+
+class UnexpectedReply(ProtocolError):
+    """A well-formed reply did not match the request (wrong tag, sequence id or verb)."""
+
+
+class TransportError(ProtocolError, ConnectionError):
+    """The transport failed (closed, reset, device gone)."""
+
+
+class TransportTimeout(ProtocolError, TimeoutError):
+    """A read on the transport timed out."""
+
+
+# --- numerical --------------------------------------------------------------------------------
+class IdentificationError(RobocalError):
+    """Identification could not be carried out."""
+
+
+class NotIdentifiable(IdentificationError, ValueError):
+    """Too few poses or too little excitation for the requested model."""
+
+    def __init__(self, message: str, *, parameters: Sequence[str] = ()):
+        self.parameters = list(parameters)
+        super().__init__(message)
+
+
+class NotConverged(IdentificationError):
+    """An iterative solver did not converge."""
+
+
+class NotFitted(IdentificationError, ValueError, AttributeError):
+    """A model was used before it was fitted."""
+
+
+class CompensationError(RobocalError):
+    """Compensation could not be computed, or exceeds the configured bounds."""
+
+
+# --- campaigns --------------------------------------------------------------------------------
+class CampaignError(RobocalError):
+    """A campaign operation is not possible."""
+
+
+class InvalidTransition(CampaignError):
+    """A campaign state transition is not in the transition table."""
+
+    def __init__(self, from_state: str, to_state: str, reason: str = ""):
+        self.from_state = from_state
+        self.to_state = to_state
+        msg = f"cannot go from {from_state!r} to {to_state!r}"
+        super().__init__(f"{msg}: {reason}" if reason else msg)
+
+
+class ApprovalRequired(CampaignError, PermissionError):
+    """Compensation was to be pushed without operator approval."""

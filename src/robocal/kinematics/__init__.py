@@ -1,0 +1,45 @@
+"""Kinematics: robot descriptions, the joint-dependent error model, FK and Jacobians (numpy only)."""
+
+from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
+from robocal.kinematics._model import ChainState, KinematicModel
+from robocal.kinematics._robot import Joint, RobotDescription, builtin_robots, load_robot
+from robocal.kinematics._spec import (
+    BASE_NAMES,
+    COMPONENTS,
+    FAMILIES,
+    TOOL_NAMES,
+    ErrorModelSpec,
+    ParameterLayout,
+    Term,
+)
+from robocal.kinematics._transforms import (
+    euler_xyz_to_matrix,
+    matrix_to_euler_xyz,
+    matrix_to_wpr,
+    rigid_fit,
+    wpr_to_matrix,
+)
+
+__all__ = [
+    "BASE_NAMES",
+    "COMPONENTS",
+    "FAMILIES",
+    "TOOL_NAMES",
+    "ChainState",
+    "ErrorModelSpec",
+    "Joint",
+    "KinematicModel",
+    "ParameterLayout",
+    "RobotDescription",
+    "Term",
+    "builtin_robots",
+    "euler_xyz_to_matrix",
+    "evaluate_basis",
+    "gravity_torques",
+    "load_robot",
+    "matrix_to_euler_xyz",
+    "matrix_to_wpr",
+    "rigid_fit",
+    "spline_weights",
+    "wpr_to_matrix",
+]

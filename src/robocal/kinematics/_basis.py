@@ -1,0 +1,171 @@
+"""Basis functions of the joint error terms, evaluated for many poses at once."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal.kinematics._robot import RobotDescription
+from robocal.kinematics._spec import COMPONENTS, ErrorModelSpec
+
+Array = NDArray[np.float64]
+TWO_PI = 2.0 * math.pi
+
+
+def _legendre(s: Array, kmax: int) -> tuple[Array, Array]:
+    """Legendre P_k(s) and dP_k/ds for k = 0..kmax; shapes (kmax+1, n)."""
+    P = np.empty((kmax + 1, s.size))
+    dP = np.empty_like(P)
+    P[0], dP[0] = 1.0, 0.0
+    if kmax >= 1:
+        P[1], dP[1] = s, 1.0
+    for k in range(1, kmax):
+        P[k + 1] = ((2 * k + 1) * s * P[k] - k * P[k - 1]) / (k + 1)
+        dP[k + 1] = dP[k - 1] + (2 * k + 1) * P[k]
+    return P, dP
+
+
+def spline_weights(q: Array, n_knots: int) -> tuple[NDArray[np.intp], Array, Array]:
+    """Periodic uniform cubic B-spline over one revolution.
+
+    Returns knot indices (n, 4), weights (n, 4) and d(weight)/dq (n, 4) for angles ``q`` (n,)
+    in rad. The map value is ``sum(c[idx] * w, axis=1)``.
+    """
+    h = TWO_PI / n_knots
+    u = np.mod(q, TWO_PI) / h
+    i = np.floor(u)
+    t = u - i
+    i = i.astype(np.intp)
+    idx = (i[:, None] + np.arange(-1, 3)[None, :]) % n_knots
+    t2, t3 = t * t, t * t * t
+    omt = 1.0 - t
+    w = np.stack([omt**3, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], axis=1) / 6.0
+    dw = np.stack([-3 * omt**2, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], axis=1) / (6.0 * h)
+    return idx, w, dw
+
+
+def gravity_torques(robot: RobotDescription, q: Array) -> Array:
+    """Gravity torque about each joint axis (N m), nominal kinematics; shape (n, dof).
+
+    Link j's centre of mass is given in DH frame j; joint i turns about z of frame i-1.
+    """
+    n, dof = q.shape
+    if not robot.has_masses:
+        return np.zeros((n, dof))
+    theta = q @ robot.coupling_matrix.T + np.array([j.theta_offset for j in robot.joints])
+    R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    o = np.zeros((n, 3))
+    axes = np.empty((n, dof, 3))
+    origins = np.empty((n, dof, 3))
+    coms = np.empty((n, dof, 3))
+    g = np.asarray(robot.gravity, dtype=float)
+    for i, jt in enumerate(robot.joints):
+        axes[:, i] = R[:, :, 2]
+        origins[:, i] = o
+        c, s = np.cos(theta[:, i]), np.sin(theta[:, i])
+        x0, y0 = R[:, :, 0].copy(), R[:, :, 1].copy()
+        R[:, :, 0] = c[:, None] * x0 + s[:, None] * y0
+        R[:, :, 1] = -s[:, None] * x0 + c[:, None] * y0
+        o = o + jt.d * R[:, :, 2] + jt.a * R[:, :, 0]
+        ca, sa = math.cos(jt.alpha), math.sin(jt.alpha)
+        y1, z1 = R[:, :, 1].copy(), R[:, :, 2].copy()
+        R[:, :, 1] = ca * y1 + sa * z1
+        R[:, :, 2] = -sa * y1 + ca * z1
+        assert jt.com is not None and jt.mass is not None
+        coms[:, i] = o + R @ np.asarray(jt.com)
+    masses = np.array([jt.mass for jt in robot.joints], dtype=float)
+    force = masses[:, None] * g[None, :]  # (dof, 3)
+    tau = np.empty((n, dof))
+    for i in range(dof):
+        lever = coms[:, i:] - origins[:, i][:, None, :]          # (n, dof-i, 3)
+        moment = np.cross(lever, force[i:][None, :, :]).sum(axis=1)  # (n, 3)
+        tau[:, i] = np.einsum("nk,nk->n", moment, axes[:, i])
+    return tau
+
+
+def evaluate_basis(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
+                   *, derivative: bool = False) -> tuple[Array, Array | None]:
+    """Evaluate every term's basis function at joint values ``q`` (n, dof) rad.
+
+    Returns ``B`` (n, n_terms) and, if asked, ``dB`` (n, n_terms): the derivative of each
+    basis function with respect to its own joint value (zero for ``gravity``, whose
+    configuration dependence is left out of joint Jacobians; it is micro-radians).
+    """
+    q = np.asarray(q, dtype=float)
+    n = q.shape[0]
+    T = len(spec.terms)
+    B = np.zeros((n, T))
+    dB = np.zeros((n, T)) if derivative else None
+    if T == 0:
+        return B, dB
+    terms = spec.terms
+    joints = np.array([t.joint for t in terms])
+    fam = np.array([t.family for t in terms])
+    order = np.array([t.index for t in terms], dtype=float)
+    qt = q[:, joints]  # (n, T): each term's own joint value
+
+    m = fam == "const"
+    B[:, m] = 1.0
+
+    for cosfam, sinfam, use_gear in (("cos", "sin", False), ("swcos", "swsin", True)):
+        for f, is_cos in ((cosfam, True), (sinfam, False)):
+            m = fam == f
+            if not m.any():
+                continue
+            k = order[m]
+            if use_gear:
+                ratios = np.array([robot.joints[j].gear_ratio or 0.0 for j in joints[m]])
+                k = k * ratios
+            arg = qt[:, m] * k
+            if is_cos:
+                B[:, m] = np.cos(arg)
+                if dB is not None:
+                    dB[:, m] = -k * np.sin(arg)
+            else:
+                B[:, m] = np.sin(arg)
+                if dB is not None:
+                    dB[:, m] = k * np.cos(arg)
+
+    m = fam == "poly"
+    if m.any():
+        lim = robot.joint_limits
+        for j in np.unique(joints[m]):
+            sel = np.flatnonzero(m & (joints == j))
+            lo, hi = lim[j]
+            s = (2.0 * q[:, j] - (lo + hi)) / (hi - lo)
+            kmax = int(order[sel].max())
+            P, dP = _legendre(s, kmax)
+            ks = order[sel].astype(int)
+            B[:, sel] = P[ks].T
+            if dB is not None:
+                dB[:, sel] = dP[ks].T * (2.0 / (hi - lo))
+
+    m = fam == "map"
+    if m.any():
+        for j in np.unique(joints[m]):
+            sel = np.flatnonzero(m & (joints == j))
+            K = spec.map_knots[j]
+            # column of map knot r for this joint
+            col_of_knot = np.full(K, -1, dtype=np.intp)
+            col_of_knot[order[sel].astype(int)] = sel
+            idx, w, dw = spline_weights(q[:, j], K)
+            cols = col_of_knot[idx]  # (n, 4)
+            rows = np.repeat(np.arange(n), 4)
+            ok = cols.ravel() >= 0
+            np.add.at(B, (rows[ok], cols.ravel()[ok]), w.ravel()[ok])
+            if dB is not None:
+                np.add.at(dB, (rows[ok], cols.ravel()[ok]), dw.ravel()[ok])
+
+    m = fam == "gravity"
+    if m.any():
+        tau = gravity_torques(robot, q)
+        B[:, m] = tau[:, joints[m]]
+    return B, dB
+
+
+def component_columns(spec: ErrorModelSpec) -> NDArray[np.intp]:
+    """Index (joint * 6 + component) of each term, shape (n_terms,)."""
+    return np.array([t.joint * 6 + COMPONENTS.index(t.component) for t in spec.terms],
+                    dtype=np.intp)

@@ -1,0 +1,295 @@
+"""Forward kinematics of the error model and its analytic Jacobians, vectorised over poses.
+
+Chain, for joint values ``q`` (n, dof) and parameters ``x``::
+
+    T_tracker_flange = T_ref · E_base(x_base) · Π_i [ Rz(theta_i) · E_i(q_i) · Tz(d_i) Tx(a_i) Rx(alpha_i) ]
+    p_tracker_smr    = T_tracker_flange · x_tool
+
+with ``E(dx, dy, dz, ex, ey, ez) = Tx(dx) Ty(dy) Tz(dz) Rx(ex) Ry(ey) Rz(ez)``. Derivatives are
+exact: a translation component moves the point along an axis of the frame it acts in; a
+rotation component turns it about an axis through the translated origin.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal.errors import ConfigError
+from robocal.kinematics._basis import component_columns, evaluate_basis
+from robocal.kinematics._robot import RobotDescription
+from robocal.kinematics._spec import ErrorModelSpec, ParameterLayout
+
+Array = NDArray[np.float64]
+_OFF = ParameterLayout.OFFSET
+
+
+@dataclass(frozen=True)
+class ChainState:
+    """Everything one forward pass produces (n poses, dof joints).
+
+    ``p``: reflector positions (n, 3) m, tracker frame. ``R``, ``o``: flange rotation (n, 3, 3)
+    and origin (n, 3). ``lin``/``ang``: per error component (base first, then joint by joint,
+    six each) the linear velocity of the reflector and the angular velocity of the flange per
+    unit of that component, shapes (n, 3, 6 (dof + 1)). ``jlin``/``jang``: the same per unit
+    of chain angle theta_i, (n, 3, dof).
+    """
+
+    p: Array
+    R: Array
+    o: Array
+    lin: Array
+    ang: Array
+    jlin: Array
+    jang: Array
+
+
+def _cols_rot(R: Array, i: int, j: int, c: Array, s: Array) -> None:
+    """In place: columns (i, j) of R <- (c Ri + s Rj, -s Ri + c Rj), a rotation about k."""
+    ri = R[:, :, i].copy()
+    rj = R[:, :, j]
+    R[:, :, i] = c[:, None] * ri + s[:, None] * rj
+    R[:, :, j] = -s[:, None] * ri + c[:, None] * rj
+
+
+def _apply_error(R: Array, o: Array, e: Array, lin_cols: list[Array], ang_cols: list[Array],
+                 pivots: list[Array]) -> tuple[Array, Array]:
+    """Apply E(e) (e: (n, 6)) to frame (R, o); record axes for the Jacobian."""
+    n = R.shape[0]
+    o_E = o + np.einsum("nij,nj->ni", R, e[:, :3])
+    zeros = np.zeros((n, 3))
+    for k in range(3):
+        lin_cols.append(R[:, :, k].copy())
+        ang_cols.append(zeros)
+        pivots.append(None)  # type: ignore[arg-type]
+    R = R.copy()
+    ax_x = R[:, :, 0].copy()
+    _cols_rot(R, 1, 2, np.cos(e[:, 3]), np.sin(e[:, 3]))       # Rx(ex)
+    ax_y = R[:, :, 1].copy()
+    _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))       # Ry(ey)
+    ax_z = R[:, :, 2].copy()
+    _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))       # Rz(ez)
+    for ax in (ax_x, ax_y, ax_z):
+        lin_cols.append(ax)
+        ang_cols.append(ax)
+        pivots.append(o_E)
+    return R, o_E
+
+
+class KinematicModel:
+    """A robot's error model: forward kinematics and analytic Jacobians for N poses at once.
+
+    Parameters
+    ----------
+    robot
+        Nominal description.
+    spec
+        Which joint error terms the model has.
+    T_ref
+        Reference pose of the robot base in the tracker frame (4, 4), m. The base parameters
+        are a small correction applied after it.
+    """
+
+    def __init__(self, robot: RobotDescription, spec: ErrorModelSpec,
+                 T_ref: Array | None = None) -> None:
+        if spec.dof != robot.dof:
+            raise ConfigError(f"error model has {spec.dof} joints, robot {robot.name!r} has "
+                              f"{robot.dof}")
+        self.robot = robot
+        self.spec = spec
+        self.layout = ParameterLayout(spec)
+        self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
+        self._cols = component_columns(spec)
+        self._theta_off = np.array([j.theta_offset for j in robot.joints])
+        self._C = robot.coupling_matrix
+        self._dh = [(j.d, j.a, math.cos(j.alpha), math.sin(j.alpha)) for j in robot.joints]
+
+    # -- parameters -----------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        """Number of parameters."""
+        return self.layout.size
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Parameter names."""
+        return self.layout.names
+
+    def nominal_params(self) -> Array:
+        """Parameter vector of the nominal robot: zero errors, the robot file's tool offset."""
+        x = np.zeros(self.size)
+        x[6:9] = self.robot.tool
+        return x
+
+    def with_spec(self, spec: ErrorModelSpec) -> KinematicModel:
+        """Return a model of the same robot and reference with another spec."""
+        return KinematicModel(self.robot, spec, self.T_ref)
+
+    def transfer(self, x: Array, other: KinematicModel) -> Array:
+        """Map parameters ``x`` of this model onto ``other`` by name (missing names -> 0)."""
+        out = other.nominal_params()
+        idx = {n: i for i, n in enumerate(self.names)}
+        for j, name in enumerate(other.names):
+            if name in idx:
+                out[j] = x[idx[name]]
+        return out
+
+    # -- evaluation -------------------------------------------------------------------------
+    def _check(self, q: Array, x: Array) -> tuple[Array, Array]:
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        x = np.asarray(x, dtype=float)
+        if q.shape[1] != self.robot.dof:
+            raise ConfigError(f"joint array has {q.shape[1]} columns, robot has "
+                              f"{self.robot.dof} joints")
+        if x.shape != (self.size,):
+            raise ConfigError(f"parameter vector has shape {x.shape}, model needs ({self.size},)")
+        return q, x
+
+    def joint_errors(self, q: Array, x: Array, *, derivative: bool = False
+                     ) -> tuple[Array, Array | None, Array]:
+        """Error component values E (n, dof, 6), optional dE/dq_i (n, dof, 6), and basis B."""
+        q, x = self._check(q, x)
+        n, dof = q.shape
+        B, dB = evaluate_basis(self.spec, self.robot, q, derivative=derivative)
+        coef = x[_OFF:]
+        E = np.zeros((n, dof * 6))
+        if coef.size:
+            # scatter-add term contributions into their component columns
+            contrib = B * coef
+            E = _scatter_columns(contrib, self._cols, dof * 6)
+        dE = None
+        if dB is not None:
+            dE = (_scatter_columns(dB * coef, self._cols, dof * 6) if coef.size
+                  else np.zeros((n, dof * 6))).reshape(n, dof, 6)
+        return E.reshape(n, dof, 6), dE, B
+
+    def _chain(self, q: Array, x: Array, E: Array) -> ChainState:
+        n, dof = q.shape
+        theta = q @ self._C.T + self._theta_off
+        R0 = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
+        o0 = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
+        lin_cols: list[Array] = []
+        ang_cols: list[Array] = []
+        pivots: list[Array] = []
+        R, o = _apply_error(R0, o0, np.broadcast_to(x[:6], (n, 6)), lin_cols, ang_cols, pivots)
+        jaxes = []
+        jorig = []
+        for i in range(dof):
+            jaxes.append(R[:, :, 2].copy())
+            jorig.append(o)
+            R = R.copy()
+            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
+            R, o = _apply_error(R, o, E[:, i, :], lin_cols, ang_cols, pivots)
+            d, a, ca, sa = self._dh[i]
+            o = o + d * R[:, :, 2] + a * R[:, :, 0]
+            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
+        p = o + R @ x[6:9]
+        lin = np.stack(lin_cols, axis=2)
+        ang = np.stack(ang_cols, axis=2)
+        for k, piv in enumerate(pivots):
+            if piv is not None:
+                lin[:, :, k] = np.cross(lin[:, :, k], p - piv)
+        jang = np.stack(jaxes, axis=2)
+        lever = p[:, None, :] - np.stack(jorig, axis=1)  # (n, dof, 3)
+        jlin = np.cross(jang, lever, axisa=1, axisb=2, axisc=1)
+        return ChainState(p=p, R=R, o=o, lin=lin, ang=ang, jlin=jlin, jang=jang)
+
+    def positions(self, q: Array, x: Array) -> Array:
+        """Reflector positions (n, 3) m in the tracker frame for joint values ``q`` (n, dof)."""
+        q, x = self._check(q, x)
+        E, _, _ = self.joint_errors(q, x)
+        return self._fk_fast(q, x, E)[0]
+
+    def flange_poses(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
+        """Return reflector positions (n, 3), flange rotations (n, 3, 3) and origins (n, 3)."""
+        q, x = self._check(q, x)
+        E, _, _ = self.joint_errors(q, x)
+        return self._fk_fast(q, x, E)
+
+    def _fk_fast(self, q: Array, x: Array, E: Array) -> tuple[Array, Array, Array]:
+        n, dof = q.shape
+        theta = q @ self._C.T + self._theta_off
+        R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
+        o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
+        R, o = _apply_error_fast(R, o, np.broadcast_to(x[:6], (n, 6)))
+        for i in range(dof):
+            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
+            R, o = _apply_error_fast(R, o, E[:, i, :])
+            d, a, ca, sa = self._dh[i]
+            o = o + d * R[:, :, 2] + a * R[:, :, 0]
+            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
+        p = o + R @ x[6:9]
+        return p, R, o
+
+    def jacobian(self, q: Array, x: Array) -> tuple[Array, Array]:
+        """Reflector positions (n, 3) and d position / d parameters (n, 3, n_params)."""
+        q, x = self._check(q, x)
+        E, _, B = self.joint_errors(q, x)
+        st = self._chain(q, x, E)
+        n = q.shape[0]
+        J = np.empty((n, 3, self.size))
+        J[:, :, :6] = st.lin[:, :, :6]
+        J[:, :, 6:9] = st.R
+        if B.shape[1]:
+            J[:, :, _OFF:] = st.lin[:, :, 6 + self._cols] * B[:, None, :]
+        return st.p, J
+
+    def joint_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
+        """Positions (n, 3), flange rotations (n, 3, 3), and the 6 x dof Jacobian (n, 6, dof).
+
+        Rows 0-2: reflector velocity, rows 3-5: flange angular velocity (tracker frame), per
+        unit of joint value (rad), including the joint-dependent error terms and couplings.
+        """
+        q, x = self._check(q, x)
+        E, dE, _ = self.joint_errors(q, x, derivative=True)
+        assert dE is not None
+        st = self._chain(q, x, E)
+        n, dof = q.shape
+        J = np.empty((n, 6, dof))
+        J[:, :3] = st.jlin @ self._C
+        J[:, 3:] = st.jang @ self._C
+        for i in range(dof):
+            sl = slice(6 + 6 * i, 12 + 6 * i)
+            J[:, :3, i] += np.einsum("nkc,nc->nk", st.lin[:, :, sl], dE[:, i])
+            J[:, 3:, i] += np.einsum("nkc,nc->nk", st.ang[:, :, sl], dE[:, i])
+        return st.p, st.R, J
+
+    def state(self, q: Array, x: Array) -> ChainState:
+        """Full chain state, for callers that need the component sensitivities."""
+        q, x = self._check(q, x)
+        E, _, _ = self.joint_errors(q, x)
+        return self._chain(q, x, E)
+
+    def base_transform(self, x: Array) -> Array:
+        """T_tracker_base (4, 4) including the base correction in ``x``."""
+        R, o = _apply_error_fast(self.T_ref[None, :3, :3].copy(), self.T_ref[None, :3, 3].copy(),
+                                 x[None, :6])
+        T = np.eye(4)
+        T[:3, :3] = R[0]
+        T[:3, 3] = o[0]
+        return T
+
+    def rebased(self, x: Array) -> tuple[KinematicModel, Array]:
+        """Fold the base correction of ``x`` into the reference; return (model, params)."""
+        m = KinematicModel(self.robot, self.spec, self.base_transform(x))
+        x2 = x.copy()
+        x2[:6] = 0.0
+        return m, x2
+
+
+def _scatter_columns(values: Array, cols: NDArray[np.intp], width: int) -> Array:
+    """Sum columns of ``values`` (n, T) into ``width`` columns by index ``cols`` (T,)."""
+    S = np.zeros((values.shape[1], width))
+    S[np.arange(values.shape[1]), cols] = 1.0
+    return values @ S
+
+
+def _apply_error_fast(R: Array, o: Array, e: Array) -> tuple[Array, Array]:
+    o = o + np.einsum("nij,nj->ni", R, e[:, :3])
+    _cols_rot(R, 1, 2, np.cos(e[:, 3]), np.sin(e[:, 3]))
+    _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))
+    _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))
+    return R, o

@@ -1,0 +1,41 @@
+"""Wire protocols: async transports chosen by URL and sans-I/O codecs.
+
+Nothing here imports numpy or scipy (an import-linter contract), so codecs can be reused and
+tested without the numerical stack. :mod:`robocal.protocols.modbus` is the only module that
+imports pymodbus and is not imported here; import it explicitly.
+
+Modules
+-------
+transport
+    :class:`Transport`, :func:`open_transport` (``tcp://``, ``serial://``, ``socket://``,
+    ``loop://``, ``rfc2217://``).
+framing, lines
+    :class:`LineFramer` (CR LF, maximum length, resync) and :class:`LineStream`.
+ltp
+    LTP/1 tracker line protocol codec.
+fanuc_rmi
+    FANUC RMI JSON packet codec and ErrorID table.
+modbus
+    Register map, value codecs, pymodbus client and server wrappers.
+"""
+
+from robocal.protocols.framing import CRLF, LineFramer
+from robocal.protocols.lines import LineStream
+from robocal.protocols.transport import (
+    SerialTransport,
+    TcpTransport,
+    ThreadSerialTransport,
+    Transport,
+    open_transport,
+)
+
+__all__ = [
+    "CRLF",
+    "LineFramer",
+    "LineStream",
+    "SerialTransport",
+    "TcpTransport",
+    "ThreadSerialTransport",
+    "Transport",
+    "open_transport",
+]
