@@ -201,11 +201,11 @@ class FanucRmiRobot(RobotDriverBase):
         stream = self._stream
         if stream is not None and stream.transport.is_open and self._lost is None:
             with contextlib.suppress(Exception):
-                await self._command("FRC_Abort", check=False, timeout=1.0)
+                await self._command("FRC_Abort", check=False, timeout=0.5)
             with contextlib.suppress(Exception):
                 self._disconnected = asyncio.get_running_loop().create_future()
                 await stream.write_line(rmi.encode({"Communication": "FRC_Disconnect"}))
-                async with asyncio.timeout(1.0):
+                async with asyncio.timeout(0.5):
                     await self._disconnected
         if self._reader is not None:
             self._reader.cancel()
@@ -235,7 +235,8 @@ class FanucRmiRobot(RobotDriverBase):
             except TransportTimeout:
                 continue
             except TransportError as err:
-                self._lost = ConnectFailed(f"connection lost: {err}", kind=self.kind)
+                if self._lost is None:
+                    self._lost = ConnectFailed(f"connection lost: {err}", kind=self.kind)
                 self._fail_pending(self._lost)
                 return
             except FramingError as err:

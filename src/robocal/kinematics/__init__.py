@@ -1,5 +1,6 @@
 """Kinematics: robot descriptions, the joint-dependent error model, FK and Jacobians (numpy only)."""
 
+from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
 from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
 from robocal.kinematics._model import ChainState, KinematicModel
 from robocal.kinematics._robot import Joint, RobotDescription, builtin_robots, load_robot
@@ -21,6 +22,8 @@ from robocal.kinematics._transforms import (
 )
 
 __all__ = [
+    "MODEL_FORMAT",
+    "CalibratedModel",
     "BASE_NAMES",
     "COMPONENTS",
     "FAMILIES",

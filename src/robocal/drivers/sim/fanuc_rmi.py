@@ -195,6 +195,7 @@ class _Session:
             return
         sim.next_sequence_id = rmi.next_sequence_id(seq)
         self.in_flight += 1
+        sim.max_in_flight = max(sim.max_in_flight, self.in_flight)
         await self.queue.put((seq, packet))
 
     async def _execute(self) -> None:
@@ -238,6 +239,10 @@ class FanucRmiSimulator:
     ----------
     received : list of dict
         Every packet received on the session port (tests assert on it).
+    max_in_flight : int
+        Most instructions ever accepted and not yet completed at once.
+    sessions : int
+        Number of sessions opened on the session port.
     uframes, utools : dict
         Stored user and tool frames (mm, degrees), by number.
     position_registers : dict
@@ -256,6 +261,8 @@ class FanucRmiSimulator:
         lim = self.options.joint_limits_deg or world.joint_limits_deg
         self.joint_limits_deg = tuple(lim)
         self.received: list[dict[str, Any]] = []
+        self.max_in_flight = 0
+        self.sessions = 0
         self.uframes: dict[int, dict[str, float]] = {}
         self.utools: dict[int, dict[str, float]] = {}
         self.position_registers: dict[int, dict[str, Any]] = {}
@@ -374,6 +381,7 @@ class FanucRmiSimulator:
             return
         self._handshake_pending = False
         self._reset_state()
+        self.sessions += 1
         session = _Session(self, reader, writer)
         self._session = session
         self._session_task = asyncio.current_task()

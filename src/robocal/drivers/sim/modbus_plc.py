@@ -64,6 +64,8 @@ class ModbusPlcSimulator:
     ----------
     commands : list of (int, int)
         ``(CMD, CMD_SEQ)`` of every command started.
+    writes : list of (int, int, int)
+        ``(function code, address, count)`` of every register write received.
     applied_table : list of int or None
         Registers of the last table block that passed the PLC's CRC check.
     """
@@ -82,6 +84,7 @@ class ModbusPlcSimulator:
         lim = self.options.joint_limits_deg or world.joint_limits_deg
         self.joint_limits_deg = tuple(lim)
         self.commands: list[tuple[int, int]] = []
+        self.writes: list[tuple[int, int, int]] = []
         self.applied_table: list[int] | None = None
         self.frame: list[float] = [0.0] * 6
         self.joint_offsets: list[float] = [0.0] * m.joints
@@ -149,6 +152,7 @@ class ModbusPlcSimulator:
             self._hr, self._hr_start = registers, start
         if fc in mb.WRITE_FCS:
             values = [int(v) for v in (set_values or [])]
+            self.writes.append((fc, address, len(values)))
             end = address + len(values)
             if m.status_area == "holding" and address < s1 and s0 < end:
                 return mb.ExcCodes.ILLEGAL_ADDRESS  # PLC-owned registers

@@ -1,0 +1,228 @@
+"""A calibrated model: robot, error-model structure, parameters, uncertainty; and its JSON file.
+
+MODEL.json (``format = "robocal.model/1"``) is self-describing: the whole robot description,
+the error-model terms, every parameter with its unit and standard deviation (mm, deg; gravity
+compliance in deg/(N m)), the tracker <- base reference, the joint range the data covered,
+an optional low-order fallback used outside that range, and free-form ``metrics``/``fit``/
+``data`` sections written by identification.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal.errors import ConfigError
+from robocal.kinematics._model import KinematicModel
+from robocal.kinematics._robot import RobotDescription
+from robocal.kinematics._spec import ErrorModelSpec
+
+Array = NDArray[np.float64]
+MODEL_FORMAT = "robocal.model/1"
+
+_TO_FILE = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg"),
+            "rad/(N m)": (180.0 / math.pi, "deg/(N m)")}
+
+
+@dataclass
+class CalibratedModel:
+    """An identified model ready for prediction and compensation.
+
+    ``params`` (P,) SI; ``covariance`` (P, P) SI or None; ``coverage`` (dof, 2) rad: joint range
+    the calibration data covered. Outside it, poses are predicted by ``fallback`` (a low-order
+    model fitted on the same data) when one is given, so that maps never extrapolate.
+    """
+
+    model: KinematicModel
+    params: Array
+    covariance: Array | None = None
+    coverage: Array | None = None
+    fallback: CalibratedModel | None = None
+    model_id: str = ""
+    kind: str = "custom"
+    metrics: dict[str, Any] = field(default_factory=dict)
+    fit: dict[str, Any] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)
+    created: str = ""
+
+    def __post_init__(self) -> None:
+        self.params = np.asarray(self.params, dtype=float)
+        if not self.model_id:
+            self.model_id = self.compute_id()
+        if not self.created:
+            self.created = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+    @property
+    def robot(self) -> RobotDescription:
+        """The robot description."""
+        return self.model.robot
+
+    @property
+    def sigma(self) -> Array | None:
+        """Parameter standard deviations (P,), SI, or None."""
+        if self.covariance is None:
+            return None
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def compute_id(self) -> str:
+        """Short content hash of structure and parameters."""
+        h = hashlib.sha256()
+        h.update(json.dumps(self.model.spec.to_dict(), sort_keys=True).encode())
+        h.update(np.round(self.model.T_ref, 12).tobytes())
+        h.update(np.round(self.params, 12).tobytes())
+        return h.hexdigest()[:16]
+
+    def inside_coverage(self, q: Array) -> NDArray[np.bool_]:
+        """Per pose: are all joints inside the covered range?"""
+        q = np.atleast_2d(q)
+        if self.coverage is None:
+            return np.ones(q.shape[0], dtype=bool)
+        return np.all((q >= self.coverage[:, 0]) & (q <= self.coverage[:, 1]), axis=1)
+
+    def predict(self, q: Array) -> Array:
+        """Predicted reflector positions (n, 3) m, tracker frame, for joint values (n, dof) rad."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        p = self.model.positions(q, self.params)
+        if self.fallback is not None:
+            out = ~self.inside_coverage(q)
+            if out.any():
+                p[out] = self.fallback.predict(q[out])
+        return p
+
+    def prediction_sigma(self, q: Array) -> Array:
+        """1-sigma uncertainty (n, 3) m of the predicted position from the parameter covariance."""
+        if self.covariance is None:
+            raise ConfigError("model has no parameter covariance")
+        _, J = self.model.jacobian(np.atleast_2d(q), self.params)
+        C = np.einsum("nip,pq,niq->ni", J, self.covariance, J)
+        return np.sqrt(np.clip(C, 0.0, None))
+
+    # -- files ----------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (mm, deg)."""
+        sig = self.sigma
+        params = []
+        for k, (name, unit) in enumerate(zip(self.model.names, self.model.layout.units,
+                                             strict=True)):
+            f, u = _TO_FILE[unit]
+            params.append({"name": name, "value": float(self.params[k] * f), "unit": u,
+                           "sigma": None if sig is None else float(sig[k] * f)})
+        T = self.model.T_ref.copy()
+        T[:3, 3] *= 1e3
+        out: dict[str, Any] = {
+            "format": MODEL_FORMAT,
+            "model_id": self.model_id,
+            "kind": self.kind,
+            "created": self.created,
+            "robot": self.robot.to_dict(),
+            "error_model": self.model.spec.to_dict(),
+            "T_tracker_base_ref_mm": T.tolist(),
+            "parameters": params,
+            "coverage_deg": None if self.coverage is None else np.degrees(self.coverage).tolist(),
+            "metrics": self.metrics,
+            "fit": self.fit,
+            "data": self.data,
+        }
+        if self.covariance is not None:
+            scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
+            out["covariance_file_units"] = (self.covariance * np.outer(scale, scale)).tolist()
+        out["fallback"] = None if self.fallback is None else self.fallback.to_dict()
+        return out
+
+    def save(self, path: str | Path) -> None:
+        """Write MODEL.json atomically."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            tmp.write_text(json.dumps(self.to_dict(), indent=1, default=_json_default))
+            tmp.replace(path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, source: str = "<model>") -> CalibratedModel:
+        """Inverse of :meth:`to_dict`; raise :class:`ConfigError` naming the bad key."""
+        if not isinstance(d, dict):
+            raise ConfigError("model file must hold a JSON object", source=source)
+        if d.get("format") != MODEL_FORMAT:
+            raise ConfigError(f"unsupported format {d.get('format')!r} (expected {MODEL_FORMAT})",
+                              source=source, key="format")
+        for key in ("robot", "error_model", "T_tracker_base_ref_mm", "parameters"):
+            if key not in d:
+                raise ConfigError("required key is missing", source=source, key=key)
+        robot = RobotDescription.from_dict(d["robot"], source=f"{source}#robot")
+        spec = ErrorModelSpec.from_dict(d["error_model"])
+        try:
+            T = np.array(d["T_tracker_base_ref_mm"], dtype=float).reshape(4, 4)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"not a 4x4 matrix: {err}", source=source,
+                              key="T_tracker_base_ref_mm") from err
+        T[:3, 3] *= 1e-3
+        model = KinematicModel(robot, spec, T)
+        byname = {}
+        for i, p in enumerate(d["parameters"]):
+            try:
+                byname[p["name"]] = (float(p["value"]), p["unit"])
+            except (KeyError, TypeError, ValueError) as err:
+                raise ConfigError(f"malformed parameter entry: {err}", source=source,
+                                  key=f"parameters[{i}]") from err
+        x = np.empty(model.size)
+        for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
+            if name not in byname:
+                raise ConfigError("parameter missing", source=source, key=f"parameters.{name}")
+            v, u = byname[name]
+            f, fu = _TO_FILE[unit]
+            if u != fu:
+                raise ConfigError(f"unit {u!r}, expected {fu!r}", source=source,
+                                  key=f"parameters.{name}")
+            x[k] = v / f
+        if not np.all(np.isfinite(x)):
+            raise ConfigError("parameters must be finite", source=source, key="parameters")
+        cov = None
+        if d.get("covariance_file_units") is not None:
+            scale = np.array([_TO_FILE[u][0] for u in model.layout.units])
+            cov = np.array(d["covariance_file_units"], dtype=float) / np.outer(scale, scale)
+        cover = None
+        if d.get("coverage_deg") is not None:
+            cover = np.radians(np.array(d["coverage_deg"], dtype=float))
+        fb = None
+        if d.get("fallback"):
+            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback")
+        return cls(model=model, params=x, covariance=cov, coverage=cover, fallback=fb,
+                   model_id=str(d.get("model_id", "")), kind=str(d.get("kind", "custom")),
+                   metrics=dict(d.get("metrics") or {}), fit=dict(d.get("fit") or {}),
+                   data=dict(d.get("data") or {}), created=str(d.get("created", "")))
+
+    @classmethod
+    def load(cls, path: str | Path) -> CalibratedModel:
+        """Read MODEL.json; raise :class:`ConfigError` naming the file and problem."""
+        src = str(path)
+        try:
+            d = json.loads(Path(path).read_text())
+        except FileNotFoundError as err:
+            raise ConfigError("file not found", source=src) from err
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"cannot read: {err}", source=src) from err
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"not valid JSON: {err}", source=src) from err
+        return cls.from_dict(d, source=src)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.floating | np.integer):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

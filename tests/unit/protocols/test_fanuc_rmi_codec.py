@@ -1,0 +1,154 @@
+"""FANUC RMI codec: golden packets from protocols.md 1.1, first-key rule, ErrorIDs, garbage."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from robocal.errors import FramingError, ProtocolError, UnexpectedReply
+from robocal.protocols import fanuc_rmi as rmi
+
+
+def test_golden_connect_reply():
+    p = rmi.decode(
+        b'{"Communication":"FRC_Connect","ErrorID":0,"PortNumber":16002,"MajorVersion":7,'
+        b'"MinorVersion":0}'
+    )
+    assert (p.category, p.name, p.error_id) == ("Communication", "FRC_Connect", 0)
+    assert p.get_int("PortNumber") == 16002 and p.get_int("MajorVersion") == 7
+
+
+def test_golden_joint_motion_matches_manual_shape():
+    packet = rmi.joint_motion_jrep(7, [10.0, -5.0, 3.0, 0.0, 90.0, 0.0], speed_pct=10)
+    assert json.loads(rmi.encode(packet)) == {
+        "Instruction": "FRC_JointMotionJRep",
+        "SequenceID": 7,
+        "JointAngle": {"J1": 10.0, "J2": -5.0, "J3": 3.0, "J4": 0.0, "J5": 90.0, "J6": 0.0},
+        "SpeedType": "Percent",
+        "Speed": 10,
+        "TermType": "FINE",
+        "TermValue": 0,
+    }
+    assert rmi.encode(packet).startswith(b'{"Instruction":"FRC_JointMotionJRep"')
+
+
+def test_instruction_reply_and_abbreviated_sid():
+    p = rmi.decode(b'{"Instruction":"FRC_JointMotionJRep","ErrorID":0,"SequenceID":7}')
+    assert p.sequence_id == 7 and p.error_id == 0
+    assert rmi.decode(b'{"Instruction":"FRC_WaitTime","SID":3}').sequence_id == 3
+
+
+def test_read_joint_angles_reply():
+    p = rmi.decode(
+        b'{"Command":"FRC_ReadJointAngles","ErrorID":0,"TimeTag":123,'
+        b'"JointAngle":{"J1":1.5,"J2":2,"J3":3,"J4":4,"J5":5,"J6":6,"J7":0,"J8":0,"J9":0}}'
+    )
+    assert rmi.joint_angles(p.body, 6) == [1.5, 2.0, 3.0, 4.0, 5.0, 6.0]
+    with pytest.raises(UnexpectedReply):
+        rmi.joint_angles({"JointAngle": {"J1": 1}}, 2)
+    with pytest.raises(UnexpectedReply):
+        rmi.joint_angles({"JointAngle": {"J1": "x"}}, 1)
+    with pytest.raises(UnexpectedReply):
+        rmi.joint_angles({}, 1)
+
+
+def test_frames():
+    f = rmi.frame_fields(1, 2, 3, 4, 5, 6)
+    assert f == {"X": 1.0, "Y": 2.0, "Z": 3.0, "W": 4.0, "P": 5.0, "R": 6.0}
+    assert rmi.parse_frame({"Frame": f}) == (1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
+    with pytest.raises(UnexpectedReply):
+        rmi.parse_frame({"Frame": {**f, "Z": True}})
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        b"",
+        b"not json",
+        b"[1,2]",
+        b'"FRC_Connect"',
+        b'{"ErrorID":0,"Command":"FRC_GetStatus"}',  # first key rule
+        b'{"Command":5}',
+        b'{"Command":"FRC_A","Command":"FRC_B"}',
+        b'{"Command":"FRC_A","X":NaN}',
+        b'{"Command":"FRC_A"',
+        b"\xff\xfe",
+        b"{" * 5000,
+    ],
+)
+def test_malformed_lines_raise_framing_error(line):
+    with pytest.raises(FramingError):
+        rmi.decode(line)
+
+
+@pytest.mark.parametrize(
+    "line",
+    [b'{"Command":"FRC_A","ErrorID":"0"}', b'{"Instruction":"FRC_A","SequenceID":true}'],
+)
+def test_wrongly_typed_routing_fields_raise_unexpected_reply(line):
+    with pytest.raises(UnexpectedReply):
+        rmi.decode(line)
+
+
+def test_encode_enforces_first_key_and_finiteness():
+    with pytest.raises(FramingError):
+        rmi.encode({"ErrorID": 0, "Command": "FRC_A"})
+    with pytest.raises(FramingError):
+        rmi.encode({"Command": "FRC_A", "X": float("nan")})
+    with pytest.raises(FramingError):
+        rmi.joint_motion_jrep(1, [float("inf")] * 6, speed_pct=10)
+
+
+def test_error_table_and_numbering():
+    assert rmi.rmit(29) == 2556957 and rmi.rmit(28) == 2556956
+    assert rmi.describe_error(2556957).startswith("RMIT-029")
+    assert rmi.describe_error(rmi.rmit(999)) == "RMIT-999"
+    assert rmi.describe_error(7015).startswith("MEMO-015")
+    assert rmi.describe_error(42) == "ErrorID 42"
+    assert rmi.next_sequence_id(1) == 2 and rmi.next_sequence_id(2**31 - 1) == 1
+
+
+@given(st.binary(max_size=200))
+def test_arbitrary_bytes_raise_only_protocol_errors(data):
+    try:
+        rmi.decode(data)
+    except ProtocolError:
+        pass
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=10),
+    lambda children: st.lists(children, max_size=3) | st.dictionaries(st.text(max_size=5), children, max_size=3),
+    max_leaves=10,
+)
+
+
+@given(json_values)
+def test_arbitrary_json_raises_only_protocol_errors(value):
+    try:
+        rmi.decode(json.dumps(value).encode())
+    except ProtocolError:
+        pass
+
+
+@given(
+    st.sampled_from(rmi.CATEGORIES),
+    st.text(st.characters(min_codepoint=32, max_codepoint=126), min_size=1, max_size=20),
+    st.dictionaries(
+        st.text("ABCDEFGHIJKLMNOPQRSTUVWXYZ", min_size=1, max_size=8),
+        st.integers(-(2**31), 2**31) | st.text(max_size=8) | st.floats(allow_nan=False, allow_infinity=False),
+        max_size=5,
+    ),
+)
+def test_encode_decode_round_trip(category, name, fields):
+    fields.pop(category, None)
+    fields.pop("ErrorID", None)
+    fields.pop("SequenceID", None)
+    fields.pop("SID", None)
+    packet = {category: name, **fields}
+    decoded = rmi.decode(rmi.encode(packet))
+    assert (decoded.category, decoded.name, dict(decoded.body)) == (category, name, packet)

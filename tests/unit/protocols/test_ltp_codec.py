@@ -1,0 +1,136 @@
+"""LTP/1 codec: golden lines from protocols.md 2.5, round trips, garbage."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from robocal.errors import FramingError, ProtocolError
+from robocal.protocols import ltp
+
+
+def test_golden_session_lines():
+    req = ltp.parse_request(b"3 MEAS id=P0007 n=20 stab_mm=0.010 stab_ms=500 timeout_ms=8000")
+    assert req.tag == "3" and req.verb == "MEAS"
+    assert dict(req.args) == {
+        "id": "P0007",
+        "n": "20",
+        "stab_mm": "0.010",
+        "stab_ms": "500",
+        "timeout_ms": "8000",
+    }
+    ok = ltp.parse_message(
+        "3 OK id=P0007 x=1523.40712 y=-210.11930 z=887.00241 sx=0.0021 sy=0.0018 sz=0.0025 "
+        "n=20 rms=0.0037 t=2026-01-05T10:11:13.101Z tk=88123456789 temp=20.41 press=1012.6 "
+        "hum=41.0 smr=RRR15"
+    )
+    assert isinstance(ok, ltp.Ok)
+    assert ok.values["x"] == "1523.40712" and ok.values["t"] == "2026-01-05T10:11:13.101Z"
+    evt = ltp.parse_message(b"* EVT BEAM state=BROKEN t=2026-01-05T10:11:20.002Z")
+    assert evt == ltp.Event("BEAM", {"state": "BROKEN", "t": "2026-01-05T10:11:20.002Z"})
+    err = ltp.parse_message(b'4 ERR 10 BEAM_BROKEN msg="beam interrupted while settling"')
+    assert err == ltp.Err("4", 10, "BEAM_BROKEN", "beam interrupted while settling")
+    assert ltp.parse_message("1 OK proto=LTP/1 vendor=sim").values["proto"] == "LTP/1"
+
+
+def test_format_matches_spec_examples():
+    assert ltp.format_request(ltp.Request("1", "HELLO", {"proto": "LTP/1"})) == "1 HELLO proto=LTP/1"
+    assert ltp.format_request(ltp.Request("7", "STATUS?")) == "7 STATUS?"
+    assert (
+        ltp.format_err("4", 10, msg="beam interrupted while settling")
+        == '4 ERR 10 BEAM_BROKEN msg="beam interrupted while settling"'
+    )
+    assert ltp.format_event("BEAM", {"state": "LOCKED"}) == "* EVT BEAM state=LOCKED"
+    assert ltp.format_err("9", 12345) == "9 ERR 12345 INTERNAL"
+
+
+def test_error_code_table():
+    assert ltp.ErrorCode.BEAM_BROKEN == 10 and ltp.ErrorCode.UNSTABLE == 12
+    assert ltp.ErrorCode.TIMEOUT == 15 and ltp.ErrorCode.BUSY == 14
+    assert {c.value for c in ltp.ErrorCode} == {1, 2, 3, 10, 11, 12, 13, 14, 15, 16, 20, 21, 30, 50, 99}
+
+
+def test_quoted_values_with_escapes_round_trip():
+    line = ltp.format_ok("5", {"msg": 'say "hi" \\ there'})
+    assert line == '5 OK msg="say \\"hi\\" \\\\ there"'
+    assert ltp.parse_message(line).values["msg"] == 'say "hi" \\ there'
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        b"",
+        b"1",
+        b"1 NOPE",
+        b"123456789 OK",
+        b"1 OK novalue",
+        b"1 OK a=1 a=2",
+        b"1 OK a=\xff",
+        b"1 OK a=\x01",
+        b'1 OK msg="unterminated',
+        b"1 ERR x BEAM_BROKEN",
+        b"1 ERR 10",
+        b"1 ERR 10 beam",
+        b"1 ERR 10 BEAM x=1",
+        b"* EVT",
+        b"* FOO BEAM",
+        b"1 OK " + b"a" * 600,
+        b"1 OK 1a=2",
+    ],
+)
+def test_malformed_messages_raise_framing_error(line):
+    with pytest.raises(FramingError):
+        ltp.parse_message(line)
+
+
+@pytest.mark.parametrize("line", [b"1", b"! HELLO", b"1 hello", b"1 MEAS n", b"\xff MEAS"])
+def test_malformed_requests_raise_framing_error(line):
+    with pytest.raises(FramingError):
+        ltp.parse_request(line)
+
+
+def test_format_refuses_what_cannot_be_parsed():
+    with pytest.raises(FramingError):
+        ltp.format_request(ltp.Request("bad tag", "HELLO"))
+    with pytest.raises(FramingError):
+        ltp.format_ok("1", {"k": "caf\u00e9"})
+    with pytest.raises(FramingError):
+        ltp.format_ok("1", {"x": "v" * 600})
+
+
+@given(st.binary(max_size=300))
+def test_arbitrary_bytes_never_raise_anything_but_protocol_errors(data):
+    for parse in (ltp.parse_message, ltp.parse_request):
+        try:
+            parse(data)
+        except ProtocolError:
+            pass
+
+
+tags = st.text("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789", min_size=1, max_size=8)
+keys = st.from_regex(r"[A-Za-z_][A-Za-z0-9_]{0,8}", fullmatch=True)
+values = st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=12)
+pairs = st.dictionaries(keys, values, max_size=5)
+
+
+@given(tags, st.from_regex(r"[A-Z][A-Z0-9_]{0,6}\??", fullmatch=True), pairs)
+def test_request_round_trip(tag, verb, args):
+    req = ltp.Request(tag, verb, args)
+    assert ltp.parse_request(ltp.format_request(req)) == req
+
+
+@given(tags, pairs)
+def test_ok_round_trip(tag, values_):
+    assert ltp.parse_message(ltp.format_ok(tag, values_)) == ltp.Ok(tag, values_)
+
+
+@given(tags, st.sampled_from(list(ltp.ErrorCode)), st.none() | values)
+def test_err_round_trip(tag, code, msg):
+    parsed = ltp.parse_message(ltp.format_err(tag, code, msg=msg))
+    assert parsed == ltp.Err(tag, int(code), code.name, msg)
+
+
+@given(st.from_regex(r"[A-Z][A-Z_]{0,6}", fullmatch=True), pairs)
+def test_event_round_trip(name, values_):
+    assert ltp.parse_message(ltp.format_event(name, values_)) == ltp.Event(name, values_)
