@@ -35,7 +35,7 @@ from robocal.drivers.api import (
 from robocal.errors import ConnectFailed, DriverError, LimitViolation, RobocalError
 
 __all__ = [
-    "ContractFailure",
+    "ContractError",
     "RobotUnderTest",
     "TrackerUnderTest",
     "check_robot",
@@ -45,13 +45,13 @@ __all__ = [
 ]
 
 
-class ContractFailure(AssertionError):
+class ContractError(AssertionError):
     """A driver broke the driver contract."""
 
 
 def _expect(cond: bool, message: str) -> None:
     if not cond:
-        raise ContractFailure(message)
+        raise ContractError(message)
 
 
 @dataclass(frozen=True)
@@ -141,7 +141,7 @@ async def _check_lifecycle(make: Callable[[], Any], name: str, timeout: float) -
         await driver.close()  # idempotent
         await driver.connect(timeout=timeout)  # reconnect after close
     except RobocalError as err:
-        raise ContractFailure(f"{name}: lifecycle failed: {err!r}") from err
+        raise ContractError(f"{name}: lifecycle failed: {err!r}") from err
     finally:
         await driver.close()
 
@@ -159,7 +159,7 @@ async def check_robot_declaration(rut: RobotUnderTest) -> None:
 
 
 async def check_robot_no_io_before_connect(rut: RobotUnderTest) -> None:
-    """Building a driver sends nothing; operations before ``connect`` raise ConnectFailed."""
+    """Check building a driver sends nothing and operations before ``connect`` fail."""
     before = rut.messages_received() if rut.messages_received else None
     driver = rut.make()
     try:
@@ -171,7 +171,7 @@ async def check_robot_no_io_before_connect(rut: RobotUnderTest) -> None:
                 await call()
             except ConnectFailed:
                 continue
-            raise ContractFailure(f"{rut.name}: operation before connect did not raise")
+            raise ContractError(f"{rut.name}: operation before connect did not raise")
     finally:
         await driver.close()
 
@@ -181,7 +181,9 @@ async def check_robot_lifecycle(rut: RobotUnderTest) -> None:
     await _check_lifecycle(rut.make, rut.name, rut.connect_timeout)
 
 
-def _check_joint_reading(r: Any, dof: int, limits: Sequence[tuple[float, float]], name: str) -> None:
+def _check_joint_reading(
+    r: Any, dof: int, limits: Sequence[tuple[float, float]], name: str
+) -> None:
     _expect(isinstance(r, JointReading), f"{name}: expected JointReading, got {type(r)}")
     _expect(len(r.q_rad) == dof, f"{name}: {len(r.q_rad)} joints, dof is {dof}")
     _expect(all(isinstance(v, float) and math.isfinite(v) for v in r.q_rad), f"{name}: bad q")
@@ -240,7 +242,7 @@ async def check_robot_refuses_out_of_limits(rut: RobotUnderTest) -> None:
                 await robot.move_to(bad, speed_pct=10, timeout=rut.move_timeout)
             except LimitViolation:
                 continue
-            raise ContractFailure(f"{rut.name}: target {bad} was not refused")
+            raise ContractError(f"{rut.name}: target {bad} was not refused")
         if sent is not None and rut.messages_received is not None:
             _expect(rut.messages_received() == sent, f"{rut.name}: a refused target was sent")
         after = await robot.read_joints()
@@ -281,7 +283,7 @@ def _sample_table(kind: str, dof: int) -> CompensationTable:
 
 
 async def check_robot_compensation(rut: RobotUnderTest) -> None:
-    """A CompensationSink stores a table and reads back the same content (skipped otherwise)."""
+    """Check a CompensationSink stores a table and reads the same content back."""
     async with _connected(rut.make, rut.connect_timeout) as robot:
         if not isinstance(robot, CompensationSink):
             return
@@ -315,7 +317,7 @@ async def check_tracker_no_io_before_connect(tut: TrackerUnderTest) -> None:
         return
     finally:
         await driver.close()
-    raise ContractFailure(f"{tut.name}: measure before connect did not raise")
+    raise ContractError(f"{tut.name}: measure before connect did not raise")
 
 
 async def check_tracker_lifecycle(tut: TrackerUnderTest) -> None:
@@ -346,14 +348,14 @@ async def check_tracker_measure(tut: TrackerUnderTest) -> None:
 
 
 async def check_tracker_rejects_bad_samples(tut: TrackerUnderTest) -> None:
-    """``samples < 1`` raises a ValueError-derived robocal error, not a wire exchange."""
+    """Check ``samples < 1`` raises a ValueError-like robocal error before any exchange."""
     async with _connected(tut.make, tut.connect_timeout) as tracker:
         try:
             await tracker.measure(samples=0, timeout=tut.measure_timeout)
         except (ValueError, DriverError) as err:
             _expect(isinstance(err, RobocalError), f"{tut.name}: {type(err)} not a robocal error")
             return
-        raise ContractFailure(f"{tut.name}: samples=0 accepted")
+        raise ContractError(f"{tut.name}: samples=0 accepted")
 
 
 RobotCheck = Callable[[RobotUnderTest], Awaitable[None]]
@@ -385,12 +387,12 @@ def tracker_checks() -> list[TrackerCheck]:
 
 
 async def check_robot(rut: RobotUnderTest) -> None:
-    """Run every robot check; raise ContractFailure on the first broken rule."""
+    """Run every robot check; raise ContractError on the first broken rule."""
     for check in robot_checks():
         await check(rut)
 
 
 async def check_tracker(tut: TrackerUnderTest) -> None:
-    """Run every tracker check; raise ContractFailure on the first broken rule."""
+    """Run every tracker check; raise ContractError on the first broken rule."""
     for check in tracker_checks():
         await check(tut)

@@ -20,7 +20,7 @@ import asyncio
 import contextlib
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 from pydantic import Field
@@ -341,7 +341,9 @@ class FanucRmiRobot(RobotDriverBase):
         self._needs_recovery = False
         self.log.info("recovered from HOLD", next_sequence_id=self._next_seq)
 
-    async def _instruction(self, build: Any, deadline: float) -> rmi.Packet:
+    async def _instruction(
+        self, build: Callable[[int], dict[str, Any]], deadline: float
+    ) -> rmi.Packet:
         """Send one instruction built by ``build(seq)``; wait for its completion reply."""
         stream = self._live_stream()
         async with self._in_flight:

@@ -1,4 +1,4 @@
-"""Sans-I/O codec for LTP/1, the tracker line protocol (docs/protocols.md section 2.5).
+r"""Sans-I/O codec for LTP/1, the tracker line protocol (docs/protocols.md section 2.5).
 
 Wire layout (7-bit ASCII, one message per CR LF line, at most 512 bytes)::
 

@@ -203,14 +203,14 @@ class RegisterMap(BaseModel):
         return first + self.status_offset, end + self.status_offset
 
     def holding_size(self) -> int:
-        """Number of holding registers a server must provide (from address 0)."""
+        """Return how many holding registers a server must provide (from address 0)."""
         end = max(b for _, b in self.holding_fields().values())
         if self.status_area == "holding":
             end = max(end, self.status_span()[1])
         return end
 
     def input_size(self) -> int:
-        """Number of input registers a server must provide (from address 0)."""
+        """Return how many input registers a server must provide (from address 0)."""
         return self.status_span()[1] if self.status_area == "input" else 1
 
 

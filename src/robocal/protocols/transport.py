@@ -249,6 +249,7 @@ class ThreadSerialTransport:
 
     @property
     def is_open(self) -> bool:
+        """True while the port is open."""
         return self._ser is not None and bool(self._ser.is_open)
 
     async def open(self, *, timeout: float) -> None:

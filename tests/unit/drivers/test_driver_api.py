@@ -32,7 +32,15 @@ LIMITS = [(-1.0, 1.0), (-2.0, 0.5)]
 def test_check_joint_target_accepts_and_refuses():
     assert check_joint_target([0.0, -2.0], LIMITS) == (0.0, -2.0)
     assert check_joint_target((1, 0.5), LIMITS) == (1.0, 0.5)
-    for bad in ([1.01, 0.0], [0.0, -2.1], [math.nan, 0.0], [0.0, math.inf], [0.0], [0, 0, 0], ["a", 0]):
+    for bad in (
+        [1.01, 0.0],
+        [0.0, -2.1],
+        [math.nan, 0.0],
+        [0.0, math.inf],
+        [0.0],
+        [0, 0, 0],
+        ["a", 0],
+    ):
         with pytest.raises(LimitViolation):
             check_joint_target(bad, LIMITS, kind="x")
 
@@ -68,7 +76,9 @@ def test_robot_drivers_satisfy_protocols(cls, options):
     require(robot, RobotDriver, CompensationSink)
 
 
-@pytest.mark.parametrize(("cls", "options"), [(MockTracker, {}), (LtpTracker, {"url": "tcp://127.0.0.1:7710"})])
+@pytest.mark.parametrize(
+    ("cls", "options"), [(MockTracker, {}), (LtpTracker, {"url": "tcp://127.0.0.1:7710"})]
+)
 def test_tracker_drivers_satisfy_protocols(cls, options):
     tracker = cls(options)
     assert isinstance(tracker, TrackerDriver) and isinstance(tracker, PointMeasurer)

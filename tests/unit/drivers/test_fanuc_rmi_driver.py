@@ -36,7 +36,14 @@ async def rmi_sim(world, options=None, faults=None):
 
 def robot_for(sim, world, **extra) -> FanucRmiRobot:
     limits = extra.pop("joint_limits_deg", world.joint_limits_deg)
-    return FanucRmiRobot({"connect_port": sim.connect_port, "joint_limits_deg": limits, "reply_timeout_s": 2.0, **extra})
+    return FanucRmiRobot(
+        {
+            "connect_port": sim.connect_port,
+            "joint_limits_deg": limits,
+            "reply_timeout_s": 2.0,
+            **extra,
+        }
+    )
 
 
 def instructions(sim):
@@ -48,7 +55,10 @@ async def test_session_setup_and_consecutive_sequence_ids(world):
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
         assert robot.controller_version == (7, 0) and robot.session_port == sim.main_port
-        assert [next(iter(p.values())) for p in sim.received[:2]] == ["FRC_GetStatus", "FRC_Initialize"]
+        assert [next(iter(p.values())) for p in sim.received[:2]] == [
+            "FRC_GetStatus",
+            "FRC_Initialize",
+        ]
         for i in range(12):
             q = [0.01 * i] * world.dof
             reading = await robot.move_to(q, speed_pct=50, timeout=5)
@@ -57,7 +67,11 @@ async def test_session_setup_and_consecutive_sequence_ids(world):
         seqs = [p["SequenceID"] for p in instructions(sim)]
         assert seqs == list(range(1, 13))
         motion = instructions(sim)[0]
-        assert motion["TermType"] == "FINE" and motion["SpeedType"] == "Percent" and motion["Speed"] == 50
+        assert (
+            motion["TermType"] == "FINE"
+            and motion["SpeedType"] == "Percent"
+            and motion["Speed"] == 50
+        )
         assert motion["JointAngle"]["J1"] == 0.0
         await robot.close()
         await robot.close()
@@ -68,7 +82,7 @@ async def test_session_setup_and_consecutive_sequence_ids(world):
 async def test_refuses_major_version_below_6(world):
     async with rmi_sim(world, FanucSimOptions(major_version=5, time_scale=0.0)) as sim:
         robot = robot_for(sim, world)
-        with pytest.raises(ConnectFailed, match="MajorVersion 5.*actual") as info:
+        with pytest.raises(ConnectFailed, match=r"MajorVersion 5.*actual") as info:
             await robot.connect(timeout=5)
         assert info.value.kind == "fanuc_rmi"
         assert sim.sessions == 0  # never went on to the session port
@@ -104,7 +118,7 @@ async def test_limit_violation_sends_nothing(world):
 
 
 async def test_at_most_eight_in_flight(world):
-    async with rmi_sim(world, FanucSimOptions(time_scale=0.05, min_motion_s=0.1)) as sim:
+    async with rmi_sim(world, FanucSimOptions(time_scale=0.3, min_motion_s=0.1)) as sim:
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
         targets = [[0.001 * i] * world.dof for i in range(12)]
@@ -202,10 +216,10 @@ async def test_motion_timeout(world):
 
 
 async def test_idle_terminate(world):
-    async with rmi_sim(world, FanucSimOptions(time_scale=0.0, idle_timeout_s=0.1)) as sim:
+    async with rmi_sim(world, FanucSimOptions(time_scale=0.0, idle_timeout_s=0.25)) as sim:
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.6)
         with pytest.raises(ConnectFailed, match="terminated"):
             await robot.read_joints()
         await robot.close()
@@ -213,7 +227,10 @@ async def test_idle_terminate(world):
 
 def frames_table() -> CompensationTable:
     return CompensationTable(
-        kind="frames", model_id="m1", robot="lrmate", valid_range_deg=[(-170.0, 170.0)] * 6,
+        kind="frames",
+        model_id="m1",
+        robot="lrmate",
+        valid_range_deg=[(-170.0, 170.0)] * 6,
         predicted_residual_mm=0.04,
         frames=FramesPayload(
             base=Frame(x=1500.125, y=-20.5, z=-400.25, w=0.01, p=-0.02, r=178.5),
@@ -224,8 +241,12 @@ def frames_table() -> CompensationTable:
 
 def targets_table(rows) -> CompensationTable:
     return CompensationTable(
-        kind="targets", model_id="m1", robot="lrmate", valid_range_deg=[(-170.0, 170.0)] * 6,
-        predicted_residual_mm=0.04, targets=rows,
+        kind="targets",
+        model_id="m1",
+        robot="lrmate",
+        valid_range_deg=[(-170.0, 170.0)] * 6,
+        predicted_residual_mm=0.04,
+        targets=rows,
     ).sealed()
 
 
@@ -236,13 +257,24 @@ async def test_compensation_frames_and_targets(world):
         assert await robot.read_compensation() is None
         table = frames_table()
         await robot.write_compensation(table)
-        assert sim.uframes[3] == {"X": 1500.125, "Y": -20.5, "Z": -400.25, "W": 0.01, "P": -0.02, "R": 178.5}
+        assert sim.uframes[3] == {
+            "X": 1500.125,
+            "Y": -20.5,
+            "Z": -400.25,
+            "W": 0.01,
+            "P": -0.02,
+            "R": 178.5,
+        }
         assert sim.utools[2]["Z"] == 120.75
         assert await robot.read_compensation() == table
         rows = [
             TargetRow(index=0, q_deg=[1, 2, 3, 4, 5, 6], status="ok", model_residual_mm=0.01),
-            TargetRow(index=4, q_deg=[0, 0, 0, 0, 0, 0], status="unreachable", model_residual_mm=9.0),
-            TargetRow(index=7, q_deg=[-10, 20, -30, 40, -50, 60.125], status="ok", model_residual_mm=0.02),
+            TargetRow(
+                index=4, q_deg=[0, 0, 0, 0, 0, 0], status="unreachable", model_residual_mm=9.0
+            ),
+            TargetRow(
+                index=7, q_deg=[-10, 20, -30, 40, -50, 60.125], status="ok", model_residual_mm=0.02
+            ),
         ]
         table = targets_table(rows)
         await robot.write_compensation(table)
@@ -259,16 +291,27 @@ async def test_compensation_refusals(world):
         await robot.connect(timeout=5)
         before = len(sim.received)
         bad_limits = targets_table(
-            [TargetRow(index=0, q_deg=[0, 0, 0, 0, 0, 0], status="ok", model_residual_mm=0.0),
-             TargetRow(index=1, q_deg=[400, 0, 0, 0, 0, 0], status="ok", model_residual_mm=0.0)]
+            [
+                TargetRow(index=0, q_deg=[0, 0, 0, 0, 0, 0], status="ok", model_residual_mm=0.0),
+                TargetRow(index=1, q_deg=[400, 0, 0, 0, 0, 0], status="ok", model_residual_mm=0.0),
+            ]
         )
         with pytest.raises(LimitViolation):
             await robot.write_compensation(bad_limits)
-        too_far = targets_table([TargetRow(index=5, q_deg=[0] * 6, status="ok", model_residual_mm=0.0)])
+        too_far = targets_table(
+            [TargetRow(index=5, q_deg=[0] * 6, status="ok", model_residual_mm=0.0)]
+        )
         with pytest.raises(CompensationError, match="PR"):
             await robot.write_compensation(too_far)
         assert len(sim.received) == before  # nothing written
-        joint = CompensationTable(kind="joint", model_id="m", robot="r", valid_range_deg=[], predicted_residual_mm=0, joints=[])
+        joint = CompensationTable(
+            kind="joint",
+            model_id="m",
+            robot="r",
+            valid_range_deg=[],
+            predicted_residual_mm=0,
+            joints=[],
+        )
         with pytest.raises(CompensationError, match="frames"):
             await robot.write_compensation(joint)
         await robot.close()
@@ -311,7 +354,12 @@ async def scripted_controller(script):
 
     async def connect(reader, writer):
         await reader.readline()
-        reply = {"Communication": "FRC_Connect", "ErrorID": 0, "PortNumber": main_port, "MajorVersion": 6}
+        reply = {
+            "Communication": "FRC_Connect",
+            "ErrorID": 0,
+            "PortNumber": main_port,
+            "MajorVersion": 6,
+        }
         writer.write(json.dumps(reply).encode() + b"\r\n")
         await writer.drain()
         writer.close()
@@ -356,9 +404,14 @@ async def test_malformed_replies_are_skipped_not_fatal():
     async def script(reader, writer):
         await good_setup(reader, writer)
         line = await reader.readline()  # the motion
-        for junk in (b"{not json\r\n", b'{"ErrorID":0}\r\n', b"\xff\xfe\x00\r\n", b"x" * 9000 + b"\r\n",
-                     b'{"Instruction":"FRC_JointMotionJRep","ErrorID":0,"SequenceID":99}\r\n',
-                     b'{"Command":"FRC_Bogus","ErrorID":0}\r\n'):
+        for junk in (
+            b"{not json\r\n",
+            b'{"ErrorID":0}\r\n',
+            b"\xff\xfe\x00\r\n",
+            b"x" * 9000 + b"\r\n",
+            b'{"Instruction":"FRC_JointMotionJRep","ErrorID":0,"SequenceID":99}\r\n',
+            b'{"Command":"FRC_Bogus","ErrorID":0}\r\n',
+        ):
             writer.write(junk)
         writer.write(reply_for(line))
         angles = {f"J{i}": 1.0 for i in range(1, 10)}
@@ -367,7 +420,9 @@ async def test_malformed_replies_are_skipped_not_fatal():
         await answer_rest(reader, writer)
 
     async with scripted_controller(script) as port:
-        robot = FanucRmiRobot({"connect_port": port, "joint_limits_deg": [(-10, 10)] * 6, "reply_timeout_s": 2})
+        robot = FanucRmiRobot(
+            {"connect_port": port, "joint_limits_deg": [(-10, 10)] * 6, "reply_timeout_s": 2}
+        )
         await robot.connect(timeout=5)
         reading = await robot.move_to([0.0] * 6, timeout=5)
         assert reading.q_rad == pytest.approx((math.radians(1.0),) * 6)
@@ -379,7 +434,10 @@ async def test_wrong_sequence_id_reply_leads_to_timeout_not_crash():
     async def script(reader, writer):
         await good_setup(reader, writer)
         line = json.loads(await reader.readline())
-        writer.write(json.dumps({"Instruction": line["Instruction"], "ErrorID": 0, "SequenceID": 5}).encode() + b"\r\n")
+        writer.write(
+            json.dumps({"Instruction": line["Instruction"], "ErrorID": 0, "SequenceID": 5}).encode()
+            + b"\r\n"
+        )
         await writer.drain()
         await answer_rest(reader, writer)
 
@@ -427,7 +485,11 @@ async def test_unknown_command_reply_is_an_operation_error():
 async def test_connect_reply_without_port_or_garbage_only():
     async def connect_script(reader, writer):
         await reader.readline()
-        writer.write(b"garbage\r\n" + json.dumps({"Communication": "FRC_Connect", "ErrorID": rmi.rmit(26)}).encode() + b"\r\n")
+        writer.write(
+            b"garbage\r\n"
+            + json.dumps({"Communication": "FRC_Connect", "ErrorID": rmi.rmit(26)}).encode()
+            + b"\r\n"
+        )
         await writer.drain()
         writer.close()
 

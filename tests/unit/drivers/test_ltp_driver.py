@@ -64,8 +64,14 @@ async def test_session_and_measurement_in_metres(world, via):
         assert all(0 < s < 1e-4 for s in r.std_m)
         assert r.weather == {"temp_c": 20.4, "press_hpa": 1012.6, "hum_pct": 41.0}
         meas = sim.requests[-1]
-        assert dict(meas.args) == {"id": "P0042", "mode": "stationary", "n": "12", "stab_mm": "0.01",
-                                   "stab_ms": "250", "timeout_ms": "2000"}
+        assert dict(meas.args) == {
+            "id": "P0042",
+            "mode": "stationary",
+            "n": "12",
+            "stab_mm": "0.01",
+            "stab_ms": "250",
+            "timeout_ms": "2000",
+        }
         await t.close()
         await t.close()
         assert sim.requests[-1].verb == "BYE"
@@ -165,12 +171,15 @@ async def test_samples_validated_before_sending(world):
 
 
 async def test_connect_refused_and_timeout():
-    server = await asyncio.start_server(lambda r, w: None, "127.0.0.1", 0)
+    silent = []
+    server = await asyncio.start_server(lambda r, w: silent.append(w), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     t = LtpTracker({"url": f"tcp://127.0.0.1:{port}"})
     with pytest.raises(DriverTimeout):
         await t.connect(timeout=0.2)  # the server never answers HELLO
     server.close()
+    for w in silent:
+        w.close()
     await server.wait_closed()
     with pytest.raises(ConnectFailed):
         await t.connect(timeout=1)
@@ -228,7 +237,7 @@ GOOD = "x=1000 y=2000 z=-500 sx=0.001 sy=0.001 sz=0.002 n=3 rms=0.002 t=2026-01-
         ("{tag} ERR 15 TIMEOUT", DriverTimeout),
         ("{tag} ERR 16 ABORTED", MeasurementError),
         ("{tag} ERR 14 BUSY", MeasurementError),
-        ("{tag} ERR 77 NEW_CODE msg=\"from the future\"", MeasurementError),
+        ('{tag} ERR 77 NEW_CODE msg="from the future"', MeasurementError),
         ("{tag} OK y=1 z=2", UnexpectedReply),
         ("{tag} OK x=a y=1 z=2", UnexpectedReply),
         ("{tag} OK x=nan y=1 z=2", UnexpectedReply),
@@ -257,11 +266,15 @@ async def test_units_conversion_and_timestamp():
 
 lines = st.one_of(
     st.binary(max_size=80).map(lambda b: b.replace(b"\n", b"")),
-    st.sampled_from([b"* EVT BEAM state=BROKEN", b"* EVT FAULT code=50", b"* EVT", b"1 OK", b"x" * 700]),
+    st.sampled_from(
+        [b"* EVT BEAM state=BROKEN", b"* EVT FAULT code=50", b"* EVT", b"1 OK", b"x" * 700]
+    ),
 )
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(st.lists(lines, max_size=6), st.booleans())
 def test_arbitrary_noise_before_reply_never_crashes(noise, answer):
     async def run():

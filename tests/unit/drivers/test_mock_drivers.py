@@ -23,9 +23,14 @@ def _fresh_worlds():
 
 def frames_table() -> CompensationTable:
     return CompensationTable(
-        kind="frames", model_id="m", robot="r", valid_range_deg=[(-1.0, 1.0)],
+        kind="frames",
+        model_id="m",
+        robot="r",
+        valid_range_deg=[(-1.0, 1.0)],
         predicted_residual_mm=0.1,
-        frames=FramesPayload(base=Frame(x=1, y=2, z=3, w=0, p=0, r=90), tool=Frame(x=0, y=0, z=100, w=0, p=0, r=0)),
+        frames=FramesPayload(
+            base=Frame(x=1, y=2, z=3, w=0, p=0, r=90), tool=Frame(x=0, y=0, z=100, w=0, p=0, r=0)
+        ),
     ).sealed()
 
 

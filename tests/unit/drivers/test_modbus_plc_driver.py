@@ -47,7 +47,10 @@ def robot_for(sim, world, **extra) -> ModbusPlcRobot:
 
 @pytest.mark.parametrize(
     "register_map",
-    [mb.RegisterMap(), mb.RegisterMap(word_order="little", status_area="holding", status_offset=5000)],
+    [
+        mb.RegisterMap(),
+        mb.RegisterMap(word_order="little", status_area="holding", status_offset=5000),
+    ],
     ids=["default", "hr-only-little-endian"],
 )
 async def test_handshake_moves_and_reads(world, register_map):
@@ -99,7 +102,10 @@ async def test_limits_checked_by_driver_and_by_plc(world):
         robot = robot_for(sim, world, joint_limits_deg=wide)
         await robot.connect(timeout=5)
         with pytest.raises(LimitViolation, match="ERROR_CODE 10"):
-            await robot.move_to([math.radians(world.joint_limits_deg[0][1] + 10)] + [0.0] * (world.dof - 1), timeout=5)
+            await robot.move_to(
+                [math.radians(world.joint_limits_deg[0][1] + 10)] + [0.0] * (world.dof - 1),
+                timeout=5,
+            )
         await robot.close()
 
 
@@ -140,13 +146,13 @@ async def test_stale_plc_heartbeat_faults_driver(world):
 
 
 async def test_plc_latches_when_client_heartbeat_stops(world):
-    opts = ModbusSimOptions(time_scale=0.0, plc_heartbeat_hz=50, client_heartbeat_timeout_s=0.1)
+    opts = ModbusSimOptions(time_scale=0.0, plc_heartbeat_hz=50, client_heartbeat_timeout_s=0.3)
     async with plc(world, opts) as sim:
         robot = robot_for(sim, world, heartbeat_period_s=0.02, heartbeat_timeout_s=1.0)
         await robot.connect(timeout=5)
         await asyncio.sleep(0.05)
         robot._heartbeat_task.cancel()  # the client "hangs"
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.6)
         with pytest.raises(OperationError, match="HEARTBEAT_LOST"):
             await robot.read_joints()
         await robot.reset()
@@ -175,22 +181,42 @@ async def test_map_version_checked(world):
 
 
 def tables():
-    common = dict(model_id="m", robot="r", valid_range_deg=[(-90.0, 90.0)] * 6, predicted_residual_mm=0.05)
+    common = dict(
+        model_id="m", robot="r", valid_range_deg=[(-90.0, 90.0)] * 6, predicted_residual_mm=0.05
+    )
     yield CompensationTable(
         kind="joint",
-        joints=[JointCorrection(joint=j + 1, q_deg=[-90.0, -30.0, 30.0, 90.0], dq_deg=[0.1 / 3, -0.002 * j, 0.0, 1e-5],
-                                interpolation_error_bound_deg=0.0001) for j in range(6)],
+        joints=[
+            JointCorrection(
+                joint=j + 1,
+                q_deg=[-90.0, -30.0, 30.0, 90.0],
+                dq_deg=[0.1 / 3, -0.002 * j, 0.0, 1e-5],
+                interpolation_error_bound_deg=0.0001,
+            )
+            for j in range(6)
+        ],
         **common,
     ).sealed()
     yield CompensationTable(
         kind="targets",
-        targets=[TargetRow(index=i, q_deg=[i * 1.1, -2.2, 3.3, 0.0, 45.0, -90.0], status="ok", model_residual_mm=0.01)
-                 for i in range(40)] + [TargetRow(index=40, q_deg=[999.0] * 6, status="out-of-limits", model_residual_mm=5.0)],
+        targets=[
+            TargetRow(
+                index=i,
+                q_deg=[i * 1.1, -2.2, 3.3, 0.0, 45.0, -90.0],
+                status="ok",
+                model_residual_mm=0.01,
+            )
+            for i in range(40)
+        ]
+        + [TargetRow(index=40, q_deg=[999.0] * 6, status="out-of-limits", model_residual_mm=5.0)],
         **common,
     ).sealed()
     yield CompensationTable(
         kind="frames",
-        frames=FramesPayload(base=Frame(x=1500.1, y=2, z=3, w=0.1, p=0.2, r=179.9), tool=Frame(x=0, y=0, z=100.3, w=0, p=0, r=0)),
+        frames=FramesPayload(
+            base=Frame(x=1500.1, y=2, z=3, w=0.1, p=0.2, r=179.9),
+            tool=Frame(x=0, y=0, z=100.3, w=0, p=0, r=0),
+        ),
         **common,
     ).sealed()
 
@@ -234,8 +260,14 @@ async def test_compensation_refusals(world):
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
         bad_row = CompensationTable(
-            kind="targets", model_id="m", robot="r", valid_range_deg=[], predicted_residual_mm=0.0,
-            targets=[TargetRow(index=0, q_deg=[400.0] + [0.0] * 5, status="ok", model_residual_mm=0.0)],
+            kind="targets",
+            model_id="m",
+            robot="r",
+            valid_range_deg=[],
+            predicted_residual_mm=0.0,
+            targets=[
+                TargetRow(index=0, q_deg=[400.0] + [0.0] * 5, status="ok", model_residual_mm=0.0)
+            ],
         )
         n = len(sim.writes)
         with pytest.raises(LimitViolation):

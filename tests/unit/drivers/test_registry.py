@@ -15,7 +15,10 @@ from robocal.errors import ConfigError, DriverImportError, DriverNotFound
 
 
 def test_available_lists_declared_entry_points():
-    assert available() == {"robots": ["fanuc_rmi", "mock", "modbus_plc"], "trackers": ["ltp", "mock"]}
+    assert available() == {
+        "robots": ["fanuc_rmi", "mock", "modbus_plc"],
+        "trackers": ["ltp", "mock"],
+    }
 
 
 def test_driver_classes_resolve():
@@ -64,7 +67,9 @@ def test_options_are_frozen():
 
 def fake_eps(monkeypatch, **values):
     eps = [EntryPoint(name=k, value=v, group=_registry.ROBOT_GROUP) for k, v in values.items()]
-    monkeypatch.setattr(_registry, "entry_points", lambda group: eps if group == _registry.ROBOT_GROUP else [])
+    monkeypatch.setattr(
+        _registry, "entry_points", lambda group: eps if group == _registry.ROBOT_GROUP else []
+    )
 
 
 def test_import_failure_is_wrapped(monkeypatch):

@@ -40,7 +40,9 @@ def sleeps(monkeypatch):
 
 async def test_retries_recoverable_failures_with_backoff(sleeps):
     t = Scripted([BeamLost("b"), Unstable("u"), DriverTimeout("t"), OK])
-    r = await measure_with_retry(t, samples=5, timeout=2.0, point_id="P1", attempts=4, backoff_s=0.1)
+    r = await measure_with_retry(
+        t, samples=5, timeout=2.0, point_id="P1", attempts=4, backoff_s=0.1
+    )
     assert r is OK
     assert sleeps == [0.1, 0.2, 0.4]
     assert t.calls == [{"samples": 5, "timeout": 2.0, "point_id": "P1"}] * 4
@@ -49,7 +51,9 @@ async def test_retries_recoverable_failures_with_backoff(sleeps):
 async def test_gives_up_after_attempts(sleeps):
     t = Scripted([BeamLost("1"), BeamLost("2"), BeamLost("3")])
     with pytest.raises(BeamLost, match="3"):
-        await measure_with_retry(t, samples=1, timeout=1.0, attempts=3, backoff_s=1.0, max_backoff_s=1.5)
+        await measure_with_retry(
+            t, samples=1, timeout=1.0, attempts=3, backoff_s=1.0, max_backoff_s=1.5
+        )
     assert sleeps == [1.0, 1.5]
 
 

@@ -58,13 +58,17 @@ def motion(seq, q=0.0):
 
 
 async def test_instructions_need_initialize_and_sequence_ids(world):
-    async with session(world, time_scale=0.0) as (sim, c):
+    async with session(world, time_scale=0.0) as (_sim, c):
         await c.send(motion(1))
         assert (await c.recv())["ErrorID"] == rmi.rmit(9)
         await c.send({"Command": "FRC_Initialize"})
         assert (await c.recv()) == {"Command": "FRC_Initialize", "ErrorID": 0, "GroupMask": 1}
         await c.send(motion(1))
-        assert (await c.recv()) == {"Instruction": "FRC_JointMotionJRep", "ErrorID": 0, "SequenceID": 1}
+        assert (await c.recv()) == {
+            "Instruction": "FRC_JointMotionJRep",
+            "ErrorID": 0,
+            "SequenceID": 1,
+        }
         await c.send(motion(3))  # gap
         assert (await c.recv())["ErrorID"] == rmi.rmit(29)
         await c.send(motion(2))  # HOLD until reset
@@ -85,18 +89,24 @@ async def test_ninth_instruction_in_flight_is_refused(world):
         for seq in range(1, 10):
             await c.send(motion(seq, 0.001 * seq))
         first = await c.recv()
-        assert first == {"Instruction": "FRC_JointMotionJRep", "ErrorID": rmi.rmit(28), "SequenceID": 9}
+        assert first == {
+            "Instruction": "FRC_JointMotionJRep",
+            "ErrorID": rmi.rmit(28),
+            "SequenceID": 9,
+        }
         assert sim.max_in_flight == 8
         await c.send({"Command": "FRC_Abort"})
 
 
 async def test_replies_on_completion_and_unknown_packets(world):
-    async with session(world, time_scale=1.0, min_motion_s=0.05) as (sim, c):
+    async with session(world, time_scale=1.0, min_motion_s=0.05) as (_sim, c):
         await c.send({"Command": "FRC_Initialize"})
         await c.recv()
         await c.send(motion(1, 1.0))
         await c.send({"Command": "FRC_GetStatus"})
-        assert (await c.recv())["Command"] == "FRC_GetStatus"  # command answered before the motion ends
+        assert (await c.recv())[
+            "Command"
+        ] == "FRC_GetStatus"  # command answered before the motion ends
         assert (await c.recv())["SequenceID"] == 1
         c.writer.write(b"{broken\r\n")
         await c.send({"ErrorID": 0, "Command": "FRC_GetStatus"})
@@ -124,7 +134,7 @@ async def test_second_client_refused_and_session_port_needs_handshake(world):
 
 
 async def test_frames_and_registers_storage(world):
-    async with session(world, time_scale=0.0) as (sim, c):
+    async with session(world, time_scale=0.0) as (_sim, c):
         frame = rmi.frame_fields(1, 2, 3, 4, 5, 6)
         await c.send({"Command": "FRC_WriteUFrameData", "FrameNumber": 2, "Frame": frame})
         assert (await c.recv())["ErrorID"] == 0
@@ -132,7 +142,9 @@ async def test_frames_and_registers_storage(world):
         assert (await c.recv())["Frame"] == frame
         await c.send({"Command": "FRC_WriteUToolData", "ToolNumber": 11, "Frame": frame})
         assert (await c.recv())["ErrorID"] == rmi.rmit(2)
-        await c.send({"Command": "FRC_WritePositionRegister", "RegisterNumber": 5, "Position": frame})
+        await c.send(
+            {"Command": "FRC_WritePositionRegister", "RegisterNumber": 5, "Position": frame}
+        )
         assert (await c.recv())["ErrorID"] == rmi.rmit(23)  # no Configuration
         await c.send({"Command": "FRC_ReadPositionRegister", "RegisterNumber": 0})
         assert (await c.recv())["ErrorID"] == rmi.rmit(4)

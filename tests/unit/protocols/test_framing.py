@@ -83,7 +83,9 @@ def test_arbitrary_bytes_only_raise_framing_errors(chunks, max_length):
 
 
 @given(
-    st.lists(st.binary(max_size=30).filter(lambda b: b"\n" not in b and b"\r" not in b), max_size=20),
+    st.lists(
+        st.binary(max_size=30).filter(lambda b: b"\n" not in b and b"\r" not in b), max_size=20
+    ),
     st.data(),
 )
 def test_round_trip_with_arbitrary_chunking(lines, data):

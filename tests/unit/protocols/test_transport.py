@@ -8,6 +8,8 @@ import os
 import tty
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from robocal.errors import ConfigError, FramingError, TransportError, TransportTimeout
 from robocal.protocols import (
@@ -59,8 +61,17 @@ def test_open_transport_picks_by_url():
 
 @pytest.mark.parametrize(
     "url",
-    ["tcp://host", "tcp://:80", "tcp://h:notaport", "serial://", "serial:///dev/x?baud=9600",
-     "serial:///dev/x?rtscts=maybe", "serial:///dev/x?baudrate=fast", "ftp://x", "pair://a"],
+    [
+        "tcp://host",
+        "tcp://:80",
+        "tcp://h:notaport",
+        "serial://",
+        "serial:///dev/x?baud=9600",
+        "serial:///dev/x?rtscts=maybe",
+        "serial:///dev/x?baudrate=fast",
+        "ftp://x",
+        "pair://a",
+    ],
 )
 def test_bad_urls_raise_config_error(url):
     with pytest.raises(ConfigError):
@@ -97,7 +108,7 @@ async def test_tcp_peer_close_raises_transport_error_after_data():
 
 
 async def test_tcp_connection_refused():
-    server = await asyncio.start_server(lambda r, w: None, "127.0.0.1", 0)
+    server = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     server.close()
     await server.wait_closed()
@@ -173,3 +184,12 @@ async def test_line_stream_timeout_and_overlong_resync():
         await stream.read_line(timeout=2)
     assert await stream.read_line(timeout=2) == b"short"
     await t.close()
+
+
+@given(st.text(max_size=60))
+def test_arbitrary_urls_give_a_transport_or_config_error(url):
+    try:
+        t = open_transport(url)
+    except ConfigError:
+        return
+    assert isinstance(t, TcpTransport | SerialTransport | ThreadSerialTransport)

@@ -125,7 +125,6 @@ class _Session:
         sim.requests.append(req)
         if sim.faults.fire("drop"):
             _log.info("ltp sim: dropping the connection (injected)")
-            self.closed = True
             self._close()
             return
         if self.busy is not None and not self.busy.done():
@@ -139,6 +138,8 @@ class _Session:
             self.busy = asyncio.create_task(self._meas(req), name="ltp-sim-meas")
             return
         await self.reply(sim.answer(req, self))
+        if req.verb == "BYE":
+            self._close()
 
     async def _meas(self, req: ltp.Request) -> None:
         try:
@@ -273,14 +274,8 @@ class LtpTrackerSimulator:
         if req.verb == "STOP":
             return ltp.format_ok(tag)
         if req.verb == "BYE":
-            session.closed = True
-            self._track(self._close_later(session))
             return ltp.format_ok(tag)
         return ltp.format_err(tag, ltp.ErrorCode.UNKNOWN_VERB, msg=req.verb)
-
-    async def _close_later(self, session: _Session) -> None:
-        await asyncio.sleep(0.01)
-        session._close()
 
     async def measure(self, req: ltp.Request, session: _Session) -> str:
         """Run one MEAS: settle, sample, average; return the reply line."""
@@ -380,7 +375,12 @@ class LtpTrackerSimulator:
                 with contextlib.suppress(Exception):
                     await write(line.encode() + b"\r\n")
                 return
-            session = _Session(self, write, writer.close)
+
+            def close() -> None:
+                session.closed = True
+                writer.close()
+
+            session = _Session(self, write, close)
             self._tcp_session = session
             self._sessions.add(session)
             try:
@@ -429,11 +429,12 @@ class LtpTrackerSimulator:
                         raise
                     await asyncio.sleep(0.001)
 
-        def reset_session() -> None:
-            # A dropped "connection" on a serial line: discard whatever is in flight.
-            self._pty_session = _Session(self, write, reset_session)
+        def line_stays_up() -> None:
+            # A serial line has no connection to drop or close: BYE and an injected drop
+            # only end the current exchange (a dropped request gets no reply).
+            return None
 
-        self._pty_session = _Session(self, write, reset_session)
+        self._pty_session = _Session(self, write, line_stays_up)
         queue: asyncio.Queue[bytes] = asyncio.Queue()
 
         def readable() -> None:

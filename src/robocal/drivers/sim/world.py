@@ -82,7 +82,7 @@ class SimWorld:
         return tuple((math.degrees(lo), math.degrees(hi)) for lo, hi in self.joint_limits_rad)
 
     def within_limits(self, q_rad: Any) -> bool:
-        """True if every joint of ``q_rad`` is inside the limits."""
+        """Return True if every joint of ``q_rad`` is inside the limits."""
         q = np.asarray(q_rad, dtype=float)
         lim = np.asarray(self.joint_limits_rad)
         return bool(
@@ -103,7 +103,7 @@ class SimWorld:
         return actual.copy()
 
     def true_reflector_position(self) -> Array:
-        """True reflector centre (3,) for the current actual joints, tracker frame, metres."""
+        """Return the true reflector centre (3,) for the actual joints, tracker frame, metres."""
         return np.asarray(self.cell.reflector_position(self.q_actual_rad[None, :]), dtype=float)[0]
 
     def measure(self, n: int, *, glitch: bool = False) -> WorldMeasurement:

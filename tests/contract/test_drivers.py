@@ -1,0 +1,130 @@
+"""Every driver through the public contract suite: mocks, and real drivers against simulators."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator, Callable
+
+import pytest
+
+from robocal.drivers import contracts, load_robot, load_tracker
+from robocal.drivers.mock import MockRobot, MockTracker
+from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, ModbusSimOptions, SimCell, SimWorld
+
+
+@contextlib.asynccontextmanager
+async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
+    world = SimWorld.create(seed=5)
+    if name == "mock":
+        yield contracts.RobotUnderTest(
+            "mock",
+            make=lambda: MockRobot(world=world),
+            actual_joints=lambda: world.q_actual_rad,
+        )
+        return
+    cell = SimCell(
+        world=world,
+        fanuc=FanucSimOptions(time_scale=0.0) if name == "fanuc_rmi" else False,
+        modbus=ModbusSimOptions(time_scale=0.0) if name == "modbus_plc" else False,
+        ltp=False,
+    )
+    async with cell:
+        options = cell.robot_options(name)  # type: ignore[arg-type]
+        if name == "fanuc_rmi":
+            rmi_sim = cell.fanuc_sim
+            received: Callable[[], int] = lambda: len(rmi_sim.received)  # noqa: E731
+        else:
+            plc_sim = cell.modbus_sim
+            received = lambda: len(plc_sim.commands)  # noqa: E731
+        yield contracts.RobotUnderTest(
+            name,
+            make=lambda: load_robot(name, options),
+            actual_joints=lambda: world.q_actual_rad,
+            messages_received=received,
+        )
+
+
+@contextlib.asynccontextmanager
+async def tracker_case(name: str) -> AsyncIterator[contracts.TrackerUnderTest]:
+    world = SimWorld.create(seed=6)
+    world.move([0.2] * world.dof)
+    sigma = max(world.measure(1).sigma_m)
+    if name == "mock":
+        yield contracts.TrackerUnderTest(
+            "mock",
+            make=lambda: MockTracker(world=world),
+            true_position=world.true_reflector_position,
+            position_tol_m=10 * sigma,
+        )
+        return
+    via = name.split("-", 1)[1]
+    async with SimCell(
+        world=world,
+        fanuc=False,
+        modbus=False,
+        ltp=LtpSimOptions(time_scale=0.0),
+        ltp_pty=(via == "pty"),
+    ) as cell:
+        options = cell.tracker_options(via)  # type: ignore[arg-type]
+        yield contracts.TrackerUnderTest(
+            name,
+            make=lambda: load_tracker("ltp", options),
+            true_position=world.true_reflector_position,
+            position_tol_m=10 * sigma,
+        )
+
+
+ROBOTS = ["mock", "fanuc_rmi", "modbus_plc"]
+TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty"]
+
+
+@pytest.mark.parametrize("check", contracts.robot_checks(), ids=lambda c: c.__name__)
+@pytest.mark.parametrize("name", ROBOTS)
+async def test_robot_contract(name, check):
+    async with robot_case(name) as rut:
+        await check(rut)
+
+
+@pytest.mark.parametrize("check", contracts.tracker_checks(), ids=lambda c: c.__name__)
+@pytest.mark.parametrize("name", TRACKERS)
+async def test_tracker_contract(name, check):
+    async with tracker_case(name) as tut:
+        await check(tut)
+
+
+async def test_contract_catches_a_broken_driver():
+    """The suite is not vacuous: a driver that ignores its limits fails it."""
+    world = SimWorld.create(seed=5)
+
+    class Careless(MockRobot):
+        def _check_target(self, q_rad):
+            return tuple(q_rad)
+
+    rut = contracts.RobotUnderTest("careless", make=lambda: Careless(world=world))
+    with pytest.raises(contracts.ContractError, match="not refused"):
+        await contracts.check_robot_refuses_out_of_limits(rut)
+
+
+async def test_contract_catches_millimetres():
+    world = SimWorld.create(seed=5)
+
+    class Millimetres(MockTracker):
+        async def measure(self, *, samples=10, timeout=10.0, point_id=None):
+            r = await super().measure(samples=samples, timeout=timeout, point_id=point_id)
+            import dataclasses
+
+            return dataclasses.replace(r, position_m=tuple(v * 1000 for v in r.position_m))
+
+    tut = contracts.TrackerUnderTest("mm", make=lambda: Millimetres(world=world))
+    with pytest.raises(contracts.ContractError, match="not metres"):
+        await contracts.check_tracker_measure(tut)
+
+
+async def test_whole_suite_helpers():
+    world = SimWorld.create(seed=5)
+    await contracts.check_robot(
+        contracts.RobotUnderTest("mock", make=lambda: MockRobot(world=world))
+    )
+    await contracts.check_tracker(
+        contracts.TrackerUnderTest("mock", make=lambda: MockTracker(world=world))
+    )

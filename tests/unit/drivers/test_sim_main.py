@@ -1,0 +1,83 @@
+"""``robocal sim``: the simulators as a process, and its argument handling."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import sys
+
+import numpy as np
+import pytest
+
+from robocal.drivers import load_robot, load_tracker
+from robocal.drivers.sim import main
+
+
+def test_bad_arguments():
+    with pytest.raises(SystemExit) as info:
+        main(["nonsense"])
+    assert info.value.code == 2
+    assert main(["all", "--fault-rate", "2"]) == 2
+
+
+async def test_all_in_one_process_shares_one_world(tmp_path):
+    ports_file = tmp_path / "ports.json"
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "robocal.drivers.sim",
+        "all",
+        "--pty",
+        "--seed",
+        "4",
+        "--time-scale",
+        "0",
+        "--ports-file",
+        str(ports_file),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        line = await asyncio.wait_for(proc.stdout.readline(), 30)
+        ports = json.loads(line)
+        assert json.loads(ports_file.read_text()) == ports
+        assert set(ports) == {"host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker"}
+        pty = ports["ltp_tracker"]["pty"]
+        assert pty.startswith("/dev/")
+        limits = [(-90.0, 90.0)] * 6
+        robot = load_robot(
+            "fanuc_rmi",
+            {"connect_port": ports["fanuc_rmi"]["connect_port"], "joint_limits_deg": limits},
+        )
+        plc = load_robot(
+            "modbus_plc", {"port": ports["modbus_plc"]["port"], "joint_limits_deg": limits}
+        )
+        tcp = load_tracker("ltp", {"url": f"tcp://127.0.0.1:{ports['ltp_tracker']['port']}"})
+        serial = load_tracker("ltp", {"url": f"serial://{pty}?baudrate=115200"})
+        for d in (robot, plc, tcp, serial):
+            await d.connect(timeout=10)
+        try:
+            await robot.move_to([0.3] * 6, timeout=10)
+            a = await tcp.measure(samples=10, timeout=5)
+            b = await serial.measure(samples=10, timeout=5)
+            assert np.linalg.norm(np.subtract(a.position_m, b.position_m)) < 1e-4
+            # The PLC moves the same robot: the tracker sees the new pose.
+            await plc.move_to([-0.3] * 6, timeout=10)
+            assert (await robot.read_joints()).q_rad[0] == pytest.approx(-0.3, abs=1e-4)
+            c = await tcp.measure(samples=10, timeout=5)
+            assert np.linalg.norm(np.subtract(a.position_m, c.position_m)) > 0.05
+        finally:
+            for d in (robot, plc, tcp, serial):
+                await d.close()
+        proc.send_signal(signal.SIGTERM)
+        assert await asyncio.wait_for(proc.wait(), 20) == 0
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+        with contextlib.suppress(Exception):
+            await proc.communicate()
