@@ -170,8 +170,9 @@ def _read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
         raise DataError("file not found", source=src) from err
     except (OSError, UnicodeDecodeError) as err:
         raise DataError(f"cannot read: {err}", source=src) from err
-    sample = text[:4096]
-    delim = ";" if sample.count(";") > sample.count(",") else ","
+    # The header decides: European files separate with ';' and may use decimal commas.
+    first = text.split("\n", 1)[0]
+    delim = ";" if first.count(";") > first.count(",") else ","
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     try:
         rows = [r for r in reader if r and any(c.strip() for c in r)]

@@ -1,5 +1,43 @@
-"""Compensation: gradient-search inverse kinematics and compensation tables."""
+"""Compensation: gradient-search inverse kinematics and compensation tables.
 
+Public API
+----------
+``compensate(cal, targets_p, seeds_q, R_targets=None, ...)`` -> :class:`CompensationResult`
+    joint commands whose pose under the calibrated model equals each target (batched).
+``nominal_ik(robot, T_base_flange, seed)`` -> :class:`IKResult`
+    closed form for ortho-parallel arms with a spherical wrist (all 8 solutions, the one
+    closest to the seed chosen), damped least squares for other robots.
+``build_table(cal, kind, ...)`` -> :class:`CompensationTable`
+    ``targets`` / ``joint`` / ``frames`` tables, sealed with a checksum.
+``diff_tables(a, b)`` -> :class:`TableDiff`
+    what changes between two tables.
+``read_targets_csv`` / ``write_joints_csv``
+    TARGETS.csv and JOINTS.csv.
+"""
+
+from robocal.compensation._build import (
+    FrameFit,
+    build_table,
+    fit_frames,
+    joint_corrections,
+    sample_poses,
+    targets_table,
+    valid_range,
+)
+from robocal.compensation._diff import TableDiff, diff_tables
+from robocal.compensation._ik import (
+    IKResult,
+    has_closed_form,
+    ik_solutions,
+    nominal_fk,
+    nominal_ik,
+)
+from robocal.compensation._solve import (
+    STATUSES,
+    CompensationResult,
+    compensate,
+    rotation_error,
+)
 from robocal.compensation._table import (
     TABLE_FORMAT,
     CompensationTable,
@@ -8,12 +46,40 @@ from robocal.compensation._table import (
     JointCorrection,
     TargetRow,
 )
+from robocal.compensation._targets import (
+    TargetSet,
+    joints_csv_text,
+    read_targets_csv,
+    write_joints_csv,
+)
 
 __all__ = [
+    "STATUSES",
     "TABLE_FORMAT",
+    "CompensationResult",
     "CompensationTable",
     "Frame",
+    "FrameFit",
     "FramesPayload",
+    "IKResult",
     "JointCorrection",
+    "TableDiff",
     "TargetRow",
+    "TargetSet",
+    "build_table",
+    "compensate",
+    "diff_tables",
+    "fit_frames",
+    "has_closed_form",
+    "ik_solutions",
+    "joint_corrections",
+    "joints_csv_text",
+    "nominal_fk",
+    "nominal_ik",
+    "read_targets_csv",
+    "rotation_error",
+    "sample_poses",
+    "targets_table",
+    "valid_range",
+    "write_joints_csv",
 ]

@@ -6,13 +6,21 @@ A table carries one payload kind:
     corrected joint targets for a list of program targets (a "filtered program");
 ``joint``
     per-joint correction tables ``dq_i(q_i)`` on a grid over each joint's range, to be applied
-    by the controller as an encoder-side offset (linear interpolation between grid points);
+    by the controller as an encoder-side offset (linear interpolation between grid points,
+    held constant beyond the ends). An entry with ``source_joint`` set adds a correction to
+    ``joint`` that is tabulated over another joint's value: robots whose chain angle couples
+    two joint values (FANUC J2/J3) need it. The command for program joints ``q`` is
+    ``q + joint_offsets_deg(q)``;
 ``frames``
-    updated base (user frame) and tool frames, ``x, y, z`` in mm and ``w, p, r`` in degrees
-    (FANUC convention: fixed-axis XYZ rotations, ``R = Rz(r) Ry(p) Rx(w)``).
+    updated user (base) and tool frames, ``x, y, z`` in mm and ``w, p, r`` in degrees
+    (FANUC convention: fixed-axis XYZ rotations, ``R = Rz(r) Ry(p) Rx(w)``). ``base`` is the
+    tracker (cell) frame expressed in the robot base frame, ``T_base_tracker``: what a
+    controller's user frame holds so that targets given in tracker coordinates are reached;
+    ``tool`` is the TCP (reflector) in the flange frame.
 
 Everything in a table is in mm and degrees. The ``checksum`` is the SHA-256 of the canonical
 JSON of every other field, so a controller-side copy can be verified byte for byte.
+See ``docs/compensation-tables.md``.
 """
 
 from __future__ import annotations
@@ -22,7 +30,9 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from robocal.errors import CompensationError, ConfigError
 
@@ -30,7 +40,7 @@ TABLE_FORMAT = "robocal.compensation/1"
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class TargetRow(_Model):
@@ -43,12 +53,38 @@ class TargetRow(_Model):
 
 
 class JointCorrection(_Model):
-    """Correction ``dq_deg`` (add to the commanded angle) sampled at ``q_deg`` for one joint."""
+    """Correction ``dq_deg`` (add to joint ``joint``'s command) sampled at ``q_deg``.
+
+    ``q_deg`` is a strictly increasing grid of program values of ``source_joint`` (default:
+    ``joint`` itself); between grid points the correction is interpolated linearly, beyond
+    the ends it is held. ``interpolation_error_bound_deg`` bounds the difference between that
+    interpolation and the model's correction.
+    """
 
     joint: int = Field(ge=1)
     q_deg: list[float]
     dq_deg: list[float]
     interpolation_error_bound_deg: float = Field(ge=0.0)
+    source_joint: int | None = Field(default=None, ge=1)
+
+    @model_validator(mode="after")
+    def _grid(self) -> JointCorrection:
+        if len(self.q_deg) != len(self.dq_deg):
+            raise ValueError(f"q_deg has {len(self.q_deg)} points, dq_deg {len(self.dq_deg)}")
+        if len(self.q_deg) < 2:
+            raise ValueError("a correction grid needs at least 2 points")
+        if any(b <= a for a, b in zip(self.q_deg, self.q_deg[1:], strict=False)):
+            raise ValueError("q_deg must be strictly increasing")
+        return self
+
+    @property
+    def source(self) -> int:
+        """1-based joint whose value indexes the grid."""
+        return self.source_joint or self.joint
+
+    def evaluate(self, q_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Interpolated correction (deg) at source-joint values ``q_deg`` (any shape, deg)."""
+        return np.interp(np.asarray(q_deg, dtype=float), self.q_deg, self.dq_deg)
 
 
 class Frame(_Model):
@@ -63,7 +99,12 @@ class Frame(_Model):
 
 
 class FramesPayload(_Model):
-    """Updated base (user frame, tracker <- base) and tool (flange -> reflector/TCP) frames."""
+    """Updated user frame and tool frame.
+
+    ``base``: the tracker (cell) frame in the robot base frame, ``T_base_tracker`` (what a
+    controller's user frame holds; invert it for the robot base in tracker coordinates).
+    ``tool``: the TCP (reflector) in the flange frame.
+    """
 
     base: Frame
     tool: Frame
@@ -83,7 +124,56 @@ class CompensationTable(_Model):
     targets: list[TargetRow] | None = None
     joints: list[JointCorrection] | None = None
     frames: FramesPayload | None = None
+    stats: dict[str, float] = Field(default_factory=dict)
     checksum: str = ""
+
+    @model_validator(mode="after")
+    def _payload(self) -> CompensationTable:
+        payloads = {"targets": self.targets, "joints": self.joints, "frames": self.frames}
+        want = "joints" if self.kind == "joint" else self.kind
+        if payloads[want] is None:
+            raise ValueError(f"a {self.kind!r} table needs the {want!r} payload")
+        extra = [k for k, v in payloads.items() if k != want and v is not None]
+        if extra:
+            raise ValueError(f"a {self.kind!r} table carries only {want!r}, not {extra[0]!r}")
+        for lo, hi in self.valid_range_deg:
+            if lo > hi:
+                raise ValueError(f"valid range ({lo}, {hi}) is empty")
+        if self.targets:
+            dofs = {len(r.q_deg) for r in self.targets}
+            if len(dofs) > 1:
+                raise ValueError("target rows have different joint counts")
+        return self
+
+    @property
+    def dof(self) -> int:
+        """Number of joints the table is for (from the valid range, else the payload)."""
+        if self.valid_range_deg:
+            return len(self.valid_range_deg)
+        if self.targets:
+            return len(self.targets[0].q_deg)
+        if self.joints:
+            return max(max(j.joint, j.source) for j in self.joints)
+        return 0
+
+    def joint_offsets_deg(self, q_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Corrections (deg) to add to program joints ``q_deg`` ((dof,) or (n, dof), deg).
+
+        Only for ``joint`` tables: the sum, per joint, of every entry's interpolated value.
+        """
+        if self.kind != "joint" or self.joints is None:
+            raise CompensationError(f"a {self.kind!r} table holds no joint corrections")
+        q = np.asarray(q_deg, dtype=float)
+        single = q.ndim == 1
+        q2 = np.atleast_2d(q)
+        out = np.zeros_like(q2)
+        for e in self.joints:
+            if max(e.joint, e.source) > q2.shape[1]:
+                raise CompensationError(
+                    f"table entry for joint {e.joint} (source {e.source}) needs "
+                    f"{max(e.joint, e.source)} joints, got {q2.shape[1]}")
+            out[:, e.joint - 1] += e.evaluate(q2[:, e.source - 1])
+        return out[0] if single else out
 
     def payload_dict(self) -> dict[str, Any]:
         """Return every field but the checksum, as plain JSON types."""
@@ -117,11 +207,16 @@ class CompensationTable(_Model):
         return table.model_dump_json(indent=2)
 
     def write(self, path: str | Path) -> None:
-        """Write atomically to ``path`` (temporary file then rename)."""
+        """Write atomically to ``path`` (temporary file then rename; nothing left on error)."""
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(self.to_json())
-        tmp.replace(path)
+        text = self.to_json()
+        tmp = path.with_name(f".{path.name}.tmp")
+        try:
+            tmp.write_text(text)
+            tmp.replace(path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def read(cls, path: str | Path) -> CompensationTable:
@@ -131,6 +226,8 @@ class CompensationTable(_Model):
             table = cls.model_validate_json(path.read_text())
         except FileNotFoundError as err:
             raise ConfigError("file not found", source=str(path)) from err
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"cannot read: {err}", source=str(path)) from err
         except ValidationError as err:
             first = err.errors()[0]
             key = ".".join(str(p) for p in first["loc"])

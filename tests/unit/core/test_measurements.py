@@ -83,3 +83,10 @@ def test_arbitrary_text_gives_data_error_or_set(tmp_path_factory, text: str) -> 
     except DataError:
         return
     assert np.all(np.isfinite(ms.q)) and np.all(np.isfinite(ms.p)) and len(ms) >= 1
+
+
+def test_semicolon_file_with_many_decimal_commas(tmp_path: Path) -> None:
+    f = tmp_path / "eu2.csv"
+    f.write_text("q1;q2;x;y;z\n1,5;2,5;1,25;2,5;3,75\n")
+    ms = MeasurementSet.read_csv(f)
+    np.testing.assert_allclose(ms.p[0], [0.00125, 0.0025, 0.00375])

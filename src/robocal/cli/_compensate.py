@@ -1,0 +1,103 @@
+"""``robocal compensate``: corrected joint commands for program targets.
+
+    robocal compensate --model MODEL.json --targets TARGETS.csv --out JOINTS.csv
+
+Reads the model and the targets (see ``robocal.compensation._targets`` for TARGETS.csv),
+solves every target under the model and writes JOINTS.csv (``q1..qN`` deg, ``status``,
+``model_residual_mm``) atomically. Exit codes: 0 every target solved, 1 some targets did not
+(the file is still written, their joint cells empty), 2 bad input (nothing written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add the ``compensate`` subcommand."""
+    p = sub.add_parser(
+        "compensate", help="corrected joint commands for program targets",
+        description="Solve each target of TARGETS.csv (x, y, z mm in the tracker frame, seed "
+                    "joints q1..qN deg, optional w, p, r deg) under the calibrated model and "
+                    "write JOINTS.csv (q1..qN deg, status, model_residual_mm). Exit 1 when "
+                    "some target could not be solved (its joints are left empty).")
+    p.add_argument("--model", required=True, metavar="MODEL.json", help="calibrated model")
+    p.add_argument("--targets", required=True, metavar="TARGETS.csv", help="program targets")
+    p.add_argument("--out", required=True, metavar="JOINTS.csv", help="output file")
+    p.add_argument("--table", metavar="TABLE.json",
+                   help="also write a sealed 'targets' compensation table")
+    p.add_argument("--start", choices=("auto", "nominal", "seed"), default="auto",
+                   help="where the iteration starts (default: nominal IK where the robot has "
+                        "a closed form, else the seed)")
+    p.add_argument("--tol-um", type=float, default=0.1,
+                   help="position tolerance under the model, micrometres (default 0.1)")
+    p.add_argument("--max-iter", type=int, default=20, help="iteration limit (default 20)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(handler=run)
+
+
+def _check_out(path: str, what: str) -> Path:
+    from robocal.errors import ConfigError
+
+    out = Path(path)
+    if out.is_dir():
+        raise ConfigError(f"{what} is a directory", source=path)
+    if not out.parent.is_dir():
+        raise ConfigError(f"{what}: directory {str(out.parent)!r} does not exist", source=path)
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Compensate the targets; return the exit code."""
+    import numpy as np
+
+    from robocal.compensation import compensate, read_targets_csv
+    from robocal.compensation._build import targets_table
+    from robocal.compensation._targets import atomic_write, joints_csv_text
+    from robocal.errors import ConfigError
+    from robocal.kinematics import CalibratedModel
+
+    if not args.tol_um > 0:
+        raise ConfigError(f"--tol-um must be positive, got {args.tol_um}")
+    if args.max_iter < 1:
+        raise ConfigError(f"--max-iter must be at least 1, got {args.max_iter}")
+    out = _check_out(args.out, "--out")
+    table_out = _check_out(args.table, "--table") if args.table else None
+    cal = CalibratedModel.load(args.model)
+    targets = read_targets_csv(args.targets, dof=cal.robot.dof)
+    opts = {"start": args.start, "tol_m": args.tol_um * 1e-6, "max_iter": args.max_iter}
+    res = compensate(cal, targets.p, targets.q_seed, R_targets=targets.R, **opts)
+    text = joints_csv_text(res)
+    table = targets_table(cal, targets, res) if table_out is not None else None
+    try:
+        atomic_write(out, text)
+        if table is not None and table_out is not None:
+            table.write(table_out)
+    except OSError as err:
+        raise ConfigError(f"cannot write: {err}", source=str(out)) from err
+    counts = res.counts()
+    ok = res.ok
+    summary = {
+        "targets": len(res), **counts,
+        "max_model_residual_um": float(res.residual_m[ok].max() * 1e6) if ok.any() else None,
+        "max_iterations": int(res.iterations.max()) if len(res) else 0,
+        "outside_coverage": int(np.sum(ok & ~res.in_coverage)),
+        "model_id": cal.model_id, "out": str(out),
+    }
+    if args.json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        failed = ", ".join(f"{v} {k}" for k, v in counts.items() if k != "ok" and v)
+        resid = summary["max_model_residual_um"]
+        sys.stdout.write(
+            f"compensated {len(res)} targets with model {cal.model_id}: {counts['ok']} ok"
+            + (f", {failed}" if failed else "")
+            + (f"; max model residual {resid:.3f} um" if resid is not None else "")
+            + (f"; {summary['outside_coverage']} outside the calibrated range"
+               if summary["outside_coverage"] else "")
+            + f"; wrote {out}\n")
+    return 0 if counts["ok"] == len(res) else 1
