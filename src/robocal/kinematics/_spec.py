@@ -95,6 +95,8 @@ class ErrorModelSpec:
         object.__setattr__(self, "map_knots", tuple(knots))
         if len(self.map_knots) != self.dof:
             raise ConfigError(f"map_knots needs {self.dof} entries")
+        if any(k != 0 and k < 8 for k in self.map_knots):
+            raise ConfigError("a joint-angle map needs at least 8 knots per revolution")
         seen = set()
         for t in self.terms:
             if not 0 <= t.joint < self.dof:
