@@ -1,1 +1,64 @@
-"""robocal.report."""
+"""The calibration report: one self-contained HTML page plus a JSON summary.
+
+``write_report(ReportInput(...), "report.html")`` writes ``report.html`` (plots embedded as
+PNG data URIs, inline CSS, no scripts, readable offline) and ``report.json`` beside it. The
+first screen gives the verdict (succeeded / marginal / failed, with the reason) against
+:class:`Acceptance`; below: error before/after per model with the "% described" table,
+joint-dependent errors with ±2σ bands, identifiability, ISO 9283 AP/RP, predicted accuracy
+over the workspace, the measurement log and provenance.
+"""
+
+from robocal.report._analysis import Analysis, analyse
+from robocal.report._input import (
+    BASELINE,
+    KNOWN_MODELS,
+    Acceptance,
+    IsoPoseSeries,
+    MeasurementLog,
+    ModelEntry,
+    ReportInput,
+    model_entry,
+)
+from robocal.report._metrics import (
+    Check,
+    Described,
+    ErrorStats,
+    IsoResult,
+    Judged,
+    Verdict,
+    described,
+    fit_nominal_baseline,
+    iso9283,
+    iso_series_from_measurements,
+    joint_curves,
+    verdict,
+)
+from robocal.report._write import REPORT_FORMAT, summary, write_report
+
+__all__ = [
+    "BASELINE",
+    "KNOWN_MODELS",
+    "REPORT_FORMAT",
+    "Acceptance",
+    "Analysis",
+    "Check",
+    "Described",
+    "ErrorStats",
+    "IsoPoseSeries",
+    "IsoResult",
+    "Judged",
+    "MeasurementLog",
+    "ModelEntry",
+    "ReportInput",
+    "Verdict",
+    "analyse",
+    "described",
+    "fit_nominal_baseline",
+    "iso9283",
+    "iso_series_from_measurements",
+    "joint_curves",
+    "model_entry",
+    "summary",
+    "verdict",
+    "write_report",
+]

@@ -1,0 +1,211 @@
+"""``robocal report``: the calibration report of a model file or of a daemon campaign.
+
+    robocal report MODEL.json --out report.html [--data MEAS.csv] [--validate VAL.csv]
+                   [--compare NAME=MODEL.json ...]
+    robocal report CAMPAIGN_ID --out report.html [--config CONFIG.toml]
+
+Writes ``report.html`` (self-contained) and ``report.json`` beside it, prints the verdict.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+DEFAULT_CONFIG = "/etc/robocal/config.toml"
+
+
+def register(sub: Any) -> None:
+    """Add the ``report`` subcommand."""
+    p = sub.add_parser(
+        "report", help="write the HTML calibration report (and a JSON summary)",
+        description="Write a self-contained HTML calibration report and report.json beside "
+                    "it. SOURCE is a MODEL.json file (richer with --data/--validate) or the id "
+                    "of a campaign in the daemon's store (found through --config).")
+    p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID")
+    p.add_argument("--out", default="report.html", metavar="report.html",
+                   help="output page (default report.html); the JSON goes beside it")
+    p.add_argument("--data", metavar="MEAS.csv", help="calibration measurements")
+    p.add_argument("--validate", metavar="VAL.csv", help="held-out validation measurements")
+    p.add_argument("--compare", action="append", default=[], metavar="NAME=MODEL.json",
+                   help="another model to compare (e.g. constant=MODEL-constant.json, "
+                        "nominal=..., cpa=...); repeatable")
+    p.add_argument("--config", metavar="CONFIG.toml",
+                   help=f"daemon configuration, for CAMPAIGN_ID (default {DEFAULT_CONFIG})")
+    p.add_argument("--selected", metavar="NAME", help="model the verdict is about")
+    p.add_argument("--max-rms-mm", type=float, help="acceptance: held-out RMS limit (mm)")
+    p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
+    p.add_argument("--min-described", type=float, metavar="PERCENT",
+                   help="acceptance: %% of the nominal error to describe (default 50)")
+    p.add_argument("--title", help="page title")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(handler=run)
+
+
+def _model_name(kind: str) -> str:
+    from robocal.report import KNOWN_MODELS
+
+    k = kind.split(":", 1)[0]
+    return k if k in KNOWN_MODELS else "model"
+
+
+def _acceptance(args: argparse.Namespace, base: Any = None) -> Any:
+    from robocal.report import Acceptance
+
+    kw = {} if base is None else {f: getattr(base, f) for f in Acceptance.__dataclass_fields__}
+    if args.max_rms_mm is not None:
+        kw["max_rms_mm"] = args.max_rms_mm
+    if args.max_error_mm is not None:
+        kw["max_error_mm"] = args.max_error_mm
+    if args.min_described is not None:
+        kw["min_percent_described"] = args.min_described
+    return Acceptance(**kw)
+
+
+def _compare(items: Sequence[str]) -> dict[str, Any]:
+    from robocal.errors import ConfigError
+    from robocal.kinematics import CalibratedModel
+
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ConfigError(f"--compare needs NAME=MODEL.json, got {item!r}")
+        out[name] = CalibratedModel.load(path)
+    return out
+
+
+def input_from_model_file(path: str | Path, *, data: str | None = None,
+                          validate: str | None = None, compare: Sequence[str] = ()) -> Any:
+    """A :class:`~robocal.report.ReportInput` from a MODEL.json (+ optional CSV files)."""
+    from robocal._core.measurements import MeasurementSet
+    from robocal.kinematics import CalibratedModel
+    from robocal.report import ReportInput
+
+    cm = CalibratedModel.load(path)
+    dof = cm.robot.dof
+    name = _model_name(cm.kind)
+    models: dict[str, Any] = {**_compare(compare), name: cm}
+    cal = MeasurementSet.read_csv(data, dof=dof) if data else None
+    val = MeasurementSet.read_csv(validate, dof=dof) if validate else None
+    notes = [f"model file: {Path(path).name}"]
+    if cal is None and val is None:
+        notes.append("made from the model file alone: accuracy figures are the metrics stored "
+                     "in it")
+    return ReportInput(models=models, calibration=cal, validation=val, robot=cm.robot,
+                       selected=name, notes=notes)
+
+
+def input_from_campaign(cid: str, config: str | Path) -> Any:
+    """A :class:`~robocal.report.ReportInput` from a campaign in the daemon's SQLite store.
+
+    Uses the store's measurements (purpose ``calibration`` / ``validation`` / ``iso-Pk``),
+    its fitted models (MODEL.json texts and fit summaries: outliers, status) and its
+    selected model.
+    """
+    import numpy as np
+
+    from robocal._core.measurements import MeasurementSet
+    from robocal.daemon.config import load_config
+    from robocal.daemon.store import Store
+    from robocal.errors import ConfigError
+    from robocal.kinematics import CalibratedModel
+    from robocal.report import MeasurementLog, ModelEntry, ReportInput
+
+    cfg = load_config(config)
+    db = Path(cfg.db_path)
+    if not db.exists():
+        raise ConfigError("the daemon's store does not exist (has the daemon run?)",
+                          source=str(db))
+    store = Store(db).open()
+    try:
+        rec = store.campaign(cid)
+        rows = store.measurements(cid)
+        fits = store.fits(cid)
+        texts = {name: store.model_json(cid, name) for name in fits}
+    finally:
+        store.close()
+    models: dict[str, Any] = {}
+    for name, summ in fits.items():
+        text = texts.get(name)
+        if not text:
+            continue
+        cm = CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid} / {name}")
+        summ = summ if isinstance(summ, dict) else {}
+        stored = {k: summ[k] for k in ("train", "validation") if isinstance(summ.get(k), dict)}
+        models[name] = ModelEntry(name, cm, tuple(str(o) for o in summ.get("outliers") or ()),
+                                  tuple(str(r) for r in (cm.fit or {}).get("removed") or ()),
+                                  str(summ.get("status", "")), stored or dict(cm.metrics))
+
+    def mset(sel: list[Any]) -> MeasurementSet | None:
+        if not sel:
+            return None
+        sig = None
+        if all(r.sigma_mm is not None for r in sel):
+            sig = np.array([r.sigma_mm for r in sel], dtype=float) * 1e-3
+            if np.any(sig <= 0):
+                sig = None
+        return MeasurementSet(np.radians(np.array([r.q_act_deg for r in sel], dtype=float)),
+                              np.array([r.p_mm for r in sel], dtype=float) * 1e-3, sig,
+                              tuple(f"P{r.pose_idx:04d}" for r in sel))
+
+    cal_rows = [r for r in rows if r.purpose == "calibration"]
+    if not cal_rows:
+        cal_rows = [r for r in rows if r.purpose not in ("validation",)
+                    and not r.purpose.startswith(("cpa-", "iso-"))]
+    cal = mset(cal_rows)
+    val = mset([r for r in rows if r.purpose == "validation"])
+    selected = rec.selected_model if rec.selected_model in models else None
+    iso_rows = [r for r in rows if r.purpose.lower().startswith("iso-")]
+    iso_set = None
+    if iso_rows:  # commanded joints: AP compares with where the controller meant to go
+        iso_set = MeasurementSet(np.radians(np.array([r.q_cmd_deg for r in iso_rows])),
+                                 np.array([r.p_mm for r in iso_rows]) * 1e-3,
+                                 pose_id=tuple(f"P{r.pose_idx:04d}" for r in iso_rows))
+    weather = [dict(r.weather) for r in rows if r.weather]
+    log = MeasurementLog(planned=rec.poses_total, measured=len(rows),
+                         retries=sum(max(0, r.attempts - 1) for r in rows),
+                         weather=weather, tracker=str(cfg.tracker.kind),
+                         controller=str(cfg.robot.kind),
+                         extra={"campaign state": str(getattr(rec.state, "value", rec.state)),
+                                "campaign name": rec.name, "created by": rec.created_by})
+    robot = next((m.calibrated.robot for m in models.values()), None)
+    return ReportInput(models=models, calibration=cal, validation=val, robot=robot,
+                       selected=selected, iso_measurements=iso_set,
+                       iso_purposes=[r.purpose for r in iso_rows], log=log, campaign_id=cid,
+                       notes=[f"plan digest {rec.plan_digest}",
+                              f"config digest {rec.config_digest}"])
+
+
+def run(args: argparse.Namespace) -> int:
+    """Build the input, write the report, print where and the verdict."""
+    from robocal.errors import ConfigError
+    from robocal.report import write_report
+
+    src = Path(args.source)
+    if src.suffix.lower() == ".json" or src.exists():
+        inp = input_from_model_file(src, data=args.data, validate=args.validate,
+                                    compare=args.compare)
+    else:
+        if args.data or args.validate or args.compare:
+            raise ConfigError("--data, --validate and --compare apply to a MODEL.json source, "
+                              "not to a campaign")
+        inp = input_from_campaign(args.source, args.config or DEFAULT_CONFIG)
+    if args.selected:
+        inp.selected = args.selected
+    if args.title:
+        inp.title = args.title
+    inp.acceptance = _acceptance(args, inp.acceptance)
+    html_path, json_path = write_report(inp, args.out)
+    summary = json.loads(json_path.read_text(encoding="utf-8"))
+    if args.json:
+        sys.stdout.write(json.dumps({"html": str(html_path), "json": str(json_path),
+                                     "verdict": summary["verdict"]}) + "\n")
+    else:
+        sys.stdout.write(f"{summary['verdict']['headline']}\nwrote {html_path} and "
+                         f"{json_path}\n")
+    return 0

@@ -1,0 +1,334 @@
+"""The report's plots: matplotlib figures rendered off-screen (Agg) into base64 PNG data URIs.
+
+No pyplot, no global backend switch: each figure is a :class:`matplotlib.figure.Figure` drawn
+on its own :class:`~matplotlib.backends.backend_agg.FigureCanvasAgg`, so nothing ever needs
+a display and callers' matplotlib state is left alone.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from numpy.typing import NDArray
+
+from robocal.report._analysis import SETS, Analysis
+from robocal.report._metrics import IsoResult, JointCurves, Workspace
+
+Array = NDArray[np.float64]
+DPI = 96
+WIDE = 11.8  # inches: the page's content width at 96 dpi
+COLORS = {"nominal": "#7f7f7f", "cpa": "#9467bd", "constant": "#ff7f0e",
+          "high-order": "#1f77b4", "auto": "#2ca02c"}
+_EXTRA = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
+COMP_COLORS = {"dx": "#1f77b4", "dy": "#ff7f0e", "dz": "#2ca02c",
+               "ex": "#1f77b4", "ey": "#ff7f0e", "ez": "#2ca02c"}
+COMP_LABEL = {"dx": "δx", "dy": "δy", "dz": "δz", "ex": "εx", "ey": "εy", "ez": "εz"}
+_RC = {"font.size": 8.5, "axes.titlesize": 9.5, "axes.labelsize": 8.5, "legend.fontsize": 7.5,
+       "xtick.labelsize": 8, "ytick.labelsize": 8}
+
+
+@dataclass(frozen=True)
+class Plot:
+    """A rendered figure: PNG data URI, pixel size and a text alternative."""
+
+    key: str
+    uri: str
+    width: int
+    height: int
+    alt: str
+
+
+def color(name: str, i: int = 0) -> str:
+    """Colour of a model name."""
+    return COLORS.get(name, _EXTRA[i % len(_EXTRA)])
+
+
+def _new(w: float, h: float, *, margins: tuple[float, float, float, float] | None = None,
+         wspace: float = 0.3, hspace: float = 0.5) -> Figure:
+    """A figure on its own Agg canvas. ``margins`` (left, right, bottom, top) in inches fix
+    the layout (much faster than constrained layout, which is used otherwise)."""
+    fig = Figure(figsize=(w, h), dpi=DPI, layout=None if margins else "constrained")
+    FigureCanvasAgg(fig)
+    if margins:
+        left, right, bottom, top = margins
+        fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h,
+                            top=1 - top / h, wspace=wspace, hspace=hspace)
+    return fig
+
+
+def _render(key: str, fig: Figure, alt: str) -> Plot:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    data = buf.getvalue()
+    w, h = struct.unpack(">II", data[16:24])  # the PNG IHDR chunk: width, height
+    uri = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+    return Plot(key, uri, w, h, alt)
+
+
+def _style(fig: Figure) -> None:
+    for ax in fig.axes:
+        ax.grid(True, alpha=0.3, linewidth=0.6)
+        for s in ("top", "right"):
+            ax.spines[s].set_visible(False)
+
+
+def render_all(an: Analysis) -> dict[str, Plot]:
+    """Every plot the analysis supports, by key."""
+    import matplotlib
+
+    out: dict[str, Plot] = {}
+    with matplotlib.rc_context(_RC):
+        p = summary_plot(an)
+        if p:
+            out[p.key] = p
+        if an.data and any(s.norms is not None for m in an.models.values()
+                           for s in m.sets.values()):
+            out["histograms"] = histograms(an)
+            out["per_pose"] = per_pose(an)
+        for jc in an.joints:
+            out[f"joint{jc.joint + 1}"] = joint_plot(an, jc)
+        if an.ident is not None and an.ident.singular_values is not None:
+            out["singular_values"] = singular_values(an)
+        if an.work is not None:
+            out["workspace"] = workspace_plot(an, an.work)
+        if an.iso:
+            out["iso"] = iso_plot(an.iso)
+    return out
+
+
+def summary_plot(an: Analysis) -> Plot | None:
+    """Grouped bars: RMS error per model on calibration and validation poses."""
+    rows = [(name, m) for name, m in an.models.items() if m.sets]
+    if not rows:
+        return None
+    fig = _new(4.6, 0.42 * len(rows) + 0.9)
+    ax = fig.add_subplot()
+    y = np.arange(len(rows))
+    h = 0.38
+    vmax = 0.0
+    for k, (which, off, alpha) in enumerate((("calibration", -h / 2, 0.55),
+                                             ("validation", h / 2, 1.0))):
+        vals = [m.sets[which].stats.rms_m * 1e3 if which in m.sets and m.sets[which].stats
+                else np.nan for _, m in rows]
+        cols = [color(n, i) for i, (n, _) in enumerate(rows)]
+        ax.barh(y + off, vals, height=h, color=cols, alpha=alpha,
+                hatch=None if k else "///", edgecolor="white", linewidth=0.5,
+                label=which)
+        for yi, v in zip(y + off, vals, strict=True):
+            if np.isfinite(v):
+                ax.text(v, yi, f" {v:.3f}", va="center", fontsize=7.5)
+                vmax = max(vmax, v)
+    ax.set_yticks(y, [n for n, _ in rows])
+    ax.invert_yaxis()
+    ax.set_xlim(0, vmax * 1.25 if vmax > 0 else 1)
+    ax.set_xlabel("RMS position error (mm)")
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
+    _style(fig)
+    alt = "RMS error per model: " + "; ".join(
+        f"{n} " + ", ".join(f"{w} {m.sets[w].stats.rms_m * 1e3:.3f} mm" for w in SETS
+                            if w in m.sets and m.sets[w].stats) for n, m in rows)
+    return _render("summary", fig, alt)
+
+
+def _bins(an: Analysis) -> Array:
+    vals = np.concatenate([s.norms[s.norms > 0] for m in an.models.values()
+                           for s in m.sets.values() if s.norms is not None])
+    lo = max(float(np.min(vals)), 1e-7) if vals.size else 1e-6
+    hi = float(np.max(vals)) if vals.size else 1e-3
+    return np.geomspace(lo * 0.9, hi * 1.1, 40) * 1e3
+
+
+def histograms(an: Analysis) -> Plot:
+    """Histograms of |measured - model| per model, calibration and validation side by side."""
+    sets = [w for w in SETS if w in an.data]
+    fig = _new(WIDE, 2.9, margins=(0.6, 0.1, 0.45, 0.3), wspace=0.18)
+    axes = fig.subplots(1, len(sets), squeeze=False, sharey=False)[0]
+    bins = _bins(an)
+    for ax, which in zip(axes, sets, strict=True):
+        for i, (name, m) in enumerate(an.models.items()):
+            s = m.sets.get(which)
+            if s is None or s.norms is None:
+                continue
+            d = s.norms[s.inlier] * 1e3 if s.inlier is not None else s.norms * 1e3
+            ax.hist(d, bins=bins, histtype="step", linewidth=1.6, color=color(name, i),
+                    label=f"{name} (RMS {s.stats.rms_m * 1e3:.3f})" if s.stats else name)
+        ax.set_xscale("log")
+        ax.set_xlabel("position error |measured − model| (mm, log scale)")
+        ax.set_ylabel("poses")
+        ax.set_title(f"{which} poses (n = {len(an.data[which])})")
+        ax.legend(frameon=False)
+    _style(fig)
+    return _render("histograms", fig, "Histograms of the position error of each model on "
+                                      "calibration and validation poses")
+
+
+def per_pose(an: Analysis) -> Plot:
+    """Error magnitude per pose and model (log scale); outliers marked."""
+    sets = [w for w in SETS if w in an.data]
+    fig = _new(WIDE, 2.6 * len(sets), margins=(0.65, 0.1, 0.45, 0.35), hspace=0.55)
+    axes = fig.subplots(len(sets), 1, squeeze=False)[:, 0]
+    for ax, which in zip(axes, sets, strict=True):
+        for i, (name, m) in enumerate(an.models.items()):
+            s = m.sets.get(which)
+            if s is None or s.norms is None:
+                continue
+            idx = np.arange(s.norms.size)
+            ax.plot(idx, s.norms * 1e3, ".", ms=3.2, color=color(name, i), label=name,
+                    alpha=0.85)
+            if s.inlier is not None and (~s.inlier).any() and name == (an.selected or name):
+                ax.plot(idx[~s.inlier], s.norms[~s.inlier] * 1e3, "x", ms=7, mew=1.6,
+                        color="#d62728", label="rejected outlier")
+        ax.set_yscale("log")
+        ax.set_ylabel("error (mm, log)")
+        ax.set_xlabel(f"{which} pose (measurement order)")
+        ax.legend(frameon=False, ncol=6, loc="upper center", bbox_to_anchor=(0.5, 1.16))
+    _style(fig)
+    return _render("per_pose", fig, "Position error per pose for every model")
+
+
+def joint_plot(an: Analysis, jc: JointCurves) -> Plot:
+    """One joint: translation and rotation error terms with ±2σ bands, residuals vs angle."""
+    fig = _new(WIDE, 2.7, margins=(0.65, 0.1, 0.45, 0.3), wspace=0.32)
+    axes = fig.subplots(1, 3)
+    ang = np.degrees(jc.angle)
+    for ax, kind, scale, unit in ((axes[0], "d", 1e3, "mm"), (axes[1], "e", 180 / math.pi,
+                                                               "deg")):
+        shown = False
+        for c in jc.curves:
+            if not c.component.startswith(kind):
+                continue
+            col = COMP_COLORS[c.component]
+            ax.plot(ang, c.value * scale, color=col, linewidth=1.4,
+                    label=f"{COMP_LABEL[c.component]} ({c.n_terms} terms)")
+            if c.sigma is not None:
+                ax.fill_between(ang, (c.value - 2 * c.sigma) * scale,
+                                (c.value + 2 * c.sigma) * scale, color=col, alpha=0.18,
+                                linewidth=0)
+            shown = True
+        _shade_uncovered(ax, jc)
+        ax.set_xlabel(f"joint {jc.joint + 1} (deg)")
+        ax.set_ylabel(f"error ({unit})")
+        ax.set_title("translation δ (about its mean) ±2σ" if kind == "d"
+                     else "rotation ε (about its mean) ±2σ")
+        if shown:
+            ax.legend(fontsize=7, framealpha=0.85, edgecolor="none")
+        else:
+            ax.text(0.5, 0.5, "no joint-dependent terms", transform=ax.transAxes,
+                    ha="center", va="center", color="#777")
+    ax = axes[2]
+    for i, name in enumerate(dict.fromkeys(["constant", an.joint_model, an.selected])):
+        m = an.models.get(name) if name else None
+        if m is None:
+            continue
+        for which, marker in (("calibration", "."), ("validation", "+")):
+            s = m.sets.get(which)
+            d = an.data.get(which)
+            if s is None or s.norms is None or d is None:
+                continue
+            ok = s.inlier if s.inlier is not None else np.ones(s.norms.size, dtype=bool)
+            ax.plot(np.degrees(d.q[ok, jc.joint]), s.norms[ok] * 1e3, marker, ms=3.5,
+                    color=color(name, i), alpha=0.7, label=f"{name}, {which[:3]}.")
+            if name == an.selected and (~ok).any():
+                ax.plot(np.degrees(d.q[~ok, jc.joint]), s.norms[~ok] * 1e3, "x", ms=6,
+                        mew=1.4, color="#d62728")
+    ax.set_yscale("log")
+    ax.set_xlabel(f"joint {jc.joint + 1} (deg)")
+    ax.set_ylabel("|residual| (mm, log)")
+    ax.set_title("residuals vs joint angle")
+    if ax.lines:
+        ax.legend(fontsize=7, ncol=2, framealpha=0.85, edgecolor="none")
+    else:
+        ax.text(0.5, 0.5, "no measurements given", transform=ax.transAxes, ha="center",
+                va="center", color="#777")
+    _style(fig)
+    return _render(f"joint{jc.joint + 1}", fig,
+                   f"Joint {jc.joint + 1}: identified joint-dependent errors with 2-sigma bands "
+                   f"and residuals against the joint angle")
+
+
+def _shade_uncovered(ax: object, jc: JointCurves) -> None:
+    if jc.covered is None:
+        return
+    lo, hi = np.degrees(jc.angle[[0, -1]])
+    clo, chi = np.degrees(jc.covered)
+    for a, b in ((lo, clo), (chi, hi)):
+        if b > a:
+            ax.axvspan(a, b, color="#000", alpha=0.06, linewidth=0)  # type: ignore[attr-defined]
+
+
+def singular_values(an: Analysis) -> Plot:
+    """Normalised singular values of the scaled identification Jacobian."""
+    assert an.ident is not None and an.ident.singular_values is not None
+    s = an.ident.singular_values
+    fig = _new(5.2, 2.6)
+    ax = fig.add_subplot()
+    ax.semilogy(np.arange(1, s.size + 1), s / s[0], ".-", ms=3, color="#1f77b4", linewidth=0.8)
+    ax.set_xlabel("index")
+    ax.set_ylabel("σ_k / σ_1")
+    ax.set_title(f"scaled Jacobian, {s.size} free parameters, cond {an.ident.condition:.3g}")
+    _style(fig)
+    return _render("singular_values", fig, "Singular values of the identification Jacobian")
+
+
+def workspace_plot(an: Analysis, w: Workspace) -> Plot:
+    """Histogram of predicted 1σ uncertainty, and top/side maps in the robot base frame."""
+    assert an.selected is not None
+    cm = an.models[an.selected].entry.calibrated
+    assert cm is not None
+    T = cm.model.base_transform(cm.params)
+    pb = (w.position - T[:3, 3]) @ T[:3, :3] * 1e3
+    s = w.sigma * 1e3
+    fig = _new(WIDE, 2.9)
+    axes = fig.subplots(1, 3)
+    axes[0].hist(s, bins=40, color="#1f77b4", alpha=0.8)
+    axes[0].set_xlabel("predicted 1σ position uncertainty (mm)")
+    axes[0].set_ylabel("configurations")
+    axes[0].set_title(f"{s.size} random configurations, {w.within}")
+    order = np.argsort(s)
+    for ax, (i, j, lab) in zip(axes[1:], ((0, 1, "top view: x–y"), (0, 2, "side view: x–z")),
+                               strict=True):
+        sc = ax.scatter(pb[order, i], pb[order, j], c=s[order], s=6, cmap="viridis")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"{'xyz'[i]} base (mm)")
+        ax.set_ylabel(f"{'xyz'[j]} base (mm)")
+        ax.set_title(lab)
+    fig.colorbar(sc, ax=axes[2], label="1σ (mm)")
+    _style(fig)
+    return _render("workspace", fig, "Predicted position uncertainty over the workspace")
+
+
+def iso_plot(iso: list[IsoResult]) -> Plot:
+    """AP (and AP after calibration when known) and RP per ISO pose; log scale when the
+    values span more than a decade."""
+    fig = _new(5.2, 2.5)
+    ax = fig.add_subplot()
+    x = np.arange(len(iso))
+    after = any(r.ap_model_m is not None for r in iso)
+    bars = [("AP", [r.ap_m for r in iso], "#1f77b4")]
+    if after:
+        bars.append(("AP after calibration",
+                     [np.nan if r.ap_model_m is None else r.ap_model_m for r in iso], "#2ca02c"))
+    if any(r.rp_m is not None for r in iso):
+        bars.append(("RP", [np.nan if r.rp_m is None else r.rp_m for r in iso], "#ff7f0e"))
+    w = 0.8 / len(bars)
+    vals = []
+    for k, (label, v, col) in enumerate(bars):
+        mmv = np.array(v, dtype=float) * 1e3
+        vals.append(mmv)
+        ax.bar(x + (k - (len(bars) - 1) / 2) * w, mmv, w, label=label, color=col)
+    allv = np.concatenate(vals)
+    allv = allv[np.isfinite(allv) & (allv > 0)]
+    if allv.size and allv.max() / allv.min() > 20:
+        ax.set_yscale("log")
+    ax.set_xticks(x, [r.name for r in iso])
+    ax.set_ylabel("mm")
+    ax.legend(frameon=False, fontsize=7)
+    _style(fig)
+    return _render("iso", fig, "ISO 9283 pose accuracy and repeatability per pose")

@@ -1,0 +1,388 @@
+"""What a report is made from: :class:`ReportInput` and its parts.
+
+Everything here is SI (m, rad) like the rest of robocal; the report converts to mm and deg on
+screen. Fitted models may be given as identification ``FitResult`` objects or as bare
+:class:`~robocal.kinematics.CalibratedModel` objects; :func:`model_entry` reads either and
+tolerates fields a ``FitResult`` may not have.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal._core.measurements import MeasurementSet
+from robocal.errors import ConfigError
+from robocal.kinematics import CalibratedModel, RobotDescription
+
+Array = NDArray[np.float64]
+
+#: Display order and labels of the well-known model names.
+KNOWN_MODELS: dict[str, str] = {
+    "nominal": "Nominal (base + reflector fitted)",
+    "cpa": "Circle Point Analysis",
+    "constant": "Constant error model",
+    "high-order": "High-order joint-dependent model",
+    "auto": "Auto-selected model",
+}
+#: Which model is judged when ``ReportInput.selected`` is not given (first present wins).
+SELECTION_ORDER = ("auto", "high-order", "constant", "cpa")
+BASELINE = "nominal"
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """Thresholds of the verdict, applied to the held-out (validation) poses.
+
+    ``min_percent_described``: RMS-based share of the nominal error the model must describe for
+    "succeeded" (below it: "marginal"; zero or less: "failed"). ``max_rms_mm`` /
+    ``max_error_mm``: optional absolute limits (exceeded: "failed"). Outlier fractions above
+    ``max_outlier_fraction`` make the result marginal, above ``fail_outlier_fraction`` failed.
+    A validation RMS above ``max_overfit_ratio`` times the calibration RMS (and more than
+    ``overfit_floor_mm`` above it) flags over-fitting (marginal); the ratio is first divided
+    by ``sqrt(m / (m - p))``, what fitting p free parameters to m coordinates alone gives.
+    Validation poses whose error under the judged model exceeds ``validation_outlier_factor``
+    times the median error are treated as measurement glitches (beam breaks): listed, marked
+    and left out of the statistics, and counted as outliers (0 disables this).
+    """
+
+    min_percent_described: float = 50.0
+    max_rms_mm: float | None = None
+    max_error_mm: float | None = None
+    max_outlier_fraction: float = 0.05
+    fail_outlier_fraction: float = 0.20
+    max_overfit_ratio: float = 1.5
+    overfit_floor_mm: float = 0.005
+    validation_outlier_factor: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("min_percent_described", "max_outlier_fraction", "fail_outlier_fraction",
+                     "max_overfit_ratio", "overfit_floor_mm", "validation_outlier_factor"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise ConfigError("must be a finite number", key=f"acceptance.{name}")
+        for name in ("max_rms_mm", "max_error_mm"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ConfigError("must be a positive number", key=f"acceptance.{name}")
+
+    @classmethod
+    def from_mapping(cls, d: Mapping[str, Any] | None) -> Acceptance:
+        """Build from a config table; unknown keys raise :class:`ConfigError`."""
+        if not d:
+            return cls()
+        allowed = set(cls.__dataclass_fields__)
+        bad = sorted(set(d) - allowed)
+        if bad:
+            raise ConfigError(f"unknown key (allowed: {', '.join(sorted(allowed))})",
+                              key=f"acceptance.{bad[0]}")
+        return cls(**{k: (None if v is None else float(v)) for k, v in d.items()})
+
+
+@dataclass(frozen=True)
+class IsoPoseSeries:
+    """Repeated measurements of one ISO 9283 pose (P1..P5).
+
+    ``command``: the commanded position (3,) m, i.e. where the controller believes it sends
+    the robot; ``attained``: the measured positions (n, 3) m, same frame (tracker frame unless
+    stated in ``frame``). ``predicted`` (optional, (3,) m): where the calibrated model says
+    the commanded joints put the reflector; AP against it is the accuracy left after
+    compensating with that model.
+    """
+
+    name: str
+    command: Array
+    attained: Array
+    predicted: Array | None = None
+    frame: str = "tracker"
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.command, dtype=float).reshape(3)
+        a = np.atleast_2d(np.asarray(self.attained, dtype=float))
+        if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
+            raise ConfigError(f"ISO pose {self.name}: attained positions must be (n, 3)")
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite(a))):
+            raise ConfigError(f"ISO pose {self.name}: positions must be finite")
+        object.__setattr__(self, "command", c)
+        object.__setattr__(self, "attained", a)
+        if self.predicted is not None:
+            object.__setattr__(self, "predicted",
+                               np.asarray(self.predicted, dtype=float).reshape(3))
+
+
+@dataclass(frozen=True)
+class MeasurementLog:
+    """What happened while measuring (all optional).
+
+    ``weather``: samples such as ``{"temperature_c": 21.3, "pressure_hpa": 1012,
+    "humidity_pct": 40}``. ``extra``: anything else worth showing (str -> JSON value).
+    """
+
+    planned: int | None = None
+    measured: int | None = None
+    retries: int = 0
+    failed: int = 0
+    beam_losses: int = 0
+    duration_s: float | None = None
+    weather: Sequence[Mapping[str, float]] = ()
+    tracker: str = ""
+    controller: str = ""
+    notes: Sequence[str] = ()
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_mapping(cls, d: Mapping[str, Any] | None) -> MeasurementLog:
+        """Build from a loose mapping (e.g. a daemon's campaign statistics); unknown keys go to
+        ``extra``."""
+        if not d:
+            return cls()
+        known = set(cls.__dataclass_fields__)
+        kw: dict[str, Any] = {k: v for k, v in d.items() if k in known and k != "extra"}
+        extra = {k: v for k, v in d.items() if k not in known}
+        extra.update(dict(d.get("extra") or {}))
+        w = kw.get("weather")
+        if isinstance(w, Mapping):
+            kw["weather"] = (w,)
+        return cls(**kw, extra=extra)
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """One fitted model, normalised from a ``FitResult`` or a ``CalibratedModel``.
+
+    ``fit_info``: what the fit said about itself, when known: ``converged`` (bool),
+    ``n_free``, ``dof_effective``, ``rank``, ``condition_number``, ``singular_values``.
+    """
+
+    name: str
+    calibrated: CalibratedModel | None
+    outliers: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
+    status: str = ""
+    stored: Mapping[str, Any] = field(default_factory=dict)
+    summary: Mapping[str, Any] = field(default_factory=dict)
+    fit_info: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """Human-readable name."""
+        return KNOWN_MODELS.get(self.name, self.name)
+
+
+def _as_names(v: Any) -> tuple[str, ...]:
+    """Pose or parameter names from a list, or from a mapping's ``pose_ids``/``names``."""
+    if v is None:
+        return ()
+    if isinstance(v, str):
+        return (v,)
+    if isinstance(v, Mapping):
+        for k in ("pose_ids", "names", "ids"):
+            if k in v:
+                return _as_names(v[k])
+        return ()
+    try:
+        return tuple(str(x) for x in v)
+    except TypeError:
+        return ()
+
+
+def _acc_to_dict(acc: Any) -> dict[str, Any] | None:
+    """An ``Accuracy``-like object or mapping as a plain dict (keys as given)."""
+    if acc is None:
+        return None
+    if isinstance(acc, Mapping):
+        return dict(acc)
+    to_dict = getattr(acc, "to_dict", None)
+    if callable(to_dict):
+        d = to_dict()
+        if isinstance(d, Mapping):
+            return dict(d)
+    keys = ("rms_m", "mean_m", "max_m", "percent_described_rms", "percent_described_mean",
+            "percent_described_r2", "n", "p95_m", "baseline_rms_m", "baseline_mean_m",
+            "baseline_max_m")
+    out = {k: getattr(acc, k) for k in keys if hasattr(acc, k)}
+    return out or None
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+        return None
+    f = float(v)
+    return f if math.isfinite(f) else None
+
+
+def _info_from_fit_dict(fit: Mapping[str, Any]) -> dict[str, Any]:
+    """``fit_info`` from the ``fit`` section identification writes into MODEL.json."""
+    info: dict[str, Any] = {}
+    solver = fit.get("solver")
+    if isinstance(solver, Mapping) and isinstance(solver.get("converged"), bool):
+        info["converged"] = solver["converged"]
+    elif isinstance(fit.get("converged"), bool):
+        info["converged"] = fit["converged"]
+    for k in ("n_free", "dof_effective"):
+        if _num(fit.get(k)) is not None:
+            info[k] = _num(fit.get(k))
+    ident = fit.get("identifiability")
+    if isinstance(ident, Mapping):
+        if _num(ident.get("rank")) is not None:
+            info["rank"] = int(ident["rank"])
+        if _num(ident.get("condition_number")) is not None:
+            info["condition_number"] = _num(ident["condition_number"])
+        sv = ident.get("singular_values")
+        if isinstance(sv, list | tuple) and sv:
+            info["singular_values"] = [float(x) for x in sv]
+        if ident.get("note"):
+            info["note"] = str(ident["note"])
+    return info
+
+
+def _status(info: Mapping[str, Any], explicit: Any = None) -> str:
+    if isinstance(explicit, str) and explicit:
+        return explicit
+    conv = info.get("converged")
+    if conv is True:
+        return "converged"
+    if conv is False:
+        return "not converged"
+    return ""
+
+
+def model_entry(name: str, obj: Any) -> ModelEntry:
+    """Normalise a ``FitResult`` (anything with ``.calibrated``) or a ``CalibratedModel``."""
+    if obj is None:
+        return ModelEntry(name, None)
+    if isinstance(obj, ModelEntry):
+        return obj
+    if isinstance(obj, CalibratedModel):
+        fit_d: Mapping[str, Any] = obj.fit or {}
+        info = _info_from_fit_dict(fit_d)
+        ident = fit_d.get("identifiability")
+        removed = _as_names(fit_d.get("removed"))
+        if not removed and isinstance(ident, Mapping):
+            removed = _as_names(ident.get("removed"))
+        outliers = _as_names(fit_d.get("outliers")) or _as_names(obj.data.get("outliers"))
+        return ModelEntry(name, obj, outliers, removed, _status(info, fit_d.get("status")),
+                          dict(obj.metrics or {}), {}, info)
+    cm = getattr(obj, "calibrated", None)
+    if cm is not None and not isinstance(cm, CalibratedModel):
+        raise ConfigError(f"model {name!r}: .calibrated is not a CalibratedModel")
+    base = model_entry(name, cm) if cm is not None else ModelEntry(name, None)
+    stored: dict[str, Any] = {}
+    for part in ("train", "validation"):
+        d = _acc_to_dict(getattr(obj, part, None))
+        if d:
+            stored[part] = d
+    summary: Mapping[str, Any] = {}
+    fn = getattr(obj, "summary", None)
+    if callable(fn):
+        try:
+            s = fn()
+            summary = dict(s) if isinstance(s, Mapping) else {}
+        except Exception:  # a summary is a nicety; never let it break the report
+            summary = {}
+    info = dict(base.fit_info)
+    conv = getattr(obj, "converged", None)
+    if isinstance(conv, bool | np.bool_):
+        info["converged"] = bool(conv)
+    for k in ("n_free", "dof_effective"):
+        v = _num(getattr(obj, k, None))
+        if v is not None:
+            info[k] = v
+    ident = getattr(obj, "identifiability", None)
+    if ident is not None and not callable(ident):
+        if _num(getattr(ident, "rank", None)) is not None:
+            info["rank"] = int(ident.rank)
+        if _num(getattr(ident, "cond", None)) is not None:
+            info["condition_number"] = _num(ident.cond)
+        sv = getattr(ident, "singular_values", None)
+        if sv is not None and len(sv):
+            info["singular_values"] = [float(x) for x in np.asarray(sv).ravel()]
+    removed = _as_names(getattr(obj, "removed", None)) or base.removed
+    outliers = _as_names(getattr(obj, "outliers", None)) or base.outliers
+    return ModelEntry(name, cm, outliers, removed,
+                      _status(info, getattr(obj, "status", None)) or base.status,
+                      stored or dict(base.stored), summary, info)
+
+
+@dataclass
+class ReportInput:
+    """Everything a calibration report shows.
+
+    Parameters
+    ----------
+    models
+        Name -> ``FitResult`` or ``CalibratedModel``. Well-known names: ``nominal`` (base and
+        reflector fitted; the baseline of "% described"), ``cpa``, ``constant``,
+        ``high-order``, ``auto``. When ``nominal`` is missing and calibration data is given,
+        the report fits base and reflector itself.
+    calibration, validation
+        Calibration and held-out poses (SI). Without data the report uses the metrics stored
+        in the models.
+    robot
+        Defaults to the robot of the judged model.
+    selected
+        Name of the model the verdict is about; default: the first of ``auto``,
+        ``high-order``, ``constant``, ``cpa`` present.
+    iso
+        Repeated measurements at ISO 9283 cube poses P1..P5, grouped.
+    iso_measurements, iso_purposes
+        Alternatively the raw ISO measurements (joints = the commanded ones) and each pose's
+        purpose (``iso-P1`` .. ``iso-P5``); the report groups them, takes the command from the
+        nominal model (what the controller believes) and "AP after calibration" from the
+        judged model.
+    log
+        Measurement statistics (retries, beam losses, weather...).
+    acceptance
+        Verdict thresholds.
+    """
+
+    models: Mapping[str, Any] = field(default_factory=dict)
+    calibration: MeasurementSet | None = None
+    validation: MeasurementSet | None = None
+    robot: RobotDescription | None = None
+    selected: str | None = None
+    iso: Sequence[IsoPoseSeries] = ()
+    iso_measurements: MeasurementSet | None = None
+    iso_purposes: Sequence[str] = ()
+    log: MeasurementLog | None = None
+    acceptance: Acceptance = field(default_factory=Acceptance)
+    title: str = "Robot calibration report"
+    campaign_id: str = ""
+    created: str = ""
+    notes: Sequence[str] = ()
+    workspace_samples: int = 1000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.created:
+            self.created = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        if self.workspace_samples < 0:
+            raise ConfigError("workspace_samples must not be negative")
+        if self.iso_measurements is not None and len(self.iso_purposes) != len(
+                self.iso_measurements):
+            raise ConfigError("iso_purposes needs one entry per ISO measurement")
+
+    def entries(self) -> dict[str, ModelEntry]:
+        """Models normalised and ordered: well-known names first, then the rest."""
+        raw = {str(k): model_entry(str(k), v) for k, v in self.models.items()}
+        order = [k for k in KNOWN_MODELS if k in raw] + [k for k in raw if k not in KNOWN_MODELS]
+        return {k: raw[k] for k in order}
+
+    def selected_name(self) -> str | None:
+        """The judged model's name (see ``selected``)."""
+        names = [k for k, e in self.entries().items() if e.calibrated is not None or e.stored]
+        if self.selected:
+            if self.selected not in self.models:
+                raise ConfigError(f"selected model {self.selected!r} is not among the models "
+                                  f"({', '.join(self.models) or 'none'})")
+            return self.selected
+        for k in SELECTION_ORDER:
+            if k in names:
+                return k
+        others = [k for k in names if k != BASELINE]
+        return others[0] if others else None
