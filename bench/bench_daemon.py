@@ -1,0 +1,137 @@
+"""Benchmark: the daemon's per-pose overhead and the demo's wall time.
+
+Runs the same poses twice against the in-process FANUC RMI and LTP/1 simulators (instant
+simulated motion, no faults): once with bare driver calls (move, read joints, measure), once
+through the daemon's campaign engine (limit check, validation against the aligned nominal
+prediction, one SQLite ``synchronous=FULL`` transaction per pose, events). The difference is
+the daemon's overhead per pose. Also times the store's commit alone, and optionally
+``robocal demo``.
+
+Run from the repository root::
+
+    /work/venv/bin/python bench/bench_daemon.py [--poses 200] [--demo]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from robocal.daemon._plan import parse_plan, plan_from_poses
+from robocal.daemon.config import parse_config
+from robocal.daemon.logging import configure_logging
+from robocal.daemon.service import CalibrationService
+from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
+from robocal.drivers import load_robot, load_tracker
+from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
+from robocal.kinematics import load_robot as load_description
+
+ROBOT = "fanuc_lrmate200i"
+
+
+def _poses(n: int, seed: int = 0) -> np.ndarray:
+    robot = load_description(ROBOT)
+    lim = robot.joint_limits
+    return np.random.default_rng(seed).uniform(lim[:, 0] + 0.2, lim[:, 1] - 0.2, (n, robot.dof))
+
+
+async def _bare(cell: SimCell, q: np.ndarray, samples: int) -> float:
+    robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+    tracker = load_tracker("ltp", {**cell.tracker_options("tcp"), "stab_ms": 100})
+    await robot.connect(timeout=10)
+    await tracker.connect(timeout=10)
+    try:
+        times = []
+        for row in q:
+            t0 = time.perf_counter()
+            await robot.move_to(list(row), speed_pct=100.0, timeout=30)
+            await robot.read_joints()
+            await tracker.measure(samples=samples, timeout=10)
+            times.append(time.perf_counter() - t0)
+    finally:
+        await robot.close()
+        await tracker.close()
+    return float(np.median(times))
+
+
+async def _daemon(cell: SimCell, q: np.ndarray, samples: int, data_dir: Path) -> float:
+    cfg = parse_config({
+        "data_dir": str(data_dir), "robot_description": ROBOT,
+        "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
+        "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"), "stab_ms": 100}},
+        "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
+        "measurement": {"samples": samples, "settle_s": 0.0},
+        "fit": {"executor": "thread", "models": ["constant"], "select": "constant",
+                "report": False},
+    }, source="bench")
+    svc = CalibrationService(cfg)
+    await svc.start()
+    try:
+        doc = plan_from_poses(np.degrees(q).tolist(), robot=ROBOT)
+        st = await svc.create(parse_plan(doc, strict=False), actor="bench", measure_only=True)
+        await svc.wait(st["id"], ["measured", "faulted"], timeout=600)
+        return float(np.median(svc.pose_times))
+    finally:
+        await svc.stop()
+
+
+def _store_commit(data_dir: Path, n: int = 300) -> float:
+    store = Store(data_dir / "commit.sqlite3").open()
+    try:
+        rec = store.create_campaign(
+            name="b", robot="r", poses=[PoseRow(i, "calibration", (0.0,) * 6) for i in range(n)],
+            plan_json="{}", plan_digest="d", config_digest="c", actor="bench")
+        t0 = time.perf_counter()
+        for i in range(n):
+            store.add_measurement(rec.id, MeasurementRow(
+                pose_idx=i, purpose="calibration", q_cmd_deg=(0.0,) * 6, q_act_deg=(0.0,) * 6,
+                p_mm=(1.0, 2.0, 3.0), sigma_mm=(0.01,) * 3, rms_mm=0.001, samples=5,
+                attempts=1, distance_mm=None, weather={}, measured_at=now_iso()))
+        return (time.perf_counter() - t0) / n
+    finally:
+        store.close()
+
+
+async def _main(args: argparse.Namespace) -> None:
+    q = _poses(args.poses)
+    cell = SimCell(robot=ROBOT, seed=1, fanuc=FanucSimOptions(time_scale=0.0), modbus=False,
+                   ltp=LtpSimOptions(time_scale=0.0))
+    with tempfile.TemporaryDirectory() as tmp:
+        async with cell:
+            bare = await _bare(cell, q, args.samples)
+            daemon = await _daemon(cell, q, args.samples, Path(tmp) / "state")
+            await asyncio.sleep(0.1)
+        commit = _store_commit(Path(tmp))
+    print(f"poses: {args.poses}, samples per reading: {args.samples}")
+    print(f"bare drivers          {bare * 1e3:8.2f} ms per pose (median)")
+    print(f"daemon engine         {daemon * 1e3:8.2f} ms per pose (median)")
+    print(f"daemon overhead       {(daemon - bare) * 1e3:8.2f} ms per pose")
+    print(f"store commit (FULL)   {commit * 1e3:8.2f} ms per measurement")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--poses", type=int, default=200)
+    p.add_argument("--samples", type=int, default=5)
+    p.add_argument("--demo", action="store_true", help="also time 'robocal demo'")
+    args = p.parse_args()
+    configure_logging("warning", "console")
+    asyncio.run(_main(args))
+    if args.demo:
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "robocal.cli.main", "demo", "--quiet",
+                            "--out", str(Path(tmp) / "demo")], check=True,
+                           stdout=subprocess.DEVNULL)
+            print(f"robocal demo (250 poses) {time.perf_counter() - t0:8.1f} s wall")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,78 @@
+"""``robocal compensation list|rollback``: the compensation tables pushed by the daemon."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from robocal.cli._campaign import add_client_options, client, emit
+
+
+def register(sub: Any) -> None:
+    """Add the ``compensation`` subcommand."""
+    p = sub.add_parser("compensation", help="list pushed compensation tables or roll back",
+                       description="Compensation tables on the robot, via the daemon: the "
+                                   "push history, and rollback to the previous table (written, "
+                                   "read back and verified; recorded in the audit log).")
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+    ls = verbs.add_parser("list", help="active table and push history")
+    ls.add_argument("--json", action="store_true")
+    add_client_options(ls)
+    ls.set_defaults(handler=list_)
+    rb = verbs.add_parser("rollback", help="restore the previous table")
+    rb.add_argument("--reason", default="")
+    rb.add_argument("--json", action="store_true")
+    add_client_options(rb)
+    rb.set_defaults(handler=rollback)
+    au = verbs.add_parser("audit", help="show the audit log")
+    au.add_argument("--limit", type=int, default=50)
+    au.add_argument("--json", action="store_true")
+    add_client_options(au)
+    au.set_defaults(handler=audit)
+
+
+def _print_state(out: dict[str, Any]) -> None:
+    active = out.get("active")
+    if active:
+        sys.stdout.write(f"active: table {active['table_id']} ({active['kind']}, "
+                         f"{active['checksum'][:16]}, from {active['campaign'] or 'controller'})"
+                         "\n")
+    else:
+        sys.stdout.write("active: none pushed by robocal\n")
+    for h in out.get("history", []):
+        sys.stdout.write(f"  {h['at']}  {h['action']:8s} table {h['table_id']:<4d} "
+                         f"{h['kind']:8s} {h['checksum'][:16]}  {h['actor']}\n")
+
+
+def list_(args: argparse.Namespace) -> int:
+    """Print the active table and the history."""
+    out = client(args).request("GET", "/compensation")
+    if args.json:
+        emit(out)
+    else:
+        _print_state(out)
+    return 0
+
+
+def rollback(args: argparse.Namespace) -> int:
+    """Restore the previous table."""
+    body = {"reason": args.reason} if args.reason else None
+    out = client(args).request("POST", "/compensation/rollback", body)
+    if args.json:
+        emit(out)
+    else:
+        _print_state(out)
+    return 0
+
+
+def audit(args: argparse.Namespace) -> int:
+    """Print the audit log."""
+    out = client(args).request("GET", "/audit", query={"limit": args.limit})
+    if args.json:
+        emit(out)
+        return 0
+    for a in out:
+        sys.stdout.write(f"{a['at']}  {a['action']:28s} {a['actor']:24s} "
+                         f"{a['campaign'] or '-':12s} {(a['checksum'] or '')[:16]}\n")
+    return 0

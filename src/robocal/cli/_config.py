@@ -1,0 +1,58 @@
+"""``robocal config check FILE`` and ``robocal config schema``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add the ``config`` subcommand."""
+    p = sub.add_parser("config", help="check a daemon configuration or print its schema",
+                       description="Validate daemon configuration files (every error with "
+                                   "file and key path) or print the JSON schema.")
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+    c = verbs.add_parser("check", help="validate configuration files")
+    c.add_argument("files", nargs="+", type=Path, metavar="FILE")
+    c.add_argument("--drivers", action="store_true",
+                   help="also build (not connect) the drivers to validate their options")
+    c.set_defaults(handler=check)
+    s = verbs.add_parser("schema", help="print the configuration's JSON schema")
+    s.set_defaults(handler=schema)
+
+
+def check(args: argparse.Namespace) -> int:
+    """Print every problem; exit 0 when all files are valid, 1 otherwise."""
+    from robocal.daemon.config import config_errors, load_config
+    from robocal.errors import RobocalError
+
+    bad = 0
+    for path in args.files:
+        errors = config_errors(path)
+        if not errors and args.drivers:
+            from robocal.daemon.hub import DriverHub
+            from robocal.kinematics import load_robot
+
+            try:
+                cfg = load_config(path)
+                DriverHub(cfg, load_robot(cfg.robot_description)).validate()
+            except RobocalError as err:
+                errors = [f"{path}: {err}"]
+        if errors:
+            bad += 1
+            for e in errors:
+                sys.stdout.write(f"{e}\n")
+        else:
+            sys.stdout.write(f"{path}: ok\n")
+    return 1 if bad else 0
+
+
+def schema(args: argparse.Namespace) -> int:
+    """Print the JSON schema of the configuration."""
+    from robocal.daemon.config import AppConfig
+
+    sys.stdout.write(json.dumps(AppConfig.model_json_schema(), indent=1) + "\n")
+    return 0

@@ -1,0 +1,402 @@
+"""``robocal demo``: a whole calibration campaign against simulated devices, in one command.
+
+What it does (everything in-process, loopback only, no arguments needed):
+
+1. starts the FANUC RMI controller and LTP/1 laser-tracker simulators around one virtual
+   FANUC LR Mate 200i with planted constant and joint-dependent errors (and a few % of
+   injected beam breaks / unstable readings / garbage lines);
+2. plans the campaign (D-optimal calibration poses, validation poses, CPA sweeps);
+3. runs it through the real drivers and the daemon's campaign engine, with an SQLite store;
+4. fits the constant, high-order and auto models (and CPA), and writes the report;
+5. compensates the validation targets with each model and measures them again;
+6. approves the fit and pushes the frames table to the simulated controller (read back,
+   verified, audited);
+7. prints a summary table and says where the files are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+_MODELS = ("constant", "high-order", "auto")
+
+
+def register(sub: Any) -> None:
+    """Add the ``demo`` subcommand."""
+    p = sub.add_parser("demo", help="run a whole calibration campaign against simulators",
+                       description="Plan, measure (simulated FANUC RMI controller and LTP/1 "
+                                   "tracker, through the real drivers and the daemon's "
+                                   "campaign engine), fit constant / high-order / auto models, "
+                                   "compare with CPA, compensate, verify, report.")
+    p.add_argument("--out", type=Path, default=Path("robocal-demo"),
+                   help="output directory (default ./robocal-demo; replaced)")
+    p.add_argument("--poses", type=int, default=250,
+                   help="calibration poses (default 250; the high-order model needs about 64)")
+    p.add_argument("--validation", type=int, default=None,
+                   help="validation poses (default: a fifth of --poses, at least 10)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the virtual robot and plan")
+    p.add_argument("--scenario", default="paper", choices=["paper", "strain-wave"],
+                   help="planted errors (default paper)")
+    p.add_argument("--fault-rate", type=float, default=0.03,
+                   help="injected tracker fault rate per reading (default 0.03)")
+    p.add_argument("--robot", default="fanuc_lrmate200i", help=argparse.SUPPRESS)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo (one ``asyncio.run``)."""
+    from robocal.errors import ConfigError
+
+    if args.poses < 30:
+        raise ConfigError("--poses must be at least 30 (the high-order model needs them)")
+    if not 0.0 <= args.fault_rate <= 0.5:
+        raise ConfigError("--fault-rate must be within [0, 0.5]")
+    return asyncio.run(_demo(args))
+
+
+class _Progress:
+    """A one-line progress bar on stdout (plain lines when stdout is not a terminal)."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.tty = sys.stdout.isatty() and not quiet
+        self.quiet = quiet
+        self._last = 0.0
+        self._printed: tuple[str, int] | None = None
+
+    def step(self, text: str) -> None:
+        if self.quiet:
+            return
+        if self.tty:
+            sys.stdout.write("\r\x1b[K")
+        sys.stdout.write(f"{text}\n")
+        sys.stdout.flush()
+
+    def bar(self, label: str, done: int, total: int, extra: str = "") -> None:
+        if self.quiet:
+            return
+        now = time.monotonic()
+        if self._printed == (label, done):
+            return
+        self._printed = (label, done)
+        if not self.tty:
+            if done == total or now - self._last > 5.0:
+                self._last = now
+                sys.stdout.write(f"  {label}: {done}/{total} {extra}\n")
+                sys.stdout.flush()
+            return
+        width = 32
+        filled = round(width * done / total) if total else 0
+        sys.stdout.write(f"\r\x1b[K  {label} [{'#' * filled}{'.' * (width - filled)}] "
+                         f"{done}/{total} {extra}")
+        if done == total:
+            sys.stdout.write("\n")
+        sys.stdout.flush()
+
+
+def _plan(args: argparse.Namespace, validation: int) -> tuple[dict[str, Any], str]:
+    """A PLAN.json document from robocal.planning, or random poses if planning fails."""
+    from robocal.errors import RobocalError
+
+    try:
+        from robocal.planning import plan_campaign
+
+        plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
+                             validation=validation, cpa=True, cpa_points=10, iso=False,
+                             seed=args.seed, candidates=1024)
+        plan.save(args.out / "PLAN.json")
+        return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
+    except (ImportError, RobocalError) as err:
+        import numpy as np
+
+        from robocal.kinematics import load_robot
+
+        robot = load_robot(args.robot)
+        rng = np.random.default_rng(args.seed)
+        lim = np.degrees(robot.joint_limits)
+        n = args.poses + validation
+        q = rng.uniform(lim[:, 0] + 5.0, lim[:, 1] - 5.0, (n, robot.dof))
+        poses = [{"q_deg": [float(v) for v in q[i]],
+                  "purpose": "calibration" if i < args.poses else "validation"}
+                 for i in range(n)]
+        doc = {"format": "robocal.plan/1", "robot": args.robot, "poses": poses}
+        (args.out / "PLAN.json").write_text(json.dumps(doc, indent=1))
+        return doc, f"random poses (planning unavailable: {err})"
+
+
+async def _follow(svc: Any, cid: str, progress: _Progress, label: str,
+                  until: tuple[str, ...], timeout: float) -> dict[str, Any]:
+    """Show progress of one campaign until it reaches one of ``until`` (or a final state)."""
+    total = svc.store.campaign(cid).poses_total
+    retries = 0
+    async with asyncio.timeout(timeout), svc.events.subscribe() as q:
+        while True:
+            rec = svc.store.campaign(cid)
+            if rec.state.value in until or rec.state.value in ("aborted", "faulted"):
+                progress.bar(label, rec.poses_measured, total,
+                             f"{retries} retries" if retries else "")
+                return svc.status(cid)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(0.5):
+                    ev = await q.get()
+                    if ev is None:
+                        raise RuntimeError("the service stopped")
+                    if ev.get("campaign") != cid:
+                        continue
+                    if ev["kind"] == "retry":
+                        retries += 1
+                    if ev["kind"] == "pose":
+                        progress.bar(label, int(ev["poses_measured"]), total,
+                                     f"{retries} retries" if retries else "")
+
+
+def _fmt(v: Any, digits: int = 3, unit: str = "") -> str:
+    if isinstance(v, int | float) and math.isfinite(float(v)):
+        return f"{v:.{digits}f}{unit}"
+    return "-"
+
+
+async def _demo(args: argparse.Namespace) -> int:
+    from robocal.daemon.logging import configure_logging
+
+    t_start = time.perf_counter()
+    out: Path = args.out.resolve()
+    if out.exists():
+        if not (out / "PLAN.json").exists() and any(out.iterdir()):
+            from robocal.errors import ConfigError
+
+            raise ConfigError("exists and does not look like a demo directory; choose another "
+                              "--out", source=str(out))
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    args.out = out
+    with (out / "daemon.log").open("w") as log_file:
+        # The daemon's JSON log goes to a file; the console shows progress and results.
+        configure_logging("info", "json")
+        import structlog
+
+        structlog.configure(logger_factory=structlog.WriteLoggerFactory(file=log_file))
+        try:
+            figures = await _run(args, t_start)
+        finally:
+            structlog.configure(logger_factory=structlog.WriteLoggerFactory(file=sys.stderr))
+    (out / "summary.json").write_text(json.dumps(figures, indent=1, default=str))
+    _print_summary(figures)
+    return 0 if figures.get("state") in ("pushed", "fitted", "approved") else 1
+
+
+async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
+    import numpy as np
+
+    from robocal.daemon.config import parse_config
+    from robocal.daemon.pushing import ideal_positions
+    from robocal.daemon.service import CalibrationService
+    from robocal.drivers.sim import FanucSimOptions, FaultConfig, LtpSimOptions, SimCell
+
+    out: Path = args.out
+    progress = _Progress(args.quiet)
+    validation = args.validation if args.validation is not None else max(10, args.poses // 5)
+    progress.step(f"robocal demo: virtual {args.robot} with planted '{args.scenario}' errors, "
+                  f"{args.fault_rate:.0%} injected tracker faults")
+
+    t0 = time.perf_counter()
+    plan_doc, plan_how = _plan(args, validation)
+    n_total = sum(1 for p in plan_doc["poses"] if p.get("measure", True))
+    progress.step(f"  planned {n_total} poses to measure ({plan_how}) "
+                  f"in {time.perf_counter() - t0:.1f} s")
+
+    faults = FaultConfig.uniform(args.fault_rate, seed=args.seed)
+    cell = SimCell(robot=args.robot, scenario=args.scenario, seed=args.seed,
+                   fanuc=FanucSimOptions(time_scale=0.0005), modbus=False,
+                   ltp=LtpSimOptions(time_scale=0.0005), faults=faults)
+    figures: dict[str, Any] = {}
+    async with cell:
+        config = parse_config({
+            "data_dir": str(out / "state"),
+            "robot_description": args.robot,
+            "cell": "demo",
+            "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
+            "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
+                                                   "stab_ms": 100}},
+            "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
+            "measurement": {"samples": 5, "settle_s": 0.0, "backoff_s": 0.01, "retries": 8},
+            "fit": {"models": list(_MODELS), "select": "auto", "executor": "process"},
+            "compensation": {"kind": "frames"},
+            "logging": {"level": "info", "format": "json"},
+        }, source="demo")
+        svc = CalibrationService(config)
+        await svc.start()
+        try:
+            figures = await _campaign(args, svc, plan_doc, progress, ideal_positions, np)
+        finally:
+            await svc.stop()
+            # Let the simulators see the drivers' connections close before they stop.
+            await asyncio.sleep(0.1)
+    figures["wall_time_s"] = round(time.perf_counter() - t_start, 1)
+    injected: dict[str, int] = {}
+    for sim in (cell.fanuc_sim, cell.ltp_sim):
+        for name, n in getattr(getattr(sim, "faults", None), "counts", {}).items():
+            injected[name] = injected.get(name, 0) + int(n)
+    figures["faults_injected"] = injected
+    return figures
+
+
+async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any],
+                    progress: _Progress, ideal_positions: Any, np: Any) -> dict[str, Any]:
+    from robocal.daemon._plan import parse_plan, plan_from_poses
+    from robocal.errors import RobocalError
+
+    figures: dict[str, Any] = {"robot": args.robot, "scenario": args.scenario,
+                               "seed": args.seed}
+    t0 = time.perf_counter()
+    st = await svc.create(plan_doc, actor="demo", name="demo campaign")
+    cid = st["id"]
+    st = await _follow(svc, cid, progress, "measuring", ("measured", "fitted"), 600.0)
+    t_meas = time.perf_counter() - t0
+    figures.update(campaign=cid, poses_measured=st["poses_measured"],
+                   poses_total=st["poses_total"], measure_s=round(t_meas, 1),
+                   pose_overhead_ms=None if svc._overhead() is None
+                   else round(svc._overhead() * 1e3, 2))
+    if st["state"] not in ("measured", "fitted"):
+        figures["state"] = st["state"]
+        figures["reason"] = st["reason"]
+        return figures
+    progress.step(f"  measured {st['poses_measured']} poses in {t_meas:.1f} s "
+                  f"(median {figures['pose_overhead_ms']} ms per pose)")
+    t1 = time.perf_counter()
+    st = await svc.wait(cid, ["fitted", "faulted"], timeout=600.0)
+    figures["fit_s"] = round(time.perf_counter() - t1, 1)
+    figures["fits"] = st["fits"]
+    figures["state"] = st["state"]
+    if st["state"] != "fitted":
+        figures["reason"] = st["reason"]
+        return figures
+    fitted = [k for k, v in st["fits"].items() if k != "nominal" and not v.get("error")]
+    progress.step(f"  fitted {', '.join(fitted)} "
+                  f"in {figures['fit_s']} s (worker process)")
+    campaign_dir = svc.config.data_dir / "campaigns" / cid
+    figures["files"] = {"plan": str(args.out / "PLAN.json"), "campaign": str(campaign_dir),
+                        "store": str(svc.config.db_path)}
+    for name in ("html", "json"):
+        p = campaign_dir / f"report.{name}"
+        if p.exists():
+            figures["files"][f"report_{name}"] = str(p)
+
+    # Compensation of the validation targets, measured again on the simulated robot.
+    val = [p for p in svc.store.poses(cid) if p.purpose == "validation"]
+    rows = {m.pose_idx: m for m in svc.store.measurements(cid)}
+    q_val = np.radians(np.array([p.q_deg for p in val], dtype=float))
+    p_val = np.array([rows[p.idx].p_mm for p in val], dtype=float) * 1e-3
+    ref = svc.fitted_model(cid, "auto")
+    targets = ideal_positions(ref, q_val)
+    comp: dict[str, Any] = {"targets": len(val),
+                            "before": _errors(np, p_val - targets)}
+    from robocal.compensation import compensate
+
+    for name in _MODELS:
+        if name not in st["fits"] or st["fits"][name].get("error"):
+            continue
+        cal = svc.fitted_model(cid, name)
+        res = compensate(cal, targets, q_val)
+        ok = np.asarray(res.ok, dtype=bool)
+        if not ok.any():
+            comp[name] = {"error": "no target converged"}
+            continue
+        q_cmd = np.degrees(res.q[ok])
+        doc = plan_from_poses(q_cmd.tolist(), purpose="verification", robot=args.robot)
+        vst = await svc.create(parse_plan(doc, source="verification", strict=False),
+                               actor="demo", name=f"verify {name}", measure_only=True)
+        vst = await _follow(svc, vst["id"], progress, f"verifying {name:10s}", ("measured",),
+                            300.0)
+        if vst["state"] != "measured":
+            comp[name] = {"error": f"verification {vst['state']}: {vst['reason']}"}
+            continue
+        p_after = np.array([m.p_mm for m in svc.store.measurements(vst["id"])]) * 1e-3
+        comp[name] = {**_errors(np, p_after - targets[ok]),
+                      "converged": int(ok.sum())}
+    figures["compensation"] = comp
+
+    # Approve and push the frames table (read back, verified, audited).
+    try:
+        await svc.approve(cid, actor="demo")
+        pushed = await svc.push(cid, actor="demo")
+        active = svc.compensation()["active"]
+        figures["push"] = {"state": pushed["state"], "kind": active["kind"],
+                           "checksum": active["checksum"]}
+        figures["state"] = pushed["state"]
+    except RobocalError as err:
+        figures["push"] = {"error": str(err)}
+        figures["state"] = svc.store.campaign(cid).state.value
+    return figures
+
+
+def _errors(np: Any, d: Any) -> dict[str, float]:
+    e = np.linalg.norm(np.asarray(d, dtype=float), axis=1) * 1e3
+    return {"rms_mm": round(float(np.sqrt(np.mean(e**2))), 5),
+            "mean_mm": round(float(np.mean(e)), 5), "max_mm": round(float(np.max(e)), 5)}
+
+
+def _print_summary(f: dict[str, Any]) -> None:
+    w = sys.stdout.write
+    w("\n")
+    if f.get("state") not in ("fitted", "approved", "pushed"):
+        w(f"campaign {f.get('campaign', '?')} ended {f.get('state')}: {f.get('reason', '')}\n")
+        return
+    fits = f.get("fits", {})
+    w(f"Held-out accuracy ({f.get('poses_measured')} poses measured; validation poses not "
+      "used for fitting)\n")
+    w(f"  {'model':12s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s} {'% described':>12s}"
+      f" {'fit s':>7s}\n")
+    for name in ("nominal", "cpa", *_MODELS):
+        s = fits.get(name)
+        if not s:
+            continue
+        if s.get("error"):
+            w(f"  {name:12s} not available: {s['error'][:70]}\n")
+            continue
+        v = s.get("validation") or {}
+        pct = v.get("percent_described_rms")
+        if name == "nominal":
+            pct = 0.0
+        w(f"  {name:12s} {_fmt(v.get('rms_mm'), 4):>9s} {_fmt(v.get('mean_mm'), 4):>9s} "
+          f"{_fmt(v.get('max_mm'), 4):>9s} {_fmt(pct, 1, ' %'):>12s} "
+          f"{_fmt(s.get('seconds'), 2):>7s}\n")
+    comp = f.get("compensation") or {}
+    if comp:
+        w(f"\nCompensation of {comp.get('targets')} validation targets, measured again\n")
+        w(f"  {'commands':22s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s}\n")
+        rows = [("nominal (before)", comp.get("before"))]
+        rows += [(f"{m} compensated", comp.get(m)) for m in _MODELS if m in comp]
+        for label, e in rows:
+            if not e:
+                continue
+            if "error" in e:
+                w(f"  {label:22s} {e['error']}\n")
+                continue
+            w(f"  {label:22s} {_fmt(e['rms_mm'], 4):>9s} {_fmt(e['mean_mm'], 4):>9s} "
+              f"{_fmt(e['max_mm'], 4):>9s}\n")
+    push = f.get("push") or {}
+    if push:
+        if "error" in push:
+            w(f"\nPush: {push['error']}\n")
+        else:
+            w(f"\nApproved and pushed: {push['kind']} table {push['checksum'][:16]} "
+              "(written, read back, verified, audited)\n")
+    files = f.get("files") or {}
+    w(f"\nDone in {f.get('wall_time_s')} s (measuring {f.get('measure_s')} s, fitting "
+      f"{f.get('fit_s')} s).\n")
+    if files.get("report_html"):
+        w(f"Report:  {files['report_html']}\n         {files.get('report_json', '')}\n")
+    else:
+        w("Report:  not written (see daemon.log)\n")
+    w(f"Files:   {Path(files.get('plan', '.')).parent} (PLAN.json, summary.json, daemon.log, "
+      "state/ with the SQLite store and MODEL-*.json)\n")

@@ -1,0 +1,531 @@
+"""The local HTTP/JSON API: a thin aiohttp shell over :class:`CalibrationService`.
+
+It listens on a Unix socket (file mode 0660 by default: the file permissions are the access
+control) and, optionally, on TCP, where every request needs ``Authorization: Bearer
+<token>`` (401 otherwise). ``GET /openapi.json`` describes every route. Errors are JSON
+(``{"error": {"type", "message", "status"}}``) with a 4xx status for anything the client can
+fix; a malformed request never takes the daemon down.
+
+Routes::
+
+    GET  /health                       daemon status
+    GET  /openapi.json                 this API
+    GET  /campaigns                    list
+    POST /campaigns                    create (and start) from a plan
+    GET  /campaigns/{id}               status (state, poses_total, poses_measured, fits)
+    GET  /campaigns/{id}/measurements  stored measurements (mm, deg)
+    POST /campaigns/{id}/{action}      start | pause | resume | abort | approve | push
+    GET  /events                       Server-Sent Events (``?campaign=ID&after=SEQ``)
+    GET  /events/poll                  long-poll: JSON list of events after ``after``
+    GET  /compensation                 active table and push history
+    POST /compensation/rollback        restore the previous table
+    GET  /audit                        append-only audit log
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import json
+import os
+import pwd
+import re
+import socket
+import struct
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import structlog
+from aiohttp import web
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from robocal import __version__
+from robocal.daemon.config import AppConfig
+from robocal.daemon.service import CalibrationService
+from robocal.daemon.store import UnknownCampaign
+from robocal.errors import (
+    CampaignError,
+    CompensationError,
+    ConfigError,
+    DriverError,
+    IdentificationError,
+    ProtocolError,
+    RobocalError,
+)
+
+__all__ = ["ApiServer", "make_app", "openapi_spec"]
+
+_log = structlog.get_logger(__name__)
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+_SERVICE: web.AppKey[CalibrationService] = web.AppKey("service", CalibrationService)
+_TOKEN_AUTH: web.AppKey[bool] = web.AppKey("token_auth", bool)
+_ACTOR_RE = re.compile(r"[^A-Za-z0-9_.@:-]")
+_ACTIONS = ("start", "pause", "resume", "abort", "approve", "push")
+
+
+class _Request(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CreateCampaignRequest(_Request):
+    """Body of ``POST /campaigns``."""
+
+    plan: dict[str, Any] = Field(description="a PLAN.json document (robocal.plan/1)")
+    name: str | None = Field(default=None, max_length=200)
+    start: bool = Field(default=True, description="start measuring at once")
+    measure_only: bool = Field(default=False, description="no fit (verification runs)")
+
+
+class ActionRequest(_Request):
+    """Optional body of ``POST /campaigns/{id}/{action}``."""
+
+    reason: str = Field(default="", max_length=1000)
+    model: str | None = Field(default=None, max_length=64,
+                              description="approve: the fitted model to approve")
+
+
+class RollbackRequest(_Request):
+    """Optional body of ``POST /compensation/rollback``."""
+
+    reason: str = Field(default="", max_length=1000)
+
+
+def _error(status: int, kind: str, message: str, **extra: Any) -> web.Response:
+    body = {"error": {"type": kind, "message": message, "status": status, **extra}}
+    return web.json_response(body, status=status)
+
+
+def _status_for(err: RobocalError) -> int:
+    if isinstance(err, UnknownCampaign):
+        return 404
+    if isinstance(err, ConfigError):
+        return 422
+    if isinstance(err, CompensationError):
+        return 422
+    if isinstance(err, CampaignError | IdentificationError):
+        return 409
+    if isinstance(err, DriverError | ProtocolError):
+        return 502
+    return 400
+
+
+@web.middleware
+async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """Turn every failure into a JSON error; only bugs give 500, and the daemon lives on."""
+    try:
+        return await handler(request)
+    except web.HTTPException as exc:
+        if exc.status < 400:
+            raise
+        return _error(exc.status, type(exc).__name__, exc.reason or exc.text or "")
+    except RobocalError as err:
+        return _error(_status_for(err), type(err).__name__, str(err))
+    except asyncio.CancelledError:
+        raise
+    except Exception as err:
+        _log.exception("request failed", path=request.path, method=request.method)
+        return _error(500, "InternalError", f"{type(err).__name__}: {err}")
+
+
+def _auth(token: str) -> Callable[[web.Request, Handler], Awaitable[web.StreamResponse]]:
+    expected = f"Bearer {token}".encode()
+
+    @web.middleware
+    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        got = request.headers.get("Authorization", "").encode()
+        if not hmac.compare_digest(got, expected):
+            resp = _error(401, "Unauthorized", "a valid bearer token is required")
+            resp.headers["WWW-Authenticate"] = 'Bearer realm="robocal"'
+            return resp
+        return await handler(request)
+
+    return middleware
+
+
+def _peer(request: web.Request) -> str:
+    """``uid=N(name)`` of a Unix-socket client (SO_PEERCRED), else ``token``/``unknown``."""
+    if request.app[_TOKEN_AUTH]:
+        return "token"
+    sock = request.transport.get_extra_info("socket") if request.transport else None
+    if sock is not None and getattr(sock, "family", None) == socket.AF_UNIX:
+        with contextlib.suppress(OSError, struct.error):
+            creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                    struct.calcsize("3i"))
+            _pid, uid, _gid = struct.unpack("3i", creds)
+            try:
+                name = pwd.getpwuid(uid).pw_name
+            except KeyError:
+                name = "?"
+            return f"uid={uid}({name})"
+    return "unknown"
+
+
+def _actor(request: web.Request) -> str:
+    claimed = _ACTOR_RE.sub("", request.headers.get("X-Robocal-Actor", ""))[:64]
+    peer = _peer(request)
+    return f"{claimed} via {peer}" if claimed else peer
+
+
+async def _body(request: web.Request, model: type[_Request], *, required: bool) -> Any:
+    raw = await request.read()
+    if not raw.strip():
+        if required:
+            raise web.HTTPBadRequest(reason="a JSON body is required")
+        return model()
+    try:
+        data = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise web.HTTPBadRequest(reason=f"body is not valid JSON: {err}") from err
+    if not isinstance(data, dict):
+        raise web.HTTPBadRequest(reason="body must be a JSON object")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"]) or "<body>"
+        raise web.HTTPUnprocessableEntity(reason=f"{loc}: {first['msg']}") from err
+
+
+def _int_query(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
+    raw = request.query.get(name)
+    if raw is None:
+        return default
+    try:
+        v = int(raw)
+    except ValueError as err:
+        raise web.HTTPBadRequest(reason=f"query parameter {name!r} must be an integer") from err
+    if not lo <= v <= hi:
+        raise web.HTTPBadRequest(reason=f"query parameter {name!r} must be in [{lo}, {hi}]")
+    return v
+
+
+# --- handlers ---------------------------------------------------------------------------------
+async def health(request: web.Request) -> web.Response:
+    return web.json_response(request.app[_SERVICE].health())
+
+
+async def openapi(request: web.Request) -> web.Response:
+    return web.json_response(openapi_spec())
+
+
+async def list_campaigns(request: web.Request) -> web.Response:
+    return web.json_response(request.app[_SERVICE].list())
+
+
+async def create_campaign(request: web.Request) -> web.Response:
+    body = await _body(request, CreateCampaignRequest, required=True)
+    status = await request.app[_SERVICE].create(
+        body.plan, actor=_actor(request), name=body.name, start=body.start,
+        measure_only=body.measure_only)
+    return web.json_response(status, status=201)
+
+
+async def get_campaign(request: web.Request) -> web.Response:
+    return web.json_response(request.app[_SERVICE].status(request.match_info["cid"]))
+
+
+async def get_measurements(request: web.Request) -> web.Response:
+    rows = request.app[_SERVICE].measurements(request.match_info["cid"])
+    return web.json_response([r.to_json() for r in rows])
+
+
+async def campaign_action(request: web.Request) -> web.Response:
+    svc = request.app[_SERVICE]
+    cid, action = request.match_info["cid"], request.match_info["action"]
+    if action not in _ACTIONS:
+        raise web.HTTPNotFound(reason=f"unknown action {action!r} (one of {', '.join(_ACTIONS)})")
+    body = await _body(request, ActionRequest, required=False)
+    actor = _actor(request)
+    if action == "start":
+        out = await svc.start_campaign(cid, actor=actor)
+    elif action == "pause":
+        out = await svc.pause(cid, actor=actor, reason=body.reason)
+    elif action == "resume":
+        out = await svc.resume(cid, actor=actor)
+    elif action == "abort":
+        out = await svc.abort(cid, actor=actor, reason=body.reason)
+    elif action == "approve":
+        out = await svc.approve(cid, actor=actor, model=body.model)
+    else:
+        out = await svc.push(cid, actor=actor)
+    return web.json_response(out)
+
+
+async def compensation(request: web.Request) -> web.Response:
+    return web.json_response(request.app[_SERVICE].compensation())
+
+
+async def rollback(request: web.Request) -> web.Response:
+    await _body(request, RollbackRequest, required=False)
+    return web.json_response(await request.app[_SERVICE].rollback(actor=_actor(request)))
+
+
+async def audit(request: web.Request) -> web.Response:
+    limit = _int_query(request, "limit", 1000, 1, 100_000)
+    return web.json_response(request.app[_SERVICE].audit(limit=limit))
+
+
+async def events_poll(request: web.Request) -> web.Response:
+    """Long-poll: events after ``after`` (waits up to ``timeout`` s for the first one)."""
+    svc = request.app[_SERVICE]
+    after = _int_query(request, "after", 0, 0, 2**62)
+    timeout = _int_query(request, "timeout", 20, 0, 300)
+    campaign = request.query.get("campaign") or None
+    events = svc.events.history(after=after, campaign=campaign)
+    if not events and timeout > 0:
+        async with svc.events.subscribe() as q:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(timeout):
+                    while True:
+                        ev = await q.get()
+                        if ev is None:
+                            break
+                        if ev["seq"] > after and (campaign is None or
+                                                  ev["campaign"] == campaign):
+                            events = [ev]
+                            break
+    return web.json_response({"events": events, "last_seq": svc.events.last_seq})
+
+
+async def events_sse(request: web.Request) -> web.StreamResponse:
+    """Server-Sent Events: ``id: seq``, ``event: kind``, ``data: JSON``; keep-alive comments."""
+    svc = request.app[_SERVICE]
+    after = _int_query(request, "after", 0, 0, 2**62)
+    with contextlib.suppress(ValueError):
+        after = max(after, int(request.headers.get("Last-Event-ID", "0")))
+    campaign = request.query.get("campaign") or None
+    resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                       "Cache-Control": "no-cache"})
+    await resp.prepare(request)
+
+    async def send(ev: dict[str, Any]) -> None:
+        data = json.dumps(ev, default=str)
+        await resp.write(f"id: {ev['seq']}\nevent: {ev['kind']}\ndata: {data}\n\n".encode())
+
+    try:
+        async with svc.events.subscribe() as q:
+            last = after
+            for ev in svc.events.history(after=after, campaign=campaign):
+                await send(ev)
+                last = ev["seq"]
+            while True:
+                try:
+                    async with asyncio.timeout(15.0):
+                        ev = await q.get()
+                except TimeoutError:
+                    await resp.write(b": keep-alive\n\n")
+                    continue
+                if ev is None:
+                    break
+                if ev["seq"] <= last or (campaign is not None and ev["campaign"] != campaign):
+                    continue
+                await send(ev)
+                last = ev["seq"]
+    except (ConnectionResetError, ConnectionError):
+        pass
+    return resp
+
+
+def make_app(service: CalibrationService, *, token: str | None = None,
+             max_body_bytes: int = 8 * 1024 * 1024) -> web.Application:
+    """The aiohttp application; with ``token``, every request must carry it (TCP)."""
+    middlewares: list[Any] = [_errors]
+    if token is not None:
+        middlewares.append(_auth(token))
+    app = web.Application(middlewares=middlewares, client_max_size=max_body_bytes)
+    app[_SERVICE] = service
+    app[_TOKEN_AUTH] = token is not None
+    r = app.router
+    r.add_get("/health", health)
+    r.add_get("/openapi.json", openapi)
+    r.add_get("/campaigns", list_campaigns)
+    r.add_post("/campaigns", create_campaign)
+    r.add_get("/campaigns/{cid}", get_campaign)
+    r.add_get("/campaigns/{cid}/measurements", get_measurements)
+    r.add_post("/campaigns/{cid}/{action}", campaign_action)
+    r.add_get("/events", events_sse)
+    r.add_get("/events/poll", events_poll)
+    r.add_get("/compensation", compensation)
+    r.add_post("/compensation/rollback", rollback)
+    r.add_get("/audit", audit)
+    return app
+
+
+def _schema(model: type[BaseModel]) -> dict[str, Any]:
+    return model.model_json_schema(ref_template="#/components/schemas/{model}")
+
+
+def openapi_spec() -> dict[str, Any]:
+    """The OpenAPI 3.1 description of the API."""
+    err = {"description": "error", "content": {"application/json": {
+        "schema": {"$ref": "#/components/schemas/Error"}}}}
+    ok = {"description": "OK", "content": {"application/json": {"schema": {"type": "object"}}}}
+    cid = {"name": "cid", "in": "path", "required": True, "schema": {"type": "string"}}
+
+    def op(summary: str, *, body: str | None = None, params: list[Any] | None = None,
+           created: bool = False) -> dict[str, Any]:
+        o: dict[str, Any] = {"summary": summary,
+                             "responses": {"201" if created else "200": ok, "4XX": err}}
+        if params:
+            o["parameters"] = params
+        if body:
+            o["requestBody"] = {"required": body == "CreateCampaignRequest", "content": {
+                "application/json": {"schema": {"$ref": f"#/components/schemas/{body}"}}}}
+        return o
+
+    paths: dict[str, Any] = {
+        "/health": {"get": op("daemon status")},
+        "/openapi.json": {"get": op("this description")},
+        "/campaigns": {"get": op("list campaigns"),
+                       "post": op("create (and start) a campaign from a plan",
+                                  body="CreateCampaignRequest", created=True)},
+        "/campaigns/{cid}": {"get": op("campaign status: state, poses_total, poses_measured, "
+                                       "fits, transitions", params=[cid])},
+        "/campaigns/{cid}/measurements": {"get": op("stored measurements (mm, deg)",
+                                                    params=[cid])},
+        "/events": {"get": {"summary": "progress events as Server-Sent Events",
+                            "parameters": [
+                                {"name": "campaign", "in": "query", "schema": {"type": "string"}},
+                                {"name": "after", "in": "query", "schema": {"type": "integer"}}],
+                            "responses": {"200": {"description": "event stream", "content": {
+                                "text/event-stream": {"schema": {"type": "string"}}}},
+                                "4XX": err}}},
+        "/events/poll": {"get": op("long-poll for events after a sequence number", params=[
+            {"name": "after", "in": "query", "schema": {"type": "integer"}},
+            {"name": "timeout", "in": "query", "schema": {"type": "integer"}},
+            {"name": "campaign", "in": "query", "schema": {"type": "string"}}])},
+        "/compensation": {"get": op("active compensation table and push history")},
+        "/compensation/rollback": {"post": op("restore the previous table (verified)",
+                                              body="RollbackRequest")},
+        "/audit": {"get": op("append-only audit log", params=[
+            {"name": "limit", "in": "query", "schema": {"type": "integer"}}])},
+    }
+    for action in _ACTIONS:
+        paths[f"/campaigns/{{cid}}/{action}"] = {
+            "post": op(f"{action} the campaign", body="ActionRequest", params=[cid])}
+    schemas: dict[str, Any] = {
+        "Error": {"type": "object", "required": ["error"], "properties": {"error": {
+            "type": "object", "properties": {"type": {"type": "string"},
+                                             "message": {"type": "string"},
+                                             "status": {"type": "integer"}}}}},
+    }
+    for model in (CreateCampaignRequest, ActionRequest, RollbackRequest):
+        schemas[model.__name__] = _schema(model)
+    return {
+        "openapi": "3.1.0",
+        "info": {"title": "robocal daemon API", "version": __version__,
+                 "description": "Local API of the robocal calibration daemon. On TCP every "
+                                "request needs 'Authorization: Bearer <token>'."},
+        "paths": paths,
+        "components": {"schemas": schemas, "securitySchemes": {
+            "bearer": {"type": "http", "scheme": "bearer"}}},
+    }
+
+
+def _socket_in_use(path: Path) -> bool:
+    """True if a daemon is listening on ``path`` (a stale socket file is not in use)."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.settimeout(1.0)
+        s.connect(str(path))
+    except OSError:
+        return False
+    finally:
+        s.close()
+    return True
+
+
+class ApiServer:
+    """Serve the API on the configured Unix socket and/or TCP port.
+
+    Parameters
+    ----------
+    service : CalibrationService
+        What the API exposes.
+    config : AppConfig
+        ``api`` section: socket path and mode, TCP host/port and token file.
+    """
+
+    def __init__(self, service: CalibrationService, config: AppConfig) -> None:
+        self.service = service
+        self.config = config
+        self._runners: list[web.AppRunner] = []
+        self.socket_path: Path | None = None
+        self.tcp_port: int | None = None
+
+    async def start(self) -> None:
+        """Bind and serve.
+
+        Raises
+        ------
+        ConfigError
+            If the socket is in use by a running daemon or the token file is unusable.
+        """
+        api = self.config.api
+        try:
+            sock = self.config.socket_path
+            if sock is not None:
+                await self._start_unix(sock, api.socket_mode)
+            if api.tcp_port is not None:
+                token = self.config.read_token()
+                runner = web.AppRunner(make_app(self.service, token=token,
+                                                max_body_bytes=api.max_body_bytes),
+                                       access_log=None, shutdown_timeout=2.0)
+                await runner.setup()
+                self._runners.append(runner)
+                site = web.TCPSite(runner, api.tcp_host, api.tcp_port)
+                await site.start()
+                server = getattr(site, "_server", None)
+                sockets = getattr(server, "sockets", None) or []
+                self.tcp_port = int(sockets[0].getsockname()[1]) if sockets else api.tcp_port
+                _log.info("api listening", url=f"http://{api.tcp_host}:{self.tcp_port}")
+        except BaseException:
+            await self.stop()
+            raise
+        self._write_endpoints()
+
+    async def _start_unix(self, path: Path, mode: int) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists() or path.is_symlink():
+            if _socket_in_use(path):
+                raise ConfigError("another daemon is listening on this socket", source=str(path))
+            path.unlink()  # stale, from a daemon that was killed
+        runner = web.AppRunner(make_app(self.service,
+                                        max_body_bytes=self.config.api.max_body_bytes),
+                               access_log=None, shutdown_timeout=2.0)
+        await runner.setup()
+        self._runners.append(runner)
+        site = web.UnixSite(runner, str(path))
+        # Create the socket with no more permission than asked, then set the mode exactly.
+        old = os.umask(0o777 & ~mode)
+        try:
+            await site.start()
+        finally:
+            os.umask(old)
+        os.chmod(path, mode)
+        self.socket_path = path
+        _log.info("api listening", socket=str(path), mode=oct(mode))
+
+    def _write_endpoints(self) -> None:
+        """Write ``api.json`` (socket and TCP URL) to ``data_dir`` for clients and tests."""
+        d = {"socket": None if self.socket_path is None else str(self.socket_path),
+             "url": None if self.tcp_port is None else
+             f"http://{self.config.api.tcp_host}:{self.tcp_port}",
+             "pid": os.getpid()}
+        target = self.config.data_dir / "api.json"
+        tmp = target.with_name(".api.json.tmp")
+        tmp.write_text(json.dumps(d) + "\n")
+        tmp.replace(target)
+
+    async def stop(self) -> None:
+        """Stop serving; idempotent."""
+        runners, self._runners = self._runners, []
+        for runner in runners:
+            with contextlib.suppress(Exception):
+                await runner.cleanup()
+        if self.socket_path is not None:
+            with contextlib.suppress(OSError):
+                self.socket_path.unlink()
+            self.socket_path = None

@@ -1,0 +1,325 @@
+"""Daemon configuration: one TOML file, validated by frozen pydantic models.
+
+Every model forbids unknown keys, so a typo fails at start-up with the file and the key path
+(``robocal.toml: key 'measurement.sampels': Extra inputs are not permitted``) instead of being
+ignored. Relative paths are resolved against the configuration file's directory; ``data_dir``
+defaults to ``$STATE_DIRECTORY`` (set by systemd's ``StateDirectory=``) or ``/var/lib/robocal``.
+
+Example (``deploy/config/robocal.example.toml`` is the annotated version)::
+
+    data_dir = "/var/lib/robocal"
+    robot_description = "fanuc_lrmate200i"
+
+    [robot]
+    kind = "fanuc_rmi"
+    options = { host = "192.168.1.10" }
+
+    [tracker]
+    kind = "ltp"
+    options = { url = "serial:///dev/robocal-tracker?baudrate=115200" }
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from robocal.errors import ConfigError
+
+__all__ = [
+    "ApiConfig",
+    "AppConfig",
+    "CompensationConfig",
+    "DriverConfig",
+    "FitConfig",
+    "LimitsConfig",
+    "LoggingConfig",
+    "MeasurementConfig",
+    "config_digest",
+    "config_errors",
+    "load_config",
+    "parse_config",
+]
+
+FitModel = Literal["constant", "high-order", "auto"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DriverConfig(_Model):
+    """A driver by entry-point name, with options validated by the driver's ``Options`` model.
+
+    For robot drivers, ``joint_limits_deg`` defaults to the robot description's limits.
+    """
+
+    kind: str = Field(min_length=1)
+    options: dict[str, Any] = Field(default_factory=dict)
+    connect_timeout_s: float = Field(default=10.0, gt=0.0)
+
+
+class ApiConfig(_Model):
+    """Where the local HTTP/JSON API listens.
+
+    ``socket`` (default ``robocal.sock`` in ``data_dir``) is a Unix socket whose file mode
+    (``socket_mode``, default 0660) is the access control. TCP is off unless ``tcp_port`` is
+    set, and then ``token_file`` (a file holding the bearer token) is required.
+    """
+
+    socket: Path | None = Path("robocal.sock")
+    socket_mode: int = Field(default=0o660, ge=0, le=0o777)
+    tcp_host: str = "127.0.0.1"
+    tcp_port: int | None = Field(default=None, ge=0, le=65535)
+    token_file: Path | None = None
+    max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024)
+
+    @model_validator(mode="after")
+    def _check(self) -> ApiConfig:
+        if self.tcp_port is not None and self.token_file is None:
+            raise ValueError("tcp_port needs token_file: the TCP API always requires a token")
+        if self.socket is None and self.tcp_port is None:
+            raise ValueError("the API needs a socket or a tcp_port")
+        return self
+
+
+class LimitsConfig(_Model):
+    """Safety limits.
+
+    Attributes
+    ----------
+    joint_margin_deg
+        Plan targets must stay this far inside the robot description's joint limits.
+    speed_pct
+        Speed of campaign motions, percent.
+    max_joint_correction_deg
+        Largest joint correction a pushed table may contain (``targets`` and ``joint``).
+    max_frame_translation_mm, max_frame_rotation_deg
+        Largest change of the tool frame (vs. the robot description) and of the base frame
+        (vs. the table currently on the controller) a ``frames`` table may contain.
+    """
+
+    joint_margin_deg: float = Field(default=1.0, ge=0.0, le=90.0)
+    speed_pct: float = Field(default=20.0, gt=0.0, le=100.0)
+    max_joint_correction_deg: float = Field(default=0.5, gt=0.0)
+    max_frame_translation_mm: float = Field(default=10.0, gt=0.0)
+    max_frame_rotation_deg: float = Field(default=1.0, gt=0.0)
+
+
+class MeasurementConfig(_Model):
+    """Per-pose measurement: settling, sampling, retries and validation.
+
+    A reading is retried (with exponential backoff) on a broken beam, an unstable target,
+    a tracker timeout, too large a sample RMS (``max_rms_mm``) or too large a distance from
+    the prediction (``max_distance_mm``: nominal or previous model, after a rigid fit to the
+    poses measured so far); after ``retries`` retries the campaign is faulted.
+    """
+
+    samples: int = Field(default=10, ge=1, le=10_000)
+    timeout_s: float = Field(default=10.0, gt=0.0)
+    settle_s: float = Field(default=0.2, ge=0.0)
+    move_timeout_s: float = Field(default=120.0, gt=0.0)
+    retries: int = Field(default=4, ge=0, le=100)
+    backoff_s: float = Field(default=0.1, ge=0.0)
+    backoff_factor: float = Field(default=2.0, ge=1.0)
+    max_backoff_s: float = Field(default=5.0, ge=0.0)
+    max_rms_mm: float = Field(default=0.05, gt=0.0)
+    max_distance_mm: float = Field(default=25.0, gt=0.0)
+    min_poses_for_distance: int = Field(default=6, ge=4)
+    max_joint_deviation_deg: float = Field(default=0.5, gt=0.0)
+
+
+class FitConfig(_Model):
+    """Identification after measuring.
+
+    ``models`` are fitted in order; ``select`` names the one proposed for approval
+    (``best``: the lowest held-out RMS). ``executor`` runs fits in a worker process (default)
+    or thread, so the event loop keeps serving the API and the watchdog. ``options`` are
+    keyword arguments of :class:`robocal.identification.FitOptions` (checked at start-up).
+    """
+
+    models: tuple[FitModel, ...] = ("constant", "high-order", "auto")
+    select: Literal["constant", "high-order", "auto", "best"] = "auto"
+    cpa: bool = True
+    executor: Literal["process", "thread"] = "process"
+    timeout_s: float = Field(default=1800.0, gt=0.0)
+    report: bool = True
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _check(self) -> FitConfig:
+        if not self.models:
+            raise ValueError("models must name at least one model")
+        if self.select != "best" and self.select not in self.models:
+            raise ValueError(f"select={self.select!r} is not among models {list(self.models)}")
+        return self
+
+
+class CompensationConfig(_Model):
+    """What is pushed after approval: ``frames`` (base and tool), ``targets`` or ``joint``.
+
+    ``targets_file`` (CSV, ``q1..qN`` in degrees) lists the program targets a ``targets``
+    table corrects; without it the campaign's validation poses are used.
+    """
+
+    kind: Literal["frames", "targets", "joint"] = "frames"
+    targets_file: Path | None = None
+
+
+class LoggingConfig(_Model):
+    """structlog output: JSON lines (for journald) or a console renderer."""
+
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    format: Literal["json", "console"] = "json"
+
+
+def _default_data_dir() -> Path:
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return Path(state.split(":")[0])
+    return Path("/var/lib/robocal")
+
+
+class AppConfig(_Model):
+    """The whole daemon configuration."""
+
+    data_dir: Path = Field(default_factory=_default_data_dir)
+    robot_description: str = Field(min_length=1)
+    cell: str | None = None
+    robot: DriverConfig
+    tracker: DriverConfig
+    api: ApiConfig = ApiConfig()
+    limits: LimitsConfig = LimitsConfig()
+    measurement: MeasurementConfig = MeasurementConfig()
+    fit: FitConfig = FitConfig()
+    compensation: CompensationConfig = CompensationConfig()
+    logging: LoggingConfig = LoggingConfig()
+
+    @property
+    def socket_path(self) -> Path | None:
+        """Absolute path of the API's Unix socket, or None."""
+        s = self.api.socket
+        if s is None:
+            return None
+        return s if s.is_absolute() else self.data_dir / s
+
+    @property
+    def db_path(self) -> Path:
+        """The SQLite store."""
+        return self.data_dir / "robocal.sqlite3"
+
+    def read_token(self) -> str | None:
+        """Return the bearer token from ``api.token_file`` (stripped), or None.
+
+        Raises
+        ------
+        ConfigError
+            If the file cannot be read or holds fewer than 16 characters.
+        """
+        path = self.api.token_file
+        if path is None:
+            return None
+        try:
+            token = path.read_text().strip()
+        except OSError as err:
+            raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
+        if len(token) < 16:
+            raise ConfigError("token must have at least 16 characters", source=str(path))
+        return token
+
+
+def _loc(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(p) for p in loc) or "<root>"
+
+
+def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
+    """Make relative paths in ``data`` absolute against ``base`` (before validation)."""
+    out = dict(data)
+
+    def fix(value: Any) -> Any:
+        if isinstance(value, str) and value and not os.path.isabs(value):
+            return str(base / value)
+        return value
+
+    if "data_dir" in out:
+        out["data_dir"] = fix(out["data_dir"])
+    api = out.get("api")
+    if isinstance(api, dict):
+        api = dict(api)
+        if "token_file" in api:
+            api["token_file"] = fix(api["token_file"])
+        out["api"] = api
+    comp = out.get("compensation")
+    if isinstance(comp, dict) and "targets_file" in comp:
+        comp = dict(comp)
+        comp["targets_file"] = fix(comp["targets_file"])
+        out["compensation"] = comp
+    rd = out.get("robot_description")
+    if isinstance(rd, str) and rd.endswith(".toml"):
+        out["robot_description"] = fix(rd)
+    return out
+
+
+def _errors(source: str, data: Any, base: Path) -> tuple[AppConfig | None, list[str]]:
+    if not isinstance(data, dict):
+        return None, [f"{source}: the configuration must be a TOML table"]
+    try:
+        return AppConfig.model_validate(_resolve(data, base)), []
+    except ValidationError as err:
+        return None, [f"{source}: key {_loc(e['loc'])!r}: {e['msg']}" for e in err.errors()]
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError as err:
+        raise ConfigError("file not found", source=str(path)) from err
+    except OSError as err:
+        raise ConfigError(f"cannot read: {err}", source=str(path)) from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"not valid TOML: {err}", source=str(path)) from err
+
+
+def config_errors(path: str | Path) -> list[str]:
+    """Return every problem of the configuration file (empty when it is valid)."""
+    path = Path(path)
+    try:
+        data = _read(path)
+    except ConfigError as err:
+        return [str(err)]
+    return _errors(str(path), data, path.resolve().parent)[1]
+
+
+def parse_config(data: dict[str, Any], *, source: str = "<config>",
+                 base: Path | None = None) -> AppConfig:
+    """Validate a configuration mapping; raise :class:`ConfigError` naming the first bad key."""
+    cfg, errs = _errors(source, data, base or Path.cwd())
+    if cfg is None:
+        more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+        raise ConfigError(errs[0] + more)
+    return cfg
+
+
+def load_config(path: str | Path) -> AppConfig:
+    """Read and validate a TOML configuration file.
+
+    Raises
+    ------
+    ConfigError
+        If the file is missing or invalid; the message names the file and the key path.
+    """
+    path = Path(path)
+    return parse_config(_read(path), source=str(path), base=path.resolve().parent)
+
+
+def config_digest(config: AppConfig) -> str:
+    """Short SHA-256 of the validated configuration (recorded with every campaign)."""
+    blob = json.dumps(config.model_dump(mode="json"), sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]

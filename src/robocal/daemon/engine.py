@@ -1,0 +1,305 @@
+"""The measuring executor: move, settle, read joints, measure, validate, persist — per pose.
+
+For every pose not yet in the store, in plan order:
+
+1. check the target against the joint limits shrunk by ``limits.joint_margin_deg``
+   (a target outside is never sent; the campaign faults);
+2. ``move_to`` (the driver waits until the robot is in position), then settle;
+   (via-points, ``measure = false`` in the plan, are only moved through);
+3. read the actual joints (they must be within ``max_joint_deviation_deg`` of the target);
+4. measure, retrying a broken beam, an unstable target, a tracker timeout, a noisy reading
+   (sample RMS) or a reading too far from the prediction, with exponential backoff;
+5. persist the measurement in one SQLite transaction, *before* the next motion.
+
+Between poses the executor re-reads the campaign state, so a pause takes effect after the
+pose in progress. Any driver failure faults the campaign with a reason; the operator resumes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import structlog
+from numpy.typing import NDArray
+
+from robocal.daemon.campaign import CampaignState
+from robocal.daemon.config import AppConfig
+from robocal.daemon.events import EventBus
+from robocal.daemon.hub import DriverHub
+from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
+from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target
+from robocal.errors import LimitViolation, MeasurementError, MotionRejected, RobocalError
+from robocal.kinematics import (
+    CalibratedModel,
+    ErrorModelSpec,
+    KinematicModel,
+    RobotDescription,
+    rigid_fit,
+)
+
+__all__ = ["CampaignRunner", "MeasurementRejected", "Predictor", "limits_with_margin"]
+
+Array = NDArray[np.float64]
+_log = structlog.get_logger(__name__)
+
+
+class MeasurementRejected(MeasurementError):  # noqa: N818 - named like errors.py
+    """A reading failed validation (stability or distance from the prediction)."""
+
+
+def limits_with_margin(robot: RobotDescription, margin_deg: float) -> tuple[tuple[float, float],
+                                                                            ...]:
+    """Joint limits (rad) shrunk by ``margin_deg`` on both sides."""
+    m = math.radians(margin_deg)
+    return tuple((j.q_min + m, j.q_max - m) for j in robot.joints)
+
+
+class Predictor:
+    """Where the reflector should be, from the nominal (or a previous) model.
+
+    The model's frame is aligned to the tracker's by a rigid fit to the poses measured so
+    far, so neither the tracker placement nor the previous model's base need be right;
+    distances are available from ``min_poses`` measurements on.
+
+    Parameters
+    ----------
+    robot : RobotDescription
+        Nominal robot (used when ``model`` is None).
+    model : CalibratedModel, optional
+        A previously identified model of this robot.
+    min_poses : int
+        Measurements needed before :meth:`distance` answers.
+    """
+
+    def __init__(self, robot: RobotDescription, model: CalibratedModel | None = None, *,
+                 min_poses: int = 6) -> None:
+        self.min_poses = min_poses
+        if model is not None:
+            self._predict = model.predict
+        else:
+            nominal = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
+            x = nominal.nominal_params()
+
+            def predict(q: Array) -> Array:
+                return nominal.positions(np.atleast_2d(q), x)
+
+            self._predict = predict
+        self._src: list[Array] = []
+        self._dst: list[Array] = []
+        self._T: Array | None = None
+        self._last: tuple[tuple[float, ...], Array] | None = None
+
+    def _model_point(self, q_rad: Sequence[float]) -> Array:
+        key = tuple(float(v) for v in q_rad)
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        s = self._predict(np.asarray(key, dtype=float))[0]
+        self._last = (key, s)
+        return s
+
+    def add(self, q_rad: Sequence[float], p_m: Sequence[float]) -> None:
+        """Record one measured pose (actual joints, rad; point, m)."""
+        self._src.append(self._model_point(q_rad))
+        self._dst.append(np.asarray(p_m, dtype=float))
+        self._T = None
+
+    def __len__(self) -> int:
+        return len(self._src)
+
+    def distance(self, q_rad: Sequence[float], p_m: Sequence[float]) -> float | None:
+        """Distance (m) of ``p_m`` from the aligned prediction at ``q_rad``; None if too early."""
+        if len(self._src) < self.min_poses:
+            return None
+        if self._T is None:
+            src, dst = np.asarray(self._src), np.asarray(self._dst)
+            # Collinear or coincident poses make the rotation ambiguous; wait for more.
+            if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-4) < 2:
+                return None
+            self._T = rigid_fit(src, dst)
+        s = self._model_point(q_rad)
+        pred = self._T[:3, :3] @ s + self._T[:3, 3]
+        return float(np.linalg.norm(pred - np.asarray(p_m, dtype=float)))
+
+
+class CampaignRunner:
+    """Measure the remaining poses of one campaign.
+
+    Parameters
+    ----------
+    store, hub, events, config, robot
+        The daemon's store, drivers, event bus, configuration and robot description.
+    reference : CalibratedModel, optional
+        A previous model used to predict readings (default: the nominal robot).
+    actor : str
+        Recorded with the transitions the runner makes.
+    """
+
+    def __init__(self, *, store: Store, hub: DriverHub, events: EventBus, config: AppConfig,
+                 robot: RobotDescription, reference: CalibratedModel | None = None,
+                 actor: str = "daemon") -> None:
+        self.store = store
+        self.hub = hub
+        self.events = events
+        self.config = config
+        self.robot = robot
+        self.reference = reference
+        self.actor = actor
+        self.limits = limits_with_margin(robot, config.limits.joint_margin_deg)
+        self.pose_times: list[float] = []
+
+    def _state(self, cid: str) -> CampaignState:
+        return self.store.campaign(cid).state
+
+    def _transition(self, cid: str, to: CampaignState, reason: str = "") -> None:
+        rec = self.store.transition(cid, to, actor=self.actor, reason=reason)
+        self.events.emit("state", cid, state=rec.state.value, reason=reason,
+                         poses_measured=rec.poses_measured, poses_total=rec.poses_total)
+
+    async def run(self, cid: str) -> CampaignState:
+        """Measure until done, paused, aborted or faulted; return the state reached."""
+        log = _log.bind(campaign=cid)
+        poses = self.store.poses(cid)
+        predictor = Predictor(self.robot, self.reference,
+                              min_poses=self.config.measurement.min_poses_for_distance)
+        for m in self.store.measurements(cid):
+            predictor.add(np.radians(m.q_act_deg), np.asarray(m.p_mm) * 1e-3)
+        done = self.store.measured_indices(cid)
+        total = sum(1 for p in poses if p.measure)
+        # Measurements form a prefix of the plan (poses run in order, a failure faults), so
+        # resume right after the last measured pose, including the via-points after it.
+        start = max(done) + 1 if done else 0
+        todo = [p for p in poses if p.idx >= start and not (p.measure and p.idx in done)]
+        log.info("measuring", remaining=sum(1 for p in todo if p.measure), total=total,
+                 resume_at=start)
+        try:
+            async with self.hub.lock:
+                for pose in todo:
+                    state = self._state(cid)
+                    if state != CampaignState.RUNNING:
+                        log.info("stopped between poses", state=state.value)
+                        return state
+                    t0 = time.perf_counter()
+                    if not pose.measure:
+                        await self._move(pose)
+                        continue
+                    row = await self._measure_pose(cid, pose, predictor)
+                    if self.store.add_measurement(cid, row):
+                        predictor.add(np.radians(row.q_act_deg), np.asarray(row.p_mm) * 1e-3)
+                    else:  # cannot happen while one runner owns the campaign; never duplicate
+                        log.warning("pose already measured; reading discarded", pose=pose.idx)
+                    done.add(pose.idx)
+                    self.pose_times.append(time.perf_counter() - t0)
+                    self.events.emit(
+                        "pose", cid, pose=pose.idx, purpose=pose.purpose,
+                        poses_measured=len(done), poses_total=total, attempts=row.attempts,
+                        distance_mm=row.distance_mm,
+                    )
+        except asyncio.CancelledError:
+            log.info("measuring cancelled")
+            raise
+        except (RobocalError, OSError) as err:
+            reason = f"{type(err).__name__}: {err}"
+            log.warning("campaign faulted", error=reason)
+            await self.hub.reset(reason)
+            return self._fault(cid, reason)
+        except Exception as err:  # a bug must fault the campaign, never kill the daemon
+            reason = f"internal error: {type(err).__name__}: {err}"
+            log.exception("campaign faulted by an internal error")
+            await self.hub.reset(reason)
+            return self._fault(cid, reason)
+        state = self._state(cid)
+        if state == CampaignState.RUNNING and len(self.store.measured_indices(cid)) == total:
+            self._transition(cid, CampaignState.MEASURED, "all poses measured")
+            return CampaignState.MEASURED
+        return state
+
+    def _fault(self, cid: str, reason: str) -> CampaignState:
+        state = self._state(cid)
+        if state == CampaignState.RUNNING:
+            self._transition(cid, CampaignState.FAULTED, reason)
+            return CampaignState.FAULTED
+        return state  # paused or aborted meanwhile: the pose in progress is simply redone
+
+    async def _move(self, pose: PoseRow) -> list[float]:
+        """Check the target against the limits, then move; return the target (rad)."""
+        q_cmd = [math.radians(v) for v in pose.q_deg]
+        # Never send a target outside the limits (shrunk by the margin); the driver checks
+        # its own limits again before anything goes on the wire.
+        try:
+            check_joint_target(q_cmd, self.limits, kind="daemon")
+        except LimitViolation as err:
+            raise LimitViolation(f"pose {pose.idx}: {err}", kind="daemon") from err
+        robot = await self.hub.robot()
+        await robot.move_to(q_cmd, speed_pct=self.config.limits.speed_pct,
+                            timeout=self.config.measurement.move_timeout_s)
+        return q_cmd
+
+    async def _measure_pose(self, cid: str, pose: PoseRow, predictor: Predictor
+                            ) -> MeasurementRow:
+        cfg = self.config.measurement
+        tracker = await self.hub.tracker()
+        q_cmd = await self._move(pose)
+        robot = await self.hub.robot()
+        if cfg.settle_s > 0:
+            await asyncio.sleep(cfg.settle_s)
+        joints = await robot.read_joints()
+        q_act = list(joints.q_rad)
+        dev = max(abs(a - b) for a, b in zip(q_act, q_cmd, strict=True))
+        if math.degrees(dev) > cfg.max_joint_deviation_deg:
+            raise MotionRejected(
+                f"pose {pose.idx}: robot stopped {math.degrees(dev):.3f} deg from the target "
+                f"(limit {cfg.max_joint_deviation_deg} deg)", kind="daemon")
+        delay = cfg.backoff_s
+        attempts = 0
+        while True:
+            attempts += 1
+            problem: str
+            try:
+                reading = await tracker.measure(samples=cfg.samples, timeout=cfg.timeout_s,
+                                                point_id=f"{cid}-{pose.idx}")
+                distance = self._validate(reading, q_act, predictor)
+                return self._row(pose, q_cmd, q_act, reading, attempts, distance)
+            except (*RETRYABLE, MeasurementRejected) as err:
+                problem = f"{type(err).__name__}: {err}"
+            if attempts > cfg.retries:
+                raise MeasurementError(
+                    f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
+                    f"{problem}")
+            _log.info("reading retried", campaign=cid, pose=pose.idx, attempt=attempts,
+                      problem=problem, delay_s=delay)
+            self.events.emit("retry", cid, pose=pose.idx, attempt=attempts, problem=problem)
+            await asyncio.sleep(delay)
+            delay = min(delay * cfg.backoff_factor, cfg.max_backoff_s)
+
+    def _validate(self, reading: TrackerReading, q_act: Sequence[float],
+                  predictor: Predictor) -> float | None:
+        cfg = self.config.measurement
+        if reading.rms_m is not None and reading.rms_m * 1e3 > cfg.max_rms_mm:
+            raise MeasurementRejected(
+                f"sample RMS {reading.rms_m * 1e3:.4f} mm above {cfg.max_rms_mm} mm (unstable)")
+        if not all(math.isfinite(v) for v in reading.position_m):
+            raise MeasurementRejected("non-finite position")
+        d = predictor.distance(q_act, reading.position_m)
+        if d is not None and d * 1e3 > cfg.max_distance_mm:
+            raise MeasurementRejected(
+                f"reading {d * 1e3:.2f} mm from the prediction (limit {cfg.max_distance_mm} mm)")
+        return None if d is None else d * 1e3
+
+    @staticmethod
+    def _row(pose: PoseRow, q_cmd: Sequence[float], q_act: Sequence[float],
+             r: TrackerReading, attempts: int, distance_mm: float | None) -> MeasurementRow:
+        return MeasurementRow(
+            pose_idx=pose.idx, purpose=pose.purpose,
+            q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
+            q_act_deg=tuple(math.degrees(v) for v in q_act),
+            p_mm=(r.position_m[0] * 1e3, r.position_m[1] * 1e3, r.position_m[2] * 1e3),
+            sigma_mm=None if r.std_m is None else (r.std_m[0] * 1e3, r.std_m[1] * 1e3,
+                                                    r.std_m[2] * 1e3),
+            rms_mm=None if r.rms_m is None else r.rms_m * 1e3,
+            samples=r.n, attempts=attempts, distance_mm=distance_mm,
+            weather={k: float(v) for k, v in r.weather.items()}, measured_at=now_iso(),
+        )

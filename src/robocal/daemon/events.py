@@ -1,0 +1,84 @@
+"""Live progress events: an in-memory, sequence-numbered stream with fan-out to subscribers.
+
+The store is the record; events are for watching (``GET /events`` as Server-Sent Events,
+``robocal campaign watch``). Each event is a JSON object with ``seq`` (increasing within one
+daemon run), ``time``, ``kind`` and ``campaign``; a subscriber that reconnects passes the last
+``seq`` it saw and gets what it missed from a bounded replay buffer.
+
+Kinds: ``state`` (a transition), ``pose`` (a pose measured), ``retry`` (a reading retried),
+``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``log``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+__all__ = ["EventBus"]
+
+
+class EventBus:
+    """Publish events to any number of subscribers; slow subscribers lose old events.
+
+    Parameters
+    ----------
+    replay : int
+        Events kept for subscribers that (re)connect with ``after``.
+    queue_size : int
+        Per-subscriber queue; when full, the oldest queued event is dropped.
+    """
+
+    def __init__(self, *, replay: int = 2000, queue_size: int = 1000) -> None:
+        self._seq = 0
+        self._buffer: collections.deque[dict[str, Any]] = collections.deque(maxlen=replay)
+        self._subscribers: set[asyncio.Queue[dict[str, Any] | None]] = set()
+        self._queue_size = queue_size
+        self._closed = False
+
+    @property
+    def last_seq(self) -> int:
+        """Sequence number of the latest event (0 before the first)."""
+        return self._seq
+
+    def emit(self, kind: str, campaign: str | None = None, **data: Any) -> dict[str, Any]:
+        """Publish one event and return it."""
+        self._seq += 1
+        event = {"seq": self._seq, "time": time.time(), "kind": kind, "campaign": campaign,
+                 **data}
+        self._buffer.append(event)
+        for q in list(self._subscribers):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(event)
+        return event
+
+    def history(self, *, after: int = 0, campaign: str | None = None) -> list[dict[str, Any]]:
+        """Buffered events with ``seq > after`` (optionally of one campaign)."""
+        return [e for e in self._buffer
+                if e["seq"] > after and (campaign is None or e["campaign"] == campaign)]
+
+    @contextlib.asynccontextmanager
+    async def subscribe(self) -> AsyncIterator[asyncio.Queue[dict[str, Any] | None]]:
+        """A queue receiving every new event; ``None`` means the bus closed."""
+        q: asyncio.Queue[dict[str, Any] | None] = asyncio.Queue(self._queue_size)
+        if self._closed:
+            q.put_nowait(None)
+        self._subscribers.add(q)
+        try:
+            yield q
+        finally:
+            self._subscribers.discard(q)
+
+    def close(self) -> None:
+        """Wake every subscriber with ``None`` (daemon shutdown)."""
+        self._closed = True
+        for q in list(self._subscribers):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(None)

@@ -1,0 +1,367 @@
+"""Identification off the event loop: a picklable fit job run in a worker process or thread.
+
+:func:`run_fit_job` takes plain data (the robot description as a dict, measurements as
+lists in mm/deg) and returns plain data (summaries, MODEL.json texts, report paths), so it can
+run in a ``spawn`` worker process: the event loop keeps answering the API and pinging the
+systemd watchdog while scipy works. Everything numerical is :mod:`robocal.identification`'s;
+this module only arranges the data and calls it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import json
+import math
+import multiprocessing
+import re
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from robocal._core.measurements import MeasurementSet
+from robocal.daemon.store import MeasurementRow
+from robocal.errors import ConfigError, IdentificationError, RobocalError
+from robocal.kinematics import CalibratedModel, RobotDescription
+
+__all__ = ["FitRunner", "build_fit_job", "measurement_set", "run_fit_job"]
+
+_log = structlog.get_logger(__name__)
+_CPA = re.compile(r"^cpa-j(\d+)$")
+
+
+def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
+                    ) -> MeasurementSet:
+    """Stored rows (mm, deg) as a :class:`MeasurementSet` (SI), pose ids ``P<index>``.
+
+    Joints are the actual ones read back from the controller, or the commanded ones.
+    """
+    if not rows:
+        raise IdentificationError("no measurements")
+    q = np.radians(np.array([r.q_cmd_deg if commanded else r.q_act_deg for r in rows],
+                            dtype=float))
+    p = np.array([r.p_mm for r in rows], dtype=float) * 1e-3
+    sig = None
+    if all(r.sigma_mm is not None for r in rows):
+        sig = np.array([r.sigma_mm for r in rows], dtype=float) * 1e-3
+        if np.any(sig <= 0):
+            sig = None
+    return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows))
+
+
+def fit_options(options: Mapping[str, Any] | None) -> Any:
+    """``robocal.identification.FitOptions(**options)``; ConfigError naming a bad option."""
+    from robocal.identification import FitOptions
+
+    opts = dict(options or {})
+    for key, value in opts.items():  # TOML arrays arrive as lists; FitOptions wants tuples
+        if isinstance(value, list):
+            opts[key] = tuple(value)
+    try:
+        return FitOptions(**opts)
+    except TypeError as err:
+        raise ConfigError(str(err), source="fit.options") from err
+    except ConfigError as err:
+        raise ConfigError(str(err), source="fit.options") from err
+
+
+def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[MeasurementRow],
+                  models: Sequence[str], cpa: bool, out_dir: Path | None, report: bool,
+                  log: Mapping[str, Any] | None = None,
+                  options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Plain-data description of one campaign's fit (picklable)."""
+    return {
+        "options": dict(options or {}),
+        "campaign": campaign,
+        "robot": robot.to_dict(),
+        "rows": [r.to_json() for r in rows],
+        "models": list(models),
+        "cpa": cpa,
+        "out_dir": None if out_dir is None else str(out_dir),
+        "report": report,
+        "log": dict(log or {}),
+    }
+
+
+def _rows(job: Mapping[str, Any]) -> list[MeasurementRow]:
+    return [MeasurementRow(
+        pose_idx=int(r["pose_idx"]), purpose=str(r["purpose"]), q_cmd_deg=tuple(r["q_cmd_deg"]),
+        q_act_deg=tuple(r["q_act_deg"]), p_mm=tuple(r["p_mm"]),  # type: ignore[arg-type]
+        sigma_mm=None if r["sigma_mm"] is None else tuple(r["sigma_mm"]),  # type: ignore[arg-type]
+        rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
+        distance_mm=r["distance_mm"], weather=dict(r["weather"]), measured_at=r["measured_at"],
+    ) for r in job["rows"]]
+
+
+def _acc(obj: Any) -> dict[str, Any] | None:
+    if obj is None:
+        return None
+    if hasattr(obj, "to_dict"):
+        return dict(obj.to_dict())
+    if isinstance(obj, Mapping):
+        return dict(obj)
+    return None
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.floating | np.integer):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def _summary(name: str, result: Any, seconds: float) -> tuple[dict[str, Any], str | None]:
+    cal = getattr(result, "calibrated", result if isinstance(result, CalibratedModel) else None)
+    summary: dict[str, Any] = {
+        "model": name,
+        "seconds": round(seconds, 3),
+        "train": _acc(getattr(result, "train", None)),
+        "validation": _acc(getattr(result, "validation", None)),
+        "outliers": [str(x) for x in (getattr(result, "outliers", None) or ())],
+    }
+    status = getattr(result, "status", None)
+    if status is not None:
+        summary["status"] = str(status)
+    fn = getattr(result, "summary", None)
+    if callable(fn):
+        try:
+            s = fn()
+            summary["details"] = json.loads(json.dumps(s, default=_json_default))
+        except Exception as err:  # a summary is informative only
+            summary["details"] = f"summary unavailable: {err}"
+    model_json = None
+    if isinstance(cal, CalibratedModel):
+        summary["model_id"] = cal.model_id
+        summary["n_params"] = int(cal.params.size)
+        model_json = json.dumps(cal.to_dict(), default=_json_default)
+    return summary, model_json
+
+
+def _cpa_sets(rows: Sequence[MeasurementRow]) -> dict[int, MeasurementSet]:
+    by_joint: dict[int, list[MeasurementRow]] = {}
+    for r in rows:
+        m = _CPA.match(r.purpose)
+        if m:
+            by_joint.setdefault(int(m.group(1)), []).append(r)
+    # CPA's premise is that only the swept joint moves: use the commanded sweep (the actual
+    # joints differ by the controller's repeatability in every joint).
+    return {j: measurement_set(rs, commanded=True) for j, rs in sorted(by_joint.items())}
+
+
+def _call_cpa(ident: Any, robot: RobotDescription, sweeps: dict[int, MeasurementSet],
+              validation: MeasurementSet | None, baseline: CalibratedModel | None) -> Any:
+    """``identification.cpa_fit`` on the sweeps (plan purposes ``cpa-jK``, K 1-based)."""
+    cpa_fit = getattr(ident, "cpa_fit", None)
+    if cpa_fit is None:
+        raise IdentificationError("robocal.identification.cpa_fit is not available")
+    return cpa_fit(robot, [(j - 1, ms) for j, ms in sweeps.items()], validation=validation,
+                   baseline=baseline)
+
+
+def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
+    """Fit every requested model (and CPA when the plan has sweeps); write files; summarise.
+
+    Returns
+    -------
+    dict
+        ``fits``: model -> (summary, MODEL.json text or None); ``errors``: model -> message;
+        ``selected_hint``: the model with the lowest held-out RMS; ``report``: paths or a
+        skip reason; ``seconds``.
+    """
+    t_start = time.perf_counter()
+    from robocal import identification as ident
+
+    robot = RobotDescription.from_dict(job["robot"], source="fit job")
+    rows = _rows(job)
+    train_rows = [r for r in rows if r.purpose == "calibration"]
+    val_rows = [r for r in rows if r.purpose == "validation"]
+    if not train_rows:  # plans without purposes: everything calibrates
+        train_rows = [r for r in rows if not _CPA.match(r.purpose)]
+    train = measurement_set(train_rows)
+    validation = measurement_set(val_rows) if val_rows else None
+    fit = getattr(ident, "fit", None)
+    if fit is None:
+        raise IdentificationError("robocal.identification.fit is not available")
+    opts = fit_options(job.get("options"))
+    results: dict[str, Any] = {}
+    fits: dict[str, tuple[dict[str, Any], str | None]] = {}
+    errors: dict[str, str] = {}
+    for name in job["models"]:
+        t0 = time.perf_counter()
+        try:
+            res = fit(robot, train, model=name, options=opts, validation=validation)
+        except RobocalError as err:
+            errors[name] = f"{type(err).__name__}: {err}"
+            continue
+        results[name] = res
+        fits[name] = _summary(name, res, time.perf_counter() - t0)
+        if "nominal" not in results:
+            base = getattr(res, "baseline", None)
+            if isinstance(base, CalibratedModel):
+                results["nominal"] = base
+                summ, mj = _summary("nominal", base, 0.0)
+                score = getattr(ident, "accuracy", None)
+                if score is not None:
+                    summ["train"] = score(base, train).to_dict()
+                    if validation is not None:
+                        summ["validation"] = score(base, validation).to_dict()
+                fits["nominal"] = (summ, mj)
+    sweeps = _cpa_sets(rows)
+    if job.get("cpa") and sweeps:
+        t0 = time.perf_counter()
+        try:
+            base = results.get("nominal")
+            res = _call_cpa(ident, robot, sweeps, validation,
+                            base if isinstance(base, CalibratedModel) else None)
+            results["cpa"] = res
+            fits["cpa"] = _summary("cpa", res, time.perf_counter() - t0)
+        except (RobocalError, TypeError, ValueError) as err:
+            errors["cpa"] = f"{type(err).__name__}: {err}"
+    best = None
+    best_rms = math.inf
+    for name, (summ, _) in fits.items():
+        if name in ("nominal", "cpa") or name not in job["models"]:
+            continue
+        v = summ.get("validation") or summ.get("train") or {}
+        rms = v.get("rms_mm")
+        if isinstance(rms, int | float) and rms < best_rms:
+            best, best_rms = name, float(rms)
+    out: dict[str, Any] = {"fits": fits, "errors": errors, "selected_hint": best,
+                           "report": None}
+    out_dir = job.get("out_dir")
+    if out_dir:
+        d = Path(out_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        for name, (_, mj) in fits.items():
+            if mj is not None:
+                tmp = d / f".MODEL-{name}.json.tmp"
+                tmp.write_text(mj)
+                tmp.replace(d / f"MODEL-{name}.json")
+        if job.get("report"):
+            out["report"] = _write_report(job, robot, results, train, validation, d)
+    out["seconds"] = round(time.perf_counter() - t_start, 3)
+    return out
+
+
+def _write_report(job: Mapping[str, Any], robot: RobotDescription, results: dict[str, Any],
+                  train: MeasurementSet, validation: MeasurementSet | None,
+                  out_dir: Path) -> dict[str, Any]:
+    """Call ``robocal.report.write_report`` if it exists; otherwise say why not."""
+    try:
+        from robocal import report as report_pkg
+    except ImportError as err:  # pragma: no cover
+        return {"skipped": f"robocal.report cannot be imported: {err}"}
+    write_report = getattr(report_pkg, "write_report", None)
+    report_input = getattr(report_pkg, "ReportInput", None)
+    if write_report is None or report_input is None:
+        reason = "robocal.report.write_report is not available"
+        _log.info("report skipped", reason=reason)
+        return {"skipped": reason}
+    log = dict(job.get("log") or {})
+    try:
+        kwargs: dict[str, Any] = {"models": results, "calibration": train,
+                                  "validation": validation, "robot": robot,
+                                  "campaign_id": str(job.get("campaign", ""))}
+        log_cls = getattr(report_pkg, "MeasurementLog", None)
+        if log_cls is not None and log:
+            kwargs["log"] = log_cls.from_mapping(log)
+        if job.get("selected") and job["selected"] in results:
+            kwargs["selected"] = job["selected"]
+        inp = report_input(**kwargs)
+        written = write_report(inp, out_dir)
+    except (RobocalError, OSError, TypeError, ValueError) as err:
+        reason = f"report failed: {type(err).__name__}: {err}"
+        _log.warning("report failed", error=reason)
+        return {"skipped": reason}
+    paths: dict[str, str] = {}
+    if isinstance(written, Mapping):
+        paths = {str(k): str(v) for k, v in written.items()}
+    elif isinstance(written, list | tuple):
+        paths = {Path(str(p)).suffix.lstrip(".") or str(i): str(p)
+                 for i, p in enumerate(written)}
+    elif written is not None:
+        paths = {"html": str(written)}
+    return {"paths": paths}
+
+
+def _worker_init() -> None:  # pragma: no cover - runs in the worker process
+    """Log warnings only, to stderr; die with the daemon (no orphan after a kill -9)."""
+    import logging
+    import sys
+
+    structlog.configure(
+        processors=[structlog.processors.add_log_level,
+                    structlog.processors.TimeStamper(fmt="iso", utc=True),
+                    structlog.processors.JSONRenderer()],
+        wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING),
+        logger_factory=structlog.WriteLoggerFactory(file=sys.stderr))
+    with contextlib.suppress(Exception):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
+class FitRunner:
+    """Runs fit jobs in a ``spawn`` worker process (default) or a thread.
+
+    Parameters
+    ----------
+    executor : {"process", "thread"}
+        Where fits run.
+    timeout_s : float
+        A fit taking longer fails with :class:`IdentificationError`.
+    """
+
+    def __init__(self, *, executor: str = "process", timeout_s: float = 1800.0) -> None:
+        self.executor_kind = executor
+        self.timeout_s = timeout_s
+        self._pool: concurrent.futures.Executor | None = None
+
+    def _executor(self) -> concurrent.futures.Executor:
+        if self._pool is None:
+            if self.executor_kind == "process":
+                self._pool = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_worker_init)
+            else:
+                self._pool = concurrent.futures.ThreadPoolExecutor(
+                    max_workers=1, thread_name_prefix="robocal-fit")
+        return self._pool
+
+    async def run(self, job: Mapping[str, Any]) -> dict[str, Any]:
+        """Run :func:`run_fit_job` off the event loop and return its result."""
+        loop = asyncio.get_running_loop()
+        fut = loop.run_in_executor(self._executor(), run_fit_job, dict(job))
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                return await fut
+        except TimeoutError as err:
+            self.shutdown()
+            raise IdentificationError(f"fit took longer than {self.timeout_s} s") from err
+        except concurrent.futures.process.BrokenProcessPool as err:
+            self._pool = None
+            raise IdentificationError(f"the fit worker died: {err}") from err
+
+    def shutdown(self) -> None:
+        """Stop the worker (a fit in progress is abandoned)."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        if isinstance(pool, concurrent.futures.ProcessPoolExecutor):
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                with contextlib.suppress(Exception):
+                    proc.kill()
+        pool.shutdown(wait=False, cancel_futures=True)

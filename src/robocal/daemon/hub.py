@@ -1,0 +1,110 @@
+"""The daemon's drivers: built by entry-point name from the configuration, connected on demand.
+
+After any fault the hub drops both drivers (closing them), so the next use reconnects from a
+clean session (a lost RMI session, a tracker link in an unknown state). The daemon reaches
+simulated devices only this way, through real drivers and their wire protocols.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from typing import Any
+
+import structlog
+
+from robocal.daemon.config import AppConfig, DriverConfig
+from robocal.drivers import RobotDriver, TrackerDriver, load_robot, load_tracker
+from robocal.kinematics import RobotDescription
+
+__all__ = ["DriverHub"]
+
+_log = structlog.get_logger(__name__)
+
+
+def robot_options(cfg: DriverConfig, robot: RobotDescription) -> dict[str, Any]:
+    """Driver options with ``joint_limits_deg`` defaulted from the robot description."""
+    opts = dict(cfg.options)
+    if cfg.kind != "mock" and "joint_limits_deg" not in opts:
+        opts["joint_limits_deg"] = [[math.degrees(j.q_min), math.degrees(j.q_max)]
+                                    for j in robot.joints]
+    return opts
+
+
+class DriverHub:
+    """Owns the robot and tracker drivers.
+
+    Parameters
+    ----------
+    config : AppConfig
+        ``robot`` and ``tracker`` sections name the drivers and their options.
+    robot : RobotDescription
+        Supplies default joint limits.
+
+    Attributes
+    ----------
+    lock : asyncio.Lock
+        Held by whoever moves the robot or pushes compensation (one user at a time).
+    """
+
+    def __init__(self, config: AppConfig, robot: RobotDescription) -> None:
+        self.config = config
+        self.description = robot
+        self.lock = asyncio.Lock()
+        self._robot: RobotDriver | None = None
+        self._tracker: TrackerDriver | None = None
+        self.last_error: str = ""
+
+    def validate(self) -> None:
+        """Build (not connect) both drivers once, so bad kinds or options fail at start-up."""
+        load_robot(self.config.robot.kind, robot_options(self.config.robot, self.description))
+        load_tracker(self.config.tracker.kind, self.config.tracker.options)
+
+    async def robot(self) -> RobotDriver:
+        """The connected robot driver (connecting it if needed)."""
+        if self._robot is None:
+            cfg = self.config.robot
+            drv = load_robot(cfg.kind, robot_options(cfg, self.description))
+            await drv.connect(timeout=cfg.connect_timeout_s)
+            self._robot = drv
+            _log.info("robot connected", driver=cfg.kind)
+        return self._robot
+
+    async def tracker(self) -> TrackerDriver:
+        """The connected tracker driver (connecting it if needed)."""
+        if self._tracker is None:
+            cfg = self.config.tracker
+            drv = load_tracker(cfg.kind, cfg.options)
+            await drv.connect(timeout=cfg.connect_timeout_s)
+            self._tracker = drv
+            _log.info("tracker connected", driver=cfg.kind)
+        return self._tracker
+
+    async def connect(self) -> None:
+        """Connect both drivers."""
+        await self.robot()
+        await self.tracker()
+
+    async def reset(self, reason: str = "") -> None:
+        """Close and forget both drivers; the next use reconnects."""
+        self.last_error = reason
+        robot, tracker = self._robot, self._tracker
+        self._robot = self._tracker = None
+        for drv in (robot, tracker):
+            if drv is not None:
+                await drv.close()
+        if robot is not None or tracker is not None:
+            _log.info("drivers reset", reason=reason)
+
+    async def close(self) -> None:
+        """Close both drivers (shutdown)."""
+        await self.reset("shutdown")
+
+    def info(self) -> dict[str, Any]:
+        """Driver kinds and whether they are connected."""
+        return {
+            "robot": {"kind": self.config.robot.kind, "connected": self._robot is not None},
+            "tracker": {"kind": self.config.tracker.kind,
+                        "connected": self._tracker is not None},
+            "last_error": self.last_error,
+        }

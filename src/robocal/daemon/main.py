@@ -1,0 +1,113 @@
+"""The daemon's entry point: ``robocal daemon --config FILE`` or ``python -m robocal.daemon``.
+
+Start-up: validate the configuration, take the data directory's lock (one daemon per store),
+open the store, connect the drivers, resume interrupted campaigns, serve the API, then tell
+systemd ``READY=1``. SIGTERM/SIGINT: ``STOPPING=1``, stop serving, stop motion and fits
+(campaign states stay, to resume on the next start), close the drivers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import fcntl
+import os
+import signal
+import sys
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import structlog
+
+from robocal import __version__
+from robocal.daemon import systemd
+from robocal.daemon.api import ApiServer
+from robocal.daemon.config import AppConfig, load_config
+from robocal.daemon.logging import configure_logging
+from robocal.daemon.service import CalibrationService
+from robocal.errors import ConfigError, RobocalError
+
+__all__ = ["main", "serve"]
+
+_log = structlog.get_logger(__name__)
+
+
+@contextlib.contextmanager
+def data_dir_lock(data_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``data_dir/robocal.lock`` (released by the kernel on exit)."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(data_dir / "robocal.lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError as err:
+            raise ConfigError("another daemon uses this data directory",
+                              source=str(data_dir)) from err
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        os.close(fd)
+
+
+async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None:
+    """Run the daemon until ``stop`` is set or SIGTERM/SIGINT arrives."""
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    with data_dir_lock(config.data_dir):
+        service = CalibrationService(config)
+        api = ApiServer(service, config)
+        watchdog: asyncio.Task[None] | None = None
+        try:
+            systemd.notify("STATUS=starting")
+            await service.start()
+            await api.start()
+            watchdog = asyncio.create_task(systemd.watchdog(), name="watchdog")
+            systemd.notify(f"READY=1\nSTATUS=serving ({service.robot.name})")
+            _log.info("daemon ready", version=__version__, robot=service.robot.name,
+                      data_dir=str(config.data_dir), pid=os.getpid())
+            await stop.wait()
+        finally:
+            systemd.notify("STOPPING=1")
+            _log.info("daemon stopping")
+            if watchdog is not None:
+                watchdog.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await watchdog
+            service.events.close()
+            await api.stop()
+            await service.stop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                with contextlib.suppress(Exception):
+                    loop.remove_signal_handler(sig)
+            _log.info("daemon stopped")
+
+
+def run(config: AppConfig) -> int:
+    """Configure logging and run :func:`serve` (the one ``asyncio.run``); return exit code."""
+    configure_logging(config.logging.level, config.logging.format)
+    try:
+        asyncio.run(serve(config))
+    except (RobocalError, OSError) as err:
+        _log.error("daemon failed", error=str(err))
+        systemd.notify(f"STATUS=failed: {err}")
+        sys.stderr.write(f"robocal daemon: error: {err}\n")
+        return 2
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m robocal.daemon --config FILE``."""
+    p = argparse.ArgumentParser(prog="robocal-daemon", description="robocal calibration daemon")
+    p.add_argument("--config", required=True, type=Path, help="TOML configuration file")
+    args = p.parse_args(argv)
+    try:
+        config = load_config(args.config)
+    except ConfigError as err:
+        sys.stderr.write(f"robocal daemon: error: {err}\n")
+        return 2
+    return run(config)

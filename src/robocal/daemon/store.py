@@ -1,0 +1,567 @@
+"""The daemon's embedded store: one SQLite file in ``data_dir``, WAL mode, ``synchronous=FULL``.
+
+Every write is one ``BEGIN IMMEDIATE ... COMMIT`` transaction, so a measurement is on disk
+before the next motion starts, and a kill -9 at any moment loses at most the pose in
+progress. ``UNIQUE(campaign, pose_idx)`` makes a duplicated measurement impossible. The
+``audit`` and ``pushes`` tables are append-only (triggers refuse UPDATE and DELETE).
+
+Units in the store are those of robocal's files: millimetres and degrees.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import json
+import sqlite3
+import uuid
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from robocal.daemon.campaign import CampaignState, check_transition
+from robocal.errors import CampaignError, ConfigError, InvalidTransition
+
+__all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "now_iso"]
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS campaigns(
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    created TEXT NOT NULL,
+    updated TEXT NOT NULL,
+    state TEXT NOT NULL,
+    reason TEXT NOT NULL DEFAULT '',
+    robot TEXT NOT NULL,
+    poses_total INTEGER NOT NULL,
+    measure_only INTEGER NOT NULL DEFAULT 0,
+    plan_json TEXT NOT NULL,
+    plan_digest TEXT NOT NULL,
+    config_digest TEXT NOT NULL,
+    selected_model TEXT,
+    created_by TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS poses(
+    campaign TEXT NOT NULL REFERENCES campaigns(id),
+    idx INTEGER NOT NULL,
+    purpose TEXT NOT NULL,
+    measure INTEGER NOT NULL DEFAULT 1,
+    q_deg TEXT NOT NULL,
+    PRIMARY KEY(campaign, idx)
+);
+CREATE TABLE IF NOT EXISTS measurements(
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    campaign TEXT NOT NULL REFERENCES campaigns(id),
+    pose_idx INTEGER NOT NULL,
+    purpose TEXT NOT NULL,
+    q_cmd_deg TEXT NOT NULL,
+    q_act_deg TEXT NOT NULL,
+    x_mm REAL NOT NULL, y_mm REAL NOT NULL, z_mm REAL NOT NULL,
+    sx_mm REAL, sy_mm REAL, sz_mm REAL,
+    rms_mm REAL,
+    samples INTEGER NOT NULL,
+    attempts INTEGER NOT NULL,
+    distance_mm REAL,
+    weather TEXT NOT NULL DEFAULT '{}',
+    measured_at TEXT NOT NULL,
+    UNIQUE(campaign, pose_idx)
+);
+CREATE TABLE IF NOT EXISTS transitions(
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    campaign TEXT NOT NULL REFERENCES campaigns(id),
+    at TEXT NOT NULL,
+    from_state TEXT,
+    to_state TEXT NOT NULL,
+    reason TEXT NOT NULL DEFAULT '',
+    actor TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS fits(
+    campaign TEXT NOT NULL REFERENCES campaigns(id),
+    model TEXT NOT NULL,
+    created TEXT NOT NULL,
+    summary TEXT NOT NULL,
+    model_json TEXT,
+    PRIMARY KEY(campaign, model)
+);
+CREATE TABLE IF NOT EXISTS tables(
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    campaign TEXT,
+    created TEXT NOT NULL,
+    origin TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    checksum TEXT NOT NULL,
+    table_json TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS pushes(
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    at TEXT NOT NULL,
+    action TEXT NOT NULL CHECK(action IN ('push', 'rollback', 'baseline')),
+    table_id INTEGER NOT NULL REFERENCES tables(id),
+    campaign TEXT,
+    actor TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS audit(
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    at TEXT NOT NULL,
+    actor TEXT NOT NULL,
+    action TEXT NOT NULL,
+    campaign TEXT,
+    checksum TEXT,
+    detail TEXT NOT NULL DEFAULT '{}'
+);
+CREATE TRIGGER IF NOT EXISTS audit_no_update BEFORE UPDATE ON audit
+    BEGIN SELECT RAISE(ABORT, 'the audit log is append-only'); END;
+CREATE TRIGGER IF NOT EXISTS audit_no_delete BEFORE DELETE ON audit
+    BEGIN SELECT RAISE(ABORT, 'the audit log is append-only'); END;
+CREATE TRIGGER IF NOT EXISTS pushes_no_update BEFORE UPDATE ON pushes
+    BEGIN SELECT RAISE(ABORT, 'the push history is append-only'); END;
+CREATE TRIGGER IF NOT EXISTS pushes_no_delete BEFORE DELETE ON pushes
+    BEGIN SELECT RAISE(ABORT, 'the push history is append-only'); END;
+CREATE INDEX IF NOT EXISTS transitions_by_campaign ON transitions(campaign, id);
+"""
+
+
+def now_iso() -> str:
+    """Current UTC time, ISO 8601 with milliseconds."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+@dataclass(frozen=True)
+class CampaignRecord:
+    """One row of ``campaigns`` plus the measured-pose count."""
+
+    id: str
+    name: str
+    created: str
+    updated: str
+    state: CampaignState
+    reason: str
+    robot: str
+    poses_total: int
+    poses_measured: int
+    measure_only: bool
+    plan_digest: str
+    config_digest: str
+    selected_model: str | None
+    created_by: str
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready summary (the API's campaign status)."""
+        return {
+            "id": self.id,
+            "name": self.name,
+            "state": self.state.value,
+            "reason": self.reason,
+            "robot": self.robot,
+            "poses_total": self.poses_total,
+            "poses_measured": self.poses_measured,
+            "measure_only": self.measure_only,
+            "created": self.created,
+            "updated": self.updated,
+            "created_by": self.created_by,
+            "plan_digest": self.plan_digest,
+            "config_digest": self.config_digest,
+            "selected_model": self.selected_model,
+        }
+
+
+@dataclass(frozen=True)
+class PoseRow:
+    """A planned pose: index in the plan, purpose, joint target (degrees), measured or not.
+
+    Via-points (``measure=False``) are moved through, never measured.
+    """
+
+    idx: int
+    purpose: str
+    q_deg: tuple[float, ...]
+    measure: bool = True
+
+
+@dataclass(frozen=True)
+class MeasurementRow:
+    """A persisted measurement (mm, degrees)."""
+
+    pose_idx: int
+    purpose: str
+    q_cmd_deg: tuple[float, ...]
+    q_act_deg: tuple[float, ...]
+    p_mm: tuple[float, float, float]
+    sigma_mm: tuple[float, float, float] | None
+    rms_mm: float | None
+    samples: int
+    attempts: int
+    distance_mm: float | None
+    weather: dict[str, float]
+    measured_at: str
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "pose_idx": self.pose_idx,
+            "purpose": self.purpose,
+            "q_cmd_deg": list(self.q_cmd_deg),
+            "q_act_deg": list(self.q_act_deg),
+            "p_mm": list(self.p_mm),
+            "sigma_mm": None if self.sigma_mm is None else list(self.sigma_mm),
+            "rms_mm": self.rms_mm,
+            "samples": self.samples,
+            "attempts": self.attempts,
+            "distance_mm": self.distance_mm,
+            "weather": self.weather,
+            "measured_at": self.measured_at,
+        }
+
+
+class Store:
+    """SQLite store of campaigns, measurements, fits, compensation tables and the audit log.
+
+    Parameters
+    ----------
+    path : Path
+        Database file; its directory must exist.
+
+    Notes
+    -----
+    Not thread-safe: the daemon uses it from the event-loop thread only. Each call is short
+    (a commit with ``synchronous=FULL`` costs one fsync).
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._db: sqlite3.Connection | None = None
+
+    # --- lifecycle -------------------------------------------------------------------------
+    def open(self) -> Store:
+        """Open (creating the schema if needed); WAL journal, full fsync on commit."""
+        try:
+            db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
+        except sqlite3.Error as err:
+            raise ConfigError(f"cannot open the store: {err}", source=str(self.path)) from err
+        db.row_factory = sqlite3.Row
+        mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise ConfigError(f"cannot enable WAL (got {mode})", source=str(self.path))
+        db.execute("PRAGMA synchronous=FULL")
+        db.execute("PRAGMA foreign_keys=ON")
+        db.executescript(_SCHEMA)
+        row = db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is None:
+            db.execute("INSERT INTO meta(key, value) VALUES('schema', ?)", (str(SCHEMA_VERSION),))
+        elif int(row[0]) != SCHEMA_VERSION:
+            raise ConfigError(
+                f"store schema {row[0]} is not supported (expected {SCHEMA_VERSION})",
+                source=str(self.path),
+            )
+        self._db = db
+        return self
+
+    def close(self) -> None:
+        """Close the connection; idempotent."""
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    @property
+    def db(self) -> sqlite3.Connection:
+        """The open connection."""
+        if self._db is None:
+            raise CampaignError("the store is not open")
+        return self._db
+
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error)."""
+        db = self.db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+    # --- campaigns -------------------------------------------------------------------------
+    def create_campaign(
+        self,
+        *,
+        name: str,
+        robot: str,
+        poses: Sequence[PoseRow],
+        plan_json: str,
+        plan_digest: str,
+        config_digest: str,
+        actor: str,
+        measure_only: bool = False,
+    ) -> CampaignRecord:
+        """Insert a campaign in state ``created`` with its poses; return it.
+
+        ``poses_total`` counts the poses to measure (via-points excluded).
+        """
+        cid = uuid.uuid4().hex[:12]
+        t = now_iso()
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO campaigns(id, name, created, updated, state, robot, poses_total, "
+                "measure_only, plan_json, plan_digest, config_digest, created_by) "
+                "VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
+                (cid, name, t, t, CampaignState.CREATED.value, robot,
+                 sum(1 for p in poses if p.measure),
+                 int(measure_only), plan_json, plan_digest, config_digest, actor),
+            )
+            db.executemany(
+                "INSERT INTO poses(campaign, idx, purpose, measure, q_deg) VALUES(?,?,?,?,?)",
+                [(cid, p.idx, p.purpose, int(p.measure), json.dumps(list(p.q_deg)))
+                 for p in poses],
+            )
+            db.execute(
+                "INSERT INTO transitions(campaign, at, from_state, to_state, reason, actor) "
+                "VALUES(?,?,NULL,?,?,?)",
+                (cid, t, CampaignState.CREATED.value, "created", actor),
+            )
+            self._audit(db, actor, "campaign.create", cid, None,
+                        {"name": name, "poses": len(poses), "plan_digest": plan_digest})
+        return self.campaign(cid)
+
+    def _record(self, row: sqlite3.Row) -> CampaignRecord:
+        n = self.db.execute(
+            "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
+        ).fetchone()[0]
+        return CampaignRecord(
+            id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
+            state=CampaignState(row["state"]), reason=row["reason"], robot=row["robot"],
+            poses_total=int(row["poses_total"]), poses_measured=int(n),
+            measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
+            config_digest=row["config_digest"], selected_model=row["selected_model"],
+            created_by=row["created_by"],
+        )
+
+    def campaign(self, cid: str) -> CampaignRecord:
+        """Return one campaign; raise CampaignError (a LookupError too) when unknown."""
+        row = self.db.execute("SELECT * FROM campaigns WHERE id=?", (cid,)).fetchone()
+        if row is None:
+            raise UnknownCampaign(f"no campaign {cid!r}")
+        return self._record(row)
+
+    def campaigns(self, *, states: Sequence[CampaignState] | None = None) -> list[CampaignRecord]:
+        """Return campaigns, oldest first, optionally only those in ``states``."""
+        rows = self.db.execute("SELECT * FROM campaigns ORDER BY created, rowid").fetchall()
+        recs = [self._record(r) for r in rows]
+        if states is not None:
+            recs = [r for r in recs if r.state in states]
+        return recs
+
+    def plan_json(self, cid: str) -> str:
+        """The plan document the campaign was created from."""
+        row = self.db.execute("SELECT plan_json FROM campaigns WHERE id=?", (cid,)).fetchone()
+        if row is None:
+            raise UnknownCampaign(f"no campaign {cid!r}")
+        return str(row[0])
+
+    def transition(
+        self,
+        cid: str,
+        to: CampaignState,
+        *,
+        actor: str,
+        reason: str = "",
+        only_from: Sequence[CampaignState] | None = None,
+    ) -> CampaignRecord:
+        """Move ``cid`` to state ``to`` atomically, checking the transition table.
+
+        Raises
+        ------
+        InvalidTransition
+            If the table (or ``only_from``) does not allow it from the current state.
+        """
+        with self.transaction() as db:
+            row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
+            if row is None:
+                raise UnknownCampaign(f"no campaign {cid!r}")
+            src = CampaignState(row[0])
+            check_transition(src, to)
+            if only_from is not None and src not in only_from:
+                raise InvalidTransition(src.value, to.value, "not from this state here")
+            t = now_iso()
+            db.execute(
+                "UPDATE campaigns SET state=?, reason=?, updated=? WHERE id=?",
+                (to.value, reason, t, cid),
+            )
+            db.execute(
+                "INSERT INTO transitions(campaign, at, from_state, to_state, reason, actor) "
+                "VALUES(?,?,?,?,?,?)",
+                (cid, t, src.value, to.value, reason, actor),
+            )
+        return self.campaign(cid)
+
+    def transitions(self, cid: str) -> list[dict[str, Any]]:
+        """The campaign's state history, oldest first."""
+        rows = self.db.execute(
+            "SELECT at, from_state, to_state, reason, actor FROM transitions WHERE campaign=? "
+            "ORDER BY id", (cid,)).fetchall()
+        return [dict(r) for r in rows]
+
+    def set_selected_model(self, cid: str, model: str | None) -> None:
+        """Record which fitted model is proposed for approval."""
+        with self.transaction() as db:
+            db.execute("UPDATE campaigns SET selected_model=?, updated=? WHERE id=?",
+                       (model, now_iso(), cid))
+
+    # --- poses and measurements ------------------------------------------------------------
+    def poses(self, cid: str) -> list[PoseRow]:
+        """The planned poses in order."""
+        rows = self.db.execute(
+            "SELECT idx, purpose, q_deg, measure FROM poses WHERE campaign=? ORDER BY idx",
+            (cid,)).fetchall()
+        return [PoseRow(int(r[0]), str(r[1]), tuple(json.loads(r[2])), bool(r[3]))
+                for r in rows]
+
+    def measured_indices(self, cid: str) -> set[int]:
+        """Indices of the poses already measured."""
+        rows = self.db.execute(
+            "SELECT pose_idx FROM measurements WHERE campaign=?", (cid,)).fetchall()
+        return {int(r[0]) for r in rows}
+
+    def add_measurement(self, cid: str, m: MeasurementRow) -> bool:
+        """Persist one measurement in its own transaction; False if the pose already has one."""
+        try:
+            with self.transaction() as db:
+                db.execute(
+                    "INSERT INTO measurements(campaign, pose_idx, purpose, q_cmd_deg, q_act_deg, "
+                    "x_mm, y_mm, z_mm, sx_mm, sy_mm, sz_mm, rms_mm, samples, attempts, "
+                    "distance_mm, weather, measured_at) VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    (cid, m.pose_idx, m.purpose, json.dumps(list(m.q_cmd_deg)),
+                     json.dumps(list(m.q_act_deg)), *m.p_mm,
+                     *(m.sigma_mm if m.sigma_mm is not None else (None, None, None)),
+                     m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
+                     m.measured_at),
+                )
+                db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
+        except sqlite3.IntegrityError:
+            return False
+        return True
+
+    def measurements(self, cid: str) -> list[MeasurementRow]:
+        """Every measurement of the campaign, by pose index."""
+        rows = self.db.execute(
+            "SELECT * FROM measurements WHERE campaign=? ORDER BY pose_idx", (cid,)
+        ).fetchall()
+        out = []
+        for r in rows:
+            sig = None
+            if r["sx_mm"] is not None:
+                sig = (float(r["sx_mm"]), float(r["sy_mm"]), float(r["sz_mm"]))
+            out.append(MeasurementRow(
+                pose_idx=int(r["pose_idx"]), purpose=r["purpose"],
+                q_cmd_deg=tuple(json.loads(r["q_cmd_deg"])),
+                q_act_deg=tuple(json.loads(r["q_act_deg"])),
+                p_mm=(float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])), sigma_mm=sig,
+                rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
+                distance_mm=r["distance_mm"], weather=json.loads(r["weather"]),
+                measured_at=r["measured_at"],
+            ))
+        return out
+
+    # --- fits ------------------------------------------------------------------------------
+    def save_fits(self, cid: str, fits: dict[str, tuple[dict[str, Any], str | None]]) -> None:
+        """Store fit summaries and MODEL.json texts (replacing earlier ones), one transaction."""
+        t = now_iso()
+        with self.transaction() as db:
+            for model, (summary, model_json) in fits.items():
+                db.execute(
+                    "INSERT OR REPLACE INTO fits(campaign, model, created, summary, model_json) "
+                    "VALUES(?,?,?,?,?)", (cid, model, t, json.dumps(summary), model_json))
+
+    def fits(self, cid: str) -> dict[str, dict[str, Any]]:
+        """Fit summaries by model name."""
+        rows = self.db.execute(
+            "SELECT model, summary FROM fits WHERE campaign=? ORDER BY rowid", (cid,)).fetchall()
+        return {str(r[0]): json.loads(r[1]) for r in rows}
+
+    def model_json(self, cid: str, model: str) -> str | None:
+        """The MODEL.json text of one fitted model, or None."""
+        row = self.db.execute(
+            "SELECT model_json FROM fits WHERE campaign=? AND model=?", (cid, model)).fetchone()
+        return None if row is None else row[0]
+
+    # --- compensation tables and the push history --------------------------------------------
+    def add_table(self, *, campaign: str | None, origin: str, kind: str, checksum: str,
+                  table_json: str) -> int:
+        """Keep a table (every table ever pushed or read from the controller); return its id."""
+        with self.transaction() as db:
+            cur = db.execute(
+                "INSERT INTO tables(campaign, created, origin, kind, checksum, table_json) "
+                "VALUES(?,?,?,?,?,?)", (campaign, now_iso(), origin, kind, checksum, table_json))
+            return int(cur.lastrowid or 0)
+
+    def table(self, table_id: int) -> dict[str, Any]:
+        """One stored table with its metadata (``table`` holds the JSON text)."""
+        row = self.db.execute("SELECT * FROM tables WHERE id=?", (table_id,)).fetchone()
+        if row is None:
+            raise CampaignError(f"no compensation table {table_id}")
+        return dict(row)
+
+    def record_push(self, *, action: str, table_id: int, campaign: str | None, actor: str,
+                    checksum: str, detail: dict[str, Any]) -> None:
+        """Append to the push history and the audit log in one transaction."""
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO pushes(at, action, table_id, campaign, actor) VALUES(?,?,?,?,?)",
+                (now_iso(), action, table_id, campaign, actor))
+            self._audit(db, actor, f"compensation.{action}", campaign, checksum,
+                        {"table_id": table_id, **detail})
+
+    def table_stack(self) -> list[int]:
+        """Table ids active on the controller over time; the last one is active now.
+
+        ``push`` and ``baseline`` append; ``rollback`` removes the top (the table rolled back).
+        """
+        stack: list[int] = []
+        for action, tid in self.db.execute("SELECT action, table_id FROM pushes ORDER BY id"):
+            if action == "rollback":
+                if stack:
+                    stack.pop()
+            else:
+                stack.append(int(tid))
+        return stack
+
+    def pushes(self) -> list[dict[str, Any]]:
+        """The push history, oldest first, with each table's kind and checksum."""
+        rows = self.db.execute(
+            "SELECT p.id, p.at, p.action, p.table_id, p.campaign, p.actor, t.kind, t.checksum, "
+            "t.origin FROM pushes p JOIN tables t ON t.id = p.table_id ORDER BY p.id").fetchall()
+        return [dict(r) for r in rows]
+
+    # --- audit -----------------------------------------------------------------------------
+    @staticmethod
+    def _audit(db: sqlite3.Connection, actor: str, action: str, campaign: str | None,
+               checksum: str | None, detail: dict[str, Any]) -> None:
+        db.execute(
+            "INSERT INTO audit(at, actor, action, campaign, checksum, detail) VALUES(?,?,?,?,?,?)",
+            (now_iso(), actor, action, campaign, checksum, json.dumps(detail, default=str)))
+
+    def audit(self, *, actor: str, action: str, campaign: str | None = None,
+              checksum: str | None = None, detail: dict[str, Any] | None = None) -> None:
+        """Append one audit entry (who, when, what, checksum) in its own transaction."""
+        with self.transaction() as db:
+            self._audit(db, actor, action, campaign, checksum, detail or {})
+
+    def audit_log(self, *, limit: int = 1000) -> list[dict[str, Any]]:
+        """The most recent audit entries, oldest first."""
+        rows = self.db.execute(
+            "SELECT * FROM (SELECT * FROM audit ORDER BY id DESC LIMIT ?) ORDER BY id",
+            (limit,)).fetchall()
+        out = []
+        for r in rows:
+            d = dict(r)
+            d["detail"] = json.loads(d["detail"])
+            out.append(d)
+        return out
+
+
+class UnknownCampaign(CampaignError, LookupError):  # noqa: N818 - named like errors.py
+    """No campaign with that id."""

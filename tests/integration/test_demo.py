@@ -1,0 +1,43 @@
+"""``robocal demo`` end to end, as a user runs it.
+
+80 calibration poses keep it fast (the high-order model needs at least 64).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "robocal.cli.main", "demo", "--poses", "80", "--out", str(out),
+         "--seed", "2"],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    wall = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    text = proc.stdout
+    for label in ("nominal", "constant", "high-order", "auto", "nominal (before)",
+                  "auto compensated", "Report:"):
+        assert label in text, text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["state"] == "pushed"
+    assert summary["poses_measured"] == summary["poses_total"]
+    fits = summary["fits"]
+    val = {k: fits[k]["validation"]["rms_mm"] for k in ("nominal", "constant", "high-order")}
+    assert val["high-order"] < val["constant"] < val["nominal"]
+    comp = summary["compensation"]
+    assert comp["auto"]["rms_mm"] < 0.25 * comp["before"]["rms_mm"]
+    files = summary["files"]
+    for key in ("report_html", "report_json"):
+        assert key in files and (tmp_path / files[key]).exists()
+    assert (out / "PLAN.json").exists() and (out / "state" / "robocal.sqlite3").exists()
+    assert wall < 120
+    assert "Traceback" not in proc.stderr, proc.stderr[-2000:]

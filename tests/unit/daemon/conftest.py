@@ -1,0 +1,86 @@
+"""Fixtures for daemon unit tests: configurations over mock drivers, small plans."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+from robocal.daemon.config import AppConfig, parse_config
+from robocal.drivers.sim.world import forget_shared_worlds
+from robocal.kinematics import load_robot
+
+ROBOT = "fanuc_lrmate200i"
+
+
+@pytest.fixture(autouse=True)
+def _fresh_worlds():
+    forget_shared_worlds()
+    yield
+    forget_shared_worlds()
+
+
+def base_config(tmp_path: Path, **sections: Any) -> dict[str, Any]:
+    """A configuration mapping over the mock drivers (thread fits, constant model only)."""
+    cfg: dict[str, Any] = {
+        "data_dir": str(tmp_path / "state"),
+        "robot_description": ROBOT,
+        "robot": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp_path)}},
+        "tracker": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp_path)}},
+        "measurement": {"settle_s": 0.0, "backoff_s": 0.001, "max_backoff_s": 0.01},
+        "fit": {"models": ["constant"], "select": "constant", "executor": "thread",
+                "report": False, "cpa": False},
+    }
+    for key, value in sections.items():
+        if isinstance(value, dict) and isinstance(cfg.get(key), dict):
+            merged = dict(cfg[key])
+            for k, v in value.items():
+                if isinstance(v, dict) and isinstance(merged.get(k), dict):
+                    merged[k] = {**merged[k], **v}
+                else:
+                    merged[k] = v
+            cfg[key] = merged
+        else:
+            cfg[key] = value
+    return cfg
+
+
+@pytest.fixture
+def make_config(tmp_path: Path) -> Callable[..., AppConfig]:
+    def make(**sections: Any) -> AppConfig:
+        return parse_config(base_config(tmp_path, **sections), source="test")
+
+    return make
+
+
+def random_plan(n: int, *, seed: int = 0, validation: int = 0, via_every: int = 0) -> PlanDoc:
+    """A bare plan of ``n`` random poses well inside the limits (last ``validation`` held out)."""
+    robot = load_robot(ROBOT)
+    rng = np.random.default_rng(seed)
+    lim = np.degrees(robot.joint_limits)
+    q = rng.uniform(lim[:, 0] + 10, lim[:, 1] - 10, (n, robot.dof))
+    purposes = ["calibration" if i < n - validation else "validation" for i in range(n)]
+    doc = plan_from_poses(q.tolist(), robot=ROBOT, purposes=purposes)
+    if via_every:
+        poses = []
+        for i, p in enumerate(doc["poses"]):
+            if i and i % via_every == 0:
+                poses.append({"q_deg": p["q_deg"], "purpose": "via", "measure": False})
+            poses.append(p)
+        doc["poses"] = poses
+    return parse_plan(doc, source="test", strict=False)
+
+
+@pytest.fixture(scope="session")
+def real_plan() -> dict[str, Any]:
+    """A small, complete robocal.plan/1 document from the planner (demo cell)."""
+    from robocal.planning import plan_campaign
+
+    plan = plan_campaign(ROBOT, "demo", count=20, model="constant", validation=5, cpa=False,
+                         iso=False, seed=3, candidates=256)
+    return json.loads(plan.to_json())

@@ -1,0 +1,47 @@
+"""CLI wiring of the daemon-side commands (no daemon needed)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from robocal.cli.main import main
+
+
+def test_commands_are_registered(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    for name in ("daemon", "campaign", "compensation", "demo", "sim", "config"):
+        assert name in out
+
+
+def test_sim_forwards_its_arguments(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["sim", "--help"])
+    assert info.value.code == 0
+    assert "--ports-file" in capsys.readouterr().out
+
+
+def test_config_schema_is_json(capsys):
+    assert main(["config", "schema"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    assert "robot" in schema["properties"] and schema["additionalProperties"] is False
+
+
+def test_client_without_daemon_is_a_one_line_error(tmp_path, capsys):
+    rc = main(["campaign", "list", "--socket", str(tmp_path / "none.sock")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "cannot reach the daemon" in err and err.count("\n") == 1
+
+
+def test_campaign_start_with_a_missing_plan(tmp_path, capsys):
+    rc = main(["campaign", "start", "--plan", str(tmp_path / "nope.json"), "--socket",
+               str(tmp_path / "s")])
+    assert rc == 2 and "file not found" in capsys.readouterr().err
+
+
+def test_demo_refuses_too_few_poses(capsys):
+    assert main(["demo", "--poses", "5"]) == 2
+    assert "--poses" in capsys.readouterr().err

@@ -1,0 +1,68 @@
+"""The executor's reading validation: the aligned prediction and the retry rules."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robocal.daemon.engine import Predictor, limits_with_margin
+from robocal.kinematics import ErrorModelSpec, KinematicModel, euler_xyz_to_matrix, load_robot
+
+
+def _cell(seed: int = 0):
+    robot = load_robot("fanuc_lrmate200i")
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = euler_xyz_to_matrix(0.01, -0.02, 2.5)
+    T[:3, 3] = [1.8, 0.3, -0.4]
+    model = KinematicModel(robot, ErrorModelSpec(robot.dof, ()), T)
+    x = model.nominal_params()
+    lim = robot.joint_limits
+    q = rng.uniform(lim[:, 0] + 0.2, lim[:, 1] - 0.2, (20, robot.dof))
+    return robot, q, model.positions(q, x)
+
+
+def test_predictor_aligns_the_nominal_model_to_the_tracker():
+    robot, q, p = _cell()
+    pred = Predictor(robot, min_poses=6)
+    for i in range(5):
+        assert pred.distance(q[i], p[i]) is None
+        pred.add(q[i], p[i])
+    pred.add(q[5], p[5])
+    assert pred.distance(q[6], p[6]) < 1e-9
+    assert abs(pred.distance(q[7], p[7] + [0.0, 0.02, 0.0]) - 0.02) < 1e-9
+
+
+def test_limits_with_margin():
+    robot = load_robot("fanuc_lrmate200i")
+    lim = limits_with_margin(robot, 2.0)
+    assert np.allclose(np.asarray(lim) - robot.joint_limits, np.radians([2.0, -2.0]))
+
+
+async def test_a_reading_far_from_the_prediction_is_retried_then_faults(tmp_path,
+                                                                         make_config):
+    from robocal.daemon.service import CalibrationService
+    from tests.unit.daemon.conftest import random_plan
+
+    svc = CalibrationService(make_config(measurement={"max_distance_mm": 1e-6, "retries": 1}))
+    await svc.start()
+    try:
+        st = await svc.create(random_plan(12), actor="t")
+        st = await svc.wait(st["id"], ["faulted"], timeout=30)
+        assert st["state"] == "faulted" and "from the prediction" in st["reason"]
+        assert st["poses_measured"] == 6  # the first six are needed to align the model
+    finally:
+        await svc.stop()
+
+
+async def test_a_noisy_reading_is_rejected(make_config):
+    from robocal.daemon.service import CalibrationService
+    from tests.unit.daemon.conftest import random_plan
+
+    svc = CalibrationService(make_config(measurement={"max_rms_mm": 1e-9, "retries": 0}))
+    await svc.start()
+    try:
+        st = await svc.create(random_plan(12), actor="t")
+        st = await svc.wait(st["id"], ["faulted"], timeout=30)
+        assert "sample RMS" in st["reason"] and st["poses_measured"] == 0
+    finally:
+        await svc.stop()

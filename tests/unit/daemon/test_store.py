@@ -1,0 +1,89 @@
+"""The SQLite store: durability settings, no duplicates, append-only audit, table stack."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+
+from robocal.daemon.campaign import CampaignState
+from robocal.daemon.store import MeasurementRow, PoseRow, Store, UnknownCampaign, now_iso
+from robocal.errors import InvalidTransition
+
+
+def _row(idx: int) -> MeasurementRow:
+    return MeasurementRow(pose_idx=idx, purpose="calibration", q_cmd_deg=(0.0,) * 6,
+                          q_act_deg=(0.0,) * 6, p_mm=(1.0, 2.0, 3.0), sigma_mm=(0.01,) * 3,
+                          rms_mm=0.001, samples=5, attempts=1, distance_mm=None,
+                          weather={"temp_c": 20.0}, measured_at=now_iso())
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = Store(tmp_path / "db.sqlite3").open()
+    yield s
+    s.close()
+
+
+def _campaign(store: Store, n: int = 3):
+    poses = [PoseRow(i, "calibration", (float(i),) * 6) for i in range(n)]
+    poses.append(PoseRow(n, "via", (0.0,) * 6, measure=False))
+    return store.create_campaign(name="t", robot="r", poses=poses, plan_json="{}",
+                                 plan_digest="d", config_digest="c", actor="me")
+
+
+def test_wal_and_full_sync(store):
+    assert store.db.execute("PRAGMA journal_mode").fetchone()[0].lower() == "wal"
+    assert store.db.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+
+
+def test_measurements_are_unique_per_pose(store):
+    rec = _campaign(store)
+    assert rec.poses_total == 3  # the via-point is not measured
+    assert store.add_measurement(rec.id, _row(0))
+    assert not store.add_measurement(rec.id, _row(0))
+    assert store.campaign(rec.id).poses_measured == 1
+    with pytest.raises(sqlite3.IntegrityError):
+        store.db.execute(
+            "INSERT INTO measurements(campaign, pose_idx, purpose, q_cmd_deg, q_act_deg, x_mm, "
+            "y_mm, z_mm, samples, attempts, measured_at) VALUES(?,0,'c','[]','[]',0,0,0,1,1,'t')",
+            (rec.id,))
+    back = store.measurements(rec.id)[0]
+    assert back.p_mm == (1.0, 2.0, 3.0) and back.weather == {"temp_c": 20.0}
+
+
+def test_transitions_are_checked_and_recorded(store):
+    rec = _campaign(store)
+    store.transition(rec.id, CampaignState.RUNNING, actor="a", reason="go")
+    with pytest.raises(InvalidTransition):
+        store.transition(rec.id, CampaignState.PUSHED, actor="a")
+    assert store.campaign(rec.id).state == CampaignState.RUNNING
+    hist = store.transitions(rec.id)
+    assert [h["to_state"] for h in hist] == ["created", "running"]
+    with pytest.raises(UnknownCampaign):
+        store.campaign("nope")
+
+
+def test_audit_log_is_append_only(store):
+    store.audit(actor="me", action="x", detail={"k": 1})
+    with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+        store.db.execute("UPDATE audit SET actor='someone else'")
+    with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+        store.db.execute("DELETE FROM audit")
+    assert store.audit_log()[-1]["detail"] == {"k": 1}
+
+
+def test_table_stack_push_and_rollback(store):
+    ids = [store.add_table(campaign=None, origin="campaign", kind="frames", checksum=f"c{i}",
+                           table_json="{}") for i in range(3)]
+    for tid in ids:
+        store.record_push(action="push", table_id=tid, campaign=None, actor="me",
+                          checksum="c", detail={})
+    assert store.table_stack() == ids
+    store.record_push(action="rollback", table_id=ids[2], campaign=None, actor="me",
+                      checksum="c", detail={})
+    assert store.table_stack() == ids[:2]
+    with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+        store.db.execute("DELETE FROM pushes")
+    assert [a["action"] for a in store.audit_log()] == ["compensation.push"] * 3 + [
+        "compensation.rollback"]
