@@ -1,1 +1,68 @@
-"""robocal.planning."""
+"""Pose planning for calibration campaigns.
+
+Candidates are scrambled Sobol points over the joint ranges; a cell description (TOML) decides
+which are feasible (reflector facing the tracker, unobstructed beam, no collision with floor,
+keep-out boxes or the robot itself, within tracker range); a D-optimal selection on the
+column-scaled identification Jacobian picks the calibration poses; validation poses, CPA
+sweeps and ISO 9283 cube poses are added; the result is ordered for short joint moves and
+written as PLAN.json for the daemon.
+
+Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
+:func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
+"""
+
+from robocal.planning._campaign import draw_candidates, plan_campaign
+from robocal.planning._cell import Cell, builtin_cells, load_cell
+from robocal.planning._cpa import CpaSweep, cpa_sweeps
+from robocal.planning._design import (
+    MODELS,
+    DesignSpace,
+    Observability,
+    identification_jacobian,
+    model_spec,
+    observability_indices,
+)
+from robocal.planning._feasibility import Feasibility, FeasibilityChecker, working_ranges
+from robocal.planning._geometry import (
+    CapsuleModel,
+    default_link_radii,
+    link_frames,
+    segment_box_distance,
+    segment_distance,
+)
+from robocal.planning._iso import IsoCube, iso_cube, solve_ik
+from robocal.planning._order import insert_via_points, move_times, order_poses
+from robocal.planning._plan import PLAN_FORMAT, Plan, PlannedPose
+
+__all__ = [
+    "MODELS",
+    "PLAN_FORMAT",
+    "CapsuleModel",
+    "Cell",
+    "CpaSweep",
+    "DesignSpace",
+    "Feasibility",
+    "FeasibilityChecker",
+    "IsoCube",
+    "Observability",
+    "Plan",
+    "PlannedPose",
+    "builtin_cells",
+    "cpa_sweeps",
+    "default_link_radii",
+    "draw_candidates",
+    "identification_jacobian",
+    "insert_via_points",
+    "iso_cube",
+    "link_frames",
+    "load_cell",
+    "model_spec",
+    "move_times",
+    "observability_indices",
+    "order_poses",
+    "plan_campaign",
+    "segment_box_distance",
+    "segment_distance",
+    "solve_ik",
+    "working_ranges",
+]

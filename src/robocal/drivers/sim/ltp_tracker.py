@@ -391,6 +391,10 @@ class LtpTrackerSimulator:
                     await session.feed(data)
             except ConnectionError:
                 pass
+            except asyncio.CancelledError:
+                # stop() cancels handlers; end normally, or asyncio's stream callback on
+                # Python 3.11 logs the cancelled task as an error.
+                pass
             finally:
                 await session.stop()
                 self._sessions.discard(session)

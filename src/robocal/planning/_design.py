@@ -1,0 +1,432 @@
+"""Observability of an error model over a pose set, and D-optimal pose selection.
+
+The identification Jacobian ``J`` (3 rows per pose, one column per parameter) is evaluated at
+the nominal parameters in the robot base frame. Columns are scaled to unit RMS over the
+candidate set (so metres and radians compare), and columns that are linear combinations of
+others over the candidate set (redundant or unobservable with position-only data) are removed
+by QR with column pivoting. On what is left, with singular values s_1 >= ... >= s_L of the
+stacked matrix (m = 3 n rows), the observability indices of Sun & Hollerbach (2008) are
+
+* O1 = (s_1 s_2 ... s_L)^(1/L) / sqrt(m)   (Borm & Menq; D-optimality),
+* O2 = s_L / s_1                          (inverse condition number, Driels & Pathre),
+* O3 = s_L                                (minimum singular value, Nahvi et al.),
+* O4 = s_L^2 / s_1                        (noise amplification index, Nahvi & Hollerbach),
+* O5 = 1 / (1/s_1 + ... + 1/s_L)          (Sun & Hollerbach; A-optimality).
+
+Selection maximises O1 (the log-determinant of the information matrix) greedily and then by
+Fedorov exchange; both only ever apply rank-3 (one pose) Woodbury updates to the inverse
+information matrix and to each candidate's 3 x 3 prediction-variance block, so a step costs
+O(n_candidates x L) instead of a refactorisation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from robocal.errors import ConfigError
+from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
+from robocal.planning._blas import single_threaded
+
+Array = NDArray[np.float64]
+Index = NDArray[np.intp]
+
+MODELS = ("constant", "high-order", "auto")
+
+#: Equations per identifiable parameter the recommended pose count aims for (3 per pose).
+REDUNDANCY = 3.0
+
+
+def model_spec(robot: RobotDescription, model: str | ErrorModelSpec) -> ErrorModelSpec:
+    """The error-model structure a plan is optimised for.
+
+    ``"constant"``: a constant 6-DoF error per joint. ``"high-order"``: orders 0-2 Fourier
+    terms of every error component, a pitch term (linear in q) on each joint's angle, and
+    strain-wave ripple at 1 and 2 times the gear ratio where the robot file gives one (the
+    model of docs/paper-notes section 7). ``"auto"``: identification picks the model on
+    validation data among these, so the plan is optimised for the richest, ``high-order``.
+    An :class:`ErrorModelSpec` is used as given.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown model name.
+    """
+    if isinstance(model, ErrorModelSpec):
+        return model
+    if model == "constant":
+        return ErrorModelSpec.constant(robot.dof)
+    if model in ("high-order", "auto"):
+        spec = ErrorModelSpec.build(robot.dof, fourier=2, strain_wave=(1, 2),
+                                    gear_ratios=robot.gear_ratios, label="high-order")
+        pitch = [Term(j, "ez", "poly", 1) for j in range(robot.dof)]
+        return spec.with_terms(pitch, label="high-order")
+    raise ConfigError(f"unknown error model {model!r} (choose from {', '.join(MODELS)})")
+
+
+def identification_jacobian(robot: RobotDescription, spec: ErrorModelSpec, q: Array,
+                            tool_offset: Array, *, chunk: int = 2048) -> Array:
+    """d(reflector position)/d(parameters) at the nominal parameters, base frame.
+
+    Parameters
+    ----------
+    q : ndarray, shape (n, dof)
+        Joint values, rad.
+    tool_offset : ndarray, shape (3,)
+        Reflector centre in the flange frame, m.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, P)
+        m per parameter unit (m or rad), P = 9 + number of joint terms.
+    """
+    model = KinematicModel(robot, spec)
+    x = model.nominal_params()
+    x[6:9] = tool_offset
+    q = np.atleast_2d(q)
+    out = np.empty((len(q), 3, model.size))
+    for i in range(0, len(q), chunk):
+        out[i:i + chunk] = model.jacobian(q[i:i + chunk], x)[1]
+    return out
+
+
+@dataclass(frozen=True)
+class Observability:
+    """Observability of the identifiable parameters over one pose set.
+
+    ``parameters``: all model parameters; ``identifiable``: the rank kept after removing
+    redundant columns; ``min_poses``: ceil(identifiable / 3); ``recommended_poses``: 3
+    equations per identifiable parameter (:data:`REDUNDANCY`), at least ``min_poses + 10``.
+    """
+
+    poses: int
+    parameters: int
+    identifiable: int
+    min_poses: int
+    recommended_poses: int
+    O1: float
+    O2: float
+    O3: float
+    O4: float
+    O5: float
+    condition_number: float
+
+    def as_dict(self) -> dict[str, float | int]:
+        """Plain-dict form (for PLAN.json)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def observability_indices(J: Array) -> tuple[float, float, float, float, float, float]:
+    """O1..O5 and the condition number of a stacked, scaled Jacobian ``J`` (m, L).
+
+    Rank-deficient sets give O2 = O3 = O4 = O5 = 0 and an infinite condition number.
+    """
+    m, L = J.shape
+    s = np.linalg.svd(J, compute_uv=False)
+    if L == 0 or s.size < L or s[0] <= 0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, math.inf
+    s = s[:L]
+    tiny = s[-1] <= s[0] * 1e-12
+    o1 = float(np.exp(np.mean(np.log(np.maximum(s, 1e-300)))) / math.sqrt(m))
+    if tiny:
+        return o1, 0.0, 0.0, 0.0, 0.0, math.inf
+    return (o1, float(s[-1] / s[0]), float(s[-1]), float(s[-1] ** 2 / s[0]),
+            float(1.0 / np.sum(1.0 / s)), float(s[0] / s[-1]))
+
+
+class _Blocks:
+    """Each candidate's 3 x 3 block ``G_c = J_c Minv J_c^T``, stored component-major.
+
+    ``g`` has shape (3, 3, n): one contiguous array per matrix entry, which makes the
+    per-candidate 3 x 3 algebra a handful of vectorised elementwise operations.
+    """
+
+    def __init__(self, Jt: Array, Minv: Array) -> None:
+        self.Jt = Jt  # (3, L, n): row a of every candidate's Jacobian block, transposed
+        n = Jt.shape[2]
+        self.g = np.empty((3, 3, n))
+        W = Minv @ Jt  # (3, L, n)
+        for a in range(3):
+            for b in range(a, 3):
+                v = np.einsum("in,in->n", Jt[a], W[b])
+                self.g[a, b] = v
+                self.g[b, a] = v
+
+    def block(self, c: int) -> Array:
+        """G_c (3, 3)."""
+        return self.g[:, :, c].copy()
+
+    def logdet_i_plus(self, sign: float = 1.0) -> Array:
+        """log det(I + sign * G_c) for every candidate (n,)."""
+        g = self.g
+        a = 1.0 + sign * g[0, 0]
+        e = 1.0 + sign * g[1, 1]
+        i = 1.0 + sign * g[2, 2]
+        b, c, f = sign * g[0, 1], sign * g[0, 2], sign * g[1, 2]
+        det = a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c)
+        return np.log(np.maximum(det, 1e-300))
+
+    def update(self, V: Array, sign: float) -> None:
+        """G_c += sign * (J_c V)(J_c V)^T for every candidate; V (L, 3)."""
+        X = np.ascontiguousarray(V.T) @ self.Jt  # X[a, k] = (J_c V)[a, k], shape (3, 3, n)
+        for a in range(3):
+            for b in range(a, 3):
+                v = X[a][0] * X[b][0] + X[a][1] * X[b][1] + X[a][2] * X[b][2]
+                self.g[a, b] += sign * v
+                if a != b:
+                    self.g[b, a] += sign * v
+
+
+def _sym_sqrt_factor(K: Array) -> Array:
+    """C with C C^T = K^-1 for a symmetric positive definite 3 x 3 ``K``."""
+    return np.linalg.cholesky(np.linalg.inv(0.5 * (K + K.T)))
+
+
+@dataclass
+class DesignSpace:
+    """Scaled, reduced identification Jacobian of a candidate set, and selection on it.
+
+    Parameters
+    ----------
+    robot, spec
+        Robot and error-model structure.
+    q : ndarray, shape (n, dof)
+        Candidate joint values, rad (feasible poses).
+    tool_offset : ndarray, shape (3,)
+        Reflector centre in the flange frame, m.
+    rank_tol : float
+        Relative pivot threshold of the rank-revealing QR.
+    weights : ndarray, shape (n, 3, 3), optional
+        Whitening matrix ``Sigma^-1/2`` of each candidate's measurement (any common scale;
+        it is normalised), so that the design maximises the information of the weighted
+        (maximum-likelihood) fit rather than of an unweighted one.
+    rank_sample : int
+        At most this many candidates (evenly spaced) are used for the QR.
+
+    Attributes
+    ----------
+    names : tuple of str
+        All parameter names.
+    keep : ndarray of int
+        Indices of the identifiable columns kept (sorted).
+    scale : ndarray, shape (P,)
+        Column scale (RMS over candidates), m per parameter unit.
+    J : ndarray, shape (n, 3, L)
+        The scaled Jacobian of the kept columns.
+    """
+
+    robot: RobotDescription
+    spec: ErrorModelSpec
+    q: Array
+    tool_offset: Array
+    weights: Array | None = None
+    rank_tol: float = 1e-7
+    rank_sample: int = 4096
+    names: tuple[str, ...] = field(init=False)
+    keep: Index = field(init=False)
+    scale: Array = field(init=False)
+    J: Array = field(init=False, repr=False)
+
+    @single_threaded
+    def __post_init__(self) -> None:
+        self.q = np.atleast_2d(np.asarray(self.q, dtype=float))
+        n = len(self.q)
+        if n == 0:
+            raise ConfigError("no candidate poses to choose from")
+        Jfull = identification_jacobian(self.robot, self.spec, self.q,
+                                         np.asarray(self.tool_offset))
+        self.names = KinematicModel(self.robot, self.spec).names
+        if self.weights is not None:
+            W = np.asarray(self.weights, dtype=float)
+            if W.shape != (n, 3, 3) or not np.all(np.isfinite(W)):
+                raise ConfigError(f"weights must be finite with shape ({n}, 3, 3)")
+            W = W / np.sqrt(np.mean(np.einsum("nij,nij->n", W, W)) / 3.0)
+            Jfull = np.einsum("nab,nbi->nai", W, Jfull)
+        scale = np.sqrt(np.mean(Jfull**2, axis=(0, 1)))
+        live = scale > 1e-12 * max(float(scale.max()), 1e-300)
+        scale = np.where(live, scale, 1.0)
+        Js = Jfull / scale
+        sub = np.unique(np.linspace(0, n - 1, min(n, self.rank_sample)).astype(int))
+        A = Js[sub][:, :, live].reshape(-1, int(live.sum()))
+        _, R, piv = scipy.linalg.qr(A, mode="economic", pivoting=True)
+        d = np.abs(np.diag(R))
+        rank = int(np.count_nonzero(d > self.rank_tol * d[0])) if d.size else 0
+        self.keep = np.sort(np.flatnonzero(live)[piv[:rank]])
+        self.scale = scale
+        self.J = np.ascontiguousarray(Js[:, :, self.keep])
+
+    # -- figures -------------------------------------------------------------------------------
+    @property
+    def identifiable(self) -> int:
+        """Number of identifiable parameter combinations kept (L)."""
+        return int(self.keep.size)
+
+    @property
+    def unidentifiable(self) -> tuple[str, ...]:
+        """Names of the columns removed as redundant or unobservable."""
+        gone = np.setdiff1d(np.arange(len(self.names)), self.keep)
+        return tuple(self.names[i] for i in gone)
+
+    @property
+    def min_poses(self) -> int:
+        """Fewest poses that can identify the kept parameters (3 equations per pose)."""
+        return math.ceil(self.identifiable / 3)
+
+    @property
+    def recommended_poses(self) -> int:
+        """Recommended number of calibration poses (see :data:`REDUNDANCY`)."""
+        return max(math.ceil(REDUNDANCY * self.identifiable / 3), self.min_poses + 10)
+
+    @single_threaded
+    def observability(self, idx: Index) -> Observability:
+        """Observability figures of candidate poses ``idx``."""
+        idx = np.asarray(idx, dtype=np.intp)
+        A = self.J[idx].reshape(-1, self.identifiable)
+        o1, o2, o3, o4, o5, cond = observability_indices(A)
+        return Observability(
+            poses=int(idx.size), parameters=len(self.names), identifiable=self.identifiable,
+            min_poses=self.min_poses, recommended_poses=self.recommended_poses,
+            O1=o1, O2=o2, O3=o3, O4=o4, O5=o5, condition_number=cond)
+
+    # -- selection -----------------------------------------------------------------------------
+    @single_threaded
+    def select(self, count: int, *, allowed: NDArray[np.bool_] | None = None,
+               exchange_passes: int = 2, exchange_pool: int = 2048, delta: float = 1e-6,
+               batch: int = 256) -> Index:
+        """Choose ``count`` candidates maximising det(J^T J) (D-optimal, O1).
+
+        Parameters
+        ----------
+        count
+            Number of poses to choose.
+        allowed : ndarray of bool, shape (n,), optional
+            Candidates that may be chosen (default: all).
+        exchange_passes
+            Maximum Fedorov exchange passes after the greedy build-up.
+        exchange_pool
+            The exchange considers the chosen poses and this many other candidates: those
+            with the largest greedy gain bounds at the end of the build-up (all candidates
+            when ``exchange_pool >= n``).
+        delta
+            Ridge ``delta * I`` added to the (column-scaled, so unit-RMS) information matrix
+            so that the first poses (fewer than L / 3) have a finite determinant.
+        batch
+            Candidates whose gain is re-evaluated at once in the lazy greedy step.
+
+        Returns
+        -------
+        ndarray of int, shape (count,)
+            Chosen candidate indices, in the order they were chosen (then exchanged).
+
+        Raises
+        ------
+        ConfigError
+            When fewer than ``count`` candidates are allowed.
+
+        Notes
+        -----
+        Greedy step: the gain of adding candidate c is ``log det(I + J_c M^-1 J_c^T)``; it
+        can only fall as poses are added (M grows), so gains computed earlier are upper bounds
+        and only the candidates whose bound is largest are re-evaluated (lazy greedy, exact).
+        ``M^-1`` is kept by rank-3 Woodbury updates. Exchange: each chosen pose is tried
+        against every pool candidate with per-candidate 3 x 3 blocks downdated/updated by
+        rank-3 terms (see :class:`_Blocks`).
+        """
+        n, _, L = self.J.shape
+        ok = np.ones(n, dtype=bool) if allowed is None else np.asarray(allowed, dtype=bool)
+        if count > int(ok.sum()):
+            raise ConfigError(f"{count} poses requested but only {int(ok.sum())} feasible "
+                              "candidates are available")
+        if count <= 0:
+            return np.zeros(0, dtype=np.intp)
+        J = self.J
+        I3 = np.eye(3)
+        Minv = np.eye(L) / delta
+        ub = _logdet3(I3 + np.einsum("nai,nbi->nab", J, J) / delta)
+        ub[~ok] = -np.inf
+        fresh = np.ones(n, dtype=bool)  # ub is the exact gain under the current Minv
+        chosen: list[int] = []
+        k = min(batch, n)
+        for _ in range(count):
+            while True:
+                c = int(np.argmax(ub))
+                if fresh[c]:
+                    break
+                top = np.argpartition(-ub, k - 1)[:k]
+                top = top[np.isfinite(ub[top]) & ~fresh[top]]
+                Jk = J[top]
+                X = (Jk.reshape(-1, L) @ Minv).reshape(-1, 3, L)
+                ub[top] = _logdet3(I3 + np.einsum("kai,kbi->kab", X, Jk))
+                fresh[top] = True
+            chosen.append(c)
+            ub[c] = -np.inf
+            U = Minv @ J[c].T
+            Minv = Minv - U @ np.linalg.solve(I3 + J[c] @ U, U.T)
+            Minv = 0.5 * (Minv + Minv.T)
+            fresh[:] = False
+        if exchange_passes <= 0:
+            return np.array(chosen, dtype=np.intp)
+        # exchange among the chosen poses and the best-bounded others
+        others = np.flatnonzero(np.isfinite(ub))
+        if others.size > exchange_pool:
+            others = others[np.argpartition(-ub[others], exchange_pool - 1)[:exchange_pool]]
+        pool = np.concatenate([np.array(chosen, dtype=np.intp), np.sort(others)])
+        local = _fedorov(J[pool], list(range(count)), exchange_passes, delta)
+        return pool[np.array(local, dtype=np.intp)]
+
+
+def _logdet3(K: Array) -> Array:
+    """log det of symmetric positive definite 3 x 3 matrices K (n, 3, 3)."""
+    det = (K[:, 0, 0] * (K[:, 1, 1] * K[:, 2, 2] - K[:, 1, 2] * K[:, 2, 1])
+           - K[:, 0, 1] * (K[:, 1, 0] * K[:, 2, 2] - K[:, 1, 2] * K[:, 2, 0])
+           + K[:, 0, 2] * (K[:, 1, 0] * K[:, 2, 1] - K[:, 1, 1] * K[:, 2, 0]))
+    return np.log(np.maximum(det, 1e-300))
+
+
+def _fedorov(J: Array, chosen: list[int], passes: int, delta: float) -> list[int]:
+    """Fedorov exchange on candidates J (m, 3, L), starting from ``chosen`` (indices)."""
+    m, _, L = J.shape
+    I3 = np.eye(3)
+    Jt = np.ascontiguousarray(J.transpose(1, 2, 0))  # (3, L, m)
+    taken = np.zeros(m, dtype=bool)
+    taken[chosen] = True
+    chosen = list(chosen)
+    for _ in range(passes):
+        # refresh from scratch once per pass: bounds the drift of the rank-3 updates
+        Js = J[np.array(chosen)].reshape(-1, L)
+        cf = scipy.linalg.cho_factor(delta * np.eye(L) + Js.T @ Js)
+        Minv = scipy.linalg.cho_solve(cf, np.eye(L))
+        blocks = _Blocks(Jt, Minv)
+        swapped = False
+        for pos in range(len(chosen)):
+            s = chosen[pos]
+            Ks = I3 - blocks.block(s)  # det(Ks) = det(M - Js^T Js) / det(M)
+            det_s = float(np.linalg.det(Ks))
+            if det_s <= 1e-12:
+                continue
+            # blocks as if pose s were removed (Woodbury downdate) ...
+            V = (Minv @ J[s].T) @ _sym_sqrt_factor(Ks)
+            blocks.update(V, +1.0)
+            gain = blocks.logdet_i_plus()
+            gain[taken] = -np.inf
+            c = int(np.argmax(gain))
+            if math.log(det_s) + gain[c] <= 1e-9:
+                blocks.update(V, -1.0)  # ... put it back: no improving swap
+                continue
+            # ... then add c: (M_-s + Jc^T Jc)^-1 by Woodbury, blocks updated alike
+            Minv = Minv + V @ V.T
+            U = Minv @ J[c].T
+            Vc = U @ _sym_sqrt_factor(I3 + blocks.block(c))
+            blocks.update(Vc, -1.0)
+            Minv = Minv - Vc @ Vc.T
+            taken[s] = False
+            taken[c] = True
+            chosen[pos] = c
+            swapped = True
+        if not swapped:
+            break
+    return chosen
