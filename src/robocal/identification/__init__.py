@@ -1,1 +1,40 @@
-"""robocal.identification."""
+"""Identification: maximum-likelihood fits of constant and high-order error models.
+
+Public API::
+
+    from robocal.identification import fit, FitOptions, FitResult, accuracy, Accuracy
+    res = fit(robot, data, "constant" | "high-order" | "auto", options=..., validation=...)
+    res.calibrated.save("MODEL.json")
+
+plus :func:`identifiability`, :func:`refit_frozen` (re-use joint-dependent terms on a new
+session), :func:`cpa_fit` (Circle Point Analysis baseline; the internal
+``_cpa.cpa_sweeps`` makes sweep joint sets for the virtual robot in tests) and
+:func:`load_ipa_series` (public UR10 data set).
+"""
+
+from robocal.identification._cpa import CircleFit, CPAResult, cpa_fit, poe_positions
+from robocal.identification._fit import MODELS, FitOptions, FitResult, fit, refit_frozen
+from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
+from robocal.identification._solver import Identifiability, identifiability
+from robocal.identification._weights import TrackerSigma, whitening
+from robocal.identification.datasets import load_ipa_series
+
+__all__ = [
+    "BASELINE_DESCRIPTION",
+    "MODELS",
+    "Accuracy",
+    "CPAResult",
+    "CircleFit",
+    "FitOptions",
+    "FitResult",
+    "Identifiability",
+    "TrackerSigma",
+    "accuracy",
+    "cpa_fit",
+    "fit",
+    "identifiability",
+    "load_ipa_series",
+    "poe_positions",
+    "refit_frozen",
+    "whitening",
+]

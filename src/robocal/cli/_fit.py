@@ -1,0 +1,149 @@
+"""``robocal fit``: identify an error model from a measurement CSV and write MODEL.json."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add the ``fit`` subcommand."""
+    p = sub.add_parser(
+        "fit", help="fit an error model to tracker measurements",
+        description="Identify a constant, high-order or automatically chosen error model by "
+                    "maximum likelihood from a measurement CSV (pose_id,q1..qN [deg],x,y,z "
+                    "[mm][,sx,sy,sz]) and write MODEL.json. Percentages are relative to the "
+                    "nominal model with only the tracker<-base transform and the reflector "
+                    "offset fitted.")
+    p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")
+    p.add_argument("--data", required=True, help="training measurements (CSV)")
+    p.add_argument("--model", required=True, choices=("constant", "high-order", "auto"),
+                   help="error model")
+    p.add_argument("--out", required=True, help="MODEL.json to write (atomically)")
+    p.add_argument("--validate", metavar="VAL.csv", help="held-out measurements (CSV)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--tool", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="flange->reflector offset to start from, mm (default: robot file)")
+    p.add_argument("--sigma-radial-um", type=float, help="tracker radial sigma, µm")
+    p.add_argument("--sigma-transverse-um", type=float, help="tracker transverse sigma, µm")
+    p.add_argument("--ignore-point-sigma", action="store_true",
+                   help="use the tracker model even where the CSV gives sx,sy,sz")
+    p.add_argument("--no-outliers", action="store_true", help="disable outlier detection")
+    p.add_argument("--outlier-sigma", type=float,
+                   help="fixed outlier threshold in robust sigmas")
+    p.add_argument("--order", type=int, help="Fourier order of the high-order model")
+    p.add_argument("--map-spacing-deg", type=float, help="joint-angle map knot spacing (auto)")
+    p.add_argument("--cv-folds", type=int, help="cross-validation folds (auto)")
+    p.add_argument("--seed", type=int, help="seed of the CV folds (auto)")
+    p.add_argument("--no-fallback", action="store_true",
+                   help="do not store the constant-model fallback")
+    p.set_defaults(handler=run)
+
+
+def _options(args: argparse.Namespace) -> Any:
+    from dataclasses import replace
+
+    from robocal.identification import FitOptions, TrackerSigma
+
+    kw: dict[str, Any] = {}
+    if args.tool is not None:
+        kw["tool_m"] = tuple(v * 1e-3 for v in args.tool)
+    noise = TrackerSigma()
+    if args.sigma_radial_um is not None:
+        noise = replace(noise, radial_m=args.sigma_radial_um * 1e-6, radial_per_m=0.0)
+    if args.sigma_transverse_um is not None:
+        noise = replace(noise, transverse_m=args.sigma_transverse_um * 1e-6,
+                        transverse_per_m=0.0)
+    kw["noise"] = noise
+    kw["use_point_sigma"] = not args.ignore_point_sigma
+    kw["detect_outliers"] = not args.no_outliers
+    if args.outlier_sigma is not None:
+        kw["outlier_sigma"] = args.outlier_sigma
+    if args.order is not None:
+        kw["order"] = args.order
+    if args.map_spacing_deg is not None:
+        kw["map_spacing_deg"] = args.map_spacing_deg
+    if args.cv_folds is not None:
+        kw["cv_folds"] = args.cv_folds
+    if args.seed is not None:
+        kw["seed"] = args.seed
+    kw["fallback"] = not args.no_fallback
+    return FitOptions(**kw)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Fit, save atomically, print a summary."""
+    from robocal._core.measurements import MeasurementSet
+    from robocal.errors import ConfigError
+    from robocal.identification import fit
+    from robocal.kinematics import load_robot
+
+    robot = load_robot(args.robot)
+    out = Path(args.out)
+    if not out.parent.exists():
+        raise ConfigError("directory does not exist", source=str(out.parent))
+    data = MeasurementSet.read_csv(args.data, dof=robot.dof)
+    val = MeasurementSet.read_csv(args.validate, dof=robot.dof) if args.validate else None
+    opts = _options(args)
+    res = fit(robot, data, args.model, options=opts, validation=val)
+    res.calibrated.data["source"] = str(args.data)
+    if args.validate:
+        res.calibrated.data["validation_source"] = str(args.validate)
+    res.calibrated.save(out)
+    summary = res.summary()
+    summary["out"] = str(out)
+    if args.json:
+        sys.stdout.write(json.dumps(summary, indent=1) + "\n")
+    else:
+        sys.stdout.write(format_summary(summary))
+    return 0
+
+
+def _f(v: Any, fmt: str = "{:.4f}") -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else fmt.format(v)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """Human-readable table of a fit summary (mm, %)."""
+    tr, va = s["train"], s.get("validation")
+    lines = [f"robocal fit: {s['robot']}, model {s['model']} (id {s['model_id']})"]
+    n_out = len(s["outliers"])
+    lines.append(f"poses: {tr['n']} used, {n_out} outlier(s) excluded"
+                 + (f"; validation {va['n']} ({len(s['validation_outliers'])} gross "
+                    "outlier(s) screened)" if va else ""))
+    rows = [("RMS [mm]", "rms_mm", "{:.4f}"), ("mean [mm]", "mean_mm", "{:.4f}"),
+            ("max [mm]", "max_mm", "{:.4f}"),
+            ("% described (RMS)", "percent_described_rms", "{:.1f}"),
+            ("% described (mean)", "percent_described_mean", "{:.1f}"),
+            ("% described (R^2)", "percent_described_r2", "{:.1f}"),
+            ("baseline RMS [mm]", "baseline_rms_mm", "{:.4f}")]
+    lines.append(f"  {'':24s}{'train':>12s}{'validation':>12s}")
+    for label, key, fmt in rows:
+        lines.append(f"  {label:24s}{_f(tr[key], fmt):>12s}"
+                     f"{_f(va[key], fmt) if va else '-':>12s}")
+    lines.append("  baseline = " + s["baseline"])
+    lines.append(f"identifiability: rank {s['rank']}, condition number "
+                 f"{_f(s['condition_number'], '{:.3g}')}; {len(s['removed'])} parameter(s) "
+                 "held fixed (redundant or unobservable)")
+    if s["removed"]:
+        lines.append("  held fixed: " + ", ".join(s["removed"]))
+    lines.append(f"parameters: {s['n_free']} estimated of {s['n_params']} "
+                 f"(effective {s['dof_effective']:.1f}); terms "
+                 + ", ".join(f"{k} {v}" for k, v in s["terms"].items()))
+    lines.append(f"variance factor {_f(s['variance_factor'], '{:.3g}')} "
+                 f"(sigma0 {_f(s['sigma0'], '{:.3g}')}); {s['iterations']} iteration(s), "
+                 f"{'converged' if s['converged'] else 'NOT converged'}, "
+                 f"{s['elapsed_s']:.2f} s")
+    if s["outliers"]:
+        lines.append("outliers: " + ", ".join(s["outliers"]))
+    if s.get("validation_outliers"):
+        lines.append("validation outliers: " + ", ".join(s["validation_outliers"]))
+    groups = [e for e in s.get("selection", []) if e.get("action") == "final"]
+    if groups:
+        lines.append("auto terms: " + (", ".join(groups[0]["groups"]) or "constant only"))
+    lines.append(f"wrote {s['out']}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,432 @@
+"""``auto`` model: choose joint-dependent terms, orders and joint-angle maps by cross-validation.
+
+Method
+------
+1. Fit the constant model (robust; gives inliers and the linearisation point ``x_c``).
+2. Build a *candidate superset*: per joint, Fourier harmonics of order 1..K on all six error
+   components (one group per order; not nested: with position-only data the first harmonic
+   of the last joint is nearly invisible while its second is not), a linear pitch term,
+   strain-wave ripple per gear-ratio multiple, gravity torsion (robots with masses), and a
+   periodic cubic-spline joint-angle map on the rotation about the joint axis (knots only
+   where data lies).
+3. Linearise at ``x_c`` (the joint-dependent errors are micro-radians, so the problem is linear
+   in them to far below the noise) and accumulate per-fold normal matrices of the whitened
+   superset Jacobian once. Any candidate model is then a sub-block of these matrices, and its
+   K-fold cross-validated sum of squares costs a few small Cholesky solves, no pass over the
+   data. Maps are MAP-estimated with a second-difference smoothness prior (weight chosen from
+   a grid by CV) and a weak ridge.
+4. Greedy forward selection of groups (adding the one that lowers the CV score most, as long
+   as it lowers it by at least ``auto_min_improvement``) in three phases: physically modelled
+   single terms (gravity, pitch, strain wave), then harmonics, then maps, so that flexible
+   maps only take what the parametric terms cannot describe. Then the map smoothness is
+   refined (x3 steps) and a backward pass drops groups whose removal does not worsen the
+   score. CV folds keep near-repeated configurations together.
+5. Solve the chosen model nonlinearly (robust, outliers re-tested) from ``x_c``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import linalg as sla
+
+from robocal.identification._engine import Solution
+from robocal.identification._models import (
+    MapPrior,
+    covered_knots,
+    knots_for_spacing,
+    map_terms,
+    second_difference,
+)
+from robocal.identification._solver import Problem, analyse
+from robocal.kinematics import COMPONENTS, ErrorModelSpec, KinematicModel, Term, gravity_torques
+
+if TYPE_CHECKING:
+    from robocal.identification._fit import _Fitter
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+@dataclass
+class Group:
+    """A block of terms added or removed together."""
+
+    key: str
+    terms: list[Term]
+    requires: str | None = None
+    is_map: bool = False
+    joint: int = 0
+    n_knots: int = 0
+    knots: tuple[int, ...] = ()
+    cols: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    # map prior pieces in scaled coordinates
+    D2: Array | None = None       # scaled D^T D (g, g)
+    ridge: Array | None = None    # scaled ridge diagonal (g,)
+    lam_unit: float = 1.0         # absolute lambda per unit relative lambda
+
+    @property
+    def phase(self) -> int:
+        """Selection phase: 1 physical terms, 2 harmonics, 3 maps."""
+        if self.is_map:
+            return 3
+        return 2 if ":fourier" in self.key else 1
+
+
+def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
+    """Candidate term groups for the robot and the joint ranges in ``q`` (n, dof) rad."""
+    robot, opts = f.robot, f.opts
+    groups: list[Group] = []
+    tau = gravity_torques(robot, q) if (opts.auto_gravity and robot.has_masses) else None
+    for j, jt in enumerate(robot.joints):
+        for k in range(1, opts.auto_max_order + 1):
+            terms = [Term(j, c, fam, k) for c in COMPONENTS for fam in ("cos", "sin")]
+            groups.append(Group(f"j{j + 1}:fourier{k}", terms, joint=j))
+        groups.append(Group(f"j{j + 1}:pitch", [Term(j, "ez", "poly", 1)], joint=j))
+        if jt.gear_ratio and opts.auto_strain_wave:
+            for m in opts.strain_wave:
+                sw = [Term(j, "ez", "swcos", int(m)), Term(j, "ez", "swsin", int(m))]
+                groups.append(Group(f"j{j + 1}:strain-wave{m}", sw, joint=j))
+        if tau is not None and float(np.std(tau[:, j])) > 1e-3:
+            groups.append(Group(f"j{j + 1}:gravity", [Term(j, "ez", "gravity")], joint=j))
+        if opts.auto_maps:
+            K = knots_for_spacing(opts.map_spacing_deg)
+            kn = covered_knots(q[:, j], K)
+            if len(kn) >= 4:
+                groups.append(Group(f"j{j + 1}:map", map_terms(j, kn), is_map=True, joint=j,
+                                    n_knots=K, knots=tuple(int(v) for v in kn)))
+    return groups
+
+
+class _CV:
+    """K-fold CV of linearised sub-models from per-fold normal matrices (column-scaled)."""
+
+    def __init__(self, G_f: Array, b_f: Array, c_f: Array) -> None:
+        self.G_f, self.b_f, self.c_f = G_f, b_f, c_f
+        self.G = G_f.sum(axis=0)
+        self.b = b_f.sum(axis=0)
+        self.K = G_f.shape[0]
+        self.evaluations = 0
+        self._cache: tuple[IntArray, Array, list[Array]] | None = None
+
+    def fold_inverses(self, base_cols: IntArray, base_pen: Array) -> list[Array]:
+        """Inverse training normal matrix of each fold for the base model.
+
+        When the base extends the previously used one by a block of columns, the inverses
+        are updated with the block (Schur-complement) formula, O(k^2 g) instead of O(k^3).
+        """
+        c = self._cache
+        if c is not None:
+            old_cols, old_pen, invs = c
+            k0 = len(old_cols)
+            if (len(base_cols) >= k0 and np.array_equal(base_cols[:k0], old_cols)
+                    and np.array_equal(base_pen[:k0, :k0], old_pen)
+                    and not np.any(base_pen[:k0, k0:])):
+                if len(base_cols) == k0:
+                    return invs
+                g = base_cols[k0:]
+                gpen = base_pen[k0:, k0:]
+                ixbg, ixgg = np.ix_(old_cols, g), np.ix_(g, g)
+                new = []
+                for f, Ainv in enumerate(invs):
+                    B = self.G[ixbg] - self.G_f[f][ixbg]
+                    X = Ainv @ B
+                    Sinv = _inv_spd(self.G[ixgg] - self.G_f[f][ixgg] + gpen - B.T @ X)
+                    XS = X @ Sinv
+                    new.append(np.block([[Ainv + XS @ X.T, -XS], [-XS.T, Sinv]]))
+                self._cache = (base_cols.copy(), base_pen.copy(), new)
+                return new
+        ixb = np.ix_(base_cols, base_cols)
+        Gb = self.G[ixb] + base_pen
+        invs = [_inv_spd(Gb - self.G_f[f][ixb]) for f in range(self.K)]
+        self._cache = (base_cols.copy(), base_pen.copy(), invs)
+        return invs
+
+    def score(self, cols: IntArray, pen: Array) -> float:
+        """CV sum of squares (whitened) of the model with columns ``cols`` and prior ``pen``."""
+        self.evaluations += 1
+        ix = np.ix_(cols, cols)
+        Gc = self.G[ix] + pen
+        total = 0.0
+        for f in range(self.K):
+            Gf = self.G_f[f][ix]
+            bf = self.b_f[f][cols]
+            A = Gc - Gf
+            try:
+                d = sla.cho_solve(sla.cho_factor(A, lower=True, check_finite=False),
+                                  self.b[cols] - bf, check_finite=False)
+            except np.linalg.LinAlgError:
+                d = np.linalg.lstsq(A, self.b[cols] - bf, rcond=1e-12)[0]
+            total += float(self.c_f[f] - 2.0 * d @ bf + d @ Gf @ d)
+        return total
+
+    def scores_added(self, base_cols: IntArray, base_pen: Array,
+                     options: list[tuple[IntArray, list[Array]]]) -> list[list[float]]:
+        """CV scores of ``base + group`` for many groups, each with several priors.
+
+        Uses Schur complements on the factorised base model of each fold, so a group of g
+        columns costs O(k^2 g) per fold for k base columns, and each extra prior O(g^3).
+        """
+        self.evaluations += sum(len(p) for _, p in options)
+        out = [np.zeros(len(p)) for _, p in options]
+        ixb = np.ix_(base_cols, base_cols)
+        invs = self.fold_inverses(base_cols, base_pen)
+        for f in range(self.K):
+            Gf = self.G_f[f]
+            Ainv = invs[f]
+            btr = self.b[base_cols] - self.b_f[f][base_cols]
+            dA = Ainv @ btr
+            bf_b = self.b_f[f][base_cols]
+            Gf_bb = Gf[ixb]
+            GdA = Gf_bb @ dA
+            const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
+            for i, (gcols, pens) in enumerate(options):
+                ixbg = np.ix_(base_cols, gcols)
+                ixgg = np.ix_(gcols, gcols)
+                Gf_bg = Gf[ixbg]
+                Gf_gg = Gf[ixgg]
+                B = self.G[ixbg] - Gf_bg
+                X = Ainv @ B
+                S0 = (self.G[ixgg] - Gf_gg) - B.T @ X
+                rhs = (self.b[gcols] - self.b_f[f][gcols]) - X.T @ btr
+                # held-out SSE as a quadratic in dg (db = dA - X dg)
+                Y = Gf_bb @ X
+                Q = X.T @ Y - X.T @ Gf_bg - Gf_bg.T @ X + Gf_gg
+                lin = X.T @ bf_b - self.b_f[f][gcols] - X.T @ GdA + Gf_bg.T @ dA
+                for j, pen in enumerate(pens):
+                    M = S0 + pen
+                    try:
+                        dg = sla.cho_solve(sla.cho_factor(M, lower=True, check_finite=False),
+                                           rhs, check_finite=False)
+                    except np.linalg.LinAlgError:
+                        dg = np.linalg.lstsq(M, rhs, rcond=1e-12)[0]
+                    out[i][j] += const_part + float(2.0 * lin @ dg + dg @ Q @ dg)
+        return [list(o) for o in out]
+
+
+def cv_folds(q: Array, k: int, seed: int, tol: float) -> IntArray:
+    """Fold index (n,) per pose; poses within ``tol`` rad in every joint share a fold.
+
+    Near-repeats of a configuration (common in real campaigns) would otherwise sit on both
+    sides of a split and reward models that memorise them.
+    """
+    n = q.shape[0]
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    if tol > 0 and n > 1:
+        from scipy.spatial import cKDTree
+
+        for i, j in cKDTree(q).query_pairs(tol, p=np.inf, output_type="ndarray"):
+            ri, rj = find(int(i)), find(int(j))
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+    roots = np.array([find(i) for i in range(n)])
+    uniq, group = np.unique(roots, return_inverse=True)
+    rng = np.random.default_rng(seed)
+    fold_of_group = np.empty(len(uniq), dtype=np.intp)
+    fold_of_group[rng.permutation(len(uniq))] = np.arange(len(uniq)) % k
+    return fold_of_group[group]
+
+
+def _inv_spd(A: Array) -> Array:
+    try:
+        c = sla.cho_factor(A, lower=True, check_finite=False)
+        return sla.cho_solve(c, np.eye(len(A)), check_finite=False)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(A, rcond=1e-12, hermitian=True)
+
+
+def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, Any]]]:
+    """Choose and fit the ``auto`` model; return the solution and the selection log."""
+    t0 = time.perf_counter()
+    opts = f.opts
+    inl = const.inliers
+    rows = np.flatnonzero(inl)
+    q = f.data.q[rows]
+    groups = candidate_groups(f, q)
+    # superset model
+    base_terms = list(const.model.spec.terms)
+    terms = list(base_terms)
+    knots = [0] * f.robot.dof
+    for g in groups:
+        terms += g.terms
+        if g.is_map:
+            knots[g.joint] = g.n_knots
+    spec = ErrorModelSpec(f.robot.dof, tuple(terms), tuple(knots), label="auto:superset")
+    msup = KinematicModel(f.robot, spec, const.model.T_ref)
+    x_c = const.model.transfer(const.x, msup)
+    names = msup.names
+    idx = {n: i for i, n in enumerate(names)}
+    for g in groups:
+        g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
+    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
+    # identifiable unpenalised columns (tiers keep low orders first)
+    map_cols = set(int(c) for g in groups if g.is_map for c in g.cols)
+    unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
+    ident, keep, _ = analyse(prob, x_c, rows, unpen, tol=opts.rank_tol)
+    kept = set(int(c) for c in unpen[keep])
+    base_cols = np.array([i for i in range(9 + len(base_terms)) if i in kept], dtype=np.intp)
+    for g in groups:
+        if not g.is_map:
+            g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
+    groups = [g for g in groups if len(g.cols)]
+    # per-fold normal matrices of the whitened superset Jacobian at x_c
+    fold_of = cv_folds(q, opts.cv_folds, opts.seed, math.radians(opts.cv_group_tol_deg))
+    all_cols = np.arange(msup.size)
+    P = msup.size
+    G_f = np.zeros((opts.cv_folds, P, P))
+    b_f = np.zeros((opts.cv_folds, P))
+    c_f = np.zeros(opts.cv_folds)
+    for ch in prob.chunks(np.arange(len(rows))):
+        Jw, rw = prob.whitened_jacobian(x_c, rows[ch], all_cols)
+        fo = np.repeat(fold_of[ch], 3)
+        for k in range(opts.cv_folds):
+            sel = fo == k
+            if sel.any():
+                Js = Jw[sel]
+                G_f[k] += Js.T @ Js
+                b_f[k] += Js.T @ rw[sel]
+                c_f[k] += float(rw[sel] @ rw[sel])
+    s = np.sqrt(np.clip(np.diagonal(G_f.sum(axis=0)), 0.0, None))
+    s[s <= 1e-300] = 1.0
+    G_f /= np.outer(s, s)[None]
+    b_f /= s[None]
+    cv = _CV(G_f, b_f, c_f)
+    ridge_sigma = math.radians(opts.map_ridge_deg)
+    for g in groups:
+        if g.is_map:
+            sc = s[g.cols]
+            D = second_difference(g.knots, g.n_knots)
+            DtD = D.T @ D
+            g.D2 = DtD / np.outer(sc, sc)
+            g.ridge = 1.0 / (ridge_sigma**2 * sc**2)
+            g.lam_unit = float(np.mean(sc**2))
+
+    def map_pen(g: Group, lam_rel: float) -> Array:
+        assert g.D2 is not None and g.ridge is not None
+        return lam_rel * g.lam_unit * g.D2 + np.diag(g.ridge)
+
+    # ------------------------------------------------------------------ forward selection
+    chosen: dict[str, float | None] = {}   # group key -> relative lambda (maps) or None
+    by_key = {g.key: g for g in groups}
+
+    def assemble(sel: dict[str, float | None]) -> tuple[IntArray, Array]:
+        cols = [base_cols]
+        blocks: list[Array] = [np.zeros((len(base_cols), len(base_cols)))]
+        for key, lam in sel.items():
+            g = by_key[key]
+            cols.append(g.cols)
+            blocks.append(map_pen(g, lam) if g.is_map and lam is not None
+                          else np.zeros((len(g.cols), len(g.cols))))
+        return np.concatenate(cols).astype(np.intp), sla.block_diag(*blocks)
+
+    score = cv.score(base_cols, np.zeros((len(base_cols), len(base_cols))))
+    m_obs = 3 * len(rows)
+    log: list[dict[str, Any]] = [{"step": 0, "action": "start", "group": "constant",
+                                  "cv_rms_whitened": math.sqrt(score / m_obs)}]
+    step = 0
+    best_lam: dict[str, float] = {}
+    # phase 1: physically modelled single terms (gravity torsion, pitch, strain-wave ripple);
+    # phase 2: harmonics; phase 3: maps, which then only describe what the parametric terms
+    # cannot (fine-grained joint-angle errors). Earlier phases stay open in later ones.
+    for phase in (1, 2, 3):
+        while True:
+            cur_cols, cur_pen = assemble(chosen)
+            options: list[tuple[IntArray, list[Array]]] = []
+            labels: list[tuple[str, list[float | None]]] = []
+            for g in groups:
+                if g.phase > phase or g.key in chosen:
+                    continue
+                if g.requires is not None and g.requires not in chosen:
+                    continue
+                if g.is_map:
+                    # after a map's first evaluation only the neighbourhood of its best
+                    # smoothness so far is re-tried (the optimum moves little)
+                    lams = list(opts.map_lambdas)
+                    if g.key in best_lam:
+                        lams = [v for v in lams if best_lam[g.key] / 11 < v < best_lam[g.key] * 11]
+                    options.append((g.cols, [map_pen(g, lam) for lam in lams]))
+                    labels.append((g.key, lams))
+                else:
+                    options.append((g.cols, [np.zeros((len(g.cols), len(g.cols)))]))
+                    labels.append((g.key, [None]))
+            if not options:
+                break
+            all_scores = cv.scores_added(cur_cols, cur_pen, options)
+            for (key_i, lams_i), row in zip(labels, all_scores, strict=True):
+                if lams_i[0] is not None:
+                    best_lam[key_i] = float(lams_i[int(np.argmin(row))])
+            flat = [(sc_, i, j) for i, row in enumerate(all_scores) for j, sc_ in enumerate(row)]
+            best_score, bi, bj = min(flat)
+            if not best_score < score * (1.0 - opts.auto_min_improvement):
+                break
+            step += 1
+            key, lam = labels[bi][0], labels[bi][1][bj]
+            chosen[key] = lam
+            log.append({"step": step, "action": "add", "group": key, "lambda_rel": lam,
+                        "cv_rms_whitened": float(math.sqrt(best_score / m_obs)),
+                        "gain_percent": float(100.0 * (1.0 - best_score / score))})
+            score = best_score
+    # ------------------------------------------------------------------ refine map lambdas
+    for key in [k for k in chosen if by_key[k].is_map]:
+        lam0 = chosen[key]
+        assert lam0 is not None
+        best_lam, best_score = lam0, score
+        for fac in (1 / 3, 3.0):
+            trial = dict(chosen)
+            trial[key] = lam0 * fac
+            sc_ = cv.score(*assemble(trial))
+            if sc_ < best_score:
+                best_lam, best_score = lam0 * fac, sc_
+        if best_lam != lam0:
+            chosen[key] = best_lam
+            score = best_score
+            log.append({"step": step, "action": "refine", "group": key, "lambda_rel": best_lam,
+                        "cv_rms_whitened": math.sqrt(score / m_obs)})
+    # ------------------------------------------------------------------ backward pass
+    changed = True
+    while changed and chosen:
+        changed = False
+        for key in list(chosen):
+            if any(by_key[k].requires == key for k in chosen):
+                continue
+            trial = {k: v for k, v in chosen.items() if k != key}
+            sc_ = cv.score(*assemble(trial))
+            if sc_ <= score:
+                del chosen[key]
+                score = sc_
+                log.append({"step": step, "action": "drop", "group": key,
+                            "cv_rms_whitened": math.sqrt(score / m_obs)})
+                changed = True
+                break
+    # ------------------------------------------------------------------ final model
+    final_terms = list(base_terms)
+    final_knots = [0] * f.robot.dof
+    priors: list[MapPrior] = []
+    for key, lam in chosen.items():
+        g = by_key[key]
+        final_terms += g.terms
+        if g.is_map:
+            assert lam is not None
+            final_knots[g.joint] = g.n_knots
+            priors.append(MapPrior(g.joint, g.n_knots, g.knots, lam * g.lam_unit, ridge_sigma))
+    spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots),
+                            label="auto:" + ",".join(chosen) if chosen else "auto:constant")
+    mf = KinematicModel(f.robot, spec_f, const.model.T_ref)
+    x0 = const.model.transfer(const.x, mf)
+    sol = f.engine.solve(mf, x0, priors=priors, inliers=inl, what="auto model")
+    log.append({"action": "final", "groups": list(chosen), "cv_evaluations": cv.evaluations,
+                "selection_s": time.perf_counter() - t0})
+    del ident
+    return sol, log

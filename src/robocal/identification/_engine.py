@@ -1,0 +1,239 @@
+"""The fitting engine: one measurement set, robust ML/MAP solves of any error model on it."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from robocal._core.measurements import MeasurementSet
+from robocal.errors import NotConverged, NotIdentifiable
+from robocal.identification._models import MapPrior, map_terms, penalty_for
+from robocal.identification._solver import (
+    Identifiability,
+    Problem,
+    SolveInfo,
+    analyse,
+    inverse_spd,
+    levenberg_marquardt,
+)
+from robocal.identification._weights import TrackerSigma, whitening
+from robocal.kinematics import KinematicModel, RobotDescription
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+CHI2_3_MEDIAN = float(stats.chi2.median(3))
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    """Numerical settings the engine needs (a subset of :class:`FitOptions`)."""
+
+    noise: TrackerSigma = field(default_factory=TrackerSigma)
+    use_point_sigma: bool = True
+    rank_tol: float = 3e-4
+    max_iter: int = 100
+    ftol: float = 1e-10
+    detect_outliers: bool = True
+    outlier_alpha: float = 0.01
+    outlier_sigma: float | None = None
+    outlier_sigma_min: float = 8.0
+    outlier_max_rounds: int = 6
+    outlier_max_fraction: float = 0.2
+    min_redundancy: float = 0.1
+    chunk: int = 2048
+
+
+@dataclass
+class Solution:
+    """A solved model: parameters, which were free, identifiability, outliers, covariance."""
+
+    model: KinematicModel
+    x: Array
+    free: IntArray
+    priors: tuple[MapPrior, ...]
+    ident: Identifiability
+    removed: list[str]
+    info: SolveInfo
+    inliers: BoolArray                 # over the engine's poses
+    variance_factor: float
+    dof_effective: float
+    covariance: Array                  # (P, P) SI, a-posteriori (scaled by variance factor)
+    outlier_threshold: float
+    robust_sigma: float
+    rounds: int
+    stats: Array                       # per-pose outlier statistic (n,), in robust sigma^2
+
+    @property
+    def n_free(self) -> int:
+        """Number of estimated parameters."""
+        return len(self.free)
+
+
+class Engine:
+    """Holds one measurement set and its whitening; solves models on it."""
+
+    def __init__(self, robot: RobotDescription, data: MeasurementSet,
+                 settings: EngineSettings) -> None:
+        self.robot = robot
+        self.data = data
+        self.s = settings
+        sig = data.sigma if settings.use_point_sigma else None
+        self.W = whitening(data.p, settings.noise, sig)
+        self.sigma_source = "per-point sx,sy,sz" if sig is not None else "tracker model"
+
+    @property
+    def n(self) -> int:
+        """Number of poses."""
+        return len(self.data)
+
+    def problem(self, model: KinematicModel, priors: Sequence[MapPrior] = ()) -> Problem:
+        """The whitened problem of ``model`` on all poses."""
+        return Problem(model, self.data.q, self.data.p, self.W,
+                       penalty=penalty_for(model.names, priors), chunk=self.s.chunk)
+
+    # ------------------------------------------------------------------------------------
+    def solve(self, model: KinematicModel, x0: Array, *, priors: Sequence[MapPrior] = (),
+              fixed: Sequence[str] = (), inliers: BoolArray | None = None,
+              robust: bool | None = None, what: str = "model") -> Solution:
+        """Robust ML (MAP with ``priors``) fit of ``model`` starting at ``x0``.
+
+        Parameters named in ``fixed`` are held at their ``x0`` values. Redundant and
+        unobservable parameters (rank analysis of the unpenalised columns at ``x0``) are held
+        too and reported. With outlier detection on, poses failing the normalised residual
+        test are excluded and the fit repeated until the set is stable.
+
+        Raises
+        ------
+        NotIdentifiable
+            Too few poses for the number of identifiable parameters.
+        NotConverged
+            The solver did not converge.
+        """
+        prob = self.problem(model, priors)
+        names = model.names
+        pen = {t.name for pr in priors for t in map_terms(pr.joint, pr.knots)}
+        fixed_set = set(fixed)
+        cand = np.array([i for i, nm in enumerate(names) if nm not in pen and nm not in fixed_set],
+                        dtype=np.intp)
+        pen_idx = np.array([i for i, nm in enumerate(names) if nm in pen], dtype=np.intp)
+        active = np.ones(self.n, dtype=bool) if inliers is None else inliers.copy()
+        rows = np.flatnonzero(active)
+        ident, keep, _ = analyse(prob, x0, rows, cand, tol=self.s.rank_tol)
+        free = np.sort(np.concatenate([cand[keep], pen_idx])).astype(np.intp)
+        removed = [names[i] for i in cand[~keep]]
+        m_obs = 3 * len(rows)
+        need = ident.rank + max(6, math.ceil(self.s.min_redundancy * m_obs))
+        if m_obs < need or ident.rank == 0:
+            raise NotIdentifiable(
+                f"too few poses for the {what}: {len(rows)} poses give {m_obs} coordinates for "
+                f"{ident.rank} identifiable parameters (need at least "
+                f"{math.ceil((ident.rank + 6) / (3 * (1 - self.s.min_redundancy)))} poses)",
+                parameters=removed)
+        robust = self.s.detect_outliers if robust is None else robust
+        pen_free = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
+
+        def run(x_start: Array, act: BoolArray) -> tuple[SolveInfo, Array]:
+            info = levenberg_marquardt(prob, x_start, free, np.flatnonzero(act),
+                                       max_iter=self.s.max_iter, ftol=self.s.ftol)
+            if not info.converged:
+                raise NotConverged(f"the {what} fit did not converge after {info.iterations} "
+                                   f"iterations ({info.message})")
+            N = info.normal if pen_free is None else info.normal + pen_free
+            return info, inverse_spd(N)
+
+        info, Ninv = run(np.array(x0, dtype=float), active)
+        rounds = 0
+        thr = math.nan
+        s2 = math.nan
+        tstat = np.zeros(self.n)
+        while robust:
+            tstat, s2, thr = self._outlier_statistics(prob, info.x, free, Ninv, active)
+            flagged = tstat > thr
+            cap = int(self.s.outlier_max_fraction * self.n)
+            if flagged.sum() > cap:
+                flagged = np.zeros(self.n, dtype=bool)
+                flagged[np.argsort(-tstat)[:cap]] = True
+            rounds += 1
+            if np.array_equal(~flagged, active):
+                break
+            active = ~flagged
+            info, Ninv = run(info.x, active)
+            if rounds >= self.s.outlier_max_rounds:
+                break
+        x = info.x
+        rows = np.flatnonzero(active)
+        A = info.normal
+        edf = float(np.sum(Ninv * A)) if len(free) else 0.0   # trace(Ninv @ A), A symmetric
+        redundancy = max(3 * len(rows) - edf, 1.0)
+        vf = info.data_cost / redundancy
+        cov = np.zeros((model.size, model.size))
+        cov[np.ix_(free, free)] = vf * Ninv
+        return Solution(model=model, x=x, free=free, priors=tuple(priors), ident=ident,
+                        removed=removed, info=info, inliers=active, variance_factor=vf,
+                        dof_effective=edf, covariance=cov, outlier_threshold=thr,
+                        robust_sigma=math.sqrt(s2) if np.isfinite(s2) else math.nan,
+                        rounds=rounds, stats=tstat)
+
+    def threshold(self, n: int) -> float:
+        """Outlier threshold on the normalised statistic (chi-square 3 dof units)."""
+        if self.s.outlier_sigma is not None:
+            return float(self.s.outlier_sigma**2)
+        return max(float(stats.chi2.isf(self.s.outlier_alpha / n, 3)),
+                   float(self.s.outlier_sigma_min**2))
+
+    def _outlier_statistics(self, prob: Problem, x: Array, free: IntArray, Ninv: Array,
+                            active: BoolArray) -> tuple[Array, float, float]:
+        """Normalised residual statistic per pose, robust variance, threshold.
+
+        ``t_j = r_j^T (I - H_jj)^{-1} r_j`` for poses in the fit (the deletion residual: how
+        far the pose is from a fit without it) and ``r_j^T (I + H_jj)^{-1} r_j`` for excluded
+        poses (prediction residual), ``H_jj`` the 3x3 hat block. Under the model ``t_j / s2``
+        is chi-square with 3 degrees of freedom; ``s2`` is estimated robustly from the median.
+        A pose is an outlier when ``t_j / s2`` exceeds the Bonferroni quantile at
+        ``outlier_alpha`` and ``outlier_sigma_min**2`` (real residuals are dominated by
+        heavy-tailed model error, so only gross errors are flagged).
+        """
+        t = hat_statistics(prob, x, free, Ninv, active)
+        s2 = max(float(np.median(t[active]) / CHI2_3_MEDIAN), 1e-300)
+        return t / s2, s2, self.threshold(self.n)
+
+
+def hat_statistics(prob: Problem, x: Array, free: IntArray, Ninv: Array,
+                   in_fit: BoolArray) -> Array:
+    """``r^T (I -/+ H_jj)^{-1} r`` per pose (whitened), minus for poses in the fit."""
+    n = prob.n
+    t = np.empty(n)
+    k = len(free)
+    eye = np.eye(3)
+    for ch in prob.chunks(np.arange(n)):
+        Jw, rw = prob.whitened_jacobian(x, ch, free)
+        c = len(ch)
+        Jc = Jw.reshape(c, 3, k)
+        H = np.einsum("nik,kl,njl->nij", Jc, Ninv, Jc, optimize=True)
+        sign = np.where(in_fit[ch], -1.0, 1.0)[:, None, None]
+        M = eye + sign * H + 1e-9 * eye
+        r = rw.reshape(c, 3)
+        sol = np.linalg.solve(M, r[:, :, None])[:, :, 0]
+        t[ch] = np.einsum("ni,ni->n", r, sol)
+    return t
+
+
+def screen(engine: Engine, sol: Solution, data: MeasurementSet) -> Array:
+    """Normalised prediction statistic (n,) of new poses under a solved model.
+
+    Uses the solution's robust scale, so values compare directly with
+    ``engine.threshold(...)``; large values are gross measurement errors of the new poses.
+    """
+    W = whitening(data.p, engine.s.noise, data.sigma if engine.s.use_point_sigma else None)
+    prob = Problem(sol.model, data.q, data.p, W, chunk=engine.s.chunk)
+    vf = sol.variance_factor if sol.variance_factor > 0 else 1.0
+    Ninv = sol.covariance[np.ix_(sol.free, sol.free)] / vf
+    t = hat_statistics(prob, sol.x, sol.free, Ninv, np.zeros(len(data), dtype=bool))
+    s2 = sol.robust_sigma**2 if np.isfinite(sol.robust_sigma) else 1.0
+    return t / s2

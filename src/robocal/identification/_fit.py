@@ -1,0 +1,539 @@
+"""Public fitting API: :func:`fit`, :func:`refit_frozen`, :class:`FitOptions`, :class:`FitResult`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal._core.measurements import MeasurementSet
+from robocal.errors import ConfigError, DataError
+from robocal.identification._engine import Engine, EngineSettings, Solution, screen
+from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
+from robocal.identification._models import constant_spec, high_order_spec
+from robocal.identification._solver import Identifiability
+from robocal.identification._threads import blas_threads
+from robocal.identification._weights import TrackerSigma
+from robocal.kinematics import (
+    CalibratedModel,
+    ErrorModelSpec,
+    KinematicModel,
+    RobotDescription,
+    load_robot,
+    rigid_fit,
+)
+
+Array = NDArray[np.float64]
+MODELS = ("constant", "high-order", "auto")
+SOLVER = ("Levenberg-Marquardt (Nielsen damping) on column-scaled whitened normal equations, "
+          "Cholesky; analytic Jacobian")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of :func:`fit` (SI units).
+
+    Measurement model
+        ``noise``: tracker sigma model (whitening, ML weights). ``use_point_sigma``: use the
+        data's per-point ``sx, sy, sz`` where given (diagonal covariance).
+    Start
+        ``tool_m``: flange -> reflector offset to start from (default: the robot file's).
+    Solver
+        ``rank_tol``: relative singular-value threshold of the column-scaled identification
+        Jacobian below which parameter combinations count as unidentifiable (held fixed).
+        ``max_iter``, ``ftol``: Levenberg-Marquardt limits. ``chunk``: poses per Jacobian block.
+    Outliers
+        ``detect_outliers``; ``outlier_alpha``: family-wise false-alarm rate of the normalised
+        residual test (Bonferroni over poses); ``outlier_sigma_min``: never flag below this
+        many robust sigmas (real residuals are heavy-tailed model error; only gross errors such
+        as beam-break glitches are outliers); ``outlier_sigma``: fixed threshold in robust
+        sigmas instead of both; ``outlier_max_rounds``, ``outlier_max_fraction``. The same
+        test screens validation poses (reported, and left out of ``validation``).
+    ``high-order``
+        ``order`` of the Fourier harmonics, ``pitch`` (linear term on the joint rotation),
+        ``strain_wave`` multiples of the gear ratio.
+    ``auto``
+        ``cv_folds``; ``cv_group_tol_deg`` (poses this close in every joint share a fold);
+        ``auto_max_order``; ``auto_maps`` and ``map_spacing_deg`` (knot spacing of
+        joint-angle maps); ``map_lambdas`` (relative smoothness weights tried by CV);
+        ``map_ridge_deg`` (prior sigma of map values); ``auto_gravity``;
+        ``auto_strain_wave``; ``auto_min_improvement`` (relative CV gain needed to add a term
+        group); ``seed`` of the CV folds.
+    Output
+        ``fallback``: store a constant-model fallback for poses outside the covered joint range
+        (the training range of each joint widened by ``coverage_margin_deg``; the full joint
+        range where the joint has no joint-dependent terms, or only periodic ones and the data
+        cover a full turn).
+    """
+
+    noise: TrackerSigma = field(default_factory=TrackerSigma)
+    use_point_sigma: bool = True
+    tool_m: tuple[float, float, float] | None = None
+    rank_tol: float = 3e-4
+    max_iter: int = 100
+    ftol: float = 1e-10
+    chunk: int = 2048
+    detect_outliers: bool = True
+    outlier_alpha: float = 0.01
+    outlier_sigma: float | None = None
+    outlier_sigma_min: float = 8.0
+    outlier_max_rounds: int = 6
+    outlier_max_fraction: float = 0.2
+    min_redundancy: float = 0.1
+    order: int = 2
+    pitch: bool = True
+    strain_wave: tuple[int, ...] = (1, 2)
+    cv_folds: int = 5
+    cv_group_tol_deg: float = 0.5
+    auto_max_order: int = 3
+    auto_maps: bool = True
+    map_spacing_deg: float = 1.25
+    map_lambdas: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3, 1e4)
+    map_ridge_deg: float = 0.1
+    auto_gravity: bool = True
+    auto_strain_wave: bool = True
+    auto_min_improvement: float = 0.01
+    seed: int = 0
+    fallback: bool = True
+    coverage_margin_deg: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.rank_tol < 1:
+            raise ConfigError("rank_tol must be in (0, 1)")
+        if self.max_iter < 1 or self.chunk < 1:
+            raise ConfigError("max_iter and chunk must be positive")
+        if self.order < 0 or self.auto_max_order < 0:
+            raise ConfigError("orders must not be negative")
+        if self.cv_folds < 2:
+            raise ConfigError("cv_folds must be at least 2")
+        if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0:
+            raise ConfigError("map_spacing_deg and map_ridge_deg must be positive")
+
+    def engine_settings(self) -> EngineSettings:
+        """The subset the engine needs."""
+        return EngineSettings(
+            noise=self.noise, use_point_sigma=self.use_point_sigma, rank_tol=self.rank_tol,
+            max_iter=self.max_iter, ftol=self.ftol, detect_outliers=self.detect_outliers,
+            outlier_alpha=self.outlier_alpha, outlier_sigma=self.outlier_sigma,
+            outlier_sigma_min=self.outlier_sigma_min,
+            outlier_max_rounds=self.outlier_max_rounds,
+            outlier_max_fraction=self.outlier_max_fraction, min_redundancy=self.min_redundancy,
+            chunk=self.chunk)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form (SI)."""
+        d = asdict(self)
+        d["noise"] = asdict(self.noise)
+        return d
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    ``calibrated``: the model (``kind`` = model name), ready to save. ``baseline``: the nominal
+    model with only base and reflector fitted (reference of the % described). ``constant``:
+    the constant model fitted on the same poses (also the stored fallback).
+    """
+
+    model: str
+    calibrated: CalibratedModel
+    baseline: CalibratedModel
+    constant: CalibratedModel | None
+    train: Accuracy
+    validation: Accuracy | None
+    outliers: list[str]
+    removed: list[str]
+    identifiability: Identifiability
+    variance_factor: float
+    dof_effective: float
+    n_params: int
+    n_free: int
+    iterations: int
+    converged: bool
+    selection: list[dict[str, Any]]
+    options: FitOptions
+    elapsed_s: float
+    validation_all: Accuracy | None = None
+    validation_outliers: list[str] = field(default_factory=list)
+
+    def correlations(self) -> tuple[list[str], Array]:
+        """Names and correlation matrix (k, k) of the estimated parameters."""
+        return _correlations(self.calibrated)
+
+    @property
+    def rank(self) -> int:
+        """Numerical rank of the identification Jacobian (unpenalised parameters)."""
+        return self.identifiability.rank
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly summary (mm, %)."""
+        return {
+            "model": self.model,
+            "model_id": self.calibrated.model_id,
+            "robot": self.calibrated.robot.name,
+            "baseline": BASELINE_DESCRIPTION,
+            "train": self.train.to_dict(),
+            "validation": None if self.validation is None else self.validation.to_dict(),
+            "validation_all_poses": (None if self.validation_all is None
+                                     else self.validation_all.to_dict()),
+            "outliers": list(self.outliers),
+            "validation_outliers": list(self.validation_outliers),
+            "removed": list(self.removed),
+            "rank": self.identifiability.rank,
+            "condition_number": _finite(self.identifiability.cond),
+            "variance_factor": _finite(self.variance_factor),
+            "sigma0": _finite(math.sqrt(self.variance_factor)),
+            "dof_effective": round(self.dof_effective, 3),
+            "n_params": self.n_params,
+            "n_free": self.n_free,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "terms": _term_summary(self.calibrated.model.spec),
+            "selection": self.selection,
+            "elapsed_s": round(self.elapsed_s, 3),
+        }
+
+
+def _correlations(cal: CalibratedModel) -> tuple[list[str], Array]:
+    cov = cal.covariance
+    if cov is None:
+        return [], np.zeros((0, 0))
+    d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    free = np.flatnonzero(d > 0)
+    corr = cov[np.ix_(free, free)] / np.outer(d[free], d[free])
+    return [cal.model.names[i] for i in free], corr
+
+
+def _top_correlations(cal: CalibratedModel, k: int = 10) -> list[dict[str, Any]]:
+    names, corr = _correlations(cal)
+    if len(names) < 2:
+        return []
+    iu = np.triu_indices(len(names), 1)
+    vals = corr[iu]
+    order = np.argsort(-np.abs(vals))[:k]
+    return [{"a": names[iu[0][i]], "b": names[iu[1][i]], "rho": float(vals[i])} for i in order]
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _term_summary(spec: ErrorModelSpec) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for t in spec.terms:
+        out[t.family] = out.get(t.family, 0) + 1
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+def _check_inputs(robot: RobotDescription | str, data: MeasurementSet,
+                  model: str | ErrorModelSpec, validation: MeasurementSet | None
+                  ) -> RobotDescription:
+    rob = load_robot(robot) if isinstance(robot, str) else robot
+    if isinstance(model, ErrorModelSpec):
+        if model.dof != rob.dof:
+            raise ConfigError(f"error model has {model.dof} joints, robot has {rob.dof}")
+    elif model not in MODELS:
+        raise ConfigError(f"unknown model {model!r} (choose from {', '.join(MODELS)})")
+    for name, ds in (("data", data), ("validation", validation)):
+        if ds is None:
+            continue
+        if ds.dof != rob.dof:
+            raise DataError(f"{name} has {ds.dof} joint columns, robot {rob.name!r} has "
+                            f"{rob.dof} joints")
+        if not (np.all(np.isfinite(ds.q)) and np.all(np.isfinite(ds.p))):
+            raise DataError(f"{name} contains non-finite values")
+        if ds.sigma is not None and not (np.all(np.isfinite(ds.sigma)) and np.all(ds.sigma > 0)):
+            raise DataError(f"{name} has non-positive or non-finite sigmas")
+    if len(data) < 4:
+        raise DataError(f"need at least 4 poses, got {len(data)}")
+    return rob
+
+
+def _initial_base(robot: RobotDescription, data: MeasurementSet, tool: Array) -> Array:
+    """Tracker <- base by rigid registration of the nominal FK to the measurements."""
+    m0 = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
+    x0 = m0.nominal_params()
+    x0[6:9] = tool
+    src = m0.positions(data.q, x0)
+    if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-6) < 2:
+        raise DataError("the poses do not span a plane; cannot register the robot base")
+    T = rigid_fit(src, data.p)
+    # one trimmed re-registration against gross outliers
+    d = np.linalg.norm(data.p - (src @ T[:3, :3].T + T[:3, 3]), axis=1)
+    good = d <= max(3.0 * np.median(d), 1e-3)
+    if good.sum() >= 3 and not good.all():
+        T = rigid_fit(src[good], data.p[good])
+    return T
+
+
+def _coverage(q: Array, margin_deg: float = 0.0) -> Array:
+    m = math.radians(margin_deg)
+    return np.stack([q.min(axis=0) - m, q.max(axis=0) + m], axis=1)
+
+
+_PERIODIC = {"const", "cos", "sin", "swcos", "swsin", "map", "gravity"}
+
+
+def _model_coverage(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
+                    margin_deg: float) -> Array:
+    """Joint ranges (dof, 2) rad inside which the model's corrections are trusted.
+
+    The training range of each joint widened by ``margin_deg``; the whole joint range for a
+    joint without joint-dependent terms, or whose terms are all periodic in the joint angle
+    (harmonics, strain wave, maps; gravity is a function of the configuration) when the data
+    cover a full revolution.
+    """
+    cov = _coverage(q, margin_deg)
+    lim = robot.joint_limits
+    for j in range(robot.dof):
+        fams = {t.family for t in spec.terms if t.joint == j}
+        dependent = fams - {"const", "gravity"}
+        full_turn = cov[j, 1] - cov[j, 0] >= 2 * math.pi
+        if not dependent or (fams <= _PERIODIC and full_turn):
+            cov[j] = lim[j]
+    return cov
+
+
+class _Fitter:
+    """One fit: engine, baseline, constant, and the requested model."""
+
+    def __init__(self, robot: RobotDescription, data: MeasurementSet, opts: FitOptions) -> None:
+        self.robot = robot
+        self.data = data
+        self.opts = opts
+        self.engine = Engine(robot, data, opts.engine_settings())
+        self.tool0 = np.asarray(opts.tool_m if opts.tool_m is not None else robot.tool, float)
+        self.T = _initial_base(robot, data, self.tool0)
+
+    def model(self, spec: ErrorModelSpec) -> KinematicModel:
+        return KinematicModel(self.robot, spec, self.T)
+
+    def baseline(self, inliers: NDArray[np.bool_] | None = None, robust: bool = False
+                 ) -> Solution:
+        m = self.model(ErrorModelSpec(self.robot.dof, ()))
+        x0 = m.nominal_params()
+        x0[6:9] = self.tool0
+        return self.engine.solve(m, x0, inliers=inliers, robust=robust,
+                                 what="nominal (base + reflector) model")
+
+    def constant(self, start: Solution) -> Solution:
+        m = self.model(constant_spec(self.robot))
+        return self.engine.solve(m, start.model.transfer(start.x, m), what="constant model")
+
+    def high_order(self, start: Solution) -> Solution:
+        spec = high_order_spec(self.robot, order=self.opts.order, pitch=self.opts.pitch,
+                               strain_wave=self.opts.strain_wave)
+        m = self.model(spec)
+        return self.engine.solve(m, start.model.transfer(start.x, m), what="high-order model",
+                                 inliers=start.inliers)
+
+
+def _calibrated(sol: Solution, kind: str) -> CalibratedModel:
+    return CalibratedModel(model=sol.model, params=sol.x.copy(), covariance=sol.covariance,
+                           kind=kind)
+
+
+def fit(robot: RobotDescription | str, data: MeasurementSet,
+        model: str | ErrorModelSpec = "constant", *,
+        options: FitOptions | None = None, validation: MeasurementSet | None = None
+        ) -> FitResult:
+    """Identify an error model from measured poses by maximum likelihood.
+
+    Parameters
+    ----------
+    robot
+        Robot description or built-in name / TOML path.
+    data
+        Training poses: joint values (n, dof) rad, reflector positions (n, 3) m in the tracker
+        frame, optional per-point sigmas.
+    model
+        ``"constant"`` (6-DoF constant error per joint), ``"high-order"`` (constant + Fourier,
+        pitch and strain-wave terms) or ``"auto"`` (terms, orders, joint-angle maps and their
+        smoothness chosen by cross-validation), or an explicit :class:`ErrorModelSpec` (e.g. a
+        known structure; kind = its label).
+    options
+        :class:`FitOptions`.
+    validation
+        Held-out poses for :attr:`FitResult.validation`.
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    DataError
+        Wrong joint count, non-finite values, degenerate poses.
+    NotIdentifiable
+        Too few poses for the model.
+    NotConverged
+        The solver did not converge.
+    """
+    with blas_threads(1):
+        return _fit(robot, data, model, options, validation)
+
+
+def _fit(robot: RobotDescription | str, data: MeasurementSet, model: str | ErrorModelSpec,
+         options: FitOptions | None, validation: MeasurementSet | None) -> FitResult:
+    t0 = time.perf_counter()
+    opts = options or FitOptions()
+    rob = _check_inputs(robot, data, model, validation)
+    f = _Fitter(rob, data, opts)
+    base0 = f.baseline()
+    const = f.constant(base0)
+    selection: list[dict[str, Any]] = []
+    if isinstance(model, ErrorModelSpec):
+        m = f.model(model)
+        final = f.engine.solve(m, const.model.transfer(const.x, m), inliers=const.inliers,
+                               what=f"{model.label} model")
+        kind = model.label
+    elif model == "constant":
+        final, kind = const, model
+    elif model == "high-order":
+        final, kind = f.high_order(const), model
+    else:
+        from robocal.identification._auto import auto_select
+
+        final, selection = auto_select(f, const)
+        kind = model
+    return _finish(f, kind, final, const, selection, validation, t0)
+
+
+def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
+            selection: list[dict[str, Any]], validation: MeasurementSet | None,
+            t0: float, extra_fit: dict[str, Any] | None = None,
+            coverage: Array | None = None) -> FitResult:
+    data, opts = f.data, f.opts
+    inl = final.inliers
+    base = f.baseline(inliers=inl, robust=False)
+    baseline_cm = _calibrated(base, "nominal+base+reflector")
+    cal = _calibrated(final, kind)
+    const_cm = None
+    if const is not None:
+        const_cm = cal if final is const else _calibrated(const, "constant")
+    cal.coverage = _model_coverage(final.model.spec, f.robot, data.q[inl],
+                                   opts.coverage_margin_deg)
+    if kind != "constant" and opts.fallback and const_cm is not None and const_cm is not cal:
+        cal.fallback = const_cm
+    if coverage is not None and cal.fallback is not None:
+        cal.coverage = coverage.copy()
+    outliers = [data.pose_id[i] for i in np.flatnonzero(~inl)]
+    train = accuracy(cal, data, baseline=baseline_cm, exclude=outliers)
+    val = val_all = None
+    val_out: list[str] = []
+    if validation is not None:
+        val_all = accuracy(cal, validation, baseline=baseline_cm)
+        if opts.detect_outliers:
+            t = screen(f.engine, final, validation)
+            val_out = [validation.pose_id[i]
+                       for i in np.flatnonzero(t > f.engine.threshold(len(validation)))]
+        val = accuracy(cal, validation, baseline=baseline_cm, exclude=val_out)
+    elapsed = time.perf_counter() - t0
+    ident = final.ident
+    cal.metrics = {
+        "baseline": BASELINE_DESCRIPTION,
+        "train": train.to_dict(),
+        "validation": None if val is None else val.to_dict(),
+        "validation_all_poses": None if val_all is None else val_all.to_dict(),
+        "validation_outliers": val_out,
+    }
+    cal.fit = {
+        "model": kind,
+        "solver": {"method": SOLVER, "iterations": final.info.iterations,
+                   "converged": final.info.converged, "message": final.info.message,
+                   "cost": final.info.cost, "max_iter": opts.max_iter, "ftol": opts.ftol,
+                   "rank_tol": opts.rank_tol},
+        "options": opts.to_dict(),
+        "identifiability": {
+            "rank": ident.rank, "condition_number": _finite(ident.cond),
+            "removed": list(final.removed),
+            "singular_values": [float(v) for v in ident.singular_values],
+            "note": "column-scaled whitened Jacobian of the unpenalised parameters",
+        },
+        "n_params": final.model.size, "n_free": final.n_free,
+        "dof_effective": final.dof_effective,
+        "variance_factor": _finite(final.variance_factor),
+        "sigma0": _finite(math.sqrt(final.variance_factor)),
+        "covariance": "a-posteriori: variance factor x inverse (normal matrix + prior)",
+        "largest_correlations": _top_correlations(cal),
+        "outliers": {
+            "pose_ids": outliers,
+            "test": "normalised (deletion) residual, chi-square 3 dof, robust scale",
+            "threshold_chi2": _finite(final.outlier_threshold),
+            "robust_sigma": _finite(final.robust_sigma),
+            "rounds": final.rounds,
+        },
+        "map_priors": [p.to_dict() for p in final.priors],
+        "selection": selection,
+        "baseline_params_mm_deg": {
+            n: float(v * (1e3 if n.startswith(("base.d", "tool")) else 180 / math.pi))
+            for n, v in zip(base.model.names, base.x, strict=True)},
+        "elapsed_s": elapsed,
+    }
+    if extra_fit:
+        cal.fit.update(extra_fit)
+    cal.data = {
+        "digest": data.digest(),
+        "n_poses": len(data),
+        "n_used": int(inl.sum()),
+        "sigma_source": f.engine.sigma_source,
+        "coverage_deg": np.degrees(_coverage(data.q[inl])).tolist(),
+        "validation_digest": None if validation is None else validation.digest(),
+        "validation_n_poses": None if validation is None else len(validation),
+    }
+    cal.model_id = cal.compute_id()
+    return FitResult(
+        model=kind, calibrated=cal, baseline=baseline_cm, constant=const_cm, train=train,
+        validation=val, outliers=outliers, removed=list(final.removed), identifiability=ident,
+        variance_factor=final.variance_factor, dof_effective=final.dof_effective,
+        n_params=final.model.size, n_free=final.n_free, iterations=final.info.iterations,
+        converged=final.info.converged, selection=selection, options=opts, elapsed_s=elapsed,
+        validation_all=val_all, validation_outliers=val_out)
+
+
+def refit_frozen(previous: CalibratedModel, data: MeasurementSet, *,
+                 options: FitOptions | None = None, validation: MeasurementSet | None = None
+                 ) -> FitResult:
+    """Re-use a model's joint-dependent terms on a new session; refit only the constant part.
+
+    The joint-dependent terms of ``previous`` (maps, gravity, harmonics, ...) are frozen at
+    their values; the constant kinematic errors, the tracker <- base transform and the
+    reflector offset are fitted to ``data`` (new tracker placement, re-mounted reflector).
+    Coverage is the previous model's (the frozen maps are only known there); the fallback is
+    a constant model fitted on ``data``.
+    """
+    with blas_threads(1):
+        return _refit_frozen(previous, data, options, validation)
+
+
+def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitOptions | None,
+                  validation: MeasurementSet | None) -> FitResult:
+    t0 = time.perf_counter()
+    opts = options or FitOptions()
+    rob = _check_inputs(previous.robot, data, "constant", validation)
+    f = _Fitter(rob, data, opts)
+    base0 = f.baseline()
+    const = f.constant(base0)
+    spec = previous.model.spec
+    # register the previous model (its own terms, tool) to the new session
+    prev0 = KinematicModel(rob, spec)
+    xp = previous.params.copy()
+    xp[:6] = 0.0
+    T = rigid_fit(prev0.positions(data.q[const.inliers], xp), data.p[const.inliers])
+    m = KinematicModel(rob, spec, T)
+    x0 = xp.copy()
+    xc = const.model.transfer(const.x, m)    # constant terms from the constant fit
+    is_const = np.array([n.endswith(".const") for n in m.names])
+    x0[is_const] = xc[is_const]
+    frozen = [n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))]
+    sol = f.engine.solve(m, x0, fixed=frozen, inliers=const.inliers, what="frozen-map refit")
+    return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
+                   extra_fit={"frozen_from": previous.model_id, "frozen_terms": len(frozen)},
+                   coverage=previous.coverage)

@@ -1,0 +1,118 @@
+"""Error-model structures used by identification, and the priors of joint-angle maps."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robocal.kinematics import COMPONENTS, ErrorModelSpec, RobotDescription, Term, spline_weights
+
+Array = NDArray[np.float64]
+
+
+def constant_spec(robot: RobotDescription) -> ErrorModelSpec:
+    """The traditional model: a constant 6-DoF error per joint (the DH-equivalent model)."""
+    return ErrorModelSpec.constant(robot.dof)
+
+
+def high_order_spec(robot: RobotDescription, *, order: int = 2, pitch: bool = True,
+                    strain_wave: Sequence[int] = (1, 2)) -> ErrorModelSpec:
+    """Constant + joint-dependent terms on every joint (Ma et al. 2018 structure).
+
+    Fourier harmonics ``cos/sin(k q)``, k = 1..``order``, on all six error components (bearing
+    runout/wobble, rotating-centre offsets), a linear pitch term (Legendre P1) on the rotation
+    about the joint axis, and strain-wave ripple ``cos/sin(m N q)`` on that rotation for joints
+    whose gear ratio N the robot file gives.
+    """
+    terms: list[Term] = []
+    for j, jt in enumerate(robot.joints):
+        for c in COMPONENTS:
+            terms.append(Term(j, c, "const"))
+            for k in range(1, order + 1):
+                terms += [Term(j, c, "cos", k), Term(j, c, "sin", k)]
+        if pitch:
+            terms.append(Term(j, "ez", "poly", 1))
+        if jt.gear_ratio:
+            for m in strain_wave:
+                terms += [Term(j, "ez", "swcos", int(m)), Term(j, "ez", "swsin", int(m))]
+    return ErrorModelSpec(robot.dof, tuple(terms), label=f"high-order:{order}")
+
+
+def knots_for_spacing(spacing_deg: float) -> int:
+    """Number of periodic map knots per revolution for a knot spacing in degrees."""
+    return max(8, round(360.0 / spacing_deg))
+
+
+def covered_knots(q: Array, n_knots: int) -> NDArray[np.intp]:
+    """Knot indices (sorted) whose B-spline support contains at least one of the angles ``q``."""
+    idx, _, _ = spline_weights(np.asarray(q, dtype=float), n_knots)
+    return np.unique(idx)
+
+
+def map_terms(joint: int, knots: Sequence[int] | NDArray[np.intp]) -> list[Term]:
+    """Map terms of one joint for the given knot indices."""
+    return [Term(joint, "ez", "map", int(i)) for i in knots]
+
+
+def second_difference(knots: Sequence[int] | NDArray[np.intp], n_knots: int) -> Array:
+    """Second-difference operator D (rows, len(knots)) over the periodic knot sequence.
+
+    A row ``c[i-1] - 2 c[i] + c[i+1]`` is added for each knot whose two neighbours (modulo
+    ``n_knots``) are present, so partial coverage gives open segments and full coverage the
+    periodic operator.
+    """
+    knots = [int(k) for k in knots]
+    pos = {k: i for i, k in enumerate(knots)}
+    rows = []
+    for k in knots:
+        a, b = (k - 1) % n_knots, (k + 1) % n_knots
+        if a in pos and b in pos and a != b:
+            r = np.zeros(len(knots))
+            r[pos[a]] += 1.0
+            r[pos[k]] -= 2.0
+            r[pos[b]] += 1.0
+            rows.append(r)
+    return np.array(rows).reshape(-1, len(knots))
+
+
+@dataclass(frozen=True)
+class MapPrior:
+    """Smoothness prior of one joint's angle map, in whitened cost units.
+
+    ``penalty = lam * D^T D + I / ridge_sigma**2`` over the map coefficients (rad), with D the
+    second-difference operator. ``lam`` is absolute (1/rad^2); :func:`map_penalty` builds it
+    from a relative weight.
+    """
+
+    joint: int
+    n_knots: int
+    knots: tuple[int, ...]
+    lam: float
+    ridge_sigma: float
+
+    def matrix(self) -> Array:
+        """Penalty matrix (k, k) over this map's coefficients."""
+        D = second_difference(self.knots, self.n_knots)
+        return self.lam * (D.T @ D) + np.eye(len(self.knots)) / self.ridge_sigma**2
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-friendly description (spacing in degrees)."""
+        return {"joint": self.joint + 1, "n_knots": self.n_knots,
+                "spacing_deg": 360.0 / self.n_knots, "n_coefficients": len(self.knots),
+                "lambda_per_rad2": self.lam, "ridge_sigma_deg": math.degrees(self.ridge_sigma)}
+
+
+def penalty_for(names: Sequence[str], priors: Sequence[MapPrior]) -> Array | None:
+    """Full (P, P) penalty for a parameter list, or None without priors."""
+    if not priors:
+        return None
+    idx = {n: i for i, n in enumerate(names)}
+    Pm = np.zeros((len(names), len(names)))
+    for pr in priors:
+        cols = np.array([idx[t.name] for t in map_terms(pr.joint, pr.knots)], dtype=np.intp)
+        Pm[np.ix_(cols, cols)] += pr.matrix()
+    return Pm

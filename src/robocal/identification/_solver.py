@@ -1,0 +1,375 @@
+"""Weighted nonlinear least squares (MAP with quadratic priors) and identifiability analysis.
+
+Everything works on the whitened problem ``r_j = W_j (y_j - h(q_j; x))`` with ``W_j`` the
+inverse square root of the point covariance, so the data cost is ``sum_j |r_j|^2`` and a
+unit-variance factor means the residuals match the tracker model. A quadratic prior
+``(x - t)^T Pm (x - t)`` (smoothness of joint-angle maps, weak ridge) is added to the cost.
+Jacobians are evaluated in chunks of poses and reduced to normal equations on the fly, so
+memory stays bounded and the cost per iteration is linear in the number of poses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import linalg as sla
+
+from robocal.kinematics import KinematicModel, Term
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+
+
+# ----------------------------------------------------------------------------------------------
+# problem
+@dataclass
+class Problem:
+    """A whitened least-squares problem over the poses of one measurement set.
+
+    ``q`` (n, dof) rad, ``y`` (n, 3) m, ``W`` (n, 3, 3) 1/m. ``penalty`` (P, P) and
+    ``target`` (P,) define the prior ``(x - target)^T penalty (x - target)`` (None: no prior).
+    """
+
+    model: KinematicModel
+    q: Array
+    y: Array
+    W: Array
+    penalty: Array | None = None
+    target: Array | None = None
+    chunk: int = 2048
+    n_jacobians: int = field(default=0, init=False)
+
+    @property
+    def n(self) -> int:
+        """Number of poses."""
+        return int(self.q.shape[0])
+
+    def residuals(self, x: Array, rows: IntArray | None = None) -> Array:
+        """Whitened residuals (n, 3) (rows: subset of poses)."""
+        q = self.q if rows is None else self.q[rows]
+        y = self.y if rows is None else self.y[rows]
+        W = self.W if rows is None else self.W[rows]
+        out = np.empty((q.shape[0], 3))
+        for a in range(0, q.shape[0], self.chunk):
+            sl = slice(a, a + self.chunk)
+            p = self.model.positions(q[sl], x)
+            out[sl] = np.einsum("nij,nj->ni", W[sl], y[sl] - p)
+        return out
+
+    def prior_cost(self, x: Array) -> float:
+        """Value of the quadratic prior at ``x``."""
+        if self.penalty is None:
+            return 0.0
+        d = x - (self.target if self.target is not None else 0.0)
+        return float(d @ self.penalty @ d)
+
+    def prior_gradient(self, x: Array) -> Array:
+        """``penalty (x - target)`` (P,)."""
+        if self.penalty is None:
+            return np.zeros_like(x)
+        return self.penalty @ (x - (self.target if self.target is not None else 0.0))
+
+    def cost(self, x: Array, rows: IntArray) -> float:
+        """Data cost over ``rows`` plus the prior."""
+        r = self.residuals(x, rows)
+        return float(np.sum(r * r)) + self.prior_cost(x)
+
+    def whitened_jacobian(self, x: Array, rows: IntArray, cols: IntArray
+                          ) -> tuple[Array, Array]:
+        """Whitened Jacobian (3 len(rows), len(cols)) and residual (3 len(rows),) of a chunk."""
+        self.n_jacobians += 1
+        p, J = self.model.jacobian(self.q[rows], x)
+        W = self.W[rows]
+        Jw = np.einsum("nij,njk->nik", W, J[:, :, cols]).reshape(-1, len(cols))
+        rw = np.einsum("nij,nj->ni", W, self.y[rows] - p).ravel()
+        return Jw, rw
+
+    def chunks(self, rows: IntArray) -> list[IntArray]:
+        """Split ``rows`` into chunks of at most ``self.chunk`` poses."""
+        return [rows[a:a + self.chunk] for a in range(0, len(rows), self.chunk)] or [rows]
+
+    def normal_equations(self, x: Array, rows: IntArray, cols: IntArray
+                         ) -> tuple[Array, Array, float]:
+        """Data normal matrix ``J^T J`` (k, k), ``J^T r`` (k,) and data cost over ``rows``."""
+        k = len(cols)
+        A = np.zeros((k, k))
+        g = np.zeros(k)
+        c = 0.0
+        for ch in self.chunks(rows):
+            if len(ch) == 0:
+                continue
+            Jw, rw = self.whitened_jacobian(x, ch, cols)
+            A += Jw.T @ Jw
+            g += Jw.T @ rw
+            c += float(rw @ rw)
+        return A, g, c
+
+
+# ----------------------------------------------------------------------------------------------
+# Levenberg-Marquardt
+@dataclass
+class SolveInfo:
+    """Outcome of :func:`levenberg_marquardt`."""
+
+    x: Array
+    cost: float
+    data_cost: float
+    iterations: int
+    converged: bool
+    message: str
+    normal: Array       # data normal matrix at the solution (k, k), free columns
+    gradient: Array     # J^T r at the solution (k,)
+
+
+def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray, *,
+                        max_iter: int = 50, ftol: float = 1e-10, xtol: float = 1e-10,
+                        mu0: float = 1e-9, slow_ftol: float = 1e-7) -> SolveInfo:
+    """Minimise data cost over ``rows`` + prior, varying parameters ``free`` only.
+
+    Column-scaled Levenberg-Marquardt on the normal equations (Cholesky; a truncated
+    eigen-solve if the damped matrix is numerically singular), Nielsen's damping update.
+    Converged when the (predicted or actual) relative cost decrease falls below ``ftol`` or
+    the scaled step below ``xtol``; a run that hits ``max_iter`` while its last relative
+    decrease was below ``slow_ftol`` also counts as converged (creeping along a flat valley).
+    """
+    x = np.array(x0, dtype=float)
+    free = np.asarray(free, dtype=np.intp)
+    if len(free) == 0:
+        c = prob.cost(x, rows)
+        return SolveInfo(x, c, c - prob.prior_cost(x), 0, True, "no free parameters",
+                         np.zeros((0, 0)), np.zeros(0))
+    Pm = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
+    A, g, cd = prob.normal_equations(x, rows, free)
+    cost = cd + prob.prior_cost(x)
+    At = A if Pm is None else A + Pm
+    scale = np.sqrt(np.clip(np.diag(At), 0.0, None))
+    scale[scale <= 1e-300] = 1.0
+    mu, nu = mu0, 2.0
+    last_decrease = math.inf
+    converged = False
+    message = "maximum number of iterations reached"
+    it = 0
+    while it < max_iter:
+        it += 1
+        At = A if Pm is None else A + Pm
+        gs = (g - prob.prior_gradient(x)[free]) / scale
+        As = At / np.outer(scale, scale)
+        d = _damped_solve(As, gs, mu)
+        predicted = float(2.0 * d @ gs - d @ As @ d)
+        step = float(np.linalg.norm(d))
+        xs = float(np.linalg.norm(x[free] * scale))
+        if predicted <= ftol * cost or step <= xtol * (xs + xtol):
+            converged = True
+            message = "converged"
+            break
+        x_new = x.copy()
+        x_new[free] += d / scale
+        c_new = prob.cost(x_new, rows)
+        rho = (cost - c_new) / predicted if np.isfinite(c_new) else -1.0
+        if rho > 0:
+            decrease = cost - c_new
+            x = x_new
+            A, g, cd = prob.normal_equations(x, rows, free)
+            cost = cd + prob.prior_cost(x)
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            if decrease <= ftol * cost:
+                converged = True
+                message = "converged"
+                break
+            last_decrease = decrease / max(cost, 1e-300)
+        else:
+            mu *= nu
+            nu *= 2.0
+            if mu > 1e12:
+                message = "no step reduces the cost"
+                converged = True
+                break
+    if not converged and last_decrease <= slow_ftol:
+        converged = True
+        message = "converged slowly (relative decrease per iteration below slow_ftol)"
+    return SolveInfo(x=x, cost=cost, data_cost=cd, iterations=it, converged=converged,
+                     message=message, normal=A, gradient=g)
+
+
+def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
+    k = len(gs)
+    try:
+        c = sla.cho_factor(As + mu * np.eye(k), lower=True, check_finite=False)
+        d = sla.cho_solve(c, gs, check_finite=False)
+        if np.all(np.isfinite(d)):
+            return d
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eigh(As)
+    keep = w > 1e-13 * max(w.max(), 1e-300)
+    return V[:, keep] @ ((V[:, keep].T @ gs) / (w[keep] + mu))
+
+
+def inverse_spd(A: Array) -> Array:
+    """Inverse of a symmetric positive (semi-)definite matrix, column-scaled for stability."""
+    s = np.sqrt(np.clip(np.diag(A), 0.0, None))
+    s[s <= 1e-300] = 1.0
+    As = A / np.outer(s, s)
+    try:
+        c = sla.cho_factor(As, lower=True, check_finite=False)
+        inv = sla.cho_solve(c, np.eye(len(s)), check_finite=False)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(As, rcond=1e-12, hermitian=True)
+    return inv / np.outer(s, s)
+
+
+# ----------------------------------------------------------------------------------------------
+# identifiability
+class Identifiability(NamedTuple):
+    """Result of :func:`identifiability` (column-scaled identification Jacobian)."""
+
+    rank: int
+    cond: float
+    removed: list[str]
+    singular_values: Array
+
+
+def term_tier(name: str) -> int:
+    """Priority of a parameter when choosing which of a redundant set to keep (low = keep)."""
+    if name.startswith(("base.", "tool.")):
+        return 0
+    t = Term.parse(name)
+    if t.family == "const":
+        return 1
+    if t.family in ("poly", "cos", "sin"):
+        return 2 + t.index
+    if t.family in ("swcos", "swsin"):
+        return 200 + t.index
+    if t.family == "gravity":
+        return 300
+    return 400
+
+
+def _tsqr(prob: Problem, x: Array, rows: IntArray, cols: IntArray, scale: Array) -> Array:
+    """R factor (<= k, k) of the column-scaled whitened Jacobian, chunk by chunk."""
+    R: Array | None = None
+    for ch in prob.chunks(rows):
+        if len(ch) == 0:
+            continue
+        Jw, _ = prob.whitened_jacobian(x, ch, cols)
+        X = Jw / scale if R is None else np.vstack([R, Jw / scale])
+        R = np.linalg.qr(X, mode="r")
+    assert R is not None
+    return R
+
+
+def analyse(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *, tol: float = 1e-6
+            ) -> tuple[Identifiability, BoolArray, Array]:
+    """Rank analysis of the columns ``cols`` at ``x`` over poses ``rows``.
+
+    Returns the report, a mask over ``cols`` of the kept (identifiable) columns, and the
+    column norms. Redundant columns are removed in order of :func:`term_tier` (higher-order
+    terms go first; inside a tier, threshold pivoting prefers spec order), so e.g. a joint's
+    constant offset is kept and the base correction it duplicates is kept too, while the
+    duplicate joint constant goes.
+    """
+    names = prob.model.names
+    cols = np.asarray(cols, dtype=np.intp)
+    k = len(cols)
+    A, _, _ = prob.normal_equations(x, rows, cols)
+    norms = np.sqrt(np.clip(np.diag(A), 0.0, None))
+    nz = norms > 1e-12 * max(float(norms.max()), 1e-300)
+    keep = np.zeros(k, dtype=bool)
+    if not nz.any():
+        rep = Identifiability(0, math.inf, [names[c] for c in cols], np.zeros(0))
+        return rep, keep, norms
+    sub = cols[nz]
+    R = _tsqr(prob, x, rows, sub, norms[nz])
+    _, S, Vt = np.linalg.svd(R, full_matrices=False)
+    rank = int(np.count_nonzero(S / S[0] > tol))
+    cond = float(S[0] / S[rank - 1]) if rank else math.inf
+    M = S[:rank, None] * Vt[:rank]                      # (rank, k_nz): columns in row space
+    tiers = np.array([term_tier(names[c]) for c in sub])
+    chosen = _select_columns(M, tiers, rank, tau=max(30.0 * tol, 1e-5))
+    kept_nz = np.zeros(len(sub), dtype=bool)
+    kept_nz[chosen] = True
+    keep[np.flatnonzero(nz)] = kept_nz
+    removed = [names[c] for c, kk in zip(cols, keep, strict=True) if not kk]
+    full_S = np.concatenate([S, np.zeros(max(0, len(sub) - len(S)))])
+    return Identifiability(rank, cond, removed, full_S), keep, norms
+
+
+def _select_columns(M: Array, tiers: NDArray[np.int_], rank: int, tau: float) -> list[int]:
+    """Pick ``rank`` independent columns of ``M`` (rank, k), tier by tier (Gram-Schmidt)."""
+    Rm = M.copy()
+    nrm0 = np.linalg.norm(M, axis=0)
+    nrm0[nrm0 == 0] = 1.0
+    chosen: list[int] = []
+    avail = np.ones(M.shape[1], dtype=bool)
+
+    def take(j: int) -> None:
+        v = Rm[:, j] / np.linalg.norm(Rm[:, j])
+        Rm[:] -= np.outer(v, v @ Rm)
+        Rm[:] -= np.outer(v, v @ Rm)   # re-orthogonalise
+        chosen.append(j)
+        avail[j] = False
+
+    for t in np.unique(tiers):
+        while len(chosen) < rank:
+            cand = np.flatnonzero(avail & (tiers == t))
+            if len(cand) == 0:
+                break
+            res = np.linalg.norm(Rm[:, cand], axis=0) / nrm0[cand]
+            best = float(res.max())
+            if best < tau:
+                break
+            take(int(cand[np.flatnonzero(res >= 0.5 * best)[0]]))
+    while len(chosen) < rank and avail.any():  # rescue: fill up with the best remaining
+        cand = np.flatnonzero(avail)
+        res = np.linalg.norm(Rm[:, cand], axis=0)
+        take(int(cand[int(np.argmax(res))]))
+    return sorted(chosen)
+
+
+def identifiability(model: KinematicModel, q: Array, x: Array, *, W: Array | None = None,
+                    tol: float = 3e-4, params: list[str] | None = None) -> Identifiability:
+    """Which parameters the poses ``q`` can identify, from the measurement Jacobian at ``x``.
+
+    Parameters
+    ----------
+    model
+        The error model.
+    q
+        Joint values (n, dof) rad of the actual poses.
+    x
+        Parameter vector (P,) SI at which to linearise (nominal is fine).
+    W
+        Optional whitening matrices (n, 3, 3); identity if None (column scaling makes units
+        irrelevant).
+    tol
+        Relative singular-value threshold of the column-scaled Jacobian (default as
+        :attr:`FitOptions.rank_tol`; directions weaker than this are only identifiable through
+        second-order effects, e.g. offsets along parallel axes, and are held fixed).
+    params
+        Restrict the analysis to these parameter names (default: all).
+
+    Returns
+    -------
+    Identifiability
+        ``(rank, cond, removed_names, singular_values)``: numerical rank, condition number of
+        the identifiable part, names of the parameters to hold fixed (redundant or
+        unobservable), singular values (descending) of the column-scaled Jacobian.
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    x = np.asarray(x, dtype=float)
+    p = model.positions(q, x)
+    Wm = np.broadcast_to(np.eye(3), (len(q), 3, 3)) if W is None else W
+    prob = Problem(model, q, p, np.ascontiguousarray(Wm))
+    if params is None:
+        cols = np.arange(model.size)
+    else:
+        idx = {nm: i for i, nm in enumerate(model.names)}
+        cols = np.array([idx[nm] for nm in params], dtype=np.intp)
+    rep, _, _ = analyse(prob, x, np.arange(len(q)), cols, tol=tol)
+    return rep

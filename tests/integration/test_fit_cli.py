@@ -1,0 +1,143 @@
+"""``robocal fit`` and ``robocal predict`` end to end on the virtual LR Mate 200i."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robocal._core.measurements import MeasurementSet, write_joints_csv
+from robocal.cli.main import main
+from robocal.kinematics import CalibratedModel
+from robocal.simulation import VirtualCell
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    cell = VirtualCell.create("fanuc_lrmate200i", "paper", seed=5)
+    rng = np.random.default_rng(6)
+    d = tmp_path_factory.mktemp("fitcli")
+    q, p, _s, idx = cell.simulate(cell.random_joints(250, rng), rng, outlier_fraction=0.01)
+    train = MeasurementSet(q, p)
+    train.write_csv(d / "train.csv")
+    qv, pv, sv, _ = cell.simulate(cell.random_joints(150, rng), rng)
+    MeasurementSet(qv, pv, sv).write_csv(d / "val.csv")
+    write_joints_csv(d / "joints.csv", qv[:10], extra={"pose_id": [f"V{i}" for i in range(10)]})
+    np.save(d / "truth_val.npy", cell.reflector_position(qv[:10]))
+    (d / "planted.txt").write_text("\n".join(train.pose_id[i] for i in idx))
+    return {"dir": d, "train": d / "train.csv", "val": d / "val.csv",
+            "joints": d / "joints.csv"}
+
+
+def _fit(files, tmp_path, model, *extra):
+    out = tmp_path / f"{model}.json"
+    code = main(["fit", "--robot", "fanuc_lrmate200i", "--data", str(files["train"]),
+                 "--model", model, "--out", str(out), "--validate", str(files["val"]), *extra])
+    return code, out
+
+
+def test_fit_writes_a_model_and_prints_a_table(files, tmp_path, capsys):
+    code, out = _fit(files, tmp_path, "high-order")
+    assert code == 0 and out.exists()
+    text = capsys.readouterr().out
+    assert "% described (RMS)" in text and "baseline" in text and "reflector" in text
+    assert "held fixed" in text and str(out) in text
+    planted = set(files["dir"].joinpath("planted.txt").read_text().split())
+    assert planted and all(p in text for p in planted)           # outliers listed by id
+    cal = CalibratedModel.load(out)
+    assert cal.kind == "high-order" and cal.fallback is not None
+    assert cal.data["source"] == str(files["train"])
+    assert cal.metrics["validation"]["percent_described_rms"] > 95
+
+
+def test_fit_json_output_and_predict_round_trip(files, tmp_path, capsys):
+    code, out = _fit(files, tmp_path, "constant", "--json")
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["model"] == "constant" and summary["rank"] == 27
+    assert summary["validation"]["rms_mm"] > 0 and summary["out"] == str(out)
+    pred = tmp_path / "pred.csv"
+    assert main(["predict", "--model", str(out), "--joints", str(files["joints"]),
+                 "--out", str(pred)]) == 0
+    with pred.open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["pose_id"] for r in rows] == [f"V{i}" for i in range(10)]
+    p = np.array([[float(r[k]) for k in "xyz"] for r in rows]) * 1e-3
+    truth = np.load(files["dir"] / "truth_val.npy")
+    assert np.max(np.linalg.norm(p - truth, axis=1)) < 0.8e-3       # constant-model accuracy
+    sig = np.array([[float(r[k]) for k in ("sx", "sy", "sz")] for r in rows])
+    assert np.all(sig > 0) and np.all(sig < 0.1)
+    assert all(r["in_coverage"] == "1" for r in rows)
+
+
+def test_predict_json_summary(files, tmp_path, capsys):
+    _code, out = _fit(files, tmp_path, "constant")
+    capsys.readouterr()
+    pred = tmp_path / "p.csv"
+    assert main(["predict", "--model", str(out), "--joints", str(files["joints"]),
+                 "--out", str(pred), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["n"] == 10 and s["outside_coverage"] == 0
+
+
+def _expect_error(capsys, argv, out: Path, match: str) -> None:
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and match in err
+    assert not out.exists()
+    assert not list(out.parent.glob(f".{out.name}*"))               # no temporary left behind
+
+
+def test_bad_inputs_give_one_line_errors_and_no_file(files, tmp_path, capsys):
+    d = tmp_path
+    out = d / "m.json"
+    base = ["fit", "--robot", "fanuc_lrmate200i", "--model", "constant", "--out", str(out)]
+    text = files["train"].read_text().splitlines()
+    (d / "nocol.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in text) + "\n")
+    _expect_error(capsys, [*base, "--data", str(d / "nocol.csv")], out, "'z'")
+    rows = list(text)
+    rows[5] = ",".join([*rows[5].split(",")[:-1], "nan"])
+    (d / "nan.csv").write_text("\n".join(rows) + "\n")
+    _expect_error(capsys, [*base, "--data", str(d / "nan.csv")], out, "row 6")
+    five = [",".join(line.split(",")[:6] + line.split(",")[7:]) for line in text]
+    (d / "five.csv").write_text("\n".join(five) + "\n")
+    _expect_error(capsys, [*base, "--data", str(d / "five.csv")], out, "6 joints")
+    (d / "few.csv").write_text("\n".join(text[:9]) + "\n")
+    _expect_error(capsys, [*base, "--data", str(d / "few.csv")], out, "too few poses")
+    _expect_error(capsys, [*base, "--data", str(d / "missing.csv")], out, "not found")
+    _expect_error(capsys, ["fit", "--robot", "no_such_robot", "--model", "constant",
+                           "--out", str(out), "--data", str(files["train"])], out, "built-in")
+    _expect_error(capsys, ["predict", "--model", str(d / "none.json"), "--joints",
+                           str(files["joints"]), "--out", str(out)], out, "not found")
+
+
+def test_non_convergence_is_an_error_and_writes_nothing(files, tmp_path, capsys, monkeypatch):
+    from robocal.identification import _engine, _solver
+
+    real = _solver.levenberg_marquardt
+
+    def stuck(*a, **k):
+        info = real(*a, **{**k, "max_iter": 1})
+        info.converged = False
+        info.message = "maximum number of iterations reached"
+        return info
+
+    monkeypatch.setattr(_engine, "levenberg_marquardt", stuck)
+    out = tmp_path / "nc.json"
+    _expect_error(capsys, ["fit", "--robot", "fanuc_lrmate200i", "--data", str(files["train"]),
+                           "--model", "constant", "--out", str(out)], out, "did not converge")
+
+
+def test_console_script_runs(files, tmp_path):
+    out = tmp_path / "cs.json"
+    r = subprocess.run([sys.executable, "-m", "robocal", "fit", "--robot", "fanuc_lrmate200i",
+                        "--data", str(files["train"]), "--model", "constant", "--out",
+                        str(out), "--json"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["model"] == "constant" and out.exists()

@@ -1,0 +1,91 @@
+"""Real data: the Fraunhofer IPA UR10 / laser-tracker data set (skipped when absent).
+
+Subsets keep the run short (<= 1,500 poses per series); full-series figures are in the
+identification report / docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from robocal.identification import FitOptions, fit, load_ipa_series, refit_frozen
+from robocal.identification.datasets import ipa_series_path
+
+pytestmark = pytest.mark.dataset
+
+
+@pytest.fixture(scope="module")
+def series(dataset_dir):
+    return {s: load_ipa_series(ipa_series_path(dataset_dir, s), max_poses=1500)
+            for s in "ABCD"}
+
+
+def test_loader_reads_every_series(dataset_dir):
+    counts = {"A": 11911, "B": 1495, "C": 2773, "D": 632}
+    for s, n in counts.items():
+        d = load_ipa_series(ipa_series_path(dataset_dir, s), with_sigma=(s != "A"))
+        assert len(d) == n and d.dof == 6
+        assert d.pose_id[0] == f"{s}00000"
+        dist = np.linalg.norm(d.p, axis=1)
+        assert dist.min() > 1.0 and dist.max() < 5.0            # metres from the tracker
+        assert np.abs(d.q).max() < 2 * np.pi + 1e-6              # rad, not wrapped
+        if s != "A":
+            assert 0.003e-3 < np.median(d.sigma) < 0.03e-3       # tracker std ~0.01 mm
+
+
+def test_series_c_baseline_constant_and_auto(series):
+    train, val = series["C"].split(0.5, seed=0)
+    const = fit("ur10", train, "constant", validation=val)
+    auto = fit("ur10", train, "auto", validation=val)
+    assert 0.85e-3 < const.validation.baseline_rms_m < 1.15e-3     # nominal + base + reflector
+    assert 0.42e-3 < const.validation.rms_m < 0.58e-3
+    assert auto.validation.rms_m <= 0.15e-3
+    assert auto.validation.percent_described_rms > 85.0
+    assert auto.calibrated.fit["map_priors"]                      # joint-angle maps were chosen
+
+
+def test_series_a_auto(series):
+    train, val = series["A"].split(0.5, seed=0)
+    auto = fit("ur10", train, "auto", validation=val)
+    assert auto.validation.rms_m <= 0.15e-3
+
+
+def test_series_b_auto_detects_the_gross_outliers(series):
+    full = series["B"]
+    # independent evidence of the glitches: near-repeated configurations whose measurements
+    # disagree by far more than the repeatability (~0.02-0.05 mm)
+    pairs = cKDTree(full.q).query_pairs(1e-3, p=np.inf, output_type="ndarray")
+    gap = np.linalg.norm(full.p[pairs[:, 0]] - full.p[pairs[:, 1]], axis=1)
+    bad_pairs = pairs[gap > 0.3e-3]
+    assert len(bad_pairs) == 4
+    forced = np.unique(bad_pairs)
+    rng = np.random.default_rng(0)
+    rest = np.setdiff1d(np.arange(len(full)), forced)
+    pick = np.sort(np.concatenate([forced, rng.choice(rest, 740, replace=False)]))
+    train = full.subset(pick)
+    val = full.subset(np.setdiff1d(np.arange(len(full)), pick))
+    auto = fit("ur10", train, "auto", validation=val)
+    flagged = set(auto.outliers)
+    for a, b in bad_pairs:
+        # exactly one of each disagreeing pair is a glitch, and it is the one flagged
+        assert (full.pose_id[a] in flagged) != (full.pose_id[b] in flagged)
+    assert len(flagged) <= 4 + 3
+    assert auto.validation.rms_m <= 0.15e-3
+
+
+@pytest.fixture(scope="module")
+def source_a(series):
+    # the physically structured auto model (maps + gravity + pitch, no harmonics) transfers
+    return fit("ur10", series["A"], "auto", options=FitOptions(auto_max_order=0))
+
+
+@pytest.mark.parametrize("target", ["D", "B"])
+def test_cross_session_maps_with_refitted_constants(series, source_a, target):
+    train, val = series[target].split(0.5, seed=0)
+    frozen = refit_frozen(source_a.calibrated, train, validation=val)
+    const = fit("ur10", train, "constant", validation=val)
+    assert frozen.validation.rms_m <= 0.30e-3
+    assert frozen.validation.rms_m < const.validation.rms_m
+    assert frozen.calibrated.fit["frozen_from"] == source_a.calibrated.model_id

@@ -1,0 +1,98 @@
+"""Circle Point Analysis baseline on the virtual robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robocal._core.measurements import MeasurementSet
+from robocal.errors import DataError
+from robocal.identification import cpa_fit, fit
+from robocal.identification._cpa import cpa_sweeps
+from robocal.simulation import VirtualCell
+
+from .conftest import make_data
+
+
+def _sweeps(cell: VirtualCell, seed: int, n_points: int = 25):
+    rng = np.random.default_rng(seed)
+    out = []
+    for j, q in cpa_sweeps(cell.robot, n_points=n_points):
+        q, p, _, _ = cell.simulate(q, rng)
+        out.append((j, MeasurementSet(q, p)))
+    return out
+
+
+def test_sweeps_move_one_chain_angle_within_limits():
+    cell = VirtualCell.create("fanuc_lrmate200i", "nominal", seed=0)
+    robot = cell.robot
+    sweeps = cpa_sweeps(robot, n_points=9)
+    assert [j for j, _ in sweeps] == list(range(6))
+    for j, q in sweeps:
+        assert robot.within_limits(q).all()
+        theta = q @ robot.coupling_matrix.T
+        moving = np.ptp(theta, axis=0) > 1e-9
+        assert list(np.flatnonzero(moving)) == [j]
+    # the J2 sweep of the FANUC (J3 coupled to J2) compensates J3
+    q2 = sweeps[1][1]
+    assert np.ptp(q2[:, 2]) > 0.1
+
+
+@pytest.fixture(scope="module")
+def constant_cell():
+    d = make_data("fanuc_lrmate200i", "constant", seed=31)
+    return d, _sweeps(d.cell, 31)
+
+
+def test_cpa_recovers_the_joint_axes(constant_cell):
+    d, sweeps = constant_cell
+    res = cpa_fit(d.cell.robot, sweeps)
+    th_home = res.home_q @ d.cell.robot.coupling_matrix.T
+    assert res.home_q.shape == (6,) and np.isfinite(th_home).all()
+    st = d.cell.truth_model.state(res.home_q[None, :], d.cell.truth_params)
+    p_home = d.cell.reflector_position(res.home_q[None, :])[0]
+    assert np.linalg.norm(res.home_point - p_home) < 0.05e-3
+    for c in res.circles:
+        axis = st.jang[0, :, c.joint]
+        assert np.degrees(np.arccos(np.clip(axis @ c.direction, -1, 1))) < 0.06
+        # jlin = axis x (p - origin): the foot of the perpendicular from the reflector onto
+        # the true axis is p + axis x jlin, which is where the circle centre must be
+        lever = st.jlin[0, :, c.joint]
+        assert np.linalg.norm(c.centre - (p_home + np.cross(axis, lever))) < 0.05e-3
+        assert c.radius == pytest.approx(np.linalg.norm(lever), abs=0.05e-3)
+        assert c.rms_m < 0.03e-3                         # pure circles up to tracker noise
+    assert res.conversion_rms_m < 1e-9
+
+
+def test_cpa_model_predicts_held_out_poses_without_joint_dependent_errors(constant_cell):
+    d, sweeps = constant_cell
+    mle = fit(d.cell.robot, d.train, "constant", validation=d.val)
+    res = cpa_fit(d.cell.robot, sweeps, validation=d.val, baseline=mle.baseline)
+    assert res.calibrated.kind == "cpa"
+    assert res.validation.rms_m < 0.08e-3
+    assert res.validation.percent_described_rms > 90.0
+    assert res.validation.rms_m > mle.validation.rms_m      # full-pose MLE is better
+    s = res.summary()
+    assert len(s["circles"]) == 6 and s["validation"]["rms_mm"] < 0.08
+
+
+def test_joint_dependent_errors_show_up_in_circle_residuals_and_hurt_cpa(constant_cell):
+    _, sweeps_c = constant_cell
+    d = make_data("fanuc_lrmate200i", "paper", seed=32)
+    sweeps = _sweeps(d.cell, 32)
+    mle = fit(d.cell.robot, d.train, "constant", validation=d.val)
+    res = cpa_fit(d.cell.robot, sweeps, validation=d.val, baseline=mle.baseline)
+    ref = cpa_fit(d.cell.robot, sweeps_c)
+    assert max(c.rms_m for c in res.circles) > 1.5 * max(c.rms_m for c in ref.circles)
+    assert res.validation.rms_m > mle.validation.rms_m
+
+
+def test_cpa_rejects_bad_sweeps(constant_cell):
+    d, sweeps = constant_cell
+    with pytest.raises(DataError, match="missing joints"):
+        cpa_fit(d.cell.robot, sweeps[:5])
+    j, ms = sweeps[2]
+    q = ms.q.copy()
+    q[:, 0] += np.linspace(0, 0.1, len(q))
+    with pytest.raises(DataError, match="moves other chain angles"):
+        cpa_fit(d.cell.robot, [*sweeps[:2], (j, MeasurementSet(q, ms.p)), *sweeps[3:]])
