@@ -33,7 +33,7 @@ from robocal.planning import (
     model_spec,
     plan_campaign,
 )
-from robocal.planning._blas import blas_threads
+from robocal._core.threads import blas_threads
 
 
 def main() -> None:

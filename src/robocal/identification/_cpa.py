@@ -25,7 +25,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal.errors import DataError, IdentificationError
 from robocal.identification._metrics import Accuracy, accuracy
 from robocal.identification._solver import Problem, analyse, levenberg_marquardt
-from robocal.identification._threads import blas_threads
+from robocal._core.threads import blas_threads
 from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,

@@ -17,7 +17,7 @@ from robocal.identification._engine import Engine, EngineSettings, Solution, scr
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
 from robocal.identification._models import constant_spec, high_order_spec
 from robocal.identification._solver import Identifiability
-from robocal.identification._threads import blas_threads
+from robocal._core.threads import blas_threads
 from robocal.identification._weights import TrackerSigma
 from robocal.kinematics import (
     CalibratedModel,

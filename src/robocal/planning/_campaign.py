@@ -13,7 +13,7 @@ from robocal import __version__
 from robocal.errors import ConfigError
 from robocal.identification import TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
-from robocal.planning._blas import single_threaded
+from robocal._core.threads import single_threaded
 from robocal.planning._cell import Cell, builtin_cells, load_cell
 from robocal.planning._cpa import cpa_sweeps
 from robocal.planning._design import DesignSpace, Observability, model_spec

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal.planning._blas import single_threaded
+from robocal._core.threads import single_threaded
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 
 Array = NDArray[np.float64]

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
-from robocal.planning._blas import single_threaded
+from robocal._core.threads import single_threaded
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription
-from robocal.planning._blas import single_threaded
+from robocal._core.threads import single_threaded
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
     CapsuleModel,

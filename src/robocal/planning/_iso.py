@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription
-from robocal.planning._blas import single_threaded
+from robocal._core.threads import single_threaded
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 
 Array = NDArray[np.float64]
