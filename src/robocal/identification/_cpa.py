@@ -15,17 +15,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.threads import blas_threads
 from robocal.errors import DataError, IdentificationError
 from robocal.identification._metrics import Accuracy, accuracy
 from robocal.identification._solver import Problem, analyse, levenberg_marquardt
-from robocal._core.threads import blas_threads
 from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
@@ -188,6 +188,32 @@ def _rotate(p: Array, c: Array, n: Array, ang: Array) -> Array:
     return c + v * ca + np.cross(n, v) * sa + n * (v @ n)[:, None] * (1 - ca)
 
 
+Rigid = tuple[Array, Array]
+
+
+def _rotation_about(c: Array, n: Array, a: float) -> Rigid:
+    """Rigid transform (R, t) of a rotation by ``a`` about the line through c along n."""
+    K = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+    R = np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * (K @ K)
+    return R, c - R @ c
+
+
+def _invert(T: Rigid) -> Rigid:
+    R, t = T
+    return R.T, -R.T @ t
+
+
+def _chain_transform(circles: Sequence[CircleFit], h: Array, r: Array,
+                     joints: range) -> Rigid:
+    """Product of exp(xi_k (h_k - r_k)) over ``joints`` in order (axes at configuration r)."""
+    R, t = np.eye(3), np.zeros(3)
+    for k in joints:
+        c = circles[k]
+        Rk, tk = _rotation_about(c.centre, c.direction, float(h[k] - r[k]))
+        R, t = R @ Rk, R @ tk + t
+    return R, t
+
+
 def poe_positions(circles: Sequence[CircleFit], home_point: Array, theta_home: Array,
                   theta: Array) -> Array:
     """Reflector positions (m, 3) of the POE model for chain angles ``theta`` (m, dof)."""
@@ -209,7 +235,7 @@ def cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measureme
         Robot description or name.
     sweeps
         One ``(joint index (0-based), MeasurementSet)`` per joint: poses where only that
-        joint's chain angle changes from a common home configuration.
+        joint's chain angle changes; each sweep may hold the other joints at its own home.
     validation
         Poses to evaluate the CPA model on.
     baseline
@@ -243,7 +269,6 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
     C = rob.coupling_matrix
     off = np.array([j.theta_offset for j in rob.joints])
     homes = []
-    circles: list[CircleFit] = []
     for j in range(rob.dof):
         ds = by_joint[j]
         if ds.dof != rob.dof:
@@ -253,19 +278,36 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
         others = np.delete(th, j, axis=1)
         if np.ptp(others, axis=0).max(initial=0.0) > 1e-6:
             raise DataError(f"sweep of joint {j + 1} moves other chain angles too")
-        homes.append(others[0])
-    # common home: the other chain angles of every sweep agree
-    th_home = np.empty(rob.dof)
-    for j in range(rob.dof):
-        vals = [homes[k][j if j < k else j - 1] for k in range(rob.dof) if k != j]
-        if np.ptp(vals) > 1e-6:
-            raise DataError(f"sweeps do not share a home configuration (joint {j + 1})")
-        th_home[j] = vals[0]
+        homes.append(th[0])
+    # Each sweep may hold the other joints at its own home. The reference configuration r
+    # takes, per joint, the median of the other sweeps' homes; every measured axis is moved
+    # to r through the upstream joints' axes already found (product of exponentials), so a
+    # common home is the special case in which every transform below is the identity.
+    H = np.array(homes)
+    th_home = np.array([np.median(np.delete(H[:, k], k)) for k in range(rob.dof)])
+    circles: list[CircleFit] = []
+    raw: list[CircleFit] = []
     for j in range(rob.dof):
         ds = by_joint[j]
         th = ds.q @ C.T + off
-        circles.append(_fit_circle(j, ds.p, th[:, j], th_home[j]))
-    home_point = np.mean([c.home_point for c in circles], axis=0)
+        cf = _fit_circle(j, ds.p, th[:, j], th_home[j])
+        raw.append(cf)
+        G = _chain_transform(circles, H[j], th_home, range(j))
+        R, t = _invert(G)
+        circles.append(replace(cf, centre=R @ cf.centre + t, direction=R @ cf.direction))
+    # reflector position at r, from every sweep point mapped back to r
+    backs = []
+    for j in range(rob.dof):
+        ds = by_joint[j]
+        th = ds.q @ C.T + off
+        Gi = _invert(_chain_transform(circles, H[j], th_home, range(j)))
+        Di = _invert(_chain_transform(circles, H[j], th_home, range(j + 1, rob.dof)))
+        pts = ds.p @ Gi[0].T + Gi[1]
+        c = circles[j]
+        pts = _rotate(pts, c.centre, c.direction, -(th[:, j] - th_home[j]))
+        backs.append(pts @ Di[0].T + Di[1])
+    home_point = np.vstack(backs).mean(axis=0)
+    circles = [replace(c, home_point=home_point) for c in circles]
     home_q = np.linalg.solve(C, th_home - off)
     # convert POE -> constant error model by a noise-free fit over the joint ranges
     rng = np.random.default_rng(seed)

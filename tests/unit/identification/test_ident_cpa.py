@@ -96,3 +96,25 @@ def test_cpa_rejects_bad_sweeps(constant_cell):
     q[:, 0] += np.linspace(0, 0.1, len(q))
     with pytest.raises(DataError, match="moves other chain angles"):
         cpa_fit(d.cell.robot, [*sweeps[:2], (j, MeasurementSet(q, ms.p)), *sweeps[3:]])
+
+
+def test_cpa_with_a_different_home_per_sweep(constant_cell):
+    # a planner holds the other joints wherever the reflector stays visible; the axes are
+    # carried to one reference configuration through the upstream axes (POE)
+    d, common = constant_cell
+    rng = np.random.default_rng(33)
+    robot = d.cell.robot
+    home = robot.joint_limits.mean(axis=1)
+    sweeps = []
+    for j in range(robot.dof):
+        h = home + rng.uniform(-0.3, 0.3, robot.dof)
+        (_, q), = [s for s in cpa_sweeps(robot, home=h, n_points=25) if s[0] == j]
+        q, p, _, _ = d.cell.simulate(q, rng)
+        sweeps.append((j, MeasurementSet(q, p)))
+    homes = [ms.q[0] for _, ms in sweeps]
+    assert np.ptp(np.array(homes), axis=0).max() > 0.2
+    mle = fit(robot, d.train, "constant", validation=d.val)
+    res = cpa_fit(robot, sweeps, validation=d.val, baseline=mle.baseline)
+    ref = cpa_fit(robot, common, validation=d.val, baseline=mle.baseline)
+    assert res.validation.rms_m < 0.08e-3
+    assert res.validation.rms_m < 2.0 * ref.validation.rms_m
