@@ -111,7 +111,7 @@ def _plan(args: argparse.Namespace, validation: int) -> tuple[dict[str, Any], st
         from robocal.planning import plan_campaign
 
         plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
-                             validation=validation, cpa=True, cpa_points=10, iso=False,
+                             validation=validation, cpa=True, cpa_points=24, iso=True,
                              seed=args.seed, candidates=1024)
         plan.save(args.out / "PLAN.json")
         return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"

@@ -277,6 +277,10 @@ def _write_report(job: Mapping[str, Any], robot: RobotDescription, results: dict
             kwargs["log"] = log_cls.from_mapping(log)
         if job.get("selected") and job["selected"] in results:
             kwargs["selected"] = job["selected"]
+        iso_rows = [r for r in _rows(job) if r.purpose.startswith("iso-")]
+        if iso_rows:
+            kwargs["iso_measurements"] = measurement_set(iso_rows, commanded=True)
+            kwargs["iso_purposes"] = [r.purpose for r in iso_rows]
         inp = report_input(**kwargs)
         written = write_report(inp, out_dir)
     except (RobocalError, OSError, TypeError, ValueError) as err:
