@@ -26,7 +26,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal.identification import fit, load_ipa_series
 from robocal.identification._models import high_order_spec
 from robocal.identification._solver import Problem
-from robocal.identification._threads import blas_threads
+from robocal._core.threads import blas_threads
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.kinematics import KinematicModel
 from robocal.simulation import VirtualCell

@@ -19,7 +19,7 @@ import numpy as np
 
 from robocal.identification import TrackerSigma, whitening
 from robocal.identification._solver import Problem
-from robocal.identification._threads import blas_threads
+from robocal._core.threads import blas_threads
 from robocal.kinematics import ErrorModelSpec, KinematicModel, load_robot
 
 

@@ -9,11 +9,14 @@ an optional low-order fallback used outside that range, and free-form ``metrics`
 
 from __future__ import annotations
 
+import base64
+import binascii
 import datetime as _dt
 import hashlib
 import json
 import math
 import os
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -134,7 +137,7 @@ class CalibratedModel:
         }
         if self.covariance is not None:
             scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
-            out["covariance_file_units"] = (self.covariance * np.outer(scale, scale)).tolist()
+            out["covariance"] = _encode_covariance(self.covariance * np.outer(scale, scale))
         out["fallback"] = None if self.fallback is None else self.fallback.to_dict()
         return out
 
@@ -189,9 +192,9 @@ class CalibratedModel:
         if not np.all(np.isfinite(x)):
             raise ConfigError("parameters must be finite", source=source, key="parameters")
         cov = None
-        if d.get("covariance_file_units") is not None:
+        if d.get("covariance") is not None:
             scale = np.array([_TO_FILE[u][0] for u in model.layout.units])
-            cov = np.array(d["covariance_file_units"], dtype=float) / np.outer(scale, scale)
+            cov = _decode_covariance(d["covariance"], model.size, source) / np.outer(scale, scale)
         cover = None
         if d.get("coverage_deg") is not None:
             cover = np.radians(np.array(d["coverage_deg"], dtype=float))
@@ -216,6 +219,39 @@ class CalibratedModel:
         except json.JSONDecodeError as err:
             raise ConfigError(f"not valid JSON: {err}", source=src) from err
         return cls.from_dict(d, source=src)
+
+
+def _encode_covariance(C: Array) -> dict[str, Any]:
+    """Compact form of a covariance (file units): the block of estimated parameters only
+    (the others are held and have zero variance), upper triangle, float32, zlib, base64.
+
+    float32 keeps 7 significant digits, plenty for uncertainties, and a model with maps of
+    hundreds of knots stays a few MB instead of tens.
+    """
+    idx = np.flatnonzero(np.diag(C) > 0)
+    sub = C[np.ix_(idx, idx)]
+    tri = sub[np.triu_indices(len(idx))].astype("<f4")
+    return {"encoding": "upper-triangle float32-le zlib base64", "index": idx.tolist(),
+            "data": base64.b64encode(zlib.compress(tri.tobytes(), 6)).decode("ascii")}
+
+
+def _decode_covariance(d: Any, size: int, source: str) -> Array:
+    try:
+        idx = np.asarray(d["index"], dtype=int)
+        tri = np.frombuffer(zlib.decompress(base64.b64decode(d["data"])), dtype="<f4")
+        k = len(idx)
+        if tri.size != k * (k + 1) // 2 or (k and (idx.min() < 0 or idx.max() >= size)):
+            raise ValueError("size does not match the index")
+        sub = np.zeros((k, k))
+        iu = np.triu_indices(k)
+        sub[iu] = tri
+        sub = sub + np.triu(sub, 1).T
+    except (KeyError, TypeError, ValueError, zlib.error, binascii.Error) as err:
+        raise ConfigError(f"covariance block unreadable: {err}", source=source,
+                          key="covariance") from err
+    C = np.zeros((size, size))
+    C[np.ix_(idx, idx)] = sub
+    return C
 
 
 def _json_default(o: Any) -> Any:
