@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.threads import blas_threads
 from robocal.identification import fit, load_ipa_series
 from robocal.identification._models import high_order_spec
 from robocal.identification._solver import Problem
-from robocal._core.threads import blas_threads
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.kinematics import KinematicModel
 from robocal.simulation import VirtualCell

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
+from robocal._core.threads import blas_threads
 from robocal.identification import TrackerSigma, whitening
 from robocal.identification._solver import Problem
-from robocal._core.threads import blas_threads
 from robocal.kinematics import ErrorModelSpec, KinematicModel, load_robot
 
 

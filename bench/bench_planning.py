@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from robocal._core.threads import blas_threads
 from robocal.identification import TrackerSigma, whitening
 from robocal.kinematics import load_robot
 from robocal.planning import (
@@ -33,7 +34,6 @@ from robocal.planning import (
     model_spec,
     plan_campaign,
 )
-from robocal._core.threads import blas_threads
 
 
 def main() -> None:

@@ -15,7 +15,6 @@ import csv
 import hashlib
 import io
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.files import atomic_write_text
 from robocal.errors import DataError
 
 Array = NDArray[np.float64]
@@ -81,7 +81,7 @@ class MeasurementSet:
         """Random split into (first, rest) with ``fraction`` of the poses in the first."""
         rng = np.random.default_rng(seed)
         perm = rng.permutation(len(self))
-        k = int(round(fraction * len(self)))
+        k = round(fraction * len(self))
         return self.subset(np.sort(perm[:k])), self.subset(np.sort(perm[k:]))
 
     def concat(self, other: MeasurementSet) -> MeasurementSet:
@@ -121,7 +121,7 @@ class MeasurementSet:
 
     def write_csv(self, path: str | Path) -> None:
         """Write atomically (temporary file, then rename)."""
-        _atomic_write(Path(path), self.to_csv_text())
+        atomic_write_text(Path(path), self.to_csv_text())
 
     @classmethod
     def read_csv(cls, path: str | Path, *, dof: int | None = None) -> MeasurementSet:
@@ -150,16 +150,6 @@ class MeasurementSet:
             k = header.index("pose_id")
             ids = tuple(r[k].strip() for r in rows)
         return cls(q=q, p=p, sigma=sigma, pose_id=ids)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
@@ -244,7 +234,7 @@ def write_joints_csv(path: str | Path, q: Array, extra: dict[str, Sequence[objec
     qd = np.degrees(q)
     for i in range(q.shape[0]):
         w.writerow([*(f"{v:.9f}" for v in qd[i]), *(_fmt(col[i]) for col in extra.values())])
-    _atomic_write(Path(path), buf.getvalue())
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 def write_points_csv(path: str | Path, p: Array, extra: dict[str, Sequence[object]] | None = None
@@ -257,7 +247,7 @@ def write_points_csv(path: str | Path, p: Array, extra: dict[str, Sequence[objec
     w.writerow(["x", "y", "z", *extra])
     for i in range(p.shape[0]):
         w.writerow([*(f"{v * 1e3:.6f}" for v in p[i]), *(_fmt(col[i]) for col in extra.values())])
-    _atomic_write(Path(path), buf.getvalue())
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 def _fmt(v: object) -> str:

@@ -55,9 +55,10 @@ def run(args: argparse.Namespace) -> int:
     """Compensate the targets; return the exit code."""
     import numpy as np
 
+    from robocal._core.files import atomic_write_text
     from robocal.compensation import compensate, read_targets_csv
     from robocal.compensation._build import targets_table
-    from robocal.compensation._targets import atomic_write, joints_csv_text
+    from robocal.compensation._targets import joints_csv_text
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
 
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     text = joints_csv_text(res)
     table = targets_table(cal, targets, res) if table_out is not None else None
     try:
-        atomic_write(out, text)
+        atomic_write_text(out, text)
         if table is not None and table_out is not None:
             table.write(table_out)
     except OSError as err:

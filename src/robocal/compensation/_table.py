@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from robocal._core.files import atomic_write_text
 from robocal.errors import CompensationError, ConfigError
 
 TABLE_FORMAT = "robocal.compensation/1"
@@ -208,15 +209,7 @@ class CompensationTable(_Model):
 
     def write(self, path: str | Path) -> None:
         """Write atomically to ``path`` (temporary file then rename; nothing left on error)."""
-        path = Path(path)
-        text = self.to_json()
-        tmp = path.with_name(f".{path.name}.tmp")
-        try:
-            tmp.write_text(text)
-            tmp.replace(path)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
+        atomic_write_text(path, self.to_json())
 
     @classmethod
     def read(cls, path: str | Path) -> CompensationTable:

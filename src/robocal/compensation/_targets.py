@@ -25,7 +25,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 # Column and number checks follow the measurement CSV conventions.
+from robocal._core.files import atomic_write_text
 from robocal._core.measurements import _joint_columns, _numeric
 from robocal.compensation._solve import CompensationResult
 from robocal.errors import DataError
@@ -100,7 +100,7 @@ class TargetSet:
 
     def write_csv(self, path: str | Path) -> None:
         """Write TARGETS.csv atomically."""
-        atomic_write(Path(path), self.to_csv_text())
+        atomic_write_text(path, self.to_csv_text())
 
 
 def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
@@ -190,15 +190,6 @@ def joints_csv_text(result: CompensationResult) -> str:
 
 def write_joints_csv(path: str | Path, result: CompensationResult) -> None:
     """Write JOINTS.csv atomically (temporary file, then rename)."""
-    atomic_write(Path(path), joints_csv_text(result))
+    atomic_write_text(path, joints_csv_text(result))
 
 
-def atomic_write(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file; leave nothing behind on error."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise

@@ -42,6 +42,7 @@ from aiohttp import web
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal import __version__
+from robocal._core.files import atomic_write_text
 from robocal.daemon.config import AppConfig
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import UnknownCampaign
@@ -514,10 +515,7 @@ class ApiServer:
              "url": None if self.tcp_port is None else
              f"http://{self.config.api.tcp_host}:{self.tcp_port}",
              "pid": os.getpid()}
-        target = self.config.data_dir / "api.json"
-        tmp = target.with_name(".api.json.tmp")
-        tmp.write_text(json.dumps(d) + "\n")
-        tmp.replace(target)
+        atomic_write_text(self.config.data_dir / "api.json", json.dumps(d) + "\n")
 
     async def stop(self) -> None:
         """Stop serving; idempotent."""

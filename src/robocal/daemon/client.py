@@ -32,7 +32,7 @@ class ApiError(RobocalError):
         super().__init__(f"{message} (HTTP {status} {kind})")
 
 
-class DaemonUnavailable(RobocalError, ConnectionError):  # noqa: N818 - named like errors.py
+class DaemonUnavailable(RobocalError, ConnectionError):
     """The daemon could not be reached."""
 
 

@@ -47,7 +47,7 @@ Array = NDArray[np.float64]
 _log = structlog.get_logger(__name__)
 
 
-class MeasurementRejected(MeasurementError):  # noqa: N818 - named like errors.py
+class MeasurementRejected(MeasurementError):
     """A reading failed validation (stability or distance from the prediction)."""
 
 

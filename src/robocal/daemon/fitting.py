@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from robocal._core.files import atomic_write_text
 from robocal._core.measurements import MeasurementSet
 from robocal.daemon.store import MeasurementRow
 from robocal.errors import ConfigError, IdentificationError, RobocalError
@@ -244,9 +245,7 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         d.mkdir(parents=True, exist_ok=True)
         for name, (_, mj) in fits.items():
             if mj is not None:
-                tmp = d / f".MODEL-{name}.json.tmp"
-                tmp.write_text(mj)
-                tmp.replace(d / f"MODEL-{name}.json")
+                atomic_write_text(d / f"MODEL-{name}.json", mj)
         if job.get("report"):
             out["report"] = _write_report(job, robot, results, train, validation, d)
     out["seconds"] = round(time.perf_counter() - t_start, 3)

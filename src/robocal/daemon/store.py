@@ -563,5 +563,5 @@ class Store:
         return out
 
 
-class UnknownCampaign(CampaignError, LookupError):  # noqa: N818 - named like errors.py
+class UnknownCampaign(CampaignError, LookupError):
     """No campaign with that id."""

@@ -12,12 +12,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.threads import blas_threads
 from robocal.errors import ConfigError, DataError
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
 from robocal.identification._models import constant_spec, high_order_spec
 from robocal.identification._solver import Identifiability
-from robocal._core.threads import blas_threads
 from robocal.identification._weights import TrackerSigma
 from robocal.kinematics import (
     CalibratedModel,

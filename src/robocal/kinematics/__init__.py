@@ -1,7 +1,7 @@
-"""Kinematics: robot descriptions, the joint-dependent error model, FK and Jacobians (numpy only)."""
+"""Kinematics: robot descriptions, joint-dependent error model, FK, Jacobians (numpy only)."""
 
-from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
 from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
+from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
 from robocal.kinematics._model import ChainState, KinematicModel
 from robocal.kinematics._robot import Joint, RobotDescription, builtin_robots, load_robot
 from robocal.kinematics._spec import (
@@ -22,12 +22,12 @@ from robocal.kinematics._transforms import (
 )
 
 __all__ = [
-    "MODEL_FORMAT",
-    "CalibratedModel",
     "BASE_NAMES",
     "COMPONENTS",
     "FAMILIES",
+    "MODEL_FORMAT",
     "TOOL_NAMES",
+    "CalibratedModel",
     "ChainState",
     "ErrorModelSpec",
     "Joint",

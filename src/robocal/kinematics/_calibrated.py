@@ -15,7 +15,6 @@ import datetime as _dt
 import hashlib
 import json
 import math
-import os
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.files import atomic_write_text
 from robocal.errors import ConfigError
 from robocal.kinematics._model import KinematicModel
 from robocal.kinematics._robot import RobotDescription
@@ -143,14 +143,7 @@ class CalibratedModel:
 
     def save(self, path: str | Path) -> None:
         """Write MODEL.json atomically."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            tmp.write_text(json.dumps(self.to_dict(), indent=1, default=_json_default))
-            tmp.replace(path)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=1, default=_json_default))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, source: str = "<model>") -> CalibratedModel:

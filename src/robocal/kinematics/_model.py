@@ -2,7 +2,8 @@
 
 Chain, for joint values ``q`` (n, dof) and parameters ``x``::
 
-    T_tracker_flange = T_ref · E_base(x_base) · Π_i [ Rz(theta_i) · E_i(q_i) · Tz(d_i) Tx(a_i) Rx(alpha_i) ]
+    T_tracker_flange = T_ref · E_base(x_base)
+                       · Π_i [ Rz(theta_i) · E_i(q_i) · Tz(d_i) Tx(a_i) Rx(alpha_i) ]
     p_tracker_smr    = T_tracker_flange · x_tool
 
 with ``E(dx, dy, dz, ex, ey, ez) = Tx(dx) Ty(dy) Tz(dz) Rx(ex) Ry(ey) Rz(ez)``. Derivatives are

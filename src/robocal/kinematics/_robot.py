@@ -239,11 +239,11 @@ def _parse(data: dict[str, Any], src: str) -> RobotDescription:
         if sign not in (1, -1) or isinstance(sign, bool):
             raise ConfigError(f"must be 1 or -1, got {sign!r}", source=src, key=f"{where}.sign")
         coupled = jd.get("coupled_to")
-        if coupled is not None:
-            if (not isinstance(coupled, int) or isinstance(coupled, bool)
-                    or not 1 <= coupled <= len(raw_joints) or coupled == i):
-                raise ConfigError(f"must name another joint 1..{len(raw_joints)}",
-                                  source=src, key=f"{where}.coupled_to")
+        if coupled is not None and (
+                not isinstance(coupled, int) or isinstance(coupled, bool)
+                or not 1 <= coupled <= len(raw_joints) or coupled == i):
+            raise ConfigError(f"must name another joint 1..{len(raw_joints)}",
+                              source=src, key=f"{where}.coupled_to")
         coupling = num("coupling", 1.0 if coupled is not None else 0.0)
         speed = num("max_speed_deg_s", 180.0)
         assert coupling is not None and speed is not None

@@ -108,7 +108,8 @@ class ErrorModelSpec:
             if t.family in ("map", "gravity") and t.component != "ez":
                 raise ConfigError(f"term {t.name}: {t.family} terms act on ez only")
             if t.family == "map" and not 0 <= t.index < self.map_knots[t.joint]:
-                raise ConfigError(f"term {t.name}: map index outside 0..{self.map_knots[t.joint]-1}")
+                raise ConfigError(f"term {t.name}: map index outside "
+                                  f"0..{self.map_knots[t.joint] - 1}")
             if t.family in ("poly", "cos", "sin", "swcos", "swsin") and t.index < 1:
                 raise ConfigError(f"term {t.name}: order must be >= 1")
             if t in seen:
@@ -196,7 +197,7 @@ class ErrorModelSpec:
         knots = list(self.map_knots)
         for j, k in (map_knots or {}).items():
             knots[j] = k
-        new = list(self.terms) + [t for t in extra if t not in have]
+        new = [*self.terms, *(t for t in extra if t not in have)]
         return ErrorModelSpec(self.dof, tuple(new), tuple(knots), label or self.label)
 
     def without(self, drop: Iterable[Term], *, label: str | None = None) -> ErrorModelSpec:
@@ -239,8 +240,8 @@ class ParameterLayout:
 
     def __post_init__(self) -> None:
         names = BASE_NAMES + TOOL_NAMES + self.spec.names
-        units = ("m", "m", "m", "rad", "rad", "rad", "m", "m", "m") + tuple(
-            t.unit for t in self.spec.terms)
+        units = ("m", "m", "m", "rad", "rad", "rad", "m", "m", "m",
+                 *(t.unit for t in self.spec.terms))
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "units", units)
 

@@ -10,10 +10,10 @@ from numpy.typing import NDArray
 from scipy.stats import qmc
 
 from robocal import __version__
+from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
 from robocal.identification import TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
-from robocal._core.threads import single_threaded
 from robocal.planning._cell import Cell, builtin_cells, load_cell
 from robocal.planning._cpa import cpa_sweeps
 from robocal.planning._design import DesignSpace, Observability, model_spec

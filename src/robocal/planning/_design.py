@@ -28,9 +28,9 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
-from robocal._core.threads import single_threaded
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription
-from robocal._core.threads import single_threaded
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
     CapsuleModel,

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription
 from robocal._core.threads import single_threaded
+from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 
 Array = NDArray[np.float64]

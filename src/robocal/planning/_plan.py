@@ -37,11 +37,8 @@ passes.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -49,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from robocal._core.files import atomic_write_text
 from robocal.errors import ConfigError
 from robocal.planning._cell import Cell, pydantic_config_error
 
@@ -230,22 +228,10 @@ class Plan(_Frozen):
         d = path.parent if str(path.parent) else Path(".")
         if not d.is_dir():
             raise ConfigError("directory does not exist", source=str(path))
-        tmp = None
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=d)
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-            tmp = None
+            atomic_write_text(path, text)
         except OSError as err:
             raise ConfigError(f"cannot write: {err}", source=str(path)) from err
-        finally:
-            if tmp is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-
     @classmethod
     def from_json(cls, text: str, *, source: str = "<plan>") -> Plan:
         """Parse and validate plan text; raise :class:`ConfigError` naming the key."""

@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 
 from robocal import __version__
 from robocal._core.measurements import MeasurementSet
-from robocal.kinematics import CalibratedModel, RobotDescription
 from robocal._core.threads import blas_threads
+from robocal.kinematics import CalibratedModel, RobotDescription
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
 from robocal.report._metrics import (
     Described,

@@ -5,13 +5,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from robocal._core.files import atomic_write_text
 from robocal.report._analysis import SETS, Analysis, analyse
 from robocal.report._figures import render_all
 from robocal.report._html import render
@@ -98,16 +98,6 @@ def summary(an: Analysis) -> dict[str, Any]:
     return _clean(out)
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def write_report(inp: ReportInput, out_html: str | Path, *,
                  json_path: str | Path | None = None) -> tuple[Path, Path]:
     """Write the self-contained HTML report and its JSON summary; return both paths.
@@ -131,6 +121,6 @@ def write_report(inp: ReportInput, out_html: str | Path, *,
     summ["timing_s"] = {"analysis": round(t1 - t0, 3), "figures": round(t2 - t1, 3),
                         "total": round(time.perf_counter() - t0, 3)}
     out_html.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out_html, page)
-    _atomic_write(jpath, json.dumps(summ, indent=1, ensure_ascii=False))
+    atomic_write_text(out_html, page)
+    atomic_write_text(jpath, json.dumps(summ, indent=1, ensure_ascii=False))
     return out_html, jpath

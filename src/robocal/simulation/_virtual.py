@@ -189,7 +189,8 @@ class VirtualCell:
 
     def nominal_error(self, q: Array) -> Array:
         """Distance (n,) between truth and the nominal model with true base and reflector."""
-        nominal = KinematicModel(self.robot, ErrorModelSpec(self.robot.dof, ()), self.T_tracker_base)
+        nominal = KinematicModel(self.robot, ErrorModelSpec(self.robot.dof, ()),
+                                 self.T_tracker_base)
         x = nominal.nominal_params()
         x[6:9] = self.truth_params[6:9]
         return np.linalg.norm(self.reflector_position(q) - nominal.positions(q, x), axis=1)
@@ -226,7 +227,7 @@ class VirtualCell:
         p, s = self.measure(q_act, rng)
         idx = np.array([], dtype=np.intp)
         if outlier_fraction > 0:
-            k = max(1, int(round(outlier_fraction * len(q_cmd))))
+            k = max(1, round(outlier_fraction * len(q_cmd)))
             idx = np.sort(rng.choice(len(q_cmd), size=k, replace=False))
             p[idx] = self.outlier(p[idx], rng)
         return q_cmd, p, s, idx
