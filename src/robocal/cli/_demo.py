@@ -370,6 +370,13 @@ def _print_summary(f: dict[str, Any]) -> None:
         w(f"  {name:12s} {_fmt(v.get('rms_mm'), 4):>9s} {_fmt(v.get('mean_mm'), 4):>9s} "
           f"{_fmt(v.get('max_mm'), 4):>9s} {_fmt(pct, 1, ' %'):>12s} "
           f"{_fmt(s.get('seconds'), 2):>7s}\n")
+    w("  nominal = nominal kinematics with only the tracker<-base transform and the reflector\n"
+      "  fitted: the honest baseline of '% described'.")
+    if "cpa" in fits:
+        w(" cpa = Circle Point Analysis from single-joint\n"
+          "  sweeps; its arcs are as wide as the reflector stays visible (spans in PLAN.json,\n"
+          "  'cpa'), and short arcs plus joint-dependent errors limit what it can recover.")
+    w("\n")
     comp = f.get("compensation") or {}
     if comp:
         w(f"\nCompensation of {comp.get('targets')} validation targets, measured again\n")
