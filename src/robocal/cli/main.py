@@ -19,7 +19,7 @@ from robocal.errors import RobocalError
 # (module, is-it-there-yet) -- modules are imported at start-up but keep heavy imports lazy.
 _COMMAND_MODULES = (
     "demo", "fit", "predict", "compensate", "table", "plan", "report", "daemon", "campaign",
-    "compensation", "sim", "robots", "drivers", "config",
+    "compensation", "sim", "simulate", "robots", "drivers", "config",
 )
 
 
