@@ -15,7 +15,7 @@ import csv
 import hashlib
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -237,8 +237,8 @@ def write_joints_csv(path: str | Path, q: Array, extra: dict[str, Sequence[objec
     atomic_write_text(Path(path), buf.getvalue())
 
 
-def write_points_csv(path: str | Path, p: Array, extra: dict[str, Sequence[object]] | None = None
-                     ) -> None:
+def write_points_csv(path: str | Path, p: Array,
+                     extra: Mapping[str, Sequence[object]] | None = None) -> None:
     """Write points (n, 3) m as ``x, y, z`` in mm, plus optional extra columns."""
     p = np.atleast_2d(p)
     buf = io.StringIO()

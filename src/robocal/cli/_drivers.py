@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import Any, Literal
 
 
 def register(sub: Any) -> None:
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write("robots:   " + ", ".join(names["robots"]) + "\n")
             sys.stdout.write("trackers: " + ", ".join(names["trackers"]) + "\n")
         return 0
-    roles = [args.role] if args.role else ["robot", "tracker"]
+    roles: list[Literal["robot", "tracker"]] = [args.role] if args.role else ["robot", "tracker"]
     last: DriverNotFound | None = None
     for role in roles:
         try:

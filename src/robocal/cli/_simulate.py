@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
         ids = tuple(f"{tag}{i:04d}" for i in range(len(qq)))
         MeasurementSet(qq, p, s, ids).write_csv(path)
         written.append((path, len(qq), len(bad)))
-    for path, n, bad in written:
-        extra = f", {bad} with planted glitches" if bad else ""
+    for path, n, n_bad in written:
+        extra = f", {n_bad} with planted glitches" if n_bad else ""
         sys.stdout.write(f"wrote {path} ({n} poses{extra})\n")
     sys.stdout.write(f"virtual {cell.robot.name}, scenario {args.scenario!r}, seed {args.seed}\n")
     return 0

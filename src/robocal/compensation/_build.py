@@ -111,7 +111,8 @@ def _frame(T: Array) -> Frame:
 
 def frames_payload(fit: FrameFit) -> FramesPayload:
     """Frames in table form: user frame ``T_base_tracker`` and tool (mm, deg)."""
-    T_bt = np.linalg.inv(fit.T_tracker_base)
+    # numpy stub types inv() of any float input as floating[Any]; float64 in gives float64
+    T_bt: Array = np.linalg.inv(fit.T_tracker_base)  # type: ignore[assignment]
     tool = np.eye(4)
     tool[:3, 3] = fit.tool
     return FramesPayload(base=_frame(T_bt), tool=_frame(tool))

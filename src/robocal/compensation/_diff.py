@@ -88,14 +88,14 @@ def diff_tables(a: CompensationTable, b: CompensationTable, *, tol_deg: float = 
         ea = {(e.joint, e.source): e for e in a.joints or []}
         eb = {(e.joint, e.source): e for e in b.joints or []}
         for key in sorted(set(ea) | set(eb)):
-            x, y = ea.get(key), eb.get(key)
-            grid = np.union1d(x.q_deg if x else [], y.q_deg if y else [])
-            va = x.evaluate(grid) if x else np.zeros_like(grid)
-            vb = y.evaluate(grid) if y else np.zeros_like(grid)
+            ca, cb = ea.get(key), eb.get(key)
+            grid = np.union1d(ca.q_deg if ca else [], cb.q_deg if cb else [])
+            va = ca.evaluate(grid) if ca else np.zeros_like(grid)
+            vb = cb.evaluate(grid) if cb else np.zeros_like(grid)
             d = float(np.max(np.abs(va - vb))) if grid.size else 0.0
             max_q = max(max_q, d)
-            if x is None or y is None or d > tol_deg:
-                what = "only in " + ("b" if x is None else "a") if (x is None or y is None) \
+            if ca is None or cb is None or d > tol_deg:
+                what = "only in " + ("b" if ca is None else "a") if (ca is None or cb is None) \
                     else f"max change {d:.6f} deg"
                 lines.append(f"joint {key[0]} (from joint {key[1]}): {what}")
     elif a.frames is not None and b.frames is not None:

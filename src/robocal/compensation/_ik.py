@@ -346,7 +346,7 @@ def nominal_ik(robot: RobotDescription, T_base_flange: Array, seed: Array | None
         q = sols[np.arange(n), k].copy()
         q[~found] = np.nan
         return IKResult(q=q, found=found, solutions=sols, valid=valid,
-                        reachable=exists.any(axis=1), method="closed-form")
+                        reachable=np.asarray(exists.any(axis=1)), method="closed-form")
     # numeric: damped least squares on the nominal model from the seed
     from robocal.compensation._solve import solve_pose
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from robocal._core.files import atomic_write_text
 from robocal.errors import CompensationError, ConfigError
 
-TABLE_FORMAT = "robocal.compensation/1"
+TABLE_FORMAT: Final = "robocal.compensation/1"
 
 
 class _Model(BaseModel):

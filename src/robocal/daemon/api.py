@@ -308,9 +308,9 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
     try:
         async with svc.events.subscribe() as q:
             last = after
-            for ev in svc.events.history(after=after, campaign=campaign):
-                await send(ev)
-                last = ev["seq"]
+            for past in svc.events.history(after=after, campaign=campaign):
+                await send(past)
+                last = past["seq"]
             while True:
                 try:
                     async with asyncio.timeout(15.0):

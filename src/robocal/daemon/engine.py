@@ -93,7 +93,7 @@ class Predictor:
         self._T: Array | None = None
         self._last: tuple[tuple[float, ...], Array] | None = None
 
-    def _model_point(self, q_rad: Sequence[float]) -> Array:
+    def _model_point(self, q_rad: Sequence[float] | Array) -> Array:
         key = tuple(float(v) for v in q_rad)
         if self._last is not None and self._last[0] == key:
             return self._last[1]
@@ -101,7 +101,7 @@ class Predictor:
         self._last = (key, s)
         return s
 
-    def add(self, q_rad: Sequence[float], p_m: Sequence[float]) -> None:
+    def add(self, q_rad: Sequence[float] | Array, p_m: Sequence[float] | Array) -> None:
         """Record one measured pose (actual joints, rad; point, m)."""
         self._src.append(self._model_point(q_rad))
         self._dst.append(np.asarray(p_m, dtype=float))
@@ -255,6 +255,7 @@ class CampaignRunner:
                 f"(limit {cfg.max_joint_deviation_deg} deg)", kind="daemon")
         delay = cfg.backoff_s
         attempts = 0
+        retry_on: tuple[type[Exception], ...] = (*RETRYABLE, MeasurementRejected)
         while True:
             attempts += 1
             problem: str
@@ -263,7 +264,7 @@ class CampaignRunner:
                                                 point_id=f"{cid}-{pose.idx}")
                 distance = self._validate(reading, q_act, predictor)
                 return self._row(pose, q_cmd, q_act, reading, attempts, distance)
-            except (*RETRYABLE, MeasurementRejected) as err:
+            except retry_on as err:
                 problem = f"{type(err).__name__}: {err}"
             if attempts > cfg.retries:
                 raise MeasurementError(

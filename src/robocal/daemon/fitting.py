@@ -92,8 +92,8 @@ def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Meas
 def _rows(job: Mapping[str, Any]) -> list[MeasurementRow]:
     return [MeasurementRow(
         pose_idx=int(r["pose_idx"]), purpose=str(r["purpose"]), q_cmd_deg=tuple(r["q_cmd_deg"]),
-        q_act_deg=tuple(r["q_act_deg"]), p_mm=tuple(r["p_mm"]),  # type: ignore[arg-type]
-        sigma_mm=None if r["sigma_mm"] is None else tuple(r["sigma_mm"]),  # type: ignore[arg-type]
+        q_act_deg=tuple(r["q_act_deg"]), p_mm=tuple(r["p_mm"]),
+        sigma_mm=None if r["sigma_mm"] is None else tuple(r["sigma_mm"]),
         rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
         distance_mm=r["distance_mm"], weather=dict(r["weather"]), measured_at=r["measured_at"],
     ) for r in job["rows"]]

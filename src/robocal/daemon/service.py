@@ -12,6 +12,7 @@ and ``measured`` ones are fitted again.
 from __future__ import annotations
 
 import asyncio
+import builtins
 import contextlib
 import json
 import math
@@ -139,11 +140,12 @@ class CalibrationService:
         out["files"] = str(self._campaign_dir(cid))
         return out
 
+    # below this method `list` names it inside the class: annotations use builtins.list
     def list(self) -> list[dict[str, Any]]:
         """Every campaign, oldest first."""
         return [r.to_json() for r in self.store.campaigns()]
 
-    def measurements(self, cid: str) -> list[MeasurementRow]:
+    def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
         """Stored measurements of a campaign."""
         self.store.campaign(cid)
         return self.store.measurements(cid)
@@ -316,7 +318,7 @@ class CalibrationService:
         self._fit_tasks[cid] = task
         task.add_done_callback(lambda _t: self._fit_tasks.pop(cid, None))
 
-    def _measurement_log(self, rows: list[MeasurementRow]) -> dict[str, Any]:
+    def _measurement_log(self, rows: builtins.list[MeasurementRow]) -> dict[str, Any]:
         retries = sum(max(0, r.attempts - 1) for r in rows)
         weather = [r.weather for r in rows if r.weather][-1:]
         return {"planned": len(rows), "measured": len(rows), "retries": retries,
@@ -520,7 +522,7 @@ class CalibrationService:
                       "campaign": t["campaign"], "origin": t["origin"]}
         return {"active": active, "stack": stack, "history": self.store.pushes()}
 
-    def audit(self, *, limit: int = 1000) -> list[dict[str, Any]]:
+    def audit(self, *, limit: int = 1000) -> builtins.list[dict[str, Any]]:
         """The audit log (most recent ``limit`` entries)."""
         return self.store.audit_log(limit=limit)
 

@@ -46,7 +46,7 @@ def available() -> dict[str, list[str]]:
     }
 
 
-def driver_class(kind: str, *, role: Role) -> type:
+def driver_class(kind: str, *, role: Role) -> type[Any]:
     """Import and return the driver class registered as ``kind``.
 
     Raises

@@ -126,6 +126,7 @@ def _check_declaration(driver: Any, name: str) -> None:
         isinstance(options, type) and issubclass(options, BaseModel),
         f"{name}: class lacks a pydantic `Options` model",
     )
+    assert isinstance(options, type) and issubclass(options, BaseModel)  # _expect raised if not
     config = options.model_config
     _expect(config.get("extra") == "forbid", f"{name}: Options must forbid unknown keys")
     _expect(bool(config.get("frozen")), f"{name}: Options must be frozen")
@@ -284,6 +285,7 @@ def _sample_table(kind: str, dof: int) -> CompensationTable:
 
 async def check_robot_compensation(rut: RobotUnderTest) -> None:
     """Check a CompensationSink stores a table and reads the same content back."""
+    robot: RobotDriver
     async with _connected(rut.make, rut.connect_timeout) as robot:
         if not isinstance(robot, CompensationSink):
             return

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from datetime import datetime
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, NoReturn
 
 from pydantic import Field
 
@@ -227,7 +227,7 @@ class LtpTracker(DriverBase):
         else:
             self.log.debug("event", name=event.name)
 
-    def _raise(self, verb: str, err: ltp.Err) -> None:
+    def _raise(self, verb: str, err: ltp.Err) -> NoReturn:
         text = f"{verb}: ERR {err.code} {err.name}" + (f" ({err.msg})" if err.msg else "")
         if err.code in (ltp.ErrorCode.BEAM_BROKEN, ltp.ErrorCode.NO_TARGET):
             raise BeamLost(text, kind=self.kind)

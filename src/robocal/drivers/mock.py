@@ -170,7 +170,7 @@ class MockTracker(DriverBase):
 
     kind: ClassVar[str] = "mock"
     Options: ClassVar[type[DriverOptions]] = MockTrackerOptions
-    options: MockTrackerOptions  # type: ignore[assignment]
+    options: MockTrackerOptions
 
     def __init__(
         self,

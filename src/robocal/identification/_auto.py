@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -244,7 +245,8 @@ def _inv_spd(A: Array) -> Array:
         c = sla.cho_factor(A, lower=True, check_finite=False)
         return sla.cho_solve(c, np.eye(len(A)), check_finite=False)
     except np.linalg.LinAlgError:
-        return np.linalg.pinv(A, rcond=1e-12, hermitian=True)
+        # numpy stub types pinv() of any float input as floating[Any]; float64 in gives float64
+        return np.linalg.pinv(A, rcond=1e-12, hermitian=True)  # type: ignore[return-value]
 
 
 def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, Any]]]:
@@ -344,7 +346,7 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
         while True:
             cur_cols, cur_pen = assemble(chosen)
             options: list[tuple[IntArray, list[Array]]] = []
-            labels: list[tuple[str, list[float | None]]] = []
+            labels: list[tuple[str, Sequence[float | None]]] = []
             for g in groups:
                 if g.phase > phase or g.key in chosen:
                     continue
@@ -366,7 +368,9 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
             all_scores = cv.scores_added(cur_cols, cur_pen, options)
             for (key_i, lams_i), row in zip(labels, all_scores, strict=True):
                 if lams_i[0] is not None:
-                    best_lam[key_i] = float(lams_i[int(np.argmin(row))])
+                    lam_i = lams_i[int(np.argmin(row))]
+                    assert lam_i is not None  # a map's options are all numbers
+                    best_lam[key_i] = float(lam_i)
             flat = [(sc_, i, j) for i, row in enumerate(all_scores) for j, sc_ in enumerate(row)]
             best_score, bi, bj = min(flat)
             if not best_score < score * (1.0 - opts.auto_min_improvement):
@@ -382,17 +386,17 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
     for key in [k for k in chosen if by_key[k].is_map]:
         lam0 = chosen[key]
         assert lam0 is not None
-        best_lam, best_score = lam0, score
+        lam_best, best_score = lam0, score
         for fac in (1 / 3, 3.0):
             trial = dict(chosen)
             trial[key] = lam0 * fac
             sc_ = cv.score(*assemble(trial))
             if sc_ < best_score:
-                best_lam, best_score = lam0 * fac, sc_
-        if best_lam != lam0:
-            chosen[key] = best_lam
+                lam_best, best_score = lam0 * fac, sc_
+        if lam_best != lam0:
+            chosen[key] = lam_best
             score = best_score
-            log.append({"step": step, "action": "refine", "group": key, "lambda_rel": best_lam,
+            log.append({"step": step, "action": "refine", "group": key, "lambda_rel": lam_best,
                         "cv_rms_whitened": math.sqrt(score / m_obs)})
     # ------------------------------------------------------------------ backward pass
     changed = True

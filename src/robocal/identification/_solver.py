@@ -259,7 +259,8 @@ def _tsqr(prob: Problem, x: Array, rows: IntArray, cols: IntArray, scale: Array)
             continue
         Jw, _ = prob.whitened_jacobian(x, ch, cols)
         X = Jw / scale if R is None else np.vstack([R, Jw / scale])
-        R = np.linalg.qr(X, mode="r")
+        # numpy stub types every mode as QRResult; mode="r" returns the R array alone
+        R = np.linalg.qr(X, mode="r")  # type: ignore[assignment]
     assert R is not None
     return R
 

@@ -125,7 +125,7 @@ def _home(robot: RobotDescription, cell: Cell, ranges: Array) -> Array:
 
 
 def _order_measured(checker: FeasibilityChecker, q: Array, speed: Array, home: Array,
-                    rounds: int = 3) -> Array:
+                    rounds: int = 3) -> NDArray[np.intp]:
     """Order poses by move time; re-run 2-opt with penalties on moves that collide."""
     order = order_poses(q, speed, start=home)
     D = move_times(q[:, None, :], q[None, :, :], speed)

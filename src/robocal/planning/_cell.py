@@ -66,12 +66,12 @@ class ReflectorSection(_Strict):
     """``[reflector]``: the SMR nest on the flange."""
 
     offset_mm: list[float] | None = Field(
-        None, description="SMR centre in the flange frame, mm (default: the robot file's "
-                          "tool_mm)")
+        default=None, description="SMR centre in the flange frame, mm (default: the robot "
+                                  "file's tool_mm)")
     direction: list[float] = Field(
         default_factory=lambda: [0.0, 0.0, 1.0],
         description="opening direction of the nest in the flange frame (any length)")
-    acceptance_deg: float = Field(30.0, gt=0.0, le=90.0,
+    acceptance_deg: float = Field(default=30.0, gt=0.0, le=90.0,
                                   description="half-angle of the SMR acceptance cone")
 
     @field_validator("offset_mm")
@@ -92,18 +92,18 @@ class RobotSection(_Strict):
     """``[robot]``: the capsule model of the links and the joint working ranges."""
 
     link_radii_mm: list[float] | None = Field(
-        None, description="capsule radius per joint body (one per joint), mm; default from "
-                          "the robot's size")
-    tool_radius_mm: float = Field(25.0, gt=0.0,
+        default=None, description="capsule radius per joint body (one per joint), mm; default "
+                                  "from the robot's size")
+    tool_radius_mm: float = Field(default=25.0, gt=0.0,
                                   description="radius of the flange-to-reflector capsule")
     clearance_mm: float = Field(
-        10.0, ge=0.0, description="minimum gap of link surfaces to floor, keep-out boxes and "
-                                  "other links")
-    joint_margin_deg: float = Field(5.0, ge=0.0, le=45.0,
+        default=10.0, ge=0.0, description="minimum gap of link surfaces to floor, keep-out "
+                                          "boxes and other links")
+    joint_margin_deg: float = Field(default=5.0, ge=0.0, le=45.0,
                                     description="stay this far inside every joint range")
     joint_ranges_deg: list[list[float]] | None = Field(
-        None, description="optional working range [min, max] per joint, deg; intersected "
-                          "with the robot's limits")
+        default=None, description="optional working range [min, max] per joint, deg; "
+                                  "intersected with the robot's limits")
 
     @field_validator("link_radii_mm")
     @classmethod
@@ -128,7 +128,7 @@ class RobotSection(_Strict):
 class FloorSection(_Strict):
     """``[floor]``: the floor (or table top) plane z = z_mm of the base frame."""
 
-    z_mm: float = Field(0.0, description="floor height in the base frame, mm")
+    z_mm: float = Field(default=0.0, description="floor height in the base frame, mm")
 
     @field_validator("z_mm")
     @classmethod
@@ -162,12 +162,13 @@ class MotionSection(_Strict):
     """``[motion]``: limits for ordering the poses."""
 
     max_joint_step_deg: float = Field(
-        90.0, gt=0.0, le=720.0,
+        default=90.0, gt=0.0, le=720.0,
         description="largest joint change of one move; longer moves get via-points")
-    speed_fraction: float = Field(0.25, gt=0.0, le=1.0,
+    speed_fraction: float = Field(default=0.25, gt=0.0, le=1.0,
                                   description="fraction of each joint's max speed assumed")
     home_deg: list[float] | None = Field(
-        None, description="where the campaign starts (default: all zeros, clipped to ranges)")
+        default=None,
+        description="where the campaign starts (default: all zeros, clipped to ranges)")
 
     @field_validator("home_deg")
     @classmethod

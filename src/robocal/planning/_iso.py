@@ -179,7 +179,7 @@ def iso_cube(checker: FeasibilityChecker, q_feasible: Array, feas: Feasibility, 
     ok = conv.copy()
     if ok.any():
         ok[ok] = checker.check(q[ok]).ok
-    ok = ok.reshape(nr, ns, 4).all(axis=2)
+    ok = np.asarray(ok.reshape(nr, ns, 4).all(axis=2))
     q = q.reshape(nr, ns, 4, -1)
     # largest side first; among equal sides the reference nearest the centroid
     for s in range(ns):

@@ -40,7 +40,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,7 +50,7 @@ from robocal._core.files import atomic_write_text
 from robocal.errors import ConfigError
 from robocal.planning._cell import Cell, pydantic_config_error
 
-PLAN_FORMAT = "robocal.plan/1"
+PLAN_FORMAT: Final = "robocal.plan/1"
 
 # a JSON list holding only numbers (or null), as json.dumps(indent=...) spreads it over lines
 _NUM = r"(?:-?[0-9][0-9.eE+-]*|null)"
@@ -144,7 +144,7 @@ class IsoInfo(_Frozen):
 
     centre_mm: list[float] = Field(min_length=3, max_length=3)
     side_mm: float = Field(gt=0.0)
-    recommended_cycles: int = Field(30, ge=1)
+    recommended_cycles: int = Field(default=30, ge=1)
 
 
 class CpaInfo(_Frozen):

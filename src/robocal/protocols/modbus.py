@@ -42,10 +42,10 @@ import contextlib
 import itertools
 import math
 import struct
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Literal
+from typing import Any, Literal
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -496,20 +496,22 @@ class ModbusClient:
 
     async def _read(self, fc: int, address: int, count: int) -> list[int]:
         out: list[int] = []
+        # the ignores below: mypy cannot type a lambda with default arguments
+        # (python/mypy#15459); the defaults bind the loop values (ruff B023)
         while count > 0:
             n = min(count, MAX_READ)
             start = address
             if fc == 3:
                 rr = await self._call(
                     f"read HR {start}+{n}",
-                    lambda c, s=start, n=n: c.read_holding_registers(
+                    lambda c, s=start, n=n: c.read_holding_registers(  # type: ignore[misc]
                         s, count=n, device_id=self.device_id
                     ),
                 )
             else:
                 rr = await self._call(
                     f"read IR {start}+{n}",
-                    lambda c, s=start, n=n: c.read_input_registers(
+                    lambda c, s=start, n=n: c.read_input_registers(  # type: ignore[misc]
                         s, count=n, device_id=self.device_id
                     ),
                 )
@@ -537,7 +539,10 @@ class ModbusClient:
             start = address + i
             await self._call(
                 f"write HR {start}+{len(chunk)}",
-                lambda c, s=start, v=chunk: c.write_registers(s, v, device_id=self.device_id),
+                # mypy cannot type a lambda with default arguments (python/mypy#15459)
+                lambda c, s=start, v=chunk: c.write_registers(  # type: ignore[misc]
+                    s, v, device_id=self.device_id
+                ),
             )
 
     async def write_register(self, address: int, value: int) -> None:
@@ -553,7 +558,7 @@ class ModbusClient:
 #: pymodbus' SimDevice hook; return an :class:`ExcCodes` member to refuse the request.
 SimAction = Callable[
     [int, int, int, int, list[int], list[int] | list[bool] | None],
-    Awaitable[ExcCodes | None],
+    Coroutine[Any, Any, ExcCodes | None],
 ]
 
 HOLDING_FCS = frozenset({3, 6, 16, 22, 23})

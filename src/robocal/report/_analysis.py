@@ -164,8 +164,8 @@ def analyse(inp: ReportInput) -> Analysis:
     base_norms: dict[str, Array] = {}
     base_entry = entries.get(BASELINE)
     if base_entry is not None and base_entry.calibrated is not None:
-        for which, d in data.items():
-            base_norms[which] = np.linalg.norm(d.p - base_entry.calibrated.predict(d.q), axis=1)
+        for which, ds in data.items():
+            base_norms[which] = np.linalg.norm(ds.p - base_entry.calibrated.predict(ds.q), axis=1)
     for name, e in entries.items():
         mr = ModelResult(e)
         for which in SETS:
@@ -246,15 +246,15 @@ def analyse(inp: ReportInput) -> Analysis:
     # per-joint error curves: the richest of selected / high-order / auto
     joint_model = None
     joints: list[JointCurves] = []
-    for name in (selected, "high-order", "auto"):
-        e = entries.get(name) if name else None
-        if e is None or e.calibrated is None:
+    for cand in (selected, "high-order", "auto"):
+        ce = entries.get(cand) if cand else None
+        if ce is None or ce.calibrated is None:
             continue
-        cm = e.calibrated
+        cm = ce.calibrated
         if any(t.family not in ("const", "gravity") for t in cm.model.spec.terms):
-            joint_model = name
+            joint_model = cand
             pts = max(181, 4 * max(cm.model.spec.map_knots, default=0))
-            joints = [joint_curves(cm, j, points=pts, removed=e.removed)
+            joints = [joint_curves(cm, j, points=pts, removed=ce.removed)
                       for j in range(cm.robot.dof)]
             break
 

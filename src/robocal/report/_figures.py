@@ -12,6 +12,7 @@ import io
 import math
 import struct
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -20,6 +21,9 @@ from numpy.typing import NDArray
 
 from robocal.report._analysis import SETS, Analysis
 from robocal.report._metrics import IsoResult, JointCurves, Workspace
+
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
 
 Array = NDArray[np.float64]
 DPI = 96
@@ -30,8 +34,9 @@ _EXTRA = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
 COMP_COLORS = {"dx": "#1f77b4", "dy": "#ff7f0e", "dz": "#2ca02c",
                "ex": "#1f77b4", "ey": "#ff7f0e", "ez": "#2ca02c"}
 COMP_LABEL = {"dx": "δx", "dy": "δy", "dz": "δz", "ex": "εx", "ey": "εy", "ez": "εz"}
-_RC = {"font.size": 8.5, "axes.titlesize": 9.5, "axes.labelsize": 8.5, "legend.fontsize": 7.5,
-       "xtick.labelsize": 8, "ytick.labelsize": 8}
+_RC: dict[RcKeyType, Any] = {
+    "font.size": 8.5, "axes.titlesize": 9.5, "axes.labelsize": 8.5, "legend.fontsize": 7.5,
+    "xtick.labelsize": 8, "ytick.labelsize": 8}
 
 
 @dataclass(frozen=True)
@@ -115,7 +120,7 @@ def summary_plot(an: Analysis) -> Plot | None:
     vmax = 0.0
     for k, (which, off, alpha) in enumerate((("calibration", -h / 2, 0.55),
                                              ("validation", h / 2, 1.0))):
-        vals = [m.sets[which].stats.rms_m * 1e3 if which in m.sets and m.sets[which].stats
+        vals = [st.rms_m * 1e3 if which in m.sets and (st := m.sets[which].stats)
                 else np.nan for _, m in rows]
         cols = [color(n, i) for i, (n, _) in enumerate(rows)]
         ax.barh(y + off, vals, height=h, color=cols, alpha=alpha,
@@ -132,8 +137,8 @@ def summary_plot(an: Analysis) -> Plot | None:
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
     _style(fig)
     alt = "RMS error per model: " + "; ".join(
-        f"{n} " + ", ".join(f"{w} {m.sets[w].stats.rms_m * 1e3:.3f} mm" for w in SETS
-                            if w in m.sets and m.sets[w].stats) for n, m in rows)
+        f"{n} " + ", ".join(f"{w} {st.rms_m * 1e3:.3f} mm" for w in SETS
+                            if w in m.sets and (st := m.sets[w].stats)) for n, m in rows)
     return _render("summary", fig, alt)
 
 
@@ -225,7 +230,7 @@ def joint_plot(an: Analysis, jc: JointCurves) -> Plot:
     ax = axes[2]
     for i, name in enumerate(dict.fromkeys(["constant", an.joint_model, an.selected])):
         m = an.models.get(name) if name else None
-        if m is None:
+        if not name or m is None:
             continue
         for which, marker in (("calibration", "."), ("validation", "+")):
             s = m.sets.get(which)

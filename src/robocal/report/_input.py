@@ -81,7 +81,9 @@ class Acceptance:
         if bad:
             raise ConfigError(f"unknown key (allowed: {', '.join(sorted(allowed))})",
                               key=f"acceptance.{bad[0]}")
-        return cls(**{k: (None if v is None else float(v)) for k, v in d.items()})
+        # None is meant for the optional limits; __post_init__ checks the rest
+        kwargs: dict[str, Any] = {k: (None if v is None else float(v)) for k, v in d.items()}
+        return cls(**kwargs)
 
 
 @dataclass(frozen=True)

@@ -398,9 +398,9 @@ def identifiability(cm: CalibratedModel, q: Array | None, removed: Sequence[str]
                                 for k in order]
     for k, name in enumerate(names):
         f, u = _TO_SCREEN[units[k]]
-        s = None if sig is None else float(sig[k] * f)
+        sd = None if sig is None else float(sig[k] * f)
         v = float(cm.params[k] * f)
-        out.parameters.append({"name": name, "value": v, "sigma": s, "unit": u,
+        out.parameters.append({"name": name, "value": v, "sigma": sd, "unit": u,
                                "removed": name in removed_set})
     return out
 

@@ -216,7 +216,8 @@ class VirtualCell:
         return rng.uniform(lo, hi, (n, self.robot.dof))
 
     def simulate(self, q_cmd: Array, rng: np.random.Generator, *,
-                 outlier_fraction: float = 0.0) -> tuple[Array, Array, Array, Array]:
+                 outlier_fraction: float = 0.0
+                 ) -> tuple[Array, Array, Array, NDArray[np.intp]]:
         """Command, move and measure.
 
         Returns (q reported by the controller (= commanded), measured points (n, 3),
