@@ -23,7 +23,8 @@ def test_simulate_then_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert np.all(np.linalg.norm(cal.p, axis=1) > 0.5)  # metres from the tracker
     model = tmp_path / "model.json"
     assert main(["fit", "--robot", "fanuc_lrmate200i", "--data", str(meas), "--model",
-                 "constant", "--out", str(model), "--validate", str(tmp_path / "meas-val.csv")]) == 0
+                 "constant", "--out", str(model),
+                 "--validate", str(tmp_path / "meas-val.csv")]) == 0
     assert model.exists()
 
 

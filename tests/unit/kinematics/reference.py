@@ -26,13 +26,13 @@ def tr(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> np.ndarray:
     return T
 
 
-def chain(robot, q, *, pre=None, post=None, angle=None, base=np.eye(4), tool=(0, 0, 0)):
+def chain(robot, q, *, pre=None, post=None, angle=None, base=None, tool=(0, 0, 0)):
     """Reference FK for one pose with optional per-joint perturbations.
 
     pre[i](q_i) -> 4x4 pre-multiplied before Rz (rotating-centre offset), post[i](q_i) -> 4x4
     after the DH transform (link/assembly), angle[i](theta, q_i) -> perturbed chain angle.
     """
-    T = base.copy()
+    T = np.eye(4) if base is None else base.copy()
     theta = robot.coupling_matrix @ q + np.array([j.theta_offset for j in robot.joints])
     for i, j in enumerate(robot.joints):
         th = theta[i] if angle is None or angle[i] is None else angle[i](theta[i], q[i])

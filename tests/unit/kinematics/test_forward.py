@@ -52,7 +52,7 @@ def test_matches_reference_chain(name: str, rng: np.random.Generator) -> None:
     m, x = _nominal(name)
     x[6:9] = [0.01, -0.02, 0.07]
     q = rng.uniform(m.robot.joint_limits[:, 0], m.robot.joint_limits[:, 1], (20, m.robot.dof))
-    p, R, o = m.flange_poses(q, x)
+    p, R, _ = m.flange_poses(q, x)
     for i in range(len(q)):
         pr, T = chain(m.robot, q[i], tool=x[6:9])
         np.testing.assert_allclose(p[i], pr, atol=1e-12)

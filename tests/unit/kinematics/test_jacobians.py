@@ -45,7 +45,7 @@ def test_joint_jacobian(name: str, rng: np.random.Generator) -> None:
     x = _params(m, rng)
     lim = m.robot.joint_limits
     q = rng.uniform(lim[:, 0], lim[:, 1], (6, m.robot.dof))
-    p, R, J = m.joint_jacobian(q, x)
+    _, R, J = m.joint_jacobian(q, x)
     h = 1e-6
     for k in range(m.robot.dof):
         dq = np.zeros(m.robot.dof)
