@@ -240,6 +240,23 @@ def test_kill9_at_five_random_points_loses_and_duplicates_nothing(tmp_path):
             assert any(state == "running" for state, _ in kills)
         finally:
             daemon.stop()
+    # no fit worker outlives its daemon, whether that was killed or stopped
+    wait_for(lambda: not _processes_writing_to(tmp_path), 10, "fit workers to exit")
+
+
+def _processes_writing_to(directory: Path) -> list[int]:
+    """Pids whose stdout is a file under ``directory`` (the daemons' logs)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            target = os.readlink(proc / "fd" / "1")
+        except OSError:
+            continue
+        if target.startswith(str(directory)):
+            pids.append(int(proc.name))
+    return pids
 
 
 TOKEN = "integration-token-0123456789abcdef"

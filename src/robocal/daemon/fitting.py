@@ -315,6 +315,20 @@ def _worker_init() -> None:  # pragma: no cover - runs in the worker process
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         pr_set_pdeathsig = 1
         libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+    # PR_SET_PDEATHSIG fires when the *thread* that started the worker ends, which is not
+    # always the daemon's life; also watch the parent's sentinel and leave when it closes.
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        import os
+        import threading
+        from multiprocessing.connection import wait
+
+        def _leave_with_parent() -> None:
+            wait([parent.sentinel])
+            os._exit(0)
+
+        threading.Thread(target=_leave_with_parent, name="robocal-parent-watch",
+                         daemon=True).start()
 
 
 class FitRunner:
