@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,6 @@ from robocal.identification._engine import Engine, EngineSettings, Solution, scr
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
 from robocal.identification._models import constant_spec, high_order_spec
 from robocal.identification._solver import Identifiability
-from robocal.identification._weights import TrackerSigma
 from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
@@ -35,7 +34,7 @@ SOLVER = ("Levenberg-Marquardt (Nielsen damping) on column-scaled whitened norma
 
 
 @dataclass(frozen=True)
-class FitOptions:
+class FitOptions(EngineSettings):
     """Options of :func:`fit` (SI units).
 
     Measurement model
@@ -71,20 +70,8 @@ class FitOptions:
         cover a full turn).
     """
 
-    noise: TrackerSigma = field(default_factory=TrackerSigma)
-    use_point_sigma: bool = True
+    # the solver and outlier settings are inherited from EngineSettings
     tool_m: tuple[float, float, float] | None = None
-    rank_tol: float = 3e-4
-    max_iter: int = 100
-    ftol: float = 1e-10
-    chunk: int = 2048
-    detect_outliers: bool = True
-    outlier_alpha: float = 0.01
-    outlier_sigma: float | None = None
-    outlier_sigma_min: float = 8.0
-    outlier_max_rounds: int = 6
-    outlier_max_fraction: float = 0.2
-    min_redundancy: float = 0.1
     order: int = 2
     pitch: bool = True
     strain_wave: tuple[int, ...] = (1, 2)
@@ -116,14 +103,7 @@ class FitOptions:
 
     def engine_settings(self) -> EngineSettings:
         """The subset the engine needs."""
-        return EngineSettings(
-            noise=self.noise, use_point_sigma=self.use_point_sigma, rank_tol=self.rank_tol,
-            max_iter=self.max_iter, ftol=self.ftol, detect_outliers=self.detect_outliers,
-            outlier_alpha=self.outlier_alpha, outlier_sigma=self.outlier_sigma,
-            outlier_sigma_min=self.outlier_sigma_min,
-            outlier_max_rounds=self.outlier_max_rounds,
-            outlier_max_fraction=self.outlier_max_fraction, min_redundancy=self.min_redundancy,
-            chunk=self.chunk)
+        return EngineSettings(**{f.name: getattr(self, f.name) for f in fields(EngineSettings)})
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form (SI)."""
