@@ -160,9 +160,20 @@ def _read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
         raise DataError("file not found", source=src) from err
     except (OSError, UnicodeDecodeError) as err:
         raise DataError(f"cannot read: {err}", source=src) from err
+    return parse_table(text, src)
+
+
+def parse_table(text: str, src: str, *, delimiter: str | None = None
+                ) -> tuple[list[str], list[list[str]]]:
+    """Split CSV text into a stripped header and data rows (at least as long as the header).
+
+    The delimiter is ``;`` or ``,``, whichever the header uses more, unless given; with ``;``
+    decimal commas in the data are turned into points. Raises :class:`DataError`.
+    """
+    text = text.lstrip("\ufeff")
     # The header decides: European files separate with ';' and may use decimal commas.
     first = text.split("\n", 1)[0]
-    delim = ";" if first.count(";") > first.count(",") else ","
+    delim = delimiter or (";" if first.count(";") > first.count(",") else ",")
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     try:
         rows = [r for r in reader if r and any(c.strip() for c in r)]

@@ -9,14 +9,11 @@ optional tracker standard deviations in mm. Only positions are used.
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 from pathlib import Path
 
 import numpy as np
 
-from robocal._core.measurements import MeasurementSet
+from robocal._core.measurements import MeasurementSet, _numeric, parse_table
 from robocal.errors import DataError
 
 IPA_JOINT_COLUMNS = (
@@ -75,17 +72,7 @@ def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
         Missing columns, short rows, or cells that are not finite numbers (naming the row
         and column).
     """
-    reader = csv.reader(io.StringIO(text.lstrip("\ufeff")), delimiter=";")
-    try:
-        rows = [r for r in reader if r and any(c.strip() for c in r)]
-    except csv.Error as err:
-        raise DataError(f"not a valid CSV file: {err}", source=source) from err
-    if not rows:
-        raise DataError("file is empty (a header row is required)", source=source)
-    header = [h.strip() for h in rows[0]]
-    body = rows[1:]
-    if not body:
-        raise DataError("no data rows after the header", source=source)
+    header, body = parse_table(text, source, delimiter=";")
     for col in (*IPA_JOINT_COLUMNS, *IPA_POINT_COLUMNS):
         if col not in header:
             raise DataError("required column is missing", source=source, key=col)
@@ -93,23 +80,7 @@ def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
     use_std = with_sigma and all(c in header for c in IPA_STD_COLUMNS)
     if use_std:
         cols += list(IPA_STD_COLUMNS)
-    idx = [header.index(c) for c in cols]
-    out = np.empty((len(body), len(cols)))
-    for r, row in enumerate(body):
-        if len(row) < len(header):
-            raise DataError(f"row {r + 2} has {len(row)} fields, the header has {len(header)}",
-                            source=source)
-        for k, i in enumerate(idx):
-            cell = row[i].strip().replace(",", ".")
-            try:
-                v = float(cell)
-            except ValueError:
-                raise DataError(f"row {r + 2}: {row[i]!r} is not a number", source=source,
-                                key=cols[k]) from None
-            if not math.isfinite(v):
-                raise DataError(f"row {r + 2}: value is {row[i]!r} (must be finite)",
-                                source=source, key=cols[k])
-            out[r, k] = v
+    out = _numeric(body, header, cols, source)
     q = out[:, :6]
     p = out[:, 6:9] * 1e-3
     sigma = None
