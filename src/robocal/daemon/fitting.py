@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from robocal._core.files import atomic_write_text
+from robocal._core.files import atomic_write_text, json_default
 from robocal._core.measurements import MeasurementSet
 from robocal.daemon.store import MeasurementRow
 from robocal.errors import ConfigError, IdentificationError, RobocalError
@@ -110,15 +110,11 @@ def _acc(obj: Any) -> dict[str, Any] | None:
 
 
 def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.floating | np.integer):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, Path):
+    """Like :func:`robocal._core.files.json_default`, but summaries never fail: str() the rest."""
+    try:
+        return json_default(o)
+    except TypeError:
         return str(o)
-    return str(o)
 
 
 def _summary(name: str, result: Any, seconds: float) -> tuple[dict[str, Any], str | None]:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal._core.files import atomic_write_text
+from robocal._core.files import atomic_write_text, json_default
 from robocal.errors import ConfigError
 from robocal.kinematics._model import KinematicModel
 from robocal.kinematics._robot import RobotDescription
@@ -143,7 +143,7 @@ class CalibratedModel:
 
     def save(self, path: str | Path) -> None:
         """Write MODEL.json atomically."""
-        atomic_write_text(path, json.dumps(self.to_dict(), indent=1, default=_json_default))
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=1, default=json_default))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, source: str = "<model>") -> CalibratedModel:
@@ -245,13 +245,3 @@ def _decode_covariance(d: Any, size: int, source: str) -> Array:
     C = np.zeros((size, size))
     C[np.ix_(idx, idx)] = sub
     return C
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.floating | np.integer):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

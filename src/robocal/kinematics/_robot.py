@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.files import read_toml
 from robocal.errors import ConfigError
 
 _JOINT_KEYS = {
@@ -304,10 +305,4 @@ def load_robot(spec: str | Path) -> RobotDescription:
         raise ConfigError(
             f"no such file, and not a built-in robot (built-in: {', '.join(builtin_robots())})",
             source=text_spec)
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"not valid TOML: {err}", source=text_spec) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=text_spec) from err
-    return _parse(data, text_spec)
+    return _parse(read_toml(path), text_spec)

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from robocal._core.files import read_toml
 from robocal.errors import ConfigError
 
 Array = NDArray[np.float64]
@@ -337,10 +338,4 @@ def load_cell(spec: str | Path) -> Cell:
         raise ConfigError(
             f"no such file, and not a built-in cell (built-in: {', '.join(builtin_cells())})",
             source=text)
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"not valid TOML: {err}", source=text) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=text) from err
-    return Cell.from_dict(data, source=text)
+    return Cell.from_dict(read_toml(path), source=text)
