@@ -87,6 +87,7 @@ def write_config(tmp: Path, ports: dict[str, Any], *, token: str | None = None,
     api = f'socket = "{tmp / "api.sock"}"\n'
     if token is not None:
         (tmp / "token").write_text(token + "\n")
+        (tmp / "token").chmod(0o600)
         api += f'tcp_port = 0\ntoken_file = "{tmp / "token"}"\n'
     text = f"""
 data_dir = "{tmp / "state"}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -49,7 +50,33 @@ def read_toml(path: str | Path) -> dict[str, Any]:
     src = str(path)
     try:
         return tomllib.loads(Path(path).read_text())
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"not valid TOML: {err}", source=src) from err
+    except (tomllib.TOMLDecodeError, RecursionError) as err:
+        raise ConfigError(f"not valid TOML: {err or 'nested too deeply'}", source=src) from err
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"cannot read: {err}", source=src) from err
+
+
+def private_dir(path: str | Path, mode: int = 0o750) -> Path:
+    """Create ``path`` (and parents) if needed and take away permissions beyond ``mode``.
+
+    An existing directory keeps its owner bits; group and other bits not in ``mode`` are
+    removed (a 0755 state directory becomes 0750), whatever the caller's umask.
+    """
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True, mode=mode)
+    current = stat.S_IMODE(path.stat().st_mode)
+    if current & ~mode & 0o077:
+        os.chmod(path, current & (mode | 0o700))
+    return path
+
+
+def private_file(path: str | Path, mode: int = 0o600) -> None:
+    """Create ``path`` empty if absent and set exactly ``mode`` (a database before SQLite
+    opens it, so it never exists with the umask's wider permissions)."""
+    path = Path(path)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, mode)
+    try:
+        if stat.S_IMODE(os.fstat(fd).st_mode) != mode:
+            os.fchmod(fd, mode)
+    finally:
+        os.close(fd)

@@ -25,22 +25,31 @@ def register(sub: Any) -> None:
 
 
 def check(args: argparse.Namespace) -> int:
-    """Print every problem; exit 0 when all files are valid, 1 otherwise."""
-    from robocal.daemon.config import config_errors, load_config
+    """Print every problem; exit 0 when all files are valid, 1 otherwise.
+
+    With ``--drivers`` the daemon's own start-up checks run too (:func:`preflight`: driver
+    options, fit options, token file), so a file that passes is one the daemon accepts.
+    Risky settings (a non-loopback TCP bind) are printed as warnings and do not fail.
+    """
+    from robocal.daemon.config import config_errors, config_warnings, load_config
     from robocal.errors import RobocalError
 
     bad = 0
     for path in args.files:
         errors = config_errors(path)
-        if not errors and args.drivers:
-            from robocal.daemon.hub import DriverHub
-            from robocal.kinematics import load_robot
-
+        warnings: list[str] = []
+        if not errors:
             try:
                 cfg = load_config(path)
-                DriverHub(cfg, load_robot(cfg.robot_description)).validate()
+                warnings = config_warnings(cfg)
+                if args.drivers:
+                    from robocal.daemon.main import preflight
+
+                    preflight(cfg)
             except RobocalError as err:
                 errors = [f"{path}: {err}"]
+        for w in warnings:
+            sys.stdout.write(f"{path}: warning: {w}\n")
         if errors:
             bad += 1
             for e in errors:

@@ -43,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal import __version__
 from robocal._core.files import atomic_write_text
-from robocal.daemon.config import AppConfig
+from robocal.daemon.config import AppConfig, config_warnings
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import UnknownCampaign
 from robocal.errors import (
@@ -482,6 +482,8 @@ class ApiServer:
                 sockets = getattr(server, "sockets", None) or []
                 self.tcp_port = int(sockets[0].getsockname()[1]) if sockets else api.tcp_port
                 _log.info("api listening", url=f"http://{api.tcp_host}:{self.tcp_port}")
+                for warning in config_warnings(self.config):
+                    _log.warning("insecure setting", warning=warning)
         except BaseException:
             await self.stop()
             raise

@@ -22,8 +22,10 @@ Example (``deploy/config/robocal.example.toml`` is the annotated version)::
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import json
 import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -43,6 +45,8 @@ __all__ = [
     "MeasurementConfig",
     "config_digest",
     "config_errors",
+    "config_warnings",
+    "is_loopback",
     "load_config",
     "parse_config",
 ]
@@ -220,15 +224,21 @@ class AppConfig(_Model):
         Raises
         ------
         ConfigError
-            If the file cannot be read or holds fewer than 16 characters.
+            If the file cannot be read, is readable or writable by group or others, or holds
+            fewer than 16 characters.
         """
         path = self.api.token_file
         if path is None:
             return None
         try:
-            token = path.read_text().strip()
-        except OSError as err:
+            mode = stat.S_IMODE(path.stat().st_mode)
+            token = path.read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as err:
             raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
+        if mode & 0o077:
+            raise ConfigError(f"token file has mode {mode:04o}: others could read or change the "
+                              "token; make it the daemon user's alone (chmod 600)",
+                              source=str(path))
         if len(token) < 16:
             raise ConfigError("token must have at least 16 characters", source=str(path))
         return token
@@ -281,10 +291,15 @@ def _read(path: Path) -> dict[str, Any]:
             return tomllib.load(fh)
     except FileNotFoundError as err:
         raise ConfigError("file not found", source=str(path)) from err
+    except IsADirectoryError as err:
+        raise ConfigError("is a directory, not a configuration file", source=str(path)) from err
     except OSError as err:
         raise ConfigError(f"cannot read: {err}", source=str(path)) from err
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"not valid TOML: {err}", source=str(path)) from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"not UTF-8 text: {err}", source=str(path)) from err
+    except (tomllib.TOMLDecodeError, RecursionError) as err:
+        raise ConfigError(f"not valid TOML: {err or 'nested too deeply'}",
+                          source=str(path)) from err
 
 
 def config_errors(path: str | Path) -> list[str]:
@@ -317,6 +332,26 @@ def load_config(path: str | Path) -> AppConfig:
     """
     path = Path(path)
     return parse_config(_read(path), source=str(path), base=path.resolve().parent)
+
+
+def is_loopback(host: str) -> bool:
+    """True if ``host`` names only this machine (``localhost``, 127.0.0.0/8, ``::1``)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def config_warnings(config: AppConfig) -> list[str]:
+    """Risky but valid settings an operator should know about (the daemon logs them too)."""
+    out = []
+    if config.api.tcp_port is not None and not is_loopback(config.api.tcp_host):
+        out.append(f"api.tcp_host = {config.api.tcp_host!r} exposes the API beyond this "
+                   "machine: anyone who can reach the port can try the token; prefer "
+                   "127.0.0.1 behind an authenticating proxy or a firewall")
+    return out
 
 
 def config_digest(config: AppConfig) -> str:

@@ -21,14 +21,15 @@ from pathlib import Path
 import structlog
 
 from robocal import __version__
+from robocal._core.files import private_dir
 from robocal.daemon import systemd
 from robocal.daemon.api import ApiServer
-from robocal.daemon.config import AppConfig, load_config
+from robocal.daemon.config import AppConfig, config_warnings, load_config
 from robocal.daemon.logging import configure_logging
 from robocal.daemon.service import CalibrationService
 from robocal.errors import ConfigError, RobocalError
 
-__all__ = ["main", "serve"]
+__all__ = ["main", "preflight", "serve"]
 
 _log = structlog.get_logger(__name__)
 
@@ -36,8 +37,8 @@ _log = structlog.get_logger(__name__)
 @contextlib.contextmanager
 def data_dir_lock(data_dir: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``data_dir/robocal.lock`` (released by the kernel on exit)."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(data_dir / "robocal.lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    private_dir(data_dir)
+    fd = os.open(data_dir / "robocal.lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -49,6 +50,28 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)
+
+
+def preflight(config: AppConfig) -> None:
+    """Every start-up check that needs no device: robot description, driver kinds and
+    options, fit options, the token file. ``robocal config check --drivers`` runs the same.
+
+    Raises
+    ------
+    ConfigError
+        The first problem found (other robocal errors for a driver that cannot be built).
+    """
+    from robocal.daemon.fitting import fit_options
+    from robocal.daemon.hub import DriverHub
+    from robocal.kinematics import load_robot
+
+    robot = load_robot(config.robot_description)
+    DriverHub(config, robot).validate()
+    try:
+        fit_options(config.fit.options)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(str(err), source="fit.options") from err
+    config.read_token()
 
 
 async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None:
@@ -90,6 +113,18 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
 def run(config: AppConfig) -> int:
     """Configure logging and run :func:`serve` (the one ``asyncio.run``); return exit code."""
     configure_logging(config.logging.level, config.logging.format)
+    for warning in config_warnings(config):
+        _log.warning("insecure setting", warning=warning)
+        sys.stderr.write(f"robocal daemon: WARNING: {warning}\n")
+    try:
+        preflight(config)
+    except RobocalError as err:
+        sys.stderr.write(f"robocal daemon: error: {err}\n")
+        return 2
+    # Files the daemon creates (reports, models, the socket before its chmod) are not for
+    # everybody, whatever umask the caller had; the state directory is 0750 and the
+    # database 0600 (see private_dir and Store.open).
+    os.umask(0o027)
     try:
         asyncio.run(serve(config))
     except (RobocalError, OSError) as err:

@@ -26,6 +26,7 @@ import structlog
 
 from robocal import __version__
 from robocal._core import read_joints_csv
+from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable
 from robocal.daemon import pushing
 from robocal.daemon._plan import PlanDoc, parse_plan
@@ -83,7 +84,7 @@ class CalibrationService:
     # --- lifecycle -------------------------------------------------------------------------
     async def start(self, *, connect: bool = True) -> None:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
-        self.config.data_dir.mkdir(parents=True, exist_ok=True)
+        private_dir(self.config.data_dir)
         self.store.open()
         self.hub.validate()
         fit_options(self.config.fit.options)

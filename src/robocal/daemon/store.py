@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
+import os
 import sqlite3
 import uuid
 from collections.abc import Iterator, Sequence
@@ -20,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from robocal._core.files import private_file
 from robocal.daemon.campaign import CampaignState, check_transition
 from robocal.errors import CampaignError, ConfigError, InvalidTransition
 
@@ -237,10 +239,18 @@ class Store:
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> Store:
-        """Open (creating the schema if needed); WAL journal, full fsync on commit."""
+        """Open (creating the schema if needed); WAL journal, full fsync on commit.
+
+        The database and its WAL files are made 0600 (SQLite gives the WAL files the
+        database's mode), whoever starts the daemon and whatever the umask.
+        """
         try:
+            private_file(self.path)
+            for extra in ("-wal", "-shm", "-journal"):
+                with contextlib.suppress(FileNotFoundError):
+                    os.chmod(f"{self.path}{extra}", 0o600)
             db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
-        except sqlite3.Error as err:
+        except (sqlite3.Error, OSError) as err:
             raise ConfigError(f"cannot open the store: {err}", source=str(self.path)) from err
         db.row_factory = sqlite3.Row
         mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]

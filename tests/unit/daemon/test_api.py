@@ -131,6 +131,7 @@ async def test_tcp_needs_the_bearer_token(svc):
 async def test_unix_socket_mode_and_client(make_config, tmp_path):
     tok = tmp_path / "token"
     tok.write_text(TOKEN + "\n")
+    tok.chmod(0o600)
     cfg = make_config(api={"socket": str(tmp_path / "run" / "api.sock"), "tcp_port": 0,
                            "token_file": str(tok)})
     svc = CalibrationService(cfg)

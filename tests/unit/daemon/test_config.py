@@ -70,6 +70,7 @@ def test_relative_paths_resolve_against_the_file(tmp_path):
 def test_short_token_is_refused(tmp_path):
     tok = tmp_path / "tok"
     tok.write_text("short\n")
+    tok.chmod(0o600)
     cfg = parse_config({"robot_description": "r", "robot": {"kind": "mock"},
                         "tracker": {"kind": "mock"},
                         "api": {"tcp_port": 0, "token_file": str(tok)}})
