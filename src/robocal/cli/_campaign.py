@@ -17,10 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
-
-_FINISHED = {"fitted", "pushed", "aborted", "faulted", "paused", "approved"}
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
@@ -71,7 +70,7 @@ def register(sub: Any) -> None:
     add_client_options(ls)
     ls.set_defaults(handler=list_)
 
-    for verb, text in (("pause", "pause after the pose in progress"),
+    for verb, text in (("pause", "pause: the robot stops now; resume continues"),
                        ("resume", "resume a paused or faulted campaign"),
                        ("abort", "abort a campaign"),
                        ("approve", "approve the fit (required before push)"),
@@ -180,48 +179,153 @@ def action(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bar(measured: int, total: int, state: str, width: int = 30) -> str:
-    frac = measured / total if total else 0.0
-    filled = round(frac * width)
-    return f"\r[{'#' * filled}{'.' * (width - filled)}] {measured}/{total} {state:9s}"
+#: Exit codes of ``campaign watch``: goal reached, failed (fault/abort), waiting (paused).
+WATCH_DONE, WATCH_FAILED, WATCH_PAUSED = 0, 1, 3
+
+
+class _Progress:
+    """What ``campaign watch`` shows: counts, timing, retries, the fitting phase."""
+
+    def __init__(self, measured: int, total: int, state: str) -> None:
+        self.measured, self.total, self.state = measured, total, state
+        self.t0 = time.monotonic()
+        self.first_measured = measured
+        self.retries = 0
+        self.beam_losses = 0
+        self.phase = ""
+
+    def update(self, ev: dict[str, Any]) -> None:
+        """Fold one event into the display state."""
+        kind = ev.get("kind")
+        if "poses_measured" in ev:
+            self.measured = int(ev["poses_measured"])
+            self.total = int(ev.get("poses_total", self.total))
+        if kind == "state":
+            self.state = str(ev.get("state"))
+        elif kind == "retry":
+            self.retries += 1
+            if str(ev.get("problem", "")).startswith("BeamLost"):
+                self.beam_losses += 1
+        elif kind == "fit":
+            phase = ev.get("phase")
+            if phase == "started":
+                self.phase = "fitting " + ", ".join(str(m) for m in ev.get("models", []))
+            elif phase == "done":
+                self.phase = f"fitted; proposed {ev.get('selected')}"
+            elif phase == "failed":
+                self.phase = "fit failed"
+
+    def line(self, width: int = 30) -> str:
+        """One progress line: bar, counts, elapsed, rate, ETA, retries, beam losses, phase."""
+        frac = self.measured / self.total if self.total else 0.0
+        filled = round(frac * width)
+        elapsed = time.monotonic() - self.t0
+        done_here = self.measured - self.first_measured
+        rate = done_here / elapsed if elapsed > 0 and done_here > 0 else 0.0
+        left = self.total - self.measured
+        eta = _clock(left / rate) if rate > 0 and left > 0 else "--:--"
+        text = (f"[{'#' * filled}{'.' * (width - filled)}] {self.measured}/{self.total} "
+                f"{self.state:9s} {_clock(elapsed)} elapsed, {rate * 60:5.1f} poses/min, "
+                f"ETA {eta}, {self.retries} retries, {self.beam_losses} beam losses")
+        if self.phase and self.state in ("measured", "fitted", "faulted"):
+            text += f" | {self.phase}"
+        return text
+
+
+def _clock(seconds: float) -> str:
+    s = round(seconds)
+    if s >= 3600:
+        return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+    return f"{s // 60}:{s % 60:02d}"
+
+
+def _following(state: str, measure_only: bool) -> bool:
+    """True while the daemon works on the campaign by itself (the watch keeps following)."""
+    from robocal.daemon.campaign import ACTIVE, CampaignState
+
+    if state == CampaignState.MEASURED and measure_only:
+        return False
+    return state == CampaignState.CREATED or state in ACTIVE
+
+
+def _exit_code(state: str, measure_only: bool) -> int:
+    from robocal.daemon.campaign import CampaignState as S
+
+    if state in (S.FAULTED, S.ABORTED):
+        return WATCH_FAILED
+    if state == S.PAUSED:
+        return WATCH_PAUSED
+    if state in (S.FITTED, S.APPROVED, S.PUSHED) or (state == S.MEASURED and measure_only):
+        return WATCH_DONE
+    return WATCH_PAUSED
+
+
+def _summary(s: dict[str, Any], config: Path | None) -> str:
+    """The closing lines: the state with its reason, RMS per model, report, next command."""
+    state, cid = s["state"], s["id"]
+    lines = [f"{cid}: {state}" + (f": {s['reason']}" if s.get("reason") else "")]
+    fits = s.get("fits") or {}
+    parts = []
+    for name, f in fits.items():
+        v = f.get("validation") or f.get("train") or {}
+        rms = v.get("rms_mm")
+        if isinstance(rms, int | float):
+            parts.append(f"{name} {rms:.4f} mm")
+    if parts:
+        lines.append("held-out RMS: " + ", ".join(parts)
+                     + (f"; proposed: {s['selected_model']}" if s.get("selected_model") else ""))
+    report = Path(str(s.get("files", ""))) / "report.html" if s.get("files") else None
+    if report is not None and report.exists():
+        lines.append(f"report: {report}")
+    cfg = f" --config {config}" if config else ""
+    nxt = {"fitted": f"robocal campaign approve{cfg} {cid}   (after reading the report)",
+           "approved": f"robocal campaign push{cfg} {cid}",
+           "paused": f"robocal campaign resume{cfg} {cid}",
+           "faulted": f"robocal campaign resume{cfg} {cid}   (once the cause is fixed)"}
+    if state in nxt:
+        lines.append("next: " + nxt[state])
+    return "\n".join(lines) + "\n"
 
 
 def watch(args: argparse.Namespace) -> int:
-    """Follow the event stream until the campaign stops needing the daemon's attention."""
+    """Follow the campaign's current run until the daemon needs the operator.
+
+    Exit code 0 when the campaign got where it was going (fitted, approved, pushed, or a
+    measure-only run measured), 1 when it faulted or was aborted (the reason is printed), 3
+    when it is paused.
+    """
     c = client(args)
+    # Only events after this point belong to the run being watched: older ones (a fault before
+    # a resume, say) are history and must not end the watch.
+    after = int(c.request("GET", f"/events/poll?after={2**62}&timeout=0")["last_seq"])
     s = c.request("GET", f"/campaigns/{args.id}")
-    measured, total, state = s["poses_measured"], s["poses_total"], s["state"]
+    measure_only = bool(s.get("measure_only"))
+    prog = _Progress(int(s["poses_measured"]), int(s["poses_total"]), str(s["state"]))
     tty = sys.stdout.isatty()
     if args.json:
         first = {"kind": "status", "campaign": args.id,
-                 **{k: s[k] for k in ("state", "reason", "poses_total", "poses_measured")}}
+                 **{k: s.get(k) for k in ("state", "reason", "poses_total", "poses_measured")}}
         sys.stdout.write(json.dumps(first) + "\n")
-        sys.stdout.flush()
     else:
-        sys.stdout.write(_bar(measured, total, state) + ("" if tty else "\n"))
-    if state in _FINISHED or (state == "measured" and s.get("measure_only")):
-        if not args.json:
-            sys.stdout.write("\n")
-        return 0
-    for ev in c.events(campaign=args.id):
-        if args.json:
-            sys.stdout.write(json.dumps(ev, default=str) + "\n")
+        sys.stdout.write(("\r" if tty else "") + prog.line() + ("" if tty else "\n"))
+    sys.stdout.flush()
+    if _following(prog.state, measure_only):
+        for ev in c.events(campaign=args.id, after=after):
+            prog.update(ev)
+            if args.json:
+                sys.stdout.write(json.dumps(ev, default=str) + "\n")
+            elif tty or ev.get("kind") in ("state", "fit"):
+                sys.stdout.write(("\r\033[K" if tty else "") + prog.line()
+                                 + ("" if tty else "\n"))
             sys.stdout.flush()
-        if "poses_measured" in ev:
-            measured = int(ev["poses_measured"])
-            total = int(ev.get("poses_total", total))
-        if ev.get("kind") == "state":
-            state = str(ev.get("state"))
-        if not args.json and (tty or ev.get("kind") == "state"):
-            sys.stdout.write(_bar(measured, total, state) + ("" if tty else "\n"))
-            sys.stdout.flush()
-        if ev.get("kind") == "state" and (state in _FINISHED or (
-                state == "measured" and c.request("GET", f"/campaigns/{args.id}")
-                .get("measure_only"))):
-            break
-    if not args.json:
-        sys.stdout.write("\n")
-        final = c.request("GET", f"/campaigns/{args.id}")
-        if final.get("reason"):
-            sys.stdout.write(f"{final['state']}: {final['reason']}\n")
-    return 0
+            if ev.get("kind") == "state" and not _following(prog.state, measure_only):
+                break
+    final = c.request("GET", f"/campaigns/{args.id}")
+    code = _exit_code(str(final["state"]), measure_only)
+    if args.json:
+        sys.stdout.write(json.dumps({"kind": "summary", "campaign": args.id,
+                                     "state": final["state"], "reason": final.get("reason"),
+                                     "exit_code": code}) + "\n")
+    else:
+        sys.stdout.write(("\n" if tty else "") + _summary(final, getattr(args, "config", None)))
+    return code

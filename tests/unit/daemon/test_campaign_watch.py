@@ -1,0 +1,99 @@
+"""``robocal campaign watch`` against an in-process daemon on a Unix socket (mock drivers).
+
+The watch follows only the run that is current when it starts, exits 0 when the campaign got
+where it was going, 1 on a fault or abort (printing the reason) and 3 when paused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from robocal.cli.main import main
+from robocal.daemon.api import ApiServer
+from robocal.daemon.service import CalibrationService
+
+from .conftest import random_plan
+
+
+async def _watch(sock: Path, cid: str, *extra: str, capsys: Any) -> tuple[int, str]:
+    rc = await asyncio.wait_for(
+        asyncio.to_thread(main, ["campaign", "watch", cid, "--socket", str(sock), *extra]), 60)
+    return rc, capsys.readouterr().out
+
+
+async def _served(make_config: Any, tmp_path: Path, **sections: Any
+                  ) -> tuple[CalibrationService, ApiServer, Path]:
+    sock = tmp_path / "api.sock"
+    cfg = make_config(api={"socket": str(sock)}, **sections)
+    svc = CalibrationService(cfg)
+    await svc.start()
+    api = ApiServer(svc, cfg)
+    await api.start()
+    return svc, api, sock
+
+
+async def test_watch_after_pause_and_resume_follows_the_current_run(make_config, tmp_path,
+                                                                    capsys):
+    svc, api, sock = await _served(
+        make_config, tmp_path, robot={"options": {"move_time_s": 0.01}})
+    try:
+        st = await svc.create(random_plan(40, seed=3), actor="test")
+        cid = st["id"]
+        await svc.pause(cid, actor="test", reason="operator break")
+        rc, out = await _watch(sock, cid, capsys=capsys)
+        assert rc == 3, out
+        assert "operator break" in out and "campaign resume" in out
+        await svc.resume(cid, actor="test")
+        # the earlier "paused" event is history: the watch must follow the run to its end
+        rc, out = await _watch(sock, cid, capsys=capsys)
+        assert rc == 0, out
+        assert svc.status(cid)["state"] == "fitted"
+        assert "held-out RMS: constant" in out and "campaign approve" in out
+        assert "40/40" in out and "poses/min" in out and "beam losses" in out
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+async def test_watch_exits_non_zero_with_the_reason_on_a_fault(make_config, tmp_path, capsys):
+    svc, api, sock = await _served(
+        make_config, tmp_path, tracker={"options": {"beam_break_rate": 1.0}},
+        measurement={"retries": 2, "backoff_s": 0.4, "max_backoff_s": 0.4})
+    try:
+        st = await svc.create(random_plan(10, seed=4), actor="test")
+        rc, out = await _watch(sock, st["id"], "--json", capsys=capsys)
+        lines = [json.loads(x) for x in out.splitlines() if x.startswith("{")]
+        assert rc == 1
+        assert lines[-1]["kind"] == "summary" and lines[-1]["state"] == "faulted"
+        assert "no valid reading" in lines[-1]["reason"]
+        assert sum(1 for e in lines if e.get("kind") == "retry") >= 1
+        # started after the fault, the plain watch still says why
+        rc, out = await _watch(sock, st["id"], capsys=capsys)
+        assert rc == 1 and "faulted: " in out and "no valid reading" in out
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+async def test_watch_of_an_aborted_campaign(make_config, tmp_path, capsys):
+    svc, api, sock = await _served(make_config, tmp_path)
+    try:
+        st = await svc.create(random_plan(10, seed=5), actor="test", start=False)
+        await svc.abort(st["id"], actor="test", reason="wrong tool mounted")
+        rc, out = await _watch(sock, st["id"], capsys=capsys)
+        assert rc == 1 and "aborted: wrong tool mounted" in out
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+@pytest.mark.parametrize(("seconds", "text"), [(5, "0:05"), (125, "2:05"), (3725, "1:02:05")])
+def test_clock(seconds, text):
+    from robocal.cli._campaign import _clock
+
+    assert _clock(seconds) == text
