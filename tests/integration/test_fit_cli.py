@@ -141,3 +141,71 @@ def test_console_script_runs(files, tmp_path):
                         str(out), "--json"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["model"] == "constant" and out.exists()
+
+
+# heavy packages that the fit/predict path must not load (start-up time, issue 14)
+_NOT_ON_FIT_PATH = ("scipy", "numpy.f2py", "matplotlib", "aiohttp", "pydantic", "structlog",
+                    "asyncio")
+_IMPORTED = """
+import sys
+from robocal.cli.main import main
+code = main(sys.argv[1:])
+heavy = sorted(m for m in sys.modules if m.split(".")[0] in {roots} or m in {full})
+print("HEAVY=" + ",".join(heavy))
+sys.exit(code)
+"""
+
+
+def _modules_loaded_by(*argv: str) -> tuple[int, list[str], str]:
+    roots = {m for m in _NOT_ON_FIT_PATH if "." not in m}
+    full = {m for m in _NOT_ON_FIT_PATH if "." in m}
+    src = _IMPORTED.format(roots=sorted(roots), full=sorted(full))
+    out = subprocess.run([sys.executable, "-c", src, *argv], capture_output=True, text=True,
+                         timeout=120)
+    line = [s for s in out.stdout.splitlines() if s.startswith("HEAVY=")]
+    assert line, out.stderr
+    heavy = [m for m in line[0][len("HEAVY="):].split(",") if m]
+    return out.returncode, heavy, out.stderr
+
+
+@pytest.mark.parametrize("model", ["constant", "high-order"])
+def test_fit_and_predict_import_no_heavy_modules(files, tmp_path, model):
+    out = tmp_path / "m.json"
+    code, heavy, err = _modules_loaded_by(
+        "fit", "--robot", "fanuc_lrmate200i", "--data", str(files["train"]), "--model", model,
+        "--out", str(out))
+    assert code == 0, err
+    assert heavy == []
+    code, heavy, err = _modules_loaded_by(
+        "predict", "--model", str(out), "--joints", str(files["joints"]),
+        "--out", str(tmp_path / "pred.csv"))
+    assert code == 0, err
+    assert heavy == []
+
+
+def test_help_imports_neither_numpy_nor_subcommands() -> None:
+    src = ("import sys\nfrom robocal.cli.main import main\n"
+           "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+           "print('MODS=' + ','.join(sorted(m for m in sys.modules "
+           "if m.split('.')[0] == 'numpy' or m.startswith('robocal.cli._'))))\n")
+    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
+    mods = [s for s in out.stdout.splitlines() if s.startswith("MODS=")]
+    assert mods and mods[0] == "MODS=", out.stdout + out.stderr
+
+
+def test_help_lists_every_subcommand_with_its_modules_help_line(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The cheap help table in main.py agrees with every module's own registration."""
+    import argparse
+
+    from robocal.cli.main import COMMANDS, build_parser
+
+    full = build_parser()       # imports every subcommand module; an import error fails here
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    registered = {a.dest: a.help for a in sub._choices_actions}
+    assert registered == COMMANDS
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    for name, text in COMMANDS.items():
+        assert name in out and text.split()[0] in out

@@ -34,9 +34,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import linalg as sla
 
 from robocal.identification._engine import Solution
+from robocal.identification._linalg import block_diag, cho_solve, cholesky, spd_solve
 from robocal.identification._models import (
     MapPrior,
     covered_knots,
@@ -159,8 +159,7 @@ class _CV:
             bf = self.b_f[f][cols]
             A = Gc - Gf
             try:
-                d = sla.cho_solve(sla.cho_factor(A, lower=True, check_finite=False),
-                                  self.b[cols] - bf, check_finite=False)
+                d = spd_solve(A, self.b[cols] - bf)
             except np.linalg.LinAlgError:
                 d = np.linalg.lstsq(A, self.b[cols] - bf, rcond=1e-12)[0]
             total += float(self.c_f[f] - 2.0 * d @ bf + d @ Gf @ d)
@@ -202,8 +201,7 @@ class _CV:
                 for j, pen in enumerate(pens):
                     M = S0 + pen
                     try:
-                        dg = sla.cho_solve(sla.cho_factor(M, lower=True, check_finite=False),
-                                           rhs, check_finite=False)
+                        dg = spd_solve(M, rhs)
                     except np.linalg.LinAlgError:
                         dg = np.linalg.lstsq(M, rhs, rcond=1e-12)[0]
                     out[i][j] += const_part + float(2.0 * lin @ dg + dg @ Q @ dg)
@@ -226,9 +224,7 @@ def cv_folds(q: Array, k: int, seed: int, tol: float) -> IntArray:
         return i
 
     if tol > 0 and n > 1:
-        from scipy.spatial import cKDTree
-
-        for i, j in cKDTree(q).query_pairs(tol, p=np.inf, output_type="ndarray"):
+        for i, j in close_pairs(q, tol):
             ri, rj = find(int(i)), find(int(j))
             if ri != rj:
                 parent[max(ri, rj)] = min(ri, rj)
@@ -240,10 +236,31 @@ def cv_folds(q: Array, k: int, seed: int, tol: float) -> IntArray:
     return fold_of_group[group]
 
 
+def close_pairs(q: Array, tol: float) -> IntArray:
+    """Index pairs (m, 2), i < j, of rows of ``q`` (n, d) within ``tol`` in every column.
+
+    Sweep over the rows sorted by the first column: only rows whose first coordinate lies
+    within ``tol`` are compared (no k-d tree needed for a few thousand poses).
+    """
+    order = np.argsort(q[:, 0], kind="stable")
+    qs = q[order]
+    hi = np.searchsorted(qs[:, 0], qs[:, 0] + tol, side="right")
+    out: list[IntArray] = []
+    for a in range(len(qs) - 1):
+        if hi[a] <= a + 1:
+            continue
+        cand = np.arange(a + 1, hi[a])
+        close = np.all(np.abs(qs[cand] - qs[a]) <= tol, axis=1)
+        if close.any():
+            b = cand[close]
+            i, j = order[a], order[b]
+            out.append(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1))
+    return np.concatenate(out).astype(np.intp) if out else np.zeros((0, 2), dtype=np.intp)
+
+
 def _inv_spd(A: Array) -> Array:
     try:
-        c = sla.cho_factor(A, lower=True, check_finite=False)
-        return sla.cho_solve(c, np.eye(len(A)), check_finite=False)
+        return cho_solve(cholesky(A), np.eye(len(A)))
     except np.linalg.LinAlgError:
         # numpy stub types pinv() of any float input as floating[Any]; float64 in gives float64
         return np.linalg.pinv(A, rcond=1e-12, hermitian=True)  # type: ignore[return-value]
@@ -331,7 +348,7 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
             cols.append(g.cols)
             blocks.append(map_pen(g, lam) if g.is_map and lam is not None
                           else np.zeros((len(g.cols), len(g.cols))))
-        return np.concatenate(cols).astype(np.intp), sla.block_diag(*blocks)
+        return np.concatenate(cols).astype(np.intp), block_diag(*blocks)
 
     score = cv.score(base_cols, np.zeros((len(base_cols), len(base_cols))))
     m_obs = 3 * len(rows)

@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import NotConverged, NotIdentifiable
+from robocal.identification._linalg import CHI2_3_MEDIAN, chi2_3_isf, median
 from robocal.identification._models import MapPrior, map_terms, penalty_for
 from robocal.identification._solver import (
     Identifiability,
@@ -27,7 +27,6 @@ from robocal.kinematics import KinematicModel, RobotDescription
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
-CHI2_3_MEDIAN = float(stats.chi2.median(3))
 
 
 @dataclass(frozen=True)
@@ -184,7 +183,7 @@ class Engine:
         """Outlier threshold on the normalised statistic (chi-square 3 dof units)."""
         if self.s.outlier_sigma is not None:
             return float(self.s.outlier_sigma**2)
-        return max(float(stats.chi2.isf(self.s.outlier_alpha / n, 3)),
+        return max(chi2_3_isf(self.s.outlier_alpha / n),
                    float(self.s.outlier_sigma_min**2))
 
     def _outlier_statistics(self, prob: Problem, x: Array, free: IntArray, Ninv: Array,
@@ -200,7 +199,7 @@ class Engine:
         heavy-tailed model error, so only gross errors are flagged).
         """
         t = hat_statistics(prob, x, free, Ninv, active)
-        s2 = max(float(np.median(t[active]) / CHI2_3_MEDIAN), 1e-300)
+        s2 = max(median(t[active]) / CHI2_3_MEDIAN, 1e-300)
         return t / s2, s2, self.threshold(self.n)
 
 

@@ -15,6 +15,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
 from robocal.errors import ConfigError, DataError
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
+from robocal.identification._linalg import median
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
 from robocal.identification._models import constant_spec, high_order_spec
 from robocal.identification._solver import Identifiability
@@ -247,7 +248,7 @@ def _initial_base(robot: RobotDescription, data: MeasurementSet, tool: Array) ->
     T = rigid_fit(src, data.p)
     # one trimmed re-registration against gross outliers
     d = np.linalg.norm(data.p - (src @ T[:3, :3].T + T[:3, 3]), axis=1)
-    good = d <= max(3.0 * np.median(d), 1e-3)
+    good = d <= max(3.0 * median(d), 1e-3)
     if good.sum() >= 3 and not good.all():
         T = rigid_fit(src[good], data.p[good])
     return T

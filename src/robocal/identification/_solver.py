@@ -16,8 +16,8 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import linalg as sla
 
+from robocal.identification._linalg import cho_solve, cholesky
 from robocal.kinematics import KinematicModel, Term
 
 Array = NDArray[np.float64]
@@ -200,8 +200,7 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
 def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
     k = len(gs)
     try:
-        c = sla.cho_factor(As + mu * np.eye(k), lower=True, check_finite=False)
-        d = sla.cho_solve(c, gs, check_finite=False)
+        d = cho_solve(cholesky(As + mu * np.eye(k)), gs)
         if np.all(np.isfinite(d)):
             return d
     except np.linalg.LinAlgError:
@@ -217,8 +216,7 @@ def inverse_spd(A: Array) -> Array:
     s[s <= 1e-300] = 1.0
     As = A / np.outer(s, s)
     try:
-        c = sla.cho_factor(As, lower=True, check_finite=False)
-        inv = sla.cho_solve(c, np.eye(len(s)), check_finite=False)
+        inv = cho_solve(cholesky(As), np.eye(len(s)))
     except np.linalg.LinAlgError:
         inv = np.linalg.pinv(As, rcond=1e-12, hermitian=True)
     return inv / np.outer(s, s)
