@@ -127,20 +127,21 @@ class MeasurementSet:
     def read_csv(cls, path: str | Path, *, dof: int | None = None) -> MeasurementSet:
         """Read a measurement CSV; raise :class:`DataError` naming the file, column and row."""
         src = str(path)
-        header, rows = _read_table(path)
-        qcols = _joint_columns(header, src, dof)
+        header, rows = read_table(path)
+        qcols = joint_columns(header, src, dof)
         for c in ("x", "y", "z"):
             if c not in header:
-                raise DataError("required column is missing", source=src, key=c)
-        q = _numeric(rows, header, qcols, src) * (math.pi / 180.0)
-        p = _numeric(rows, header, ["x", "y", "z"], src) * 1e-3
+                raise DataError(f"required column is missing; {found_columns(header)}",
+                                source=src, key=c)
+        q = numeric_columns(rows, header, qcols, src) * (math.pi / 180.0)
+        p = numeric_columns(rows, header, ["x", "y", "z"], src) * 1e-3
         sigma = None
         scols = [c for c in ("sx", "sy", "sz") if c in header]
         if scols:
             if len(scols) != 3:
                 missing = sorted({"sx", "sy", "sz"} - set(scols))[0]
                 raise DataError("sx, sy, sz must be given together", source=src, key=missing)
-            sigma = _numeric(rows, header, ["sx", "sy", "sz"], src) * 1e-3
+            sigma = numeric_columns(rows, header, ["sx", "sy", "sz"], src) * 1e-3
             if np.any(sigma <= 0):
                 r = int(np.argwhere(sigma <= 0)[0, 0])
                 raise DataError(f"row {r + 2}: standard deviations must be positive",
@@ -152,7 +153,8 @@ class MeasurementSet:
         return cls(q=q, p=p, sigma=sigma, pose_id=ids)
 
 
-def _read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
+def read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
+    """Read a CSV file into a lower-case header and data rows (see :func:`parse_table`)."""
     src = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8-sig")
@@ -167,12 +169,18 @@ def parse_table(text: str, src: str, *, delimiter: str | None = None
                 ) -> tuple[list[str], list[list[str]]]:
     """Split CSV text into a stripped header and data rows (at least as long as the header).
 
-    The delimiter is ``;`` or ``,``, whichever the header uses more, unless given; with ``;``
-    decimal commas in the data are turned into points. Raises :class:`DataError`.
+    The delimiter is ``;`` or ``,``, whichever the header uses more, unless given or named by
+    a leading ``sep=X`` line (as spreadsheet programs write); with ``;`` decimal commas in
+    numbers are turned into points (other cells are kept as written, for error messages).
+    Header names are case-insensitive (returned lower-case). Raises :class:`DataError`.
     """
     text = text.lstrip("\ufeff")
+    first, _, rest = text.partition("\n")
+    if first.strip().lower().startswith("sep=") and len(first.strip()) == 5:
+        delimiter = delimiter or first.strip()[4]
+        text = rest
+        first = text.split("\n", 1)[0]
     # The header decides: European files separate with ';' and may use decimal commas.
-    first = text.split("\n", 1)[0]
     delim = delimiter or (";" if first.count(";") > first.count(",") else ",")
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     try:
@@ -181,10 +189,10 @@ def parse_table(text: str, src: str, *, delimiter: str | None = None
         raise DataError(f"not a valid CSV file: {err}", source=src) from err
     if not rows:
         raise DataError("file is empty (a header row is required)", source=src)
-    header = [h.strip() for h in rows[0]]
+    header = [h.strip().lower() for h in rows[0]]
     body = rows[1:]
     if delim == ";":  # European CSV: decimal comma
-        body = [[c.replace(",", ".") for c in r] for r in body]
+        body = [[_decimal_point(c) for c in r] for r in body]
     if not body:
         raise DataError("no data rows after the header", source=src)
     for i, r in enumerate(body):
@@ -194,14 +202,33 @@ def parse_table(text: str, src: str, *, delimiter: str | None = None
     return header, body
 
 
-def _joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
+def _decimal_point(cell: str) -> str:
+    """``'1,5'`` -> ``'1.5'``; a cell that is no number either way stays as written."""
+    if "," not in cell:
+        return cell
+    dotted = cell.replace(",", ".")
+    try:
+        float(dotted)
+    except ValueError:
+        return cell
+    return dotted
+
+
+def found_columns(header: Sequence[str]) -> str:
+    """``'columns found: a, b, c'`` for error messages about a missing column."""
+    return "columns found: " + (", ".join(h for h in header if h) or "none")
+
+
+def joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
+    """Names ``q1..qN`` present in ``header`` (checked against ``dof`` when given)."""
     present = []
     i = 1
     while f"q{i}" in header:
         present.append(f"q{i}")
         i += 1
     if not present:
-        raise DataError("no joint columns (q1..qN) found", source=src, key="q1")
+        raise DataError(f"no joint columns (q1..qN) found; {found_columns(header)}",
+                        source=src, key="q1")
     if dof is not None and len(present) != dof:
         key = f"q{len(present) + 1}" if len(present) < dof else f"q{len(present)}"
         raise DataError(f"found {len(present)} joint columns (q1..q{len(present)}), the robot "
@@ -209,7 +236,9 @@ def _joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
     return present
 
 
-def _numeric(rows: list[list[str]], header: list[str], cols: Sequence[str], src: str) -> Array:
+def numeric_columns(rows: list[list[str]], header: list[str], cols: Sequence[str],
+                    src: str) -> Array:
+    """The named columns as an (n, len(cols)) float array; a bad cell is quoted as written."""
     idx = [header.index(c) for c in cols]
     out = np.empty((len(rows), len(cols)))
     for r, row in enumerate(rows):
@@ -229,9 +258,9 @@ def _numeric(rows: list[list[str]], header: list[str], cols: Sequence[str], src:
 
 def read_joints_csv(path: str | Path, *, dof: int | None = None) -> Array:
     """Read ``q1..qN`` (deg) from a CSV; return (n, dof) rad."""
-    header, rows = _read_table(path)
-    cols = _joint_columns(header, str(path), dof)
-    return _numeric(rows, header, cols, str(path)) * (math.pi / 180.0)
+    header, rows = read_table(path)
+    cols = joint_columns(header, str(path), dof)
+    return numeric_columns(rows, header, cols, str(path)) * (math.pi / 180.0)
 
 
 def write_joints_csv(path: str | Path, q: Array, extra: dict[str, Sequence[object]] | None = None

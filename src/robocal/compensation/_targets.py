@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 # Column and number checks follow the measurement CSV conventions.
 from robocal._core.files import atomic_write_text
-from robocal._core.measurements import _joint_columns, _numeric
+from robocal._core.measurements import joint_columns, numeric_columns, read_table
 from robocal.compensation._solve import CompensationResult
 from robocal.errors import DataError
 from robocal.kinematics import matrix_to_wpr, wpr_to_matrix
@@ -114,7 +114,7 @@ def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
         Expected number of joint columns (the model's robot); None accepts any.
     """
     src = str(path)
-    header, rows = _read_rows(path)
+    header, rows = read_table(path)
     seen: set[str] = set()
     for h in header:
         if h and h in seen:
@@ -123,9 +123,9 @@ def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
     for c in ("x", "y", "z"):
         if c not in header:
             raise DataError("required column is missing (x, y, z in mm)", source=src, key=c)
-    qcols = _joint_columns(header, src, dof)
-    p = _numeric(rows, header, ["x", "y", "z"], src) * 1e-3
-    q = _numeric(rows, header, qcols, src) * (math.pi / 180.0)
+    qcols = joint_columns(header, src, dof)
+    p = numeric_columns(rows, header, ["x", "y", "z"], src) * 1e-3
+    q = numeric_columns(rows, header, qcols, src) * (math.pi / 180.0)
     present = [c for c in ORIENTATION_COLUMNS if c in header]
     R = None
     if present:
@@ -133,45 +133,13 @@ def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
             missing = next(c for c in ORIENTATION_COLUMNS if c not in present)
             raise DataError("orientation needs all of w, p, r (deg) or none", source=src,
                             key=missing)
-        wpr = np.radians(_numeric(rows, header, list(ORIENTATION_COLUMNS), src))
+        wpr = np.radians(numeric_columns(rows, header, list(ORIENTATION_COLUMNS), src))
         R = np.stack([wpr_to_matrix(*row) for row in wpr])
     labels: tuple[str, ...] = ()
     if "target_id" in header:
         k = header.index("target_id")
         labels = tuple(r[k].strip() for r in rows)
     return TargetSet(p=p, q_seed=q, R=R, labels=labels)
-
-
-def _read_rows(path: str | Path) -> tuple[list[str], list[list[str]]]:
-    """Header and data rows. The delimiter is ``;`` when the header line has more semicolons
-    than commas (then decimal commas are accepted), else ``,``."""
-    src = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError as err:
-        raise DataError("file not found", source=src) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise DataError(f"cannot read: {err}", source=src) from err
-    first = next((line for line in text.splitlines() if line.strip()), "")
-    delim = ";" if first.count(";") > first.count(",") else ","
-    try:
-        rows = [r for r in csv.reader(io.StringIO(text), delimiter=delim)
-                if r and any(c.strip() for c in r)]
-    except csv.Error as err:
-        raise DataError(f"not a valid CSV file: {err}", source=src) from err
-    if not rows:
-        raise DataError("file is empty (a header row is required)", source=src)
-    header = [h.strip() for h in rows[0]]
-    body = rows[1:]
-    if delim == ";":
-        body = [[c.replace(",", ".") for c in r] for r in body]
-    if not body:
-        raise DataError("no data rows after the header", source=src)
-    for i, r in enumerate(body):
-        if len(r) < len(header):
-            raise DataError(f"row {i + 2} has {len(r)} fields, the header has {len(header)}",
-                            source=src)
-    return header, body
 
 
 def joints_csv_text(result: CompensationResult) -> str:

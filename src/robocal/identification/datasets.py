@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robocal._core.measurements import MeasurementSet, _numeric, parse_table
+from robocal._core.measurements import MeasurementSet, numeric_columns, parse_table
 from robocal.errors import DataError
 
 IPA_JOINT_COLUMNS = (
@@ -80,7 +80,7 @@ def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
     use_std = with_sigma and all(c in header for c in IPA_STD_COLUMNS)
     if use_std:
         cols += list(IPA_STD_COLUMNS)
-    out = _numeric(body, header, cols, source)
+    out = numeric_columns(body, header, cols, source)
     q = out[:, :6]
     p = out[:, 6:9] * 1e-3
     sigma = None

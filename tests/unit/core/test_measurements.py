@@ -90,3 +90,29 @@ def test_semicolon_file_with_many_decimal_commas(tmp_path: Path) -> None:
     f.write_text("q1;q2;x;y;z\n1,5;2,5;1,25;2,5;3,75\n")
     ms = MeasurementSet.read_csv(f)
     np.testing.assert_allclose(ms.p[0], [0.00125, 0.0025, 0.00375])
+
+
+def test_spreadsheet_habits_are_accepted(tmp_path):
+    """Upper-case headers, Excel's leading ``sep=;`` line and decimal commas."""
+    path = tmp_path / "m.csv"
+    path.write_text("sep=;\nPOSE_ID;Q1;Q2;X;Y;Z\nA;1,5;-2;100,25;0;3\n")
+    m = MeasurementSet.read_csv(path)
+    assert m.pose_id == ("A",)
+    np.testing.assert_allclose(np.degrees(m.q), [[1.5, -2.0]])
+    np.testing.assert_allclose(m.p * 1e3, [[100.25, 0.0, 3.0]])
+
+
+def test_missing_column_lists_the_columns_found(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("q1,q2,x,y,height\n1,2,3,4,5\n")
+    with pytest.raises(DataError) as info:
+        MeasurementSet.read_csv(path)
+    assert "columns found: q1, q2, x, y, height" in str(info.value) and "z" in str(info.value)
+
+
+def test_bad_cell_is_quoted_as_written(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("q1;x;y;z\n1,5;2,0mm;3;4\n")
+    with pytest.raises(DataError) as info:
+        MeasurementSet.read_csv(path)
+    assert "'2,0mm'" in str(info.value) and "row 2" in str(info.value)
