@@ -29,7 +29,23 @@ class ApiError(RobocalError):
     def __init__(self, status: int, kind: str, message: str) -> None:
         self.status = status
         self.kind = kind
-        super().__init__(f"{message} (HTTP {status} {kind})")
+        # The operator reads the daemon's sentence; the status and type stay attributes.
+        super().__init__(message or _STATUS_TEXT.get(status, f"the daemon refused ({status})"))
+
+
+_STATUS_TEXT = {
+    400: "the daemon could not use the request",
+    401: "not authorised: give the daemon's token (--token-file or ROBOCAL_TOKEN)",
+    403: "not allowed",
+    404: "not found on the daemon",
+    409: "not possible in the campaign's current state",
+    413: "the request is too large",
+    422: "the daemon cannot do that with what it has",
+    500: "the daemon failed internally; see its log (journalctl -u robocal)",
+}
+
+_START_HINT = ("is the daemon running? start it with `robocal daemon --config FILE` "
+               "(or `systemctl start robocal` on the cell PC)")
 
 
 class DaemonUnavailable(RobocalError, ConnectionError):
@@ -164,8 +180,8 @@ class DaemonClient:
             resp = conn.getresponse()
             raw = resp.read()
         except (OSError, http.client.HTTPException) as err:
-            raise DaemonUnavailable(f"cannot reach the daemon at {self._where()}: {err}") \
-                from err
+            raise DaemonUnavailable(f"cannot reach the daemon at {self._where()} ({err}); "
+                                    f"{_START_HINT}") from err
         finally:
             conn.close()
         try:

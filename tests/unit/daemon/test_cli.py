@@ -45,3 +45,15 @@ def test_campaign_start_with_a_missing_plan(tmp_path, capsys):
 def test_demo_refuses_too_few_poses(capsys):
     assert main(["demo", "--poses", "5"]) == 2
     assert "--poses" in capsys.readouterr().err
+
+
+def test_daemon_errors_read_as_sentences(tmp_path, capsys):
+    from robocal.daemon.client import ApiError
+
+    err = ApiError(409, "ApprovalRequired", "campaign abc is fitted; approve it first")
+    assert str(err) == "campaign abc is fitted; approve it first"
+    assert err.status == 409 and err.kind == "ApprovalRequired"
+    assert "token" in str(ApiError(401, "Unauthorized", ""))
+    rc = main(["campaign", "status", "x", "--socket", str(tmp_path / "none.sock")])
+    out = capsys.readouterr().err
+    assert rc == 2 and "robocal daemon --config" in out and "Error" not in out.split(":")[0]
