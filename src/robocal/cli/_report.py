@@ -169,6 +169,7 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
     weather = [dict(r.weather) for r in rows if r.weather]
     log = MeasurementLog(planned=rec.poses_total, measured=len(rows),
                          retries=sum(max(0, r.attempts - 1) for r in rows),
+                         beam_losses=sum(r.beam_losses for r in rows),
                          weather=weather, tracker=str(cfg.tracker.kind),
                          controller=str(cfg.robot.kind),
                          extra={"campaign state": str(getattr(rec.state, "value", rec.state)),

@@ -32,7 +32,13 @@ from robocal.daemon.events import EventBus
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
 from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target
-from robocal.errors import LimitViolation, MeasurementError, MotionRejected, RobocalError
+from robocal.errors import (
+    BeamLost,
+    LimitViolation,
+    MeasurementError,
+    MotionRejected,
+    RobocalError,
+)
 from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
@@ -255,6 +261,7 @@ class CampaignRunner:
                 f"(limit {cfg.max_joint_deviation_deg} deg)", kind="daemon")
         delay = cfg.backoff_s
         attempts = 0
+        beam_losses = 0
         retry_on: tuple[type[Exception], ...] = (*RETRYABLE, MeasurementRejected)
         while True:
             attempts += 1
@@ -263,9 +270,10 @@ class CampaignRunner:
                 reading = await tracker.measure(samples=cfg.samples, timeout=cfg.timeout_s,
                                                 point_id=f"{cid}-{pose.idx}")
                 distance = self._validate(reading, q_act, predictor)
-                return self._row(pose, q_cmd, q_act, reading, attempts, distance)
+                return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses)
             except retry_on as err:
                 problem = f"{type(err).__name__}: {err}"
+                beam_losses += isinstance(err, BeamLost)
             if attempts > cfg.retries:
                 raise MeasurementError(
                     f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
@@ -292,7 +300,8 @@ class CampaignRunner:
 
     @staticmethod
     def _row(pose: PoseRow, q_cmd: Sequence[float], q_act: Sequence[float],
-             r: TrackerReading, attempts: int, distance_mm: float | None) -> MeasurementRow:
+             r: TrackerReading, attempts: int, distance_mm: float | None,
+             beam_losses: int = 0) -> MeasurementRow:
         return MeasurementRow(
             pose_idx=pose.idx, purpose=pose.purpose,
             q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
@@ -303,4 +312,5 @@ class CampaignRunner:
             rms_mm=None if r.rms_m is None else r.rms_m * 1e3,
             samples=r.n, attempts=attempts, distance_mm=distance_mm,
             weather={k: float(v) for k, v in r.weather.items()}, measured_at=now_iso(),
+            beam_losses=beam_losses,
         )

@@ -319,10 +319,13 @@ class CalibrationService:
         self._fit_tasks[cid] = task
         task.add_done_callback(lambda _t: self._fit_tasks.pop(cid, None))
 
-    def _measurement_log(self, rows: builtins.list[MeasurementRow]) -> dict[str, Any]:
+    def _measurement_log(self, cid: str, rows: builtins.list[MeasurementRow]
+                         ) -> dict[str, Any]:
         retries = sum(max(0, r.attempts - 1) for r in rows)
         weather = [r.weather for r in rows if r.weather][-1:]
-        return {"planned": len(rows), "measured": len(rows), "retries": retries,
+        planned = sum(1 for p in self.store.poses(cid) if p.measure)
+        return {"planned": planned, "measured": len(rows), "retries": retries,
+                "beam_losses": sum(r.beam_losses for r in rows),
                 "tracker": self.config.tracker.kind, "controller": self.config.robot.kind,
                 "weather": weather[0] if weather else {}}
 
@@ -333,7 +336,7 @@ class CalibrationService:
         job = build_fit_job(campaign=cid, robot=self.robot, rows=rows,
                             models=self.config.fit.models, cpa=self.config.fit.cpa,
                             out_dir=out_dir, report=self.config.fit.report,
-                            log=self._measurement_log(rows),
+                            log=self._measurement_log(cid, rows),
                             options=self.config.fit.options)
         if self.config.fit.select != "best":
             job["selected"] = self.config.fit.select

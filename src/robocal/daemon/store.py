@@ -67,6 +67,7 @@ CREATE TABLE IF NOT EXISTS measurements(
     rms_mm REAL,
     samples INTEGER NOT NULL,
     attempts INTEGER NOT NULL,
+    beam_losses INTEGER NOT NULL DEFAULT 0,
     distance_mm REAL,
     weather TEXT NOT NULL DEFAULT '{}',
     measured_at TEXT NOT NULL,
@@ -200,6 +201,7 @@ class MeasurementRow:
     distance_mm: float | None
     weather: dict[str, float]
     measured_at: str
+    beam_losses: int = 0
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -216,6 +218,7 @@ class MeasurementRow:
             "distance_mm": self.distance_mm,
             "weather": self.weather,
             "measured_at": self.measured_at,
+            "beam_losses": self.beam_losses,
         }
 
 
@@ -259,6 +262,10 @@ class Store:
         db.execute("PRAGMA synchronous=FULL")
         db.execute("PRAGMA foreign_keys=ON")
         db.executescript(_SCHEMA)
+        columns = {r[1] for r in db.execute("PRAGMA table_info(measurements)")}
+        if "beam_losses" not in columns:  # stores written before beam losses were counted
+            db.execute("ALTER TABLE measurements ADD COLUMN beam_losses INTEGER NOT NULL "
+                       "DEFAULT 0")
         row = db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             db.execute("INSERT INTO meta(key, value) VALUES('schema', ?)", (str(SCHEMA_VERSION),))
@@ -443,12 +450,13 @@ class Store:
                 db.execute(
                     "INSERT INTO measurements(campaign, pose_idx, purpose, q_cmd_deg, q_act_deg, "
                     "x_mm, y_mm, z_mm, sx_mm, sy_mm, sz_mm, rms_mm, samples, attempts, "
-                    "distance_mm, weather, measured_at) VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "distance_mm, weather, measured_at, beam_losses) "
+                    "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (cid, m.pose_idx, m.purpose, json.dumps(list(m.q_cmd_deg)),
                      json.dumps(list(m.q_act_deg)), *m.p_mm,
                      *(m.sigma_mm if m.sigma_mm is not None else (None, None, None)),
                      m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
-                     m.measured_at),
+                     m.measured_at, m.beam_losses),
                 )
                 db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
         except sqlite3.IntegrityError:
@@ -472,7 +480,7 @@ class Store:
                 p_mm=(float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])), sigma_mm=sig,
                 rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
                 distance_mm=r["distance_mm"], weather=json.loads(r["weather"]),
-                measured_at=r["measured_at"],
+                measured_at=r["measured_at"], beam_losses=int(r["beam_losses"]),
             ))
         return out
 

@@ -127,7 +127,13 @@ async def test_occasional_faults_are_retried(service):
     st = await svc.wait(st["id"], ["fitted"], timeout=60)
     rows = svc.store.measurements(st["id"])
     assert st["state"] == "fitted" and len(rows) == 30
-    assert sum(r.attempts - 1 for r in rows) > 0
+    retries = sum(r.attempts - 1 for r in rows)
+    beam = sum(r.beam_losses for r in rows)
+    assert retries > 0 and 0 < beam <= retries
+    # the report's measurement log counts from the store, not from fixed numbers
+    log = svc._measurement_log(st["id"], rows)
+    assert (log["planned"], log["measured"], log["retries"], log["beam_losses"]) == \
+        (30, 30, retries, beam)
 
 
 async def test_restart_resumes_at_the_first_unmeasured_pose(service, make_config):
