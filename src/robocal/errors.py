@@ -81,6 +81,10 @@ class MotionRejected(OperationError):
         super().__init__(message, kind=kind)
 
 
+class MotionStopped(OperationError):
+    """A motion ended early because ``stop()`` was called; the robot halted short of the target."""
+
+
 class LimitViolation(OperationError, ValueError):
     """A joint target lies outside the joint limits; it was not sent."""
 

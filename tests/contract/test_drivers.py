@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 
 import pytest
 
 from robocal.drivers import contracts, load_robot, load_tracker
 from robocal.drivers.mock import MockRobot, MockTracker
-from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, ModbusSimOptions, SimCell, SimWorld
+from robocal.drivers.sim import (
+    FanucRmiSimulator,
+    FanucSimOptions,
+    LtpSimOptions,
+    ModbusPlcSimulator,
+    ModbusSimOptions,
+    SimCell,
+    SimWorld,
+)
 
 
 @contextlib.asynccontextmanager
@@ -18,7 +26,8 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
     if name == "mock":
         yield contracts.RobotUnderTest(
             "mock",
-            make=lambda: MockRobot(world=world),
+            # Moves that take time, so the stop checks can stop one midway.
+            make=lambda: MockRobot({"move_time_s": 0.3}, world=world),
             actual_joints=lambda: world.q_actual_rad,
         )
         return
@@ -30,17 +39,29 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
     )
     async with cell:
         options = cell.robot_options(name)  # type: ignore[arg-type]
+        sim: FanucRmiSimulator | ModbusPlcSimulator
         if name == "fanuc_rmi":
-            rmi_sim = cell.fanuc_sim
+            rmi_sim = sim = cell.fanuc_sim
             received: Callable[[], int] = lambda: len(rmi_sim.received)  # noqa: E731
         else:
-            plc_sim = cell.modbus_sim
+            plc_sim = sim = cell.modbus_sim
             received = lambda: len(plc_sim.commands)  # noqa: E731
+
+        @contextlib.contextmanager
+        def real_time() -> Iterator[None]:
+            fast = sim.options
+            sim.options = fast.model_copy(update={"time_scale": 1.0})  # type: ignore[assignment]
+            try:
+                yield
+            finally:
+                sim.options = fast  # type: ignore[assignment]
+
         yield contracts.RobotUnderTest(
             name,
             make=lambda: load_robot(name, options),
             actual_joints=lambda: world.q_actual_rad,
             messages_received=received,
+            slow_moves=real_time,
         )
 
 
@@ -120,10 +141,27 @@ async def test_contract_catches_millimetres():
         await contracts.check_tracker_measure(tut)
 
 
+async def test_contract_catches_a_robot_that_does_not_halt():
+    """A stop() that does not halt the motion fails the mid-move stop check."""
+    world = SimWorld.create(seed=5)
+
+    class Unstoppable(MockRobot):
+        async def stop(self):
+            return None
+
+    rut = contracts.RobotUnderTest(
+        "unstoppable",
+        make=lambda: Unstoppable({"move_time_s": 0.3}, world=world),
+        actual_joints=lambda: world.q_actual_rad,
+    )
+    with pytest.raises(contracts.ContractError, match="MotionStopped"):
+        await contracts.check_robot_stop_mid_move(rut)
+
+
 async def test_whole_suite_helpers():
     world = SimWorld.create(seed=5)
     await contracts.check_robot(
-        contracts.RobotUnderTest("mock", make=lambda: MockRobot(world=world))
+        contracts.RobotUnderTest("mock", make=lambda: MockRobot({"move_time_s": 0.3}, world=world))
     )
     await contracts.check_tracker(
         contracts.TrackerUnderTest("mock", make=lambda: MockTracker(world=world))

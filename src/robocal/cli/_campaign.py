@@ -139,7 +139,25 @@ def _describe(s: dict[str, Any]) -> str:
                 r = f"{rms:.4f} mm" if isinstance(rms, int | float) else "-"
                 pc = f"{pct:.1f} %" if isinstance(pct, int | float) else "-"
                 lines.append(f"            {name:12s} {r:>13s} {pc:>11s}{mark}")
+    report = _report_path(s)
+    if report is not None:
+        lines.append(f"  report    {report}")
     return "\n".join(lines) + "\n"
+
+
+def _report_path(s: dict[str, Any]) -> Path | None:
+    """The campaign's HTML report, when the daemon has written one (same machine)."""
+    if not s.get("files"):
+        return None
+    path = Path(str(s["files"])) / "report.html"
+    return path if path.exists() else None
+
+
+def _held_out_rms(s: dict[str, Any], model: str | None) -> str:
+    f = (s.get("fits") or {}).get(model or "") or {}
+    v = f.get("validation") or f.get("train") or {}
+    rms = v.get("rms_mm")
+    return f"{rms:.4f} mm" if isinstance(rms, int | float) else "-"
 
 
 def status(args: argparse.Namespace) -> int:
@@ -174,9 +192,32 @@ def action(args: argparse.Namespace) -> int:
     out = client(args).request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
     if args.json:
         emit(out)
-    else:
-        sys.stdout.write(f"{out['id']}: {out['state']}\n")
+        return 0
+    text = f"{out['id']}: {out['state']}"
+    if args.action == "approve":
+        model = out.get("selected_model")
+        text += f"; approved model {model} (held-out RMS {_held_out_rms(out, model)})"
+    elif args.action == "push":
+        text += _push_text(out)
+    sys.stdout.write(text + "\n")
     return 0
+
+
+def _push_text(s: dict[str, Any]) -> str:
+    """What was pushed, from the campaign status after a push."""
+    p = s.get("push") or {}
+    if not p:
+        return f"; model {s.get('selected_model')} pushed"
+    parts = [f"model {p.get('model', s.get('selected_model'))}", f"kind {p.get('kind')}"]
+    if p.get("checksum"):
+        parts.append(f"checksum {str(p['checksum'])[:12]}")
+    for key, label in (("predicted_rms_mm", "predicted"), ("nominal_rms_mm", "nominal"),
+                       ("measured_before_rms_mm", "measured before"),
+                       ("measured_after_rms_mm", "measured after")):
+        v = p.get(key)
+        if isinstance(v, int | float):
+            parts.append(f"{label} {v:.4f} mm")
+    return "; pushed " + ", ".join(parts)
 
 
 #: Exit codes of ``campaign watch``: goal reached, failed (fault/abort), waiting (paused).

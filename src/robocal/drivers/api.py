@@ -1,9 +1,10 @@
 """Driver API: small capability protocols, value types and the joint-target check.
 
-A robot driver is whatever satisfies :class:`Connectable`, :class:`JointMover` and
-:class:`JointReader` (optionally :class:`CompensationSink`); a tracker driver satisfies
-:class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked with ``isinstance``
-(the protocols are ``runtime_checkable``) or all at once with :func:`require`.
+A robot driver is whatever satisfies :class:`Connectable`, :class:`JointMover`,
+:class:`JointReader` and :class:`Stoppable` (optionally :class:`CompensationSink`); a tracker
+driver satisfies :class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked
+with ``isinstance`` (the protocols are ``runtime_checkable``) or all at once with
+:func:`require`.
 
 Units are SI inside robocal (metres, radians, seconds); drivers convert at their boundary.
 Errors come from :mod:`robocal.errors`, split by phase:
@@ -14,8 +15,9 @@ phase                  errors
 lookup / config        DriverNotFound, DriverImportError, ConfigError
 connect                ConnectFailed (also for "not connected" and a lost link)
 waiting                DriverTimeout
-operation              MotionRejected, LimitViolation, BeamLost, Unstable,
-                       MeasurementError, VerificationMismatch (all OperationError)
+operation              MotionRejected, MotionStopped, LimitViolation, BeamLost,
+                       Unstable, MeasurementError, VerificationMismatch
+                       (all OperationError)
 wire                   ProtocolError: FramingError, UnexpectedReply, TransportError,
                        TransportTimeout
 =====================  ===========================================================
@@ -41,6 +43,7 @@ __all__ = [
     "JointReading",
     "PointMeasurer",
     "RobotDriver",
+    "Stoppable",
     "TrackerDriver",
     "TrackerReading",
     "TrackerStatus",
@@ -139,6 +142,22 @@ class JointMover(Protocol):
 
 
 @runtime_checkable
+class Stoppable(Protocol):
+    """Halting motion at once, wherever the robot is (ADR 0008).
+
+    ``stop()`` is always allowed: idle or mid-move, after a motion fault, and (as a no-op)
+    before ``connect`` or after ``close``. It is idempotent. It returns once the controller
+    has confirmed the halt and is ready for the next ``move_to``; a ``move_to`` waiting on
+    the halted motion raises MotionStopped. Raises ConnectFailed or DriverTimeout only when
+    a connected device cannot be reached to confirm the halt.
+    """
+
+    async def stop(self) -> None:
+        """Halt any motion now and leave the controller ready for the next move."""
+        ...
+
+
+@runtime_checkable
 class JointReader(Protocol):
     """Reading of the actual joint angles."""
 
@@ -172,8 +191,8 @@ class CompensationSink(Protocol):
 
 
 @runtime_checkable
-class RobotDriver(Connectable, JointMover, JointReader, Protocol):
-    """A robot driver: connect, move, read joints."""
+class RobotDriver(Connectable, JointMover, JointReader, Stoppable, Protocol):
+    """A robot driver: connect, move, read joints, stop."""
 
 
 @runtime_checkable

@@ -14,6 +14,7 @@ its own driver with ``make()`` and closes it, whatever happens.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import math
 import time
@@ -29,10 +30,17 @@ from robocal.drivers.api import (
     CompensationSink,
     JointReading,
     RobotDriver,
+    Stoppable,
     TrackerDriver,
     TrackerReading,
 )
-from robocal.errors import ConnectFailed, DriverError, LimitViolation, RobocalError
+from robocal.errors import (
+    ConnectFailed,
+    DriverError,
+    LimitViolation,
+    MotionStopped,
+    RobocalError,
+)
 
 __all__ = [
     "ContractError",
@@ -72,6 +80,10 @@ class RobotUnderTest:
         Seconds.
     joint_tol_rad : float
         Agreement expected between a target and the joints reported after the move.
+    slow_moves : callable, optional
+        Returns a context manager inside which the device's moves take long enough (about a
+        second or more across the joint range at 10 % speed) for the stop checks to stop one
+        midway; None when the device always moves that slowly.
     """
 
     name: str
@@ -81,6 +93,7 @@ class RobotUnderTest:
     connect_timeout: float = 5.0
     move_timeout: float = 10.0
     joint_tol_rad: float = 1e-3
+    slow_moves: Callable[[], contextlib.AbstractContextManager[Any]] | None = None
 
 
 @dataclass(frozen=True)
@@ -251,6 +264,105 @@ async def check_robot_refuses_out_of_limits(rut: RobotUnderTest) -> None:
         _expect(moved < 1e-9, f"{rut.name}: robot moved on a refused target")
 
 
+def _max_diff(a: Sequence[float], b: Sequence[float]) -> float:
+    return max(abs(x - y) for x, y in zip(a, b, strict=True))
+
+
+async def _settled(robot: Any, name: str, *, polls: int = 4, gap_s: float = 0.02) -> JointReading:
+    """Read the joints ``polls`` times ``gap_s`` apart; they must not change (halted)."""
+    first = await robot.read_joints()
+    for _ in range(polls):
+        await asyncio.sleep(gap_s)
+        again = await robot.read_joints()
+        moved = _max_diff(again.q_rad, first.q_rad)
+        _expect(moved < 1e-6, f"{name}: joints still change after stop ({moved:.3g} rad)")
+    return first
+
+
+async def check_robot_stop_idle(rut: RobotUnderTest) -> None:
+    """``stop`` is declared, a no-op before connect and after close, idempotent when idle,
+    leaves the robot where it is, and a move after it works."""
+    driver = rut.make()
+    try:
+        _expect(isinstance(driver, Stoppable), f"{rut.name}: no stop() (not Stoppable)")
+        await driver.stop()  # before connect: allowed, nothing to do
+        await driver.connect(timeout=rut.connect_timeout)
+        before = await driver.read_joints()
+        await driver.stop()
+        await driver.stop()  # idempotent
+        after = await _settled(driver, rut.name)
+        _expect(
+            _max_diff(after.q_rad, before.q_rad) < 1e-6, f"{rut.name}: stop while idle moved it"
+        )
+        target = _target(driver.joint_limits_rad, 0.55)
+        r = await driver.move_to(target, speed_pct=20, timeout=rut.move_timeout)
+        err = _max_diff(r.q_rad, target)
+        _expect(err < rut.joint_tol_rad, f"{rut.name}: move after stop missed by {err:.3g} rad")
+        await driver.stop()  # after a completed move
+        await driver.close()
+        await driver.stop()  # after close: allowed, nothing to do
+    except RobocalError as err:
+        raise ContractError(f"{rut.name}: stop failed: {err!r}") from err
+    finally:
+        await driver.close()
+
+
+async def check_robot_stop_mid_move(rut: RobotUnderTest) -> None:
+    """``stop`` during a move halts the robot short of the target where it is (joints stop
+    changing), the waiting ``move_to`` raises MotionStopped, a second stop is harmless and
+    the next move reaches its target."""
+    async with _connected(rut.make, rut.connect_timeout) as robot:
+        limits = robot.joint_limits_rad
+        start_target = _target(limits, 0.7)
+        await robot.move_to(start_target, speed_pct=50, timeout=rut.move_timeout)
+        start = (await robot.read_joints()).q_rad
+        far = _target(limits, 0.3)
+        slow = rut.slow_moves() if rut.slow_moves is not None else contextlib.nullcontext()
+        with slow:
+            move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=rut.move_timeout))
+            try:
+                deadline = time.monotonic() + rut.move_timeout
+                while not move.done() and time.monotonic() < deadline:
+                    await asyncio.sleep(0.01)
+                    if rut.actual_joints is None:
+                        break  # cannot watch the device: stop it shortly after the start
+                    if _max_diff(rut.actual_joints(), start) > 1e-3:
+                        break
+                _expect(not move.done(), f"{rut.name}: move ended before stop; too fast to test")
+                await robot.stop()
+                try:
+                    async with asyncio.timeout(rut.move_timeout):
+                        await move
+                except MotionStopped:
+                    pass
+                else:
+                    raise ContractError(f"{rut.name}: move_to did not raise MotionStopped")
+            finally:
+                if not move.done():
+                    move.cancel()
+                    with contextlib.suppress(BaseException):
+                        await move
+            halted = await _settled(robot, rut.name)
+            _expect(
+                _max_diff(halted.q_rad, far) > rut.joint_tol_rad,
+                f"{rut.name}: the robot reached the target despite stop",
+            )
+            for j, (q, a, b) in enumerate(zip(halted.q_rad, start, far, strict=True)):
+                lo, hi = min(a, b) - rut.joint_tol_rad, max(a, b) + rut.joint_tol_rad
+                _expect(lo <= q <= hi, f"{rut.name}: J{j + 1} halted off the path at {q}")
+            if rut.actual_joints is not None:
+                true = rut.actual_joints()
+                _expect(
+                    _max_diff(halted.q_rad, true) < 1e-6,
+                    f"{rut.name}: reported halt position is not the device's",
+                )
+            await robot.stop()
+        target = _target(limits, 0.5)
+        r = await robot.move_to(target, speed_pct=50, timeout=rut.move_timeout)
+        err = _max_diff(r.q_rad, target)
+        _expect(err < rut.joint_tol_rad, f"{rut.name}: move after stop missed by {err:.3g} rad")
+
+
 def _sample_table(kind: str, dof: int) -> CompensationTable:
     common: dict[str, Any] = {
         "model_id": "contract",
@@ -373,6 +485,8 @@ def robot_checks() -> list[RobotCheck]:
         check_robot_read_joints,
         check_robot_move_to,
         check_robot_refuses_out_of_limits,
+        check_robot_stop_idle,
+        check_robot_stop_mid_move,
         check_robot_compensation,
     ]
 

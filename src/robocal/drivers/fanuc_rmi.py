@@ -35,6 +35,7 @@ from robocal.errors import (
     DriverTimeout,
     FramingError,
     MotionRejected,
+    MotionStopped,
     OperationError,
     ProtocolError,
     TransportError,
@@ -118,6 +119,7 @@ class FanucRmiRobot(RobotDriverBase):
         self._lost: Exception | None = None
         self._disconnected: asyncio.Future[None] | None = None
         self._last_table: CompensationTable | None = None
+        self._stop_gen = 0
 
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:
@@ -390,10 +392,16 @@ class FanucRmiRobot(RobotDriverBase):
         speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         q_deg = [math.degrees(v) for v in q]
         deadline = time.monotonic() + timeout
+        gen = self._stop_gen
+
+        def build(seq: int) -> dict[str, Any]:
+            # Called just before sending: a stop() since move_to began cancels the move.
+            if gen != self._stop_gen:
+                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+            return rmi.joint_motion_jrep(seq, q_deg, speed_pct=speed)
+
         for attempt in range(3):
-            packet = await self._instruction(
-                lambda seq: rmi.joint_motion_jrep(seq, q_deg, speed_pct=speed), deadline
-            )
+            packet = await self._instruction(build, deadline)
             eid = packet.error_id or 0
             if eid == 0:
                 return await self.read_joints()
@@ -414,6 +422,55 @@ class FanucRmiRobot(RobotDriverBase):
         packet = await self._command("FRC_ReadJointAngles", Group=self.options.group)
         q_deg = rmi.joint_angles(packet.body, self.dof)
         return JointReading(tuple(math.radians(v) for v in q_deg), time.time())
+
+    async def stop(self) -> None:
+        """Halt motion with ``FRC_Abort``, then ``FRC_Initialize`` again for the next move.
+
+        After FRC_Abort the controller drops the queued instructions without replies and RMI
+        stops running (RMI_MOVE is aborted), so the driver fails the waiting ``move_to`` with
+        MotionStopped and initialises afresh, taking the next SequenceID from
+        ``FRC_GetStatus`` (controllers differ in whether it restarts at 1). Instructions are
+        held back meanwhile. A no-op when not connected.
+
+        Raises
+        ------
+        ConnectFailed
+            The session is lost.
+        DriverTimeout
+            The controller did not answer in time.
+        OperationError
+            FRC_Abort or the re-initialisation was refused.
+        """
+        if self.state != "connected":
+            return
+        if self._lost is not None:
+            raise self._lost
+        async with self._seq_lock:
+            self._stop_gen += 1
+            abort = await self._command("FRC_Abort", check=False)
+            stopped = MotionStopped("motion stopped by request (FRC_Abort)", kind=self.kind)
+            for fut in self._instr.values():
+                if not fut.done():
+                    fut.set_exception(stopped)
+                    fut.exception()
+            # RMIT-009 "RMI is not running": nothing was running, which is a stop too.
+            if abort.error_id and abort.error_id != rmi.rmit(9):
+                raise OperationError(
+                    f"FRC_Abort refused: {rmi.describe_error(abort.error_id)}", kind=self.kind
+                )
+            group_mask = 1 << (self.options.group - 1)
+            init = await self._command("FRC_Initialize", check=False, GroupMask=group_mask)
+            if init.error_id:
+                raise OperationError(
+                    f"FRC_Initialize after FRC_Abort refused: "
+                    f"{rmi.describe_error(init.error_id)}",
+                    kind=self.kind,
+                )
+            status = await self._command("FRC_GetStatus")
+            nxt = _int_or(status.body.get("NextSequenceID"), 0)
+            self._next_seq = nxt if nxt >= 1 else 1
+            self._needs_recovery = False
+        self.log.info("stopped", next_sequence_id=self._next_seq)
 
     async def read_error(self) -> str:
         """Return the controller's most recent alarm text (``FRC_ReadError``)."""

@@ -17,12 +17,17 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
-from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
-from robocal.drivers._compensation import table_diff
 from robocal.drivers.api import JointReading, TrackerReading
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
-from robocal.errors import BeamLost, ConfigError, Unstable, VerificationMismatch
+from robocal.errors import (
+    BeamLost,
+    ConfigError,
+    DriverTimeout,
+    MotionStopped,
+    Unstable,
+    VerificationMismatch,
+)
 
 __all__ = ["MockRobot", "MockRobotOptions", "MockTracker", "MockTrackerOptions"]
 
@@ -38,7 +43,8 @@ class MockRobotOptions(_WorldOptions):
     """Options of :class:`MockRobot`.
 
     ``joint_limits_deg`` defaults to the virtual robot's limits; ``move_time_s`` is the
-    simulated time per move; ``corrupt_readback`` makes the stored compensation table differ
+    simulated time per move (the joints sweep there, and :meth:`MockRobot.stop` halts them
+    midway); ``corrupt_readback`` makes the stored compensation table differ
     from what was written (to exercise verification).
     """
 
@@ -82,6 +88,7 @@ class MockRobot(RobotDriverBase):
         super().__init__(options)
         self._world = world
         self._stored: str | None = None
+        self._stop_event = asyncio.Event()
 
     @property
     def world(self) -> SimWorld:
@@ -121,10 +128,37 @@ class MockRobot(RobotDriverBase):
         """Move the virtual robot to ``q_rad`` (radians) and return the actual joints."""
         q = self._check_target(q_rad)
         self._ensure_connected()
-        if self.options.move_time_s > 0:
-            await asyncio.sleep(min(self.options.move_time_s, timeout))
-        self.world.move(q)
+        duration = self.options.move_time_s
+        if duration <= 0:
+            self.world.move(q)
+            return await self.read_joints()
+        stopped = self._stop_event
+        # Like a controller, the motion runs on if this call is cancelled; only stop() halts it.
+        motion = self.world.start_motion(q, duration)
+        try:
+            async with asyncio.timeout(min(duration, timeout)):
+                await stopped.wait()
+        except TimeoutError:
+            if duration > timeout:
+                self.world.halt()
+                raise DriverTimeout(
+                    f"move not finished within {timeout:.3g} s; halted", kind=self.kind
+                ) from None
+        if not self.world.finish_motion(motion):
+            if stopped.is_set():
+                raise MotionStopped("motion stopped by request", kind=self.kind)
+            raise MotionStopped("motion superseded by another move", kind=self.kind)
         return await self.read_joints()
+
+    async def stop(self) -> None:
+        """Halt the virtual robot where it is; a waiting ``move_to`` raises MotionStopped."""
+        if self.state != "connected":
+            return
+        self.world.halt()
+        self._stop_event.set()
+        self._stop_event = asyncio.Event()
+        await asyncio.sleep(0)
+        self.log.info("stopped", q_rad=[round(float(v), 6) for v in self.world.q_actual_rad])
 
     async def read_joints(self) -> JointReading:
         """Return the virtual robot's actual joints (radians)."""

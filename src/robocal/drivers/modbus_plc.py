@@ -3,9 +3,11 @@
 The register map and handshake are those of protocols.md 1.5 (see
 :mod:`robocal.protocols.modbus`): payload registers first, then ``CMD`` and ``CMD_SEQ`` in one
 FC16 write, then poll ``ACK_SEQ`` until it equals ``CMD_SEQ``; ``STATUS`` 2 is success and 3
-means ``ERROR_CODE`` says why. The client increments ``CLIENT_HEARTBEAT`` every
-``heartbeat_period_s``; a ``PLC_HEARTBEAT`` that stops changing for ``heartbeat_timeout_s``
-faults the driver (every later call raises until it reconnects).
+means ``ERROR_CODE`` says why. :meth:`ModbusPlcRobot.stop` writes ``CMD 9`` (ABORT) with the
+next ``CMD_SEQ`` without waiting for a running move, and waits for its ``ACK_SEQ``; the
+aborted move is never acknowledged and raises MotionStopped. The client increments
+``CLIENT_HEARTBEAT`` every ``heartbeat_period_s``; a ``PLC_HEARTBEAT`` that stops changing
+for ``heartbeat_timeout_s`` faults the driver (every later call raises until it reconnects).
 
 Compensation tables (``targets``, ``joint`` grids, ``frames``) are written as one register
 block at ``register_map.table`` (header, values, ASCII metadata), applied with ``CMD 5``
@@ -38,6 +40,7 @@ from robocal.errors import (
     FramingError,
     LimitViolation,
     MotionRejected,
+    MotionStopped,
     OperationError,
     TransportError,
     VerificationMismatch,
@@ -131,6 +134,8 @@ class ModbusPlcRobot(RobotDriverBase):
         self._plc_hb: int | None = None
         self._plc_hb_time = 0.0
         self._fault: Exception | None = None
+        self._stop_lock = asyncio.Lock()
+        self._stop_gen = 0
         self.last_status: PlcStatus | None = None
 
     # --- connection ----------------------------------------------------------------------------
@@ -244,10 +249,13 @@ class ModbusPlcRobot(RobotDriverBase):
         client = self._live_client()
         m = self.options.register_map
         deadline = time.monotonic() + timeout
+        gen = self._stop_gen
         async with self._op_lock:
             with self.translate_errors():
                 for address, words in writes:
                     await client.write_registers(address, words)
+                if gen != self._stop_gen and cmd == mb.Cmd.MOVE_JOINT:
+                    raise MotionStopped("stop requested before the move started", kind=self.kind)
                 seq = self._next_seq()
                 pair = [int(cmd), seq] if m.cmd < m.cmd_seq else [seq, int(cmd)]
                 await client.write_registers(min(m.cmd, m.cmd_seq), pair)
@@ -258,6 +266,11 @@ class ModbusPlcRobot(RobotDriverBase):
                         raise self._fault
                     if st.ack_seq == seq:
                         break
+                    if gen != self._stop_gen:
+                        # ABORT took over CMD_SEQ; stop() waits for its acknowledgement.
+                        raise MotionStopped(
+                            f"{cmd.name} (CMD_SEQ {seq}) aborted by stop()", kind=self.kind
+                        )
                     if time.monotonic() > deadline:
                         raise DriverTimeout(
                             f"PLC did not acknowledge {cmd.name} (CMD_SEQ {seq}) within "
@@ -327,6 +340,49 @@ class ModbusPlcRobot(RobotDriverBase):
         """Ask the PLC to publish the actual joints (``READ_ACTUAL``); return them (radians)."""
         st = await self._command(mb.Cmd.READ_ACTUAL, [], self.options.request_timeout_s * 2)
         return self._joints(st)
+
+    async def stop(self) -> None:
+        """Write ``ABORT`` at once (not queued behind a running move) and wait for its ACK.
+
+        A no-op when not connected. Sent even when the driver is faulted (stale heartbeat),
+        because halting is always worth trying.
+
+        Raises
+        ------
+        ConnectFailed
+            The link is gone.
+        DriverTimeout
+            The PLC did not acknowledge ABORT within ``2 * request_timeout_s``.
+        OperationError
+            The PLC answered ABORT with an error.
+        """
+        client = self._client
+        if self.state != "connected" or client is None:
+            return
+        m = self.options.register_map
+        timeout = self.options.request_timeout_s * 2
+        async with self._stop_lock:
+            self._stop_gen += 1
+            deadline = time.monotonic() + timeout
+            with self.translate_errors():
+                seq = self._next_seq()
+                cmd = int(mb.Cmd.ABORT)
+                pair = [cmd, seq] if m.cmd < m.cmd_seq else [seq, cmd]
+                await client.write_registers(min(m.cmd, m.cmd_seq), pair)
+                while True:
+                    st = await self._read_status()
+                    if st.ack_seq == seq:
+                        break
+                    if time.monotonic() > deadline:
+                        raise DriverTimeout(
+                            f"PLC did not acknowledge ABORT (CMD_SEQ {seq}) within {timeout:.3g} s"
+                            f" (STATUS {st.status}, ACK_SEQ {st.ack_seq})",
+                            kind=self.kind,
+                        )
+                    await asyncio.sleep(self.options.poll_interval_s)
+        if st.status == mb.Status.ERROR:
+            self._raise(mb.Cmd.ABORT, st.error_code)
+        self.log.info("stopped", cmd_seq=seq, actual_deg=[round(v, 4) for v in st.actual_deg])
 
     async def reset(self) -> None:
         """Send ``RESET`` (clears a latched PLC error)."""

@@ -55,6 +55,10 @@ async def test_watch_after_pause_and_resume_follows_the_current_run(make_config,
         assert svc.status(cid)["state"] == "fitted"
         assert "held-out RMS: constant" in out and "campaign approve" in out
         assert "40/40" in out and "poses/min" in out and "beam losses" in out
+        rc = await asyncio.wait_for(asyncio.to_thread(
+            main, ["campaign", "approve", cid, "--socket", str(sock)]), 30)
+        out = capsys.readouterr().out
+        assert rc == 0 and "approved model constant (held-out RMS" in out
     finally:
         await api.stop()
         await svc.stop()

@@ -6,6 +6,9 @@ commands reply at once; instructions are queued (at most 8 in flight, RMIT-028 b
 SequenceIDs must be consecutive from 1 after ``FRC_Initialize`` (a gap gives RMIT-029 and
 HOLD until ``FRC_Reset``), and each instruction replies when its simulated motion ends.
 A target outside the joint limits, or an injected alarm, pushes ``FRC_SystemFault`` and holds.
+Motion takes time (the world robot sweeps to the target); ``FRC_Abort`` halts it where it is
+at once, drops the queued and running instructions without replies, and leaves RMI stopped
+until the next ``FRC_Initialize``.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from robocal.protocols import fanuc_rmi as rmi
 __all__ = ["FanucRmiSimulator", "FanucSimOptions"]
 
 _log = structlog.get_logger(__name__)
+_ABORTED = -1  # execute(): the instruction was cut short by FRC_Abort and gets no reply
 
 
 class FanucSimOptions(BaseModel):
@@ -90,6 +94,7 @@ class _Session:
         self.executor: asyncio.Task[None] | None = None
         self.paused = asyncio.Event()
         self.paused.set()
+        self.aborted = asyncio.Event()
 
     # --- output --------------------------------------------------------------------------------
     async def send(self, packet: Mapping[str, Any], *, delay_ok: bool = True) -> None:
@@ -212,6 +217,8 @@ class _Session:
             finally:
                 sim.moving = False
                 self.in_flight = max(0, self.in_flight - 1)
+            if error_id == _ABORTED:  # FRC_Abort already flushed the queue: no reply
+                continue
             if error_id is None:  # faulted: no reply, queue flushed
                 self.flush()
                 continue
@@ -221,6 +228,22 @@ class _Session:
         while not self.queue.empty():
             self.queue.get_nowait()
         self.in_flight = 0
+
+    def abort(self) -> None:
+        """FRC_Abort: halt the robot where it is; queued and running instructions get no reply."""
+        self.sim.world.halt()
+        self.flush()
+        self.aborted.set()
+        self.aborted = asyncio.Event()
+        self.paused.set()
+
+    async def run_for(self, seconds: float) -> bool:
+        """Wait ``seconds`` of motion or dwell; False if FRC_Abort came first."""
+        aborted = self.aborted
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(seconds):
+                await aborted.wait()
+        return not aborted.is_set()
 
 
 class FanucRmiSimulator:
@@ -434,7 +457,9 @@ class FanucRmiSimulator:
             if not self.initialized:
                 return err(9)
             self.initialized = False
-            session.flush()
+            session.abort()
+            q_deg = [round(math.degrees(v), 4) for v in self.world.q_actual_rad]
+            _log.info("rmi sim: abort", q_deg=q_deg)
             return ok
         if name == "FRC_Reset":
             self.hold = False
@@ -530,7 +555,8 @@ class FanucRmiSimulator:
         self._track(session.send({"Communication": "FRC_SystemFault", "SequenceID": seq}))
 
     async def execute(self, seq: int, packet: rmi.Packet, session: _Session) -> int | None:
-        """Run one instruction; return its reply ErrorID, or None after a system fault."""
+        """Run one instruction; return its reply ErrorID, None after a system fault, or
+        ``_ABORTED`` when FRC_Abort cut it short (neither gets a reply)."""
         body = packet.body
         scale = self.options.time_scale
         if packet.name == "FRC_JointMotionJRep":
@@ -561,16 +587,19 @@ class FanucRmiSimulator:
             dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
             rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
             duration = max(dist / rate, self.options.min_motion_s) * scale
-            if duration > 0:
-                await asyncio.sleep(duration)
-            self.world.move([math.radians(v) for v in q_deg])
+            if duration <= 0:
+                self.world.move([math.radians(v) for v in q_deg])
+                return 0
+            motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
+            if not await session.run_for(duration) or not self.world.finish_motion(motion):
+                return _ABORTED
             return 0
         if packet.name == "FRC_WaitTime":
             t = body.get("Time", 0)
             if isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
                 return rmi.rmit(21)
-            if t * scale > 0:
-                await asyncio.sleep(t * scale)
+            if t * scale > 0 and not await session.run_for(t * scale):
+                return _ABORTED
             return 0
         if packet.name in ("FRC_SetUFrame", "FRC_SetUTool"):
             key = "FrameNumber" if packet.name == "FRC_SetUFrame" else "ToolNumber"

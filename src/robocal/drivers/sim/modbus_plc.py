@@ -3,7 +3,11 @@
 The PLC program is the ``SimDevice`` action hook: a write of ``CMD_SEQ`` + ``CMD`` starts the
 command; the PLC sets ``STATUS`` busy, runs it (a motion of the shared :class:`SimWorld`
 robot, a table check, ...), then publishes ``ACTUAL``, ``ERROR_CODE``, ``STATUS`` and last
-``ACK_SEQ``. Reads of the status area are served from the PLC's own state. A heartbeat task
+``ACK_SEQ``. Motion takes time (the world robot sweeps to the target). ``ABORT`` (CMD 9) halts
+the robot where it is at once, even while a move is running or an error is latched; the
+aborted move is never acknowledged, and the ABORT's ``CMD_SEQ`` becomes ``ACK_SEQ`` (so
+``ACK_SEQ`` only ever moves forward). Reads of the status area are served from the PLC's
+own state. A heartbeat task
 increments ``PLC_HEARTBEAT``; if ``client_heartbeat_timeout_s`` is set the PLC latches
 ``HEARTBEAT_LOST`` when the client's heartbeat stops changing, until ``RESET``.
 """
@@ -68,6 +72,8 @@ class ModbusPlcSimulator:
         ``(function code, address, count)`` of every register write received.
     applied_table : list of int or None
         Registers of the last table block that passed the PLC's CRC check.
+    acks : list of int
+        Every ``ACK_SEQ`` value published, in order.
     """
 
     def __init__(
@@ -86,6 +92,7 @@ class ModbusPlcSimulator:
         self.commands: list[tuple[int, int]] = []
         self.writes: list[tuple[int, int, int]] = []
         self.applied_table: list[int] | None = None
+        self.acks: list[int] = []
         self.frame: list[float] = [0.0] * 6
         self.joint_offsets: list[float] = [0.0] * m.joints
         s0, s1 = m.status_span()
@@ -96,6 +103,8 @@ class ModbusPlcSimulator:
         self._hr_start = 0
         self._last_seq: int | None = None
         self._latched = False
+        self._abort_gen = 0
+        self._aborted = asyncio.Event()
         self._client_hb: int | None = None
         self._client_hb_time = time.monotonic()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -134,6 +143,7 @@ class ModbusPlcSimulator:
         self._set("status", [int(status)])
         # ACK_SEQ last: a client polling it sees status and results already in place.
         self._set("ack_seq", [seq])
+        self.acks.append(seq)
 
     # --- pymodbus action hook ------------------------------------------------------------------
     async def _action(
@@ -159,6 +169,8 @@ class ModbusPlcSimulator:
             self._on_write(address, values, registers, start)
             return None
         if fc == status_fc and address < s1 and s0 < address + count:
+            if self.world.moving:
+                self._publish_actual()  # a PLC shows the joints live while they move
             registers[s0 - start : s1 - start] = self._status
         return None
 
@@ -180,9 +192,11 @@ class ModbusPlcSimulator:
             if seq != self._last_seq and seq != 0:
                 self._last_seq = seq
                 self.commands.append((cmd, seq))
+                if cmd == mb.Cmd.ABORT:
+                    self._abort()  # at once, not after whatever is running
                 self._set("status", [int(mb.Status.BUSY)])
                 # Run after pymodbus has stored this write in the register block.
-                self._track(self._run(cmd, seq))
+                self._track(self._run(cmd, seq, self._abort_gen))
 
     def _track(self, coro: Any) -> None:
         task = asyncio.create_task(coro)
@@ -196,12 +210,30 @@ class ModbusPlcSimulator:
         return list(self._hr[i : i + count])
 
     # --- PLC program ---------------------------------------------------------------------------
-    async def _run(self, cmd: int, seq: int) -> None:
+    def _abort(self) -> None:
+        """Halt the robot where it is and cancel every command started before."""
+        self.world.halt()
+        self._abort_gen += 1
+        self._aborted.set()
+        self._aborted = asyncio.Event()
+        self._publish_actual()
+        _log.info("plc sim: abort", q_deg=[round(float(v), 4) for v in self._actual_deg()])
+
+    def _actual_deg(self) -> list[float]:
+        return [math.degrees(v) for v in self.world.q_actual_rad]
+
+    async def _run(self, cmd: int, seq: int, gen: int) -> None:
         await asyncio.sleep(0)
         m, wo = self.map, self.map.word_order
         faults = self.faults
         if faults.fire("slow"):
             await asyncio.sleep(faults.config.slow_s)
+        if gen != self._abort_gen:
+            return  # superseded by a later ABORT: never acknowledged
+        if cmd == mb.Cmd.ABORT:
+            self._publish_actual()
+            self._finish(seq, mb.Status.DONE)
+            return
         if self._latched and cmd != mb.Cmd.RESET:
             self._finish(seq, mb.Status.ERROR, mb.PlcError.HEARTBEAT_LOST)
             return
@@ -222,9 +254,16 @@ class ModbusPlcSimulator:
             dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=False))
             rate = self.options.max_joint_speed_deg_s * speed / 100.0
             duration = max(dist / rate, self.options.min_motion_s) * self.options.time_scale
-            if duration > 0:
-                await asyncio.sleep(duration)
-            self.world.move([math.radians(v) for v in q_deg])
+            if duration <= 0:
+                self.world.move([math.radians(v) for v in q_deg])
+            else:
+                aborted = self._aborted
+                motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(duration):
+                        await aborted.wait()
+                if not self.world.finish_motion(motion) or gen != self._abort_gen:
+                    return  # halted by ABORT, which is acknowledged instead
             self._publish_actual()
             self._finish(seq, mb.Status.DONE)
         elif cmd == mb.Cmd.READ_ACTUAL:
@@ -242,7 +281,7 @@ class ModbusPlcSimulator:
             self._latched = False
             self._client_hb_time = time.monotonic()
             self._finish(seq, mb.Status.DONE)
-        elif cmd in (mb.Cmd.ABORT, mb.Cmd.IDLE):
+        elif cmd == mb.Cmd.IDLE:
             self._finish(seq, mb.Status.DONE)
         else:
             self._finish(seq, mb.Status.ERROR, mb.PlcError.UNKNOWN_CMD)

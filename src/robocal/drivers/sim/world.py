@@ -4,19 +4,34 @@ One :class:`SimWorld` holds one virtual robot (a :class:`robocal.simulation.Virt
 its current pose, so the tracker simulator measures where the robot simulator actually put
 the reflector: commanded joints plus joint repeatability noise, through the true (planted)
 kinematics, plus tracker noise.
+
+Motion takes time: :meth:`SimWorld.start_motion` sweeps the joints linearly (all joints
+arriving together, as a joint move does) from where they are to the target over the motion's
+duration; :attr:`SimWorld.q_actual_rad` is the interpolated position while it runs.
+:meth:`SimWorld.halt` freezes the robot where it is, the way a controller's abort does, and
+:meth:`SimWorld.finish_motion` settles a motion that ran to its end (adding the repeatability
+noise). :meth:`SimWorld.move` is the instantaneous form.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_ROBOT", "SimWorld", "WorldMeasurement", "forget_shared_worlds", "shared_world"]
+__all__ = [
+    "DEFAULT_ROBOT",
+    "SimMotion",
+    "SimWorld",
+    "WorldMeasurement",
+    "forget_shared_worlds",
+    "shared_world",
+]
 
 DEFAULT_ROBOT = "fanuc_lrmate200id"
 Array = NDArray[np.float64]
@@ -36,6 +51,26 @@ class WorldMeasurement:
     sigma_m: tuple[float, float, float]
     rms_m: float
     n: int
+
+
+@dataclass(frozen=True)
+class SimMotion:
+    """One joint motion in progress: a linear sweep from ``q_from_rad`` to ``q_to_rad``.
+
+    ``t0`` is its ``time.monotonic()`` start, ``duration_s`` its length in seconds.
+    """
+
+    q_from_rad: Array
+    q_to_rad: Array
+    t0: float
+    duration_s: float
+
+    def position(self, now: float) -> Array:
+        """Joint angles (radians, shape ``(dof,)``) at monotonic time ``now``."""
+        if self.duration_s <= 0.0:
+            return self.q_to_rad.copy()
+        s = min(1.0, max(0.0, (now - self.t0) / self.duration_s))
+        return np.asarray(self.q_from_rad + s * (self.q_to_rad - self.q_from_rad), dtype=float)
 
 
 class SimWorld:
@@ -64,8 +99,11 @@ class SimWorld:
         )
         q0 = np.clip(np.zeros(self.dof), lim[:, 0], lim[:, 1])
         self.q_cmd_rad: Array = q0.copy()
-        self.q_actual_rad: Array = q0.copy()
+        self._q_actual: Array = q0.copy()
         self.moves = 0
+        self.motion: SimMotion | None = None
+        self.halts = 0
+        self.last_halt_time: float | None = None
         # Simulators of one world may run in different threads only via to_thread; keep it safe.
         self._lock = threading.Lock()
 
@@ -92,19 +130,86 @@ class SimWorld:
             and np.all(q <= lim[:, 1])
         )
 
+    @property
+    def q_actual_rad(self) -> Array:
+        """Actual joint angles now, radians, shape ``(dof,)`` (interpolated while moving)."""
+        with self._lock:
+            return self._position_locked(time.monotonic())
+
+    def _position_locked(self, now: float) -> Array:
+        if self.motion is not None:
+            return self.motion.position(now)
+        return self._q_actual.copy()
+
+    @property
+    def moving(self) -> bool:
+        """True while a motion started by :meth:`start_motion` is neither finished nor halted."""
+        return self.motion is not None
+
     def move(self, q_cmd_rad: Any) -> Array:
-        """Put the robot at ``q_cmd_rad`` (radians); return the actual joints it reached."""
+        """Put the robot at ``q_cmd_rad`` (radians) at once; return the actual joints reached.
+
+        Ends any motion in progress.
+        """
         q = np.asarray(q_cmd_rad, dtype=float).reshape(self.dof)
         with self._lock:
-            actual = np.asarray(self.cell.actual_joints(q[None, :], self.rng), dtype=float)[0]
-            self.q_cmd_rad = q.copy()
-            self.q_actual_rad = actual
-            self.moves += 1
+            self.motion = None
+            return self._settle_locked(q)
+
+    def _settle_locked(self, q: Array) -> Array:
+        actual = np.asarray(self.cell.actual_joints(q[None, :], self.rng), dtype=float)[0]
+        self.q_cmd_rad = q.copy()
+        self._q_actual = actual
+        self.moves += 1
         return actual.copy()
+
+    def start_motion(self, q_cmd_rad: Any, duration_s: float) -> SimMotion:
+        """Start sweeping from the current position to ``q_cmd_rad`` over ``duration_s`` s.
+
+        A motion already in progress is replaced from the point it has reached. Returns the
+        motion; pass it to :meth:`finish_motion` when its time is up.
+        """
+        q = np.asarray(q_cmd_rad, dtype=float).reshape(self.dof)
+        with self._lock:
+            now = time.monotonic()
+            start = self._position_locked(now)
+            self.motion = SimMotion(start, q.copy(), now, max(0.0, float(duration_s)))
+            self.q_cmd_rad = q.copy()
+            return self.motion
+
+    def finish_motion(self, motion: SimMotion) -> bool:
+        """Settle ``motion`` at its target (with repeatability noise); False if it was halted.
+
+        Returns False, changing nothing, when ``motion`` is no longer the current motion
+        (halted or replaced).
+        """
+        with self._lock:
+            if self.motion is not motion:
+                return False
+            self.motion = None
+            self._settle_locked(motion.q_to_rad)
+            return True
+
+    def halt(self) -> Array:
+        """Stop any motion where it is now; return the joints (radians). Idempotent.
+
+        The commanded position becomes the halted one, so a later move starts from there.
+        """
+        with self._lock:
+            now = time.monotonic()
+            q = self._position_locked(now)
+            if self.motion is not None:
+                self.motion = None
+                self._q_actual = q.copy()
+                self.q_cmd_rad = q.copy()
+                self.halts += 1
+                self.last_halt_time = now
+            return q
 
     def true_reflector_position(self) -> Array:
         """Return the true reflector centre (3,) for the actual joints, tracker frame, metres."""
-        return np.asarray(self.cell.reflector_position(self.q_actual_rad[None, :]), dtype=float)[0]
+        q = self.q_actual_rad
+        return np.asarray(self.cell.reflector_position(q[None, :]), dtype=float)[0]
 
     def measure(self, n: int, *, glitch: bool = False) -> WorldMeasurement:
         """Simulate ``n`` tracker samples of the reflector and average them.
@@ -114,7 +219,7 @@ class SimWorld:
         """
         n = max(1, int(n))
         with self._lock:
-            q = np.repeat(self.q_actual_rad[None, :], n, axis=0)
+            q = np.repeat(self._position_locked(time.monotonic())[None, :], n, axis=0)
             points, sigma = self.cell.measure(q, self.rng)
             points = np.asarray(points, dtype=float)
             sigma = np.asarray(sigma, dtype=float)
