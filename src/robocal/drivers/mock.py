@@ -17,7 +17,9 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
+from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
+from robocal.drivers._compensation import table_diff
 from robocal.drivers.api import JointReading, TrackerReading
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
 from robocal.errors import (
