@@ -1,20 +1,31 @@
-"""Laser tracker over LTP/1 (the tracker line protocol of protocols.md 2.5), serial or TCP.
+"""Laser tracker over LTP/1 (normative description: ``docs/protocols/ltp1.md``), serial or TCP.
 
 The tracker PC runs a bridge (vendor SDK to LTP/1); this driver speaks only LTP/1, on any
 :func:`~robocal.protocols.open_transport` URL (``tcp://``, ``serial://``, ``socket://``).
-One request is outstanding at a time; event lines (``* EVT ...``) between a request and its
-reply are handled and skipped, replies with another tag (late replies to an earlier,
-timed-out request) are discarded, and garbage lines are logged and skipped, so the stream
-resynchronises on the next good line.
 
-Errors: ``BEAM_BROKEN``/``NO_TARGET`` raise BeamLost, ``UNSTABLE`` Unstable, ``TIMEOUT`` and
-a missing reply DriverTimeout; other refusals MeasurementError (``MEAS``) or OperationError.
+Exactly one request is outstanding at a time. A request whose reply did not come in time
+stays outstanding: before the next request the driver waits for that late reply (and
+discards it), so it never pipelines; the one exception is ``STOP``, which the protocol
+allows while a ``MEAS`` runs. If a late reply never comes the link is re-opened. Event
+lines (``* EVT ...``) are handled and skipped anywhere; garbage lines are logged and skipped.
+``ERR 14 BUSY`` is retried with back-off until the request's deadline.
+
+After ``HELLO`` the driver sets ``INIT`` (if needed), ``SMR``, ``UNITS len=mm ang=deg`` and
+``FRAME name=<frame>`` and checks them with ``STATUS?``, so readings are never mislabelled by
+a bridge left in another frame. Point ids are made valid (characters outside
+``A-Z a-z 0-9 _ . : -`` become ``_``) or refused (empty, longer than 64) before sending.
+
+Errors: ``BEAM_BROKEN``/``NO_TARGET`` raise BeamLost, ``UNSTABLE`` Unstable, ``TIMEOUT``,
+a missing reply and a bridge that stays ``BUSY`` DriverTimeout (all retryable); other
+refusals MeasurementError (``MEAS``) or OperationError.
 """
 
 from __future__ import annotations
 
+import asyncio
+import re
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from datetime import datetime
 from typing import Any, ClassVar, Literal, NoReturn
 
@@ -37,7 +48,7 @@ from robocal.errors import (
 )
 from robocal.protocols import LineStream, ltp, open_transport
 
-__all__ = ["LtpOptions", "LtpTracker"]
+__all__ = ["LtpOptions", "LtpTracker", "wire_point_id"]
 
 _TO_M = {"mm": 1e-3, "m": 1.0, "in": 0.0254}
 
@@ -61,6 +72,10 @@ class LtpOptions(DriverOptions):
         Extra wait beyond a ``MEAS`` timeout for the bridge's reply, seconds.
     reconnect
         Reconnect once and repeat the request when the link drops mid-request.
+    frame
+        Frame the bridge is put in after connecting; readings are labelled with it.
+    smr_offset_mm
+        Reflector distance offset announced with ``SMR``, mm.
     """
 
     url: str = Field(min_length=1)
@@ -71,6 +86,8 @@ class LtpOptions(DriverOptions):
     request_timeout_s: float = Field(default=5.0, gt=0.0)
     reply_margin_s: float = Field(default=2.0, ge=0.0)
     reconnect: bool = True
+    frame: str = Field(default="tracker", pattern=r"^[A-Za-z0-9_.-]{1,32}$")
+    smr_offset_mm: float = 0.0
 
 
 class LtpTracker(DriverBase):
@@ -105,27 +122,47 @@ class LtpTracker(DriverBase):
         self.bad_lines = 0
         self._stream: LineStream | None = None
         self._tag = 0
+        #: Requests sent and not yet answered: tag -> verb.
+        self._pending: dict[str, str] = {}
+        self._owed_until = 0.0
         self._units = "mm"
 
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         await self._open(deadline)
-        o = self.options
         status = await self._request("STATUS?", {}, deadline=deadline)
         if status.values.get("init") == "0":
             await self._request("INIT", {}, deadline=deadline)
-        if o.smr:
-            await self._request("SMR", {"type": o.smr}, deadline=deadline)
-        await self._request("UNITS", {"len": "mm", "ang": "deg"}, deadline=deadline)
-        self._units = "mm"
+        await self._setup(deadline)
         self.log.info("tracker ready", **{k: v for k, v in self.info.items() if k != "proto"})
+
+    async def _setup(self, deadline: float) -> None:
+        """Announce the SMR, set units and frame, and check them with ``STATUS?``."""
+        o = self.options
+        if o.smr:
+            args: dict[str, object] = {"type": o.smr}
+            if o.smr_offset_mm:
+                args["offset_mm"] = f"{o.smr_offset_mm:.4f}"
+            await self._request("SMR", args, deadline=deadline, retry=False)
+        await self._request("UNITS", {"len": "mm", "ang": "deg"}, deadline=deadline, retry=False)
+        self._units = "mm"
+        frame = await self._request("FRAME", {"name": o.frame}, deadline=deadline, retry=False)
+        status = await self._request("STATUS?", {}, deadline=deadline, retry=False)
+        got = (frame.values.get("name"), status.values.get("frame"), status.values.get("units"))
+        if got[0] != o.frame or got[1] not in (None, o.frame) or got[2] not in (None, "mm"):
+            raise ConnectFailed(
+                f"bridge did not take frame {o.frame!r} and units mm "
+                f"(FRAME name={got[0]!r}, STATUS? frame={got[1]!r} units={got[2]!r})",
+                kind=self.kind,
+            )
 
     async def _open(self, deadline: float) -> None:
         """Open the transport and check the protocol with HELLO."""
         transport = open_transport(self.options.url)
         await transport.open(timeout=max(0.05, deadline - time.monotonic()))
         self._stream = LineStream(transport, max_length=ltp.MAX_LINE)
+        self._pending.clear()
         hello = await self._request("HELLO", {"proto": ltp.PROTO}, deadline=deadline, retry=False)
         if hello.values.get("proto") != ltp.PROTO:
             raise ConnectFailed(
@@ -134,26 +171,30 @@ class LtpTracker(DriverBase):
         self.info = dict(hello.values)
 
     async def _close_impl(self) -> None:
-        stream, self._stream = self._stream, None
+        stream = self._stream
         if stream is None:
             return
         if stream.transport.is_open:
             try:
-                self._tag += 1
-                await stream.write_line(ltp.format_request(ltp.Request(str(self._tag), "BYE")))
+                # BYE only when nothing is outstanding: never two requests at once.
+                deadline = time.monotonic() + 0.5
+                await self._settle(stream, deadline, "BYE")
+                await self._exchange("BYE", {}, deadline)
             except Exception as err:  # best effort: the link may already be gone
-                self.log.debug("BYE not sent", error=repr(err))
+                self.log.debug("BYE not sent or not answered", error=repr(err))
+        self._stream = None
+        self._pending.clear()
         await stream.transport.close()
 
     async def _reconnect(self) -> None:
         stream, self._stream = self._stream, None
         if stream is not None:
             await stream.transport.close()
-        self.log.warning("link lost; reconnecting")
+        self.log.warning("link lost or out of step; reconnecting")
         deadline = time.monotonic() + self.options.request_timeout_s
         with self.translate_errors(connecting=True):
             await self._open(deadline)
-            await self._request("UNITS", {"len": "mm", "ang": "deg"}, deadline=deadline)
+            await self._setup(deadline)
 
     # --- request / reply -----------------------------------------------------------------------
     def _next_tag(self) -> str:
@@ -168,18 +209,38 @@ class LtpTracker(DriverBase):
         deadline: float | None = None,
         retry: bool = True,
     ) -> ltp.Ok:
-        """Send one request and return its OK reply; map ERR replies to driver errors."""
+        """Send one request and return its OK reply; map ERR replies to driver errors.
+
+        ``ERR 14 BUSY`` is retried with back-off until ``deadline``; a link that drops, or
+        an earlier request that is never answered, is re-opened once when ``retry``.
+        """
         if deadline is None:
             deadline = time.monotonic() + self.options.request_timeout_s
-        for attempt in (1, 2):
+        reopened = False
+        delay = 0.01
+        while True:
             try:
                 with self.translate_errors():
                     reply = await self._exchange(verb, args, deadline)
-                break
-            except ConnectFailed:
-                if not (retry and self.options.reconnect and attempt == 1):
+            except (ConnectFailed, _Unanswered) as err:
+                if reopened or not (retry and self.options.reconnect):
+                    if isinstance(err, _Unanswered):
+                        raise DriverTimeout(str(err), kind=self.kind) from err
                     raise
+                reopened = True
                 await self._reconnect()
+                continue
+            if isinstance(reply, ltp.Err) and reply.code == ltp.ErrorCode.BUSY:
+                remaining = deadline - time.monotonic()
+                if remaining <= delay:
+                    raise DriverTimeout(
+                        f"{verb}: bridge stayed BUSY until the deadline", kind=self.kind
+                    )
+                self.log.info("bridge busy; retrying", verb=verb, delay_s=delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 0.5)
+                continue
+            break
         if isinstance(reply, ltp.Err):
             self._raise(verb, reply)
         return reply
@@ -190,10 +251,53 @@ class LtpTracker(DriverBase):
         stream = self._stream
         if stream is None:
             raise ConnectFailed("not connected", kind=self.kind)
+        await self._settle(stream, deadline, verb)
         tag = self._next_tag()
         req = ltp.Request(tag, verb, {k: str(v) for k, v in args.items()})
-        await stream.write_line(ltp.format_request(req))
+        line = ltp.format_request(req)
+        self._pending[tag] = verb
+        await stream.write_line(line)
+        try:
+            msg = await self._read_until(stream, deadline, tag, verb)
+        except TransportTimeout:
+            # Left outstanding: its reply is still owed, for one more request timeout.
+            self._owed_until = time.monotonic() + self.options.request_timeout_s
+            raise
+        assert msg is not None
+        return msg
+
+    async def _settle(self, stream: LineStream, deadline: float, verb: str) -> None:
+        """Wait for the replies still owed before ``verb`` may be sent.
+
+        A late reply is awaited for one request timeout after its request timed out.
+
+        Raises
+        ------
+        _Unanswered
+            If they do not arrive by ``deadline`` (the request is then not sent).
+        """
+        owed = [t for t, v in self._pending.items() if not (verb == "STOP" and v == "MEAS")]
+        if not owed:
+            return
+        try:
+            await self._read_until(stream, min(deadline, self._owed_until), None, verb, owed=owed)
+        except TransportTimeout as err:
+            names = ", ".join(f"{self._pending[t]} (tag {t})" for t in owed if t in self._pending)
+            raise _Unanswered(f"bridge has not answered {names}; {verb} not sent") from err
+
+    async def _read_until(
+        self,
+        stream: LineStream,
+        deadline: float,
+        tag: str | None,
+        verb: str,
+        *,
+        owed: Sequence[str] = (),
+    ) -> ltp.Ok | ltp.Err | None:
+        """Read lines until the reply to ``tag`` arrives (or, tag None, every ``owed`` one)."""
         while True:
+            if tag is None and not any(t in self._pending for t in owed):
+                return None
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise TransportTimeout(
@@ -210,10 +314,13 @@ class LtpTracker(DriverBase):
             if isinstance(msg, ltp.Event):
                 self._on_event(msg)
                 continue
-            if msg.tag != tag:
-                self.log.warning("stale reply discarded", tag=msg.tag, expected=tag)
-                continue
-            return msg
+            late = self._pending.pop(msg.tag, None)
+            if msg.tag == tag:
+                return msg
+            if late is not None:
+                self.log.info("late reply discarded", tag=msg.tag, verb=late)
+            else:
+                self.log.warning("reply with unknown tag discarded", tag=msg.tag)
 
     def _on_event(self, event: ltp.Event) -> None:
         v = event.values
@@ -257,8 +364,9 @@ class LtpTracker(DriverBase):
             raise ConfigError("samples must be at least 1", source="measure", key="samples")
         o = self.options
         args: dict[str, object] = {}
-        if point_id is not None:
-            args["id"] = point_id
+        wire_id = None if point_id is None else wire_point_id(point_id)
+        if wire_id is not None:
+            args["id"] = wire_id
         args.update(
             {
                 "mode": o.mode,
@@ -274,18 +382,21 @@ class LtpTracker(DriverBase):
         except DriverTimeout:
             await self._stop_quietly()
             raise
-        return self._reading(ok, point_id)
+        return self._reading(ok, point_id, wire_id)
 
     async def _stop_quietly(self) -> None:
-        """Abort a MEAS the bridge may still be running; its late reply is discarded by tag."""
+        """Abort a MEAS the bridge may still be running; its late reply is awaited later."""
         try:
             await self._request(
-                "STOP", {}, deadline=time.monotonic() + min(1.0, self.options.request_timeout_s)
+                "STOP",
+                {},
+                deadline=time.monotonic() + min(1.0, self.options.request_timeout_s),
+                retry=False,
             )
         except Exception as err:
             self.log.debug("STOP after timeout failed", error=repr(err))
 
-    def _reading(self, ok: ltp.Ok, point_id: str | None) -> TrackerReading:
+    def _reading(self, ok: ltp.Ok, point_id: str | None, wire_id: str | None) -> TrackerReading:
         v = ok.values
         k = _TO_M[self._units]
         try:
@@ -300,8 +411,12 @@ class LtpTracker(DriverBase):
         if not all(map(_finite, pos)):
             raise UnexpectedReply("MEAS reply has non-finite coordinates")
         weather = _weather(v) or dict(self.weather)
-        if point_id is not None and v.get("id", point_id) != point_id:
-            raise UnexpectedReply(f"MEAS reply for point {v.get('id')!r}, asked {point_id!r}")
+        if wire_id is not None and v.get("id", wire_id) != wire_id:
+            raise UnexpectedReply(f"MEAS reply for point {v.get('id')!r}, asked {wire_id!r}")
+        if v.get("frame", self.options.frame) != self.options.frame:
+            raise UnexpectedReply(
+                f"MEAS reply in frame {v.get('frame')!r}, expected {self.options.frame!r}"
+            )
         return TrackerReading(
             position_m=pos,
             std_m=std,
@@ -317,6 +432,31 @@ class LtpTracker(DriverBase):
         """Return the bridge's ``STATUS?`` reply as strings."""
         self._ensure_connected()
         return dict((await self._request("STATUS?", {})).values)
+
+
+class _Unanswered(Exception):
+    """An earlier request is still unanswered, so no new one may be sent."""
+
+
+_ID_BAD = re.compile(r"[^A-Za-z0-9_.:-]")
+
+
+def wire_point_id(point_id: str) -> str:
+    """Return ``point_id`` as LTP/1 carries it: ``A-Z a-z 0-9 _ . : -``, others become ``_``.
+
+    Raises
+    ------
+    ConfigError
+        If the id is empty or longer than 64 characters.
+    """
+    wire = _ID_BAD.sub("_", point_id)
+    if not 1 <= len(wire) <= 64:
+        raise ConfigError(
+            f"point id {point_id[:80]!r} cannot be sent over LTP/1: 1..64 characters",
+            source="measure",
+            key="point_id",
+        )
+    return wire
 
 
 def _finite(x: float) -> bool:

@@ -43,6 +43,8 @@ class LineFramer:
         self._buf = bytearray()
         self._discarding = False
         self.recent: deque[bytes] = deque(maxlen=history)
+        #: First bytes of the last over-long line dropped (a bridge reads its tag from them).
+        self.dropped_head = b""
 
     def encode(self, line: bytes | str) -> bytes:
         """Return ``line`` with the CR LF terminator, checking it can be framed.
@@ -90,6 +92,7 @@ class LineFramer:
                 # +1 leaves room for a CR whose LF has not arrived yet.
                 if len(self._buf) > self.max_length + 1:
                     head = bytes(self._buf[:64])
+                    self.dropped_head = head
                     self._buf.clear()
                     self._discarding = True
                     raise FramingError(
@@ -107,6 +110,7 @@ class LineFramer:
             if raw.endswith(b"\r"):
                 raw = raw[:-1]
             if len(raw) > self.max_length:
+                self.dropped_head = raw[:64]
                 raise FramingError(
                     f"line of {len(raw)} bytes is longer than {self.max_length}",
                     last_frames=[*self.recent, raw[:64]],

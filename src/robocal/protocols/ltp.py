@@ -1,4 +1,5 @@
-r"""Sans-I/O codec for LTP/1, the tracker line protocol (docs/protocols.md section 2.5).
+r"""Sans-I/O codec for LTP/1, the tracker line protocol; normative description in
+``docs/protocols/ltp1.md`` (grammar, verbs, error codes, framing, examples).
 
 Wire layout (7-bit ASCII, one message per CR LF line, at most 512 bytes)::
 
@@ -6,15 +7,18 @@ Wire layout (7-bit ASCII, one message per CR LF line, at most 512 bytes)::
     reply    :=  TAG SP "OK" *(SP key=value)
               |  TAG SP "ERR" SP CODE SP NAME [SP msg="..."]
     event    :=  "*" SP "EVT" SP NAME *(SP key=value)             unsolicited, any time
+    value    :=  bare (printable, no space, no ``"``)  |  ``"`` any printable but ``"`` ``"``
 
     > 3 MEAS id=P0007 n=20 stab_mm=0.010 stab_ms=500 timeout_ms=8000
     < * EVT BEAM state=LOCKED t=2026-01-05T10:11:12.345Z
     < 3 OK id=P0007 x=1523.40712 y=-210.11930 z=887.00241 sx=0.0021 ... smr=RRR15
     > 4 MEAS id=P0008 timeout_ms=3000
-    < 4 ERR 10 BEAM_BROKEN msg="beam interrupted while settling"
+    < 4 ERR 10 BEAM_BROKEN msg="C:\bridge\log.txt: beam interrupted"
 
-Values contain no spaces unless double-quoted; inside quotes ``\\"`` and ``\\\\`` escape.
-Parsers accept runs of spaces between tokens and raise only
+Inside quotes there are no escapes: a backslash is an ordinary character, and a value ends
+at the next double quote. ``msg`` of an ERR reply is always quoted. Requests are parsed
+strictly (single spaces); replies and events leniently (runs of spaces, and an ERR whose
+``msg`` is malformed still yields its code). Parsers raise only
 :class:`~robocal.errors.FramingError` for anything malformed. Line framing itself is
 :class:`~robocal.protocols.framing.LineFramer`'s job; these functions see one line.
 """
@@ -42,8 +46,10 @@ __all__ = [
     "format_event",
     "format_ok",
     "format_request",
+    "message_text",
     "parse_message",
     "parse_request",
+    "readable_tag",
 ]
 
 PROTO = "LTP/1"
@@ -75,6 +81,10 @@ _VERB = re.compile(r"[A-Z][A-Z0-9_]*\??")
 _NAME = re.compile(r"[A-Z][A-Z0-9_]*")
 _KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _BARE = re.compile(r"[!#-~]+")  # printable, no space, no double quote
+_READABLE_TAG = re.compile(r"([A-Za-z0-9]{1,8})(?: |$)")
+_ERR_LINE = re.compile(
+    r' *(\S+) +ERR +([0-9]{1,6}) +([A-Z][A-Z0-9_]*)(?: +msg=(?:"(.*)"|([!#-~]+)))? *'
+)
 
 
 def _frozen(d: Mapping[str, str] | None) -> Mapping[str, str]:
@@ -147,61 +157,48 @@ def _text(line: bytes | str) -> str:
     return text
 
 
-def _tokens(text: str) -> list[str]:
-    """Split on spaces, keeping double-quoted runs (with escapes) inside one token."""
+def _tokens(text: str, *, strict: bool) -> list[str]:
+    """Split a line into tokens on spaces; a quoted value stays inside its ``key="..."`` token.
+
+    A double quote may only open a value (right after the token's first ``=``); the value
+    then runs to the next double quote, which must end the token. Backslash is an ordinary
+    character. ``strict`` refuses leading, trailing and doubled spaces (the grammar's single
+    SP); the driver's side is lenient about them.
+    """
+    if strict and (text.startswith(" ") or text.endswith(" ") or "  " in text):
+        raise FramingError("tokens must be separated by single spaces")
     tokens: list[str] = []
-    cur: list[str] = []
-    in_quotes = False
-    i = 0
-    while i < len(text):
-        c = text[i]
-        if in_quotes:
-            if c == "\\" and i + 1 < len(text) and text[i + 1] in '"\\':
-                cur.append(c + text[i + 1])
-                i += 2
-                continue
-            if c == '"':
-                in_quotes = False
-            cur.append(c)
-        elif c == " ":
-            if cur:
-                tokens.append("".join(cur))
-                cur = []
-        else:
-            if c == '"':
-                in_quotes = True
-            cur.append(c)
-        i += 1
-    if in_quotes:
-        raise FramingError(f"unterminated quoted value in {text[:80]!r}")
-    if cur:
-        tokens.append("".join(cur))
+    i, n = 0, len(text)
+    while i < n:
+        if text[i] == " ":
+            i += 1
+            continue
+        j = i
+        while j < n and text[j] != " ":
+            if text[j] == '"':
+                eq = text.find("=", i, j + 1)
+                if eq != j - 1:
+                    raise FramingError(f"stray double quote in {text[i : j + 1][:80]!r}")
+                close = text.find('"', j + 1)
+                if close < 0:
+                    raise FramingError(f"unterminated quoted value in {text[i:][:80]!r}")
+                j = close + 1
+                if j < n and text[j] != " ":
+                    raise FramingError(f"a quoted value must end its token: {text[i:][:80]!r}")
+                break
+            j += 1
+        tokens.append(text[i:j])
+        i = j
     return tokens
 
 
 def _unquote(raw: str, token: str) -> str:
-    if not raw.startswith('"'):
-        if not _BARE.fullmatch(raw):
-            raise FramingError(f"bad value in {token!r}")
-        return raw
-    if len(raw) < 2 or not raw.endswith('"'):
-        raise FramingError(f"bad quoted value in {token!r}")
-    out: list[str] = []
-    body = raw[1:-1]
-    i = 0
-    while i < len(body):
-        c = body[i]
-        if c == "\\":
-            if i + 1 >= len(body) or body[i + 1] not in '"\\':
-                raise FramingError(f"bad escape in {token!r}")
-            out.append(body[i + 1])
-            i += 2
-            continue
-        if c == '"':
-            raise FramingError(f"stray quote in {token!r}")
-        out.append(c)
-        i += 1
-    return "".join(out)
+    if raw.startswith('"'):
+        # _tokens guarantees the closing quote is the token's last character.
+        return raw[1:-1]
+    if not _BARE.fullmatch(raw):
+        raise FramingError(f"bad value in {token[:80]!r}")
+    return raw
 
 
 def _pairs(tokens: list[str]) -> dict[str, str]:
@@ -216,12 +213,16 @@ def _pairs(tokens: list[str]) -> dict[str, str]:
     return out
 
 
-def _quote(value: str) -> str:
-    if value and _BARE.fullmatch(value):
+def _quote(value: str, *, force: bool = False) -> str:
+    if value and not force and _BARE.fullmatch(value):
         return value
+    if '"' in value:
+        raise FramingError(
+            f"value {value[:40]!r} contains a double quote, which LTP/1 cannot carry"
+        )
     if any(not (" " <= c <= "~") for c in value):
         raise FramingError(f"value {value[:40]!r} is not printable ASCII")
-    return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return '"' + value + '"'
 
 
 def _format_pairs(values: Mapping[str, object]) -> str:
@@ -239,6 +240,11 @@ def _check_len(line: str) -> str:
     return line
 
 
+def message_text(text: str) -> str:
+    """Return ``text`` made fit for a quoted ``msg``: ``"`` becomes ``'``, others ``?``."""
+    return "".join("'" if c == '"' else c if " " <= c <= "~" else "?" for c in str(text))
+
+
 # --- requests (client -> bridge) ---------------------------------------------------------------
 def format_request(req: Request) -> str:
     """Return the request line (without CR LF)."""
@@ -250,14 +256,14 @@ def format_request(req: Request) -> str:
 
 
 def parse_request(line: bytes | str) -> Request:
-    """Parse a request line (the simulator's side).
+    """Parse a request line (the bridge's side), strictly: single spaces only.
 
     Raises
     ------
     FramingError
         If the line is not a well-formed request.
     """
-    tokens = _tokens(_text(line))
+    tokens = _tokens(_text(line), strict=True)
     if len(tokens) < 2:
         raise FramingError("LTP request needs a tag and a verb")
     tag, verb = tokens[0], tokens[1]
@@ -266,6 +272,17 @@ def parse_request(line: bytes | str) -> Request:
     if not _VERB.fullmatch(verb):
         raise FramingError(f"bad verb {verb[:20]!r}")
     return Request(tag, verb, _pairs(tokens[2:]))
+
+
+def readable_tag(line: bytes | str) -> str | None:
+    """Return the tag of a (possibly malformed or over-long) request line, if one is readable.
+
+    A tag is readable when the line starts with 1..8 alphanumerics followed by a space or
+    the end of the line; a bridge answers such a line with a tagged ``ERR 1 SYNTAX``.
+    """
+    head = line[:10] if isinstance(line, str) else bytes(line[:10]).decode("ascii", "replace")
+    m = _READABLE_TAG.match(head)
+    return m.group(1) if m else None
 
 
 # --- replies and events (bridge -> client) ----------------------------------------------------
@@ -277,7 +294,11 @@ def format_ok(tag: str, values: Mapping[str, object] | None = None) -> str:
 
 
 def format_err(tag: str, code: int, name: str | None = None, msg: str | None = None) -> str:
-    """Return an ``ERR`` reply line; ``name`` defaults to the table name of ``code``."""
+    """Return an ``ERR`` reply line; ``name`` defaults to the table name of ``code``.
+
+    ``msg`` is always sent quoted, as the grammar requires; characters a quoted value cannot
+    carry are replaced (see :func:`message_text`) and an over-long text is shortened.
+    """
     if not _TAG.fullmatch(tag):
         raise FramingError(f"bad tag {tag!r}")
     if name is None:
@@ -285,10 +306,13 @@ def format_err(tag: str, code: int, name: str | None = None, msg: str | None = N
             name = ErrorCode(code).name
         except ValueError:
             name = "INTERNAL"
-    if not _NAME.fullmatch(name) or code < 0:
+    if not _NAME.fullmatch(name) or not 0 <= code <= 999_999:
         raise FramingError(f"bad error {code} {name!r}")
-    tail = _format_pairs({"msg": msg}) if msg is not None else ""
-    return _check_len(f"{tag} ERR {code} {name}{tail}")
+    head = f"{tag} ERR {code} {name}"
+    if msg is None:
+        return head
+    room = MAX_LINE - len(head) - len(' msg=""')
+    return f'{head} msg="{message_text(msg)[:room]}"'
 
 
 def format_event(name: str, values: Mapping[str, object] | None = None) -> str:
@@ -299,14 +323,25 @@ def format_event(name: str, values: Mapping[str, object] | None = None) -> str:
 
 
 def parse_message(line: bytes | str) -> Message:
-    """Parse a reply or event line (the driver's side).
+    """Parse a reply or event line (the client's side), leniently about spacing.
+
+    An ``ERR`` reply is recognised from its code and name even when its ``msg`` is not
+    well formed (taken verbatim up to the line's last double quote), so a bridge's error is
+    never lost as garbage.
 
     Raises
     ------
     FramingError
         If the line is not a well-formed reply or event.
     """
-    tokens = _tokens(_text(line))
+    text = _text(line)
+    m = _ERR_LINE.fullmatch(text)
+    if m is not None:
+        tag, code, name, quoted, bare = m.groups()
+        if not _TAG.fullmatch(tag):
+            raise FramingError(f"bad tag {tag[:20]!r}")
+        return Err(tag, int(code), name, quoted if quoted is not None else bare)
+    tokens = _tokens(text, strict=False)
     if len(tokens) < 2:
         raise FramingError("LTP reply needs a tag and a status")
     head, kind = tokens[0], tokens[1]
@@ -319,13 +354,5 @@ def parse_message(line: bytes | str) -> Message:
     if kind == "OK":
         return Ok(head, _pairs(tokens[2:]))
     if kind == "ERR":
-        if len(tokens) < 4 or not tokens[2].isdigit() or len(tokens[2]) > 6:
-            raise FramingError("malformed LTP ERR reply: expected ERR <code> <NAME>")
-        if not _NAME.fullmatch(tokens[3]):
-            raise FramingError(f"bad error name {tokens[3][:20]!r}")
-        extra = _pairs(tokens[4:])
-        unknown = set(extra) - {"msg"}
-        if unknown:
-            raise FramingError(f"unexpected keys in ERR reply: {sorted(unknown)}")
-        return Err(head, int(tokens[2]), tokens[3], extra.get("msg"))
+        raise FramingError('malformed LTP ERR reply: expected ERR <code> <NAME> [msg="..."]')
     raise FramingError(f"expected OK, ERR or * EVT, got {kind[:20]!r}")

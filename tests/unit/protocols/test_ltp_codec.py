@@ -71,10 +71,62 @@ def test_error_code_table():
     }
 
 
-def test_quoted_values_with_escapes_round_trip():
-    line = ltp.format_ok("5", {"msg": 'say "hi" \\ there'})
-    assert line == '5 OK msg="say \\"hi\\" \\\\ there"'
-    assert ltp.parse_message(line).values["msg"] == 'say "hi" \\ there'
+def test_backslash_in_a_quoted_message_is_an_ordinary_character():
+    """A Windows path in msg (item 8): no escapes inside quotes, the value ends at the quote."""
+    err = ltp.parse_message(b'4 ERR 50 DEVICE_FAULT msg="cannot open C:\\data\\trk.cfg"')
+    assert err == ltp.Err("4", 50, "DEVICE_FAULT", "cannot open C:\\data\\trk.cfg")
+    tail = ltp.parse_message(b'5 ERR 50 DEVICE_FAULT msg="ends in \\"')
+    assert isinstance(tail, ltp.Err) and tail.msg == "ends in \\"
+    ok = ltp.parse_message(b'6 OK path="C:\\x y\\" n=3')
+    assert dict(ok.values) == {"path": "C:\\x y\\", "n": "3"}
+    line = ltp.format_err("7", 50, msg="C:\\temp\\a b")
+    assert line == '7 ERR 50 DEVICE_FAULT msg="C:\\temp\\a b"'
+    assert ltp.parse_message(line) == ltp.Err("7", 50, "DEVICE_FAULT", "C:\\temp\\a b")
+
+
+def test_err_msg_is_always_quoted_and_made_carriable():
+    assert ltp.format_err("1", 3, msg="FLY") == '1 ERR 3 BAD_ARG msg="FLY"'
+    assert ltp.format_err("1", 3, msg='say "hi"') == "1 ERR 3 BAD_ARG msg=\"say 'hi'\""
+    long = ltp.format_err("1", 99, msg="x" * 1000)
+    assert len(long) == ltp.MAX_LINE and long.endswith('x"')
+
+
+def test_a_malformed_msg_does_not_lose_the_error():
+    """Lenient on the client's side: code and name survive an embedded quote."""
+    err = ltp.parse_message(b'3 ERR 50 DEVICE_FAULT msg="file "a b" missing"')
+    assert err == ltp.Err("3", 50, "DEVICE_FAULT", 'file "a b" missing')
+    assert ltp.parse_message(b"3 ERR 50 DEVICE_FAULT msg=FLY") == ltp.Err(
+        "3", 50, "DEVICE_FAULT", "FLY"
+    )
+
+
+def test_requests_are_strict_about_spacing_and_quotes():
+    for line in (b"1  HELLO", b" 1 HELLO", b"1 HELLO ", b"1 HELLO proto=LTP/1  ", b'1 MEAS id=a"b'):
+        with pytest.raises(FramingError):
+            ltp.parse_request(line)
+    assert ltp.parse_message(b"1  OK  a=1 ") == ltp.Ok("1", {"a": "1"})
+    assert ltp.parse_request(b'1 FRAME name="x"').args["name"] == "x"
+
+
+def test_format_refuses_a_double_quote_in_a_value():
+    with pytest.raises(FramingError):
+        ltp.format_ok("1", {"k": 'a"b'})
+
+
+@pytest.mark.parametrize(
+    ("line", "tag"),
+    [
+        (b"12 MEAS n=x", "12"),
+        (b"abc", "abc"),
+        (b"A1 " + b"x" * 40, "A1"),
+        (b"123456789 X", None),
+        (b"! HELLO", None),
+        (b"", None),
+        (b"ab\xffc HELLO", None),
+    ],
+)
+def test_readable_tag(line, tag):
+    assert ltp.readable_tag(line) == tag
 
 
 @pytest.mark.parametrize(
@@ -89,6 +141,8 @@ def test_quoted_values_with_escapes_round_trip():
         b"1 OK a=\xff",
         b"1 OK a=\x01",
         b'1 OK msg="unterminated',
+        b'1 OK a="x"y',
+        b'1 OK a=x"y',
         b"1 ERR x BEAM_BROKEN",
         b"1 ERR 10",
         b"1 ERR 10 beam",
@@ -130,7 +184,9 @@ tags = st.text(
     "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789", min_size=1, max_size=8
 )
 keys = st.from_regex(r"[A-Za-z_][A-Za-z0-9_]{0,8}", fullmatch=True)
-values = st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=12)
+values = st.text(
+    st.characters(min_codepoint=32, max_codepoint=126, blacklist_characters='"'), max_size=12
+)
 pairs = st.dictionaries(keys, values, max_size=5)
 
 

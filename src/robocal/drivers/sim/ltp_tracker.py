@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
 import random
+import re
 import time
 import tty
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from datetime import UTC, datetime
 from typing import Any
 
@@ -32,6 +34,76 @@ _log = structlog.get_logger(__name__)
 
 _UNIT_SCALE = {"mm": 1000.0, "m": 1.0, "in": 1000.0 / 25.4}
 
+#: Arguments each verb accepts (anything else is ``ERR 3 BAD_ARG``).
+_ARGS: dict[str, frozenset[str]] = {
+    "HELLO": frozenset({"proto"}),
+    "STATUS?": frozenset(),
+    "INIT": frozenset({"mode"}),
+    "SMR": frozenset({"type", "offset_mm"}),
+    "UNITS": frozenset({"len", "ang"}),
+    "FRAME": frozenset({"name"}),
+    "WEATHER": frozenset({"temp", "press", "hum"}),
+    "MEAS": frozenset({"id", "mode", "n", "dur_ms", "stab_mm", "stab_ms", "timeout_ms"}),
+    "STOP": frozenset(),
+    "HOME": frozenset(),
+    "FIND": frozenset({"x", "y", "z", "radius_mm"}),
+    "BYE": frozenset(),
+}
+#: A point id as docs/protocols/ltp1.md defines it.
+POINT_ID = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
+_SMR_TYPE = re.compile(r"[A-Za-z0-9_.-]{1,16}")
+_DECIMAL = re.compile(r"[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)")
+_INTEGER = re.compile(r"[0-9]{1,12}")
+#: Operating range of the simulated tracker: temp degC, press hPa, hum %.
+_WEATHER_RANGE = {"temp": (0.0, 40.0), "press": (700.0, 1100.0), "hum": (0.0, 95.0)}
+
+
+class _BadArg(Exception):
+    """An argument is missing, unknown or malformed (answered ``ERR 3 BAD_ARG``)."""
+
+
+def _only(args: Mapping[str, str], allowed: frozenset[str]) -> None:
+    unknown = sorted(set(args) - allowed)
+    if unknown:
+        raise _BadArg(f"unknown argument {unknown[0][:20]}")
+
+
+def _choice(args: Mapping[str, str], key: str, options: tuple[str, ...]) -> str | None:
+    value = args.get(key)
+    if value is not None and value not in options:
+        raise _BadArg(f"{key} must be one of {'|'.join(options)}")
+    return value
+
+
+def _number(
+    args: Mapping[str, str],
+    key: str,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+) -> float | None:
+    raw = args.get(key)
+    if raw is None:
+        return None
+    if not _DECIMAL.fullmatch(raw):
+        raise _BadArg(f"{key} must be a decimal number")
+    value = float(raw)
+    if (lo is not None and (value < lo or (lo_open and value == lo))) or (
+        hi is not None and value > hi
+    ):
+        raise _BadArg(f"{key}={raw[:20]} out of range")
+    return value
+
+
+def _integer(args: Mapping[str, str], key: str, *, lo: int, hi: int) -> int | None:
+    raw = args.get(key)
+    if raw is None:
+        return None
+    if not _INTEGER.fullmatch(raw) or not lo <= int(raw) <= hi:
+        raise _BadArg(f"{key} must be an integer in {lo}..{hi}")
+    return int(raw)
+
 
 class LtpSimOptions(BaseModel):
     """Behaviour of the simulated tracker bridge.
@@ -39,6 +111,10 @@ class LtpSimOptions(BaseModel):
     ``time_scale`` multiplies the simulated settling (``stab_ms``) and sampling time
     (``n * sample_period_s``); 0 answers at once. ``event_rate`` is the probability of an
     unrelated ``* EVT WEATHER`` line before a reply (drivers must tolerate events).
+    ``frames`` are the named frames ``FRAME`` may select besides ``tracker``: the pose of
+    each in the tracker frame as ``(x_mm, y_mm, z_mm, rz_deg)``; ``initial_frame`` is the
+    frame the bridge starts in (a bridge left in another frame by an earlier client).
+    The weather station reads ``temp_c``, ``press_hpa``, ``hum_pct``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -55,6 +131,10 @@ class LtpSimOptions(BaseModel):
     temp_c: float = 20.4
     press_hpa: float = 1012.6
     hum_pct: float = 41.0
+    frames: dict[str, tuple[float, float, float, float]] = Field(
+        default_factory=lambda: {"cell": (1000.0, -500.0, 0.0, 90.0)}
+    )
+    initial_frame: str = "tracker"
 
 
 Writer = Callable[[bytes], Awaitable[None]]
@@ -71,6 +151,8 @@ class _Session:
         self.closed = False
         self.busy: asyncio.Task[None] | None = None
         self.lock = asyncio.Lock()
+        #: Manual ``WEATHER`` override for this session (None: the station's values).
+        self.weather: dict[str, float] | None = None
 
     async def send(self, line: str, *, garbage_ok: bool = True) -> None:
         if self.closed:
@@ -89,16 +171,7 @@ class _Session:
         if faults.fire("slow"):
             await asyncio.sleep(faults.config.slow_s)
         if self.sim._event():
-            await self.send(
-                ltp.format_event(
-                    "WEATHER",
-                    {
-                        "temp": f"{self.sim.options.temp_c:.2f}",
-                        "press": f"{self.sim.options.press_hpa:.1f}",
-                        "hum": f"{self.sim.options.hum_pct:.1f}",
-                    },
-                )
-            )
+            await self.send(ltp.format_event("WEATHER", self.sim._weather_values(self)))
         await self.send(line)
 
     async def feed(self, data: bytes) -> None:
@@ -107,20 +180,26 @@ class _Session:
             if self.closed:
                 return
             if isinstance(item, FramingError):
-                await self.send(ltp.format_event("FAULT", {"code": 1, "msg": "line too long"}))
+                await self.refuse(
+                    self.framer.dropped_head, f"line longer than {ltp.MAX_LINE} bytes"
+                )
                 continue
             await self.handle(item)
+
+    async def refuse(self, line: bytes, why: str) -> None:
+        """Answer a line that is not a request: tagged ERR 1 SYNTAX if a tag is readable."""
+        tag = ltp.readable_tag(line)
+        if tag is not None:
+            await self.send(ltp.format_err(tag, ltp.ErrorCode.SYNTAX, msg=why[:120]))
+        else:
+            await self.send(ltp.format_event("FAULT", {"code": 1, "msg": "SYNTAX"}))
 
     async def handle(self, line: bytes) -> None:
         sim = self.sim
         try:
             req = ltp.parse_request(line)
         except FramingError as err:
-            tag = line.split(b" ", 1)[0].decode("ascii", "replace")
-            if tag.isalnum() and tag.isascii() and len(tag) <= 8:
-                await self.send(ltp.format_err(tag, ltp.ErrorCode.SYNTAX, msg=str(err)[:80]))
-            else:
-                await self.send(ltp.format_event("FAULT", {"code": 1, "msg": "syntax error"}))
+            await self.refuse(line, str(err))
             return
         sim.requests.append(req)
         if sim.faults.fire("drop"):
@@ -128,17 +207,22 @@ class _Session:
             self._close()
             return
         if self.busy is not None and not self.busy.done():
-            if req.verb == "STOP":
+            if req.verb == "STOP" and not req.args:
+                # The aborted MEAS answers first (ERR 16 ABORTED), then STOP.
                 self.busy.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await self.busy
                 await self.send(ltp.format_ok(req.tag))
             else:
-                await self.send(ltp.format_err(req.tag, ltp.ErrorCode.BUSY))
+                await self.send(
+                    ltp.format_err(req.tag, ltp.ErrorCode.BUSY, msg="a MEAS is running")
+                )
             return
         if req.verb == "MEAS":
             self.busy = asyncio.create_task(self._meas(req), name="ltp-sim-meas")
             return
         await self.reply(sim.answer(req, self))
-        if req.verb == "BYE":
+        if req.verb == "BYE" and not req.args:
             self._close()
 
     async def _meas(self, req: ltp.Request) -> None:
@@ -185,7 +269,10 @@ class LtpTrackerSimulator:
         self.requests: list[ltp.Request] = []
         self.initialized = not self.options.require_init
         self.smr = "RRR15"
+        self.smr_offset_mm = 0.0
         self.units = "mm"
+        self.angle_units = "deg"
+        self.frame = self.options.initial_frame
         self.beam = "LOCKED"
         self.host = "127.0.0.1"
         self.port = 0
@@ -206,12 +293,30 @@ class LtpTrackerSimulator:
     def _now(self) -> str:
         return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
+    def _weather_values(self, session: _Session) -> dict[str, str]:
+        o = self.options
+        w = session.weather or {}
+        return {
+            "temp": f"{w.get('temp', o.temp_c):.2f}",
+            "press": f"{w.get('press', o.press_hpa):.1f}",
+            "hum": f"{w.get('hum', o.hum_pct):.1f}",
+        }
+
     def answer(self, req: ltp.Request, session: _Session) -> str:
         """Return the reply line to a request other than MEAS."""
-        o, a, tag = self.options, req.args, req.tag
-        if req.verb == "HELLO":
+        try:
+            return self._answer(req, session)
+        except _BadArg as err:
+            return ltp.format_err(req.tag, ltp.ErrorCode.BAD_ARG, msg=str(err))
+
+    def _answer(self, req: ltp.Request, session: _Session) -> str:
+        o, a, tag, verb = self.options, req.args, req.tag, req.verb
+        if verb not in _ARGS:
+            return ltp.format_err(tag, ltp.ErrorCode.UNKNOWN_VERB, msg=f"unknown verb {verb}")
+        _only(a, _ARGS[verb])
+        if verb == "HELLO":
             if a.get("proto") != ltp.PROTO:
-                return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg=f"proto must be {ltp.PROTO}")
+                raise _BadArg(f"proto must be {ltp.PROTO}")
             return ltp.format_ok(
                 tag,
                 {
@@ -220,10 +325,10 @@ class LtpTrackerSimulator:
                     "model": o.model,
                     "serial": o.serial,
                     "fw": o.fw,
-                    "bridge": "robocal-sim/0.1",
+                    "bridge": "robocal-sim/0.2",
                 },
             )
-        if req.verb == "STATUS?":
+        if verb == "STATUS?":
             return ltp.format_ok(
                 tag,
                 {
@@ -232,65 +337,89 @@ class LtpTrackerSimulator:
                     "init": int(self.initialized),
                     "smr": self.smr,
                     "units": self.units,
-                    "frame": "tracker",
-                    "temp": f"{o.temp_c:.2f}",
-                    "press": f"{o.press_hpa:.1f}",
-                    "hum": f"{o.hum_pct:.1f}",
+                    "frame": self.frame,
+                    **self._weather_values(session),
                     "t": self._now(),
                 },
             )
-        if req.verb == "INIT":
+        if verb == "INIT":
+            _choice(a, "mode", ("smart", "full"))
             self.initialized = True
             return ltp.format_ok(tag)
-        if req.verb == "SMR":
+        if verb == "SMR":
             smr = a.get("type")
-            if not smr:
-                return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg="type= required")
+            if smr is None or not _SMR_TYPE.fullmatch(smr):
+                raise _BadArg("type=<reflector type> required")
+            offset = _number(a, "offset_mm", lo=-1000.0, hi=1000.0)
             self.smr = smr
-            return ltp.format_ok(tag, {"type": smr, "offset_mm": "0.000"})
-        if req.verb == "UNITS":
-            length, ang = a.get("len", "mm"), a.get("ang", "deg")
-            if length not in _UNIT_SCALE or ang not in ("deg", "rad"):
-                return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg="len=mm|m|in ang=deg|rad")
-            self.units = length
+            self.smr_offset_mm = 0.0 if offset is None else offset
+            return ltp.format_ok(tag, {"type": smr, "offset_mm": f"{self.smr_offset_mm:.3f}"})
+        if verb == "UNITS":
+            length = _choice(a, "len", tuple(_UNIT_SCALE)) or self.units
+            ang = _choice(a, "ang", ("deg", "rad")) or self.angle_units
+            self.units, self.angle_units = length, ang
             return ltp.format_ok(tag, {"len": length, "ang": ang})
-        if req.verb == "FRAME":
-            if a.get("name", "tracker") != "tracker":
-                return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg="only frame tracker")
-            return ltp.format_ok(tag, {"name": "tracker"})
-        if req.verb == "WEATHER":
-            return ltp.format_ok(
-                tag,
-                {
-                    "temp": f"{o.temp_c:.2f}",
-                    "press": f"{o.press_hpa:.1f}",
-                    "hum": f"{o.hum_pct:.1f}",
-                    "source": "station",
-                },
-            )
-        if req.verb in ("HOME", "FIND"):
+        if verb == "FRAME":
+            name = a.get("name")
+            if name is None:
+                raise _BadArg("name= required")
+            if name != "tracker" and name not in o.frames:
+                raise _BadArg(f"unknown frame {name[:32]}")
+            self.frame = name
+            return ltp.format_ok(tag, {"name": name})
+        if verb == "WEATHER":
+            given = {k: _number(a, k) for k in ("temp", "press", "hum") if k in a}
+            for key, value in given.items():
+                lo, hi = _WEATHER_RANGE[key]
+                if value is None or not lo <= value <= hi:
+                    return ltp.format_err(
+                        tag,
+                        ltp.ErrorCode.ENV_OUT_OF_RANGE,
+                        msg=f"{key}={a[key]} outside {lo:g}..{hi:g}",
+                    )
+            if given:
+                session.weather = {**(session.weather or {}), **given}  # type: ignore[dict-item]
+            source = "manual" if session.weather else "station"
+            return ltp.format_ok(tag, {**self._weather_values(session), "source": source})
+        if verb == "HOME":
             self.beam = "LOCKED"
             return ltp.format_ok(tag, {"beam": self.beam})
-        if req.verb == "STOP":
-            return ltp.format_ok(tag)
-        if req.verb == "BYE":
-            return ltp.format_ok(tag)
-        return ltp.format_err(tag, ltp.ErrorCode.UNKNOWN_VERB, msg=req.verb)
+        if verb == "FIND":
+            for key in ("x", "y", "z"):
+                if _number(a, key) is None:
+                    raise _BadArg("FIND needs x= y= z= (current length units)")
+            _number(a, "radius_mm", lo=0.0, lo_open=True)
+            self.beam = "LOCKED"
+            return ltp.format_ok(tag, {"beam": self.beam})
+        # STOP with nothing running, and BYE.
+        return ltp.format_ok(tag)
 
     async def measure(self, req: ltp.Request, session: _Session) -> str:
         """Run one MEAS: settle, sample, average; return the reply line."""
         o, a, tag = self.options, req.args, req.tag
         try:
-            n = int(a.get("n", "10"))
-            stab_ms = float(a.get("stab_ms", "500"))
-            timeout_ms = float(a.get("timeout_ms", "10000"))
-            float(a.get("stab_mm", "0.010"))
-        except ValueError:
-            return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg="numeric argument expected")
-        if not 1 <= n <= 100_000 or stab_ms < 0 or timeout_ms <= 0:
-            return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg="argument out of range")
+            _only(a, _ARGS["MEAS"])
+            point_id = a.get("id")
+            if point_id is not None and not POINT_ID.fullmatch(point_id):
+                raise _BadArg("id must be 1..64 of A-Z a-z 0-9 _ . : -")
+            _choice(a, "mode", ("stationary", "fast"))
+            n_arg = _integer(a, "n", lo=1, hi=100_000)
+            dur_ms = _integer(a, "dur_ms", lo=1, hi=3_600_000)
+            if n_arg is not None and dur_ms is not None:
+                raise _BadArg("give n= or dur_ms=, not both")
+            _number(a, "stab_mm", lo=0.0, lo_open=True)
+            stab_ms = _integer(a, "stab_ms", lo=0, hi=3_600_000)
+            timeout_ms = _integer(a, "timeout_ms", lo=1, hi=86_400_000)
+        except _BadArg as err:
+            return ltp.format_err(tag, ltp.ErrorCode.BAD_ARG, msg=str(err))
+        if dur_ms is not None:
+            n = max(1, int(dur_ms / 1000.0 / o.sample_period_s)) if o.sample_period_s else 1
+        else:
+            n = 10 if n_arg is None else n_arg
+        stab_ms = 500 if stab_ms is None else stab_ms
+        timeout_ms = 10_000 if timeout_ms is None else timeout_ms
         if not self.initialized:
-            return ltp.format_err(tag, ltp.ErrorCode.NOT_INITIALIZED)
+            return ltp.format_err(tag, ltp.ErrorCode.NOT_INITIALIZED, msg="send INIT first")
         scale = o.time_scale
         if self.faults.fire("beam_break"):
             self.beam = "BROKEN"
@@ -314,16 +443,17 @@ class LtpTrackerSimulator:
         if settle > 0:
             await asyncio.sleep(settle)
         m = self.world.measure(n, glitch=self.faults.fire("glitch"))
+        mean = self._in_frame(self._with_offset(m.mean_m))
         k = _UNIT_SCALE[self.units]
         tk = int((time.monotonic() - self._t0) * 1e6)
         values: dict[str, Any] = {}
-        if "id" in a:
-            values["id"] = a["id"]
+        if point_id is not None:
+            values["id"] = point_id
         values.update(
             {
-                "x": f"{m.mean_m[0] * k:.5f}",
-                "y": f"{m.mean_m[1] * k:.5f}",
-                "z": f"{m.mean_m[2] * k:.5f}",
+                "x": f"{mean[0] * k:.5f}",
+                "y": f"{mean[1] * k:.5f}",
+                "z": f"{mean[2] * k:.5f}",
                 "sx": f"{m.std_m[0] * k:.6f}",
                 "sy": f"{m.std_m[1] * k:.6f}",
                 "sz": f"{m.std_m[2] * k:.6f}",
@@ -331,13 +461,28 @@ class LtpTrackerSimulator:
                 "rms": f"{m.rms_m * k:.6f}",
                 "t": self._now(),
                 "tk": tk,
-                "temp": f"{o.temp_c:.2f}",
-                "press": f"{o.press_hpa:.1f}",
-                "hum": f"{o.hum_pct:.1f}",
+                **self._weather_values(session),
                 "smr": self.smr,
             }
         )
         return ltp.format_ok(tag, values)
+
+    def _with_offset(self, p_m: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Add the announced SMR distance offset along the beam (tracker frame, metres)."""
+        r = math.sqrt(sum(v * v for v in p_m))
+        if r == 0.0 or self.smr_offset_mm == 0.0:
+            return p_m
+        f = 1.0 + self.smr_offset_mm * 1e-3 / r
+        return (p_m[0] * f, p_m[1] * f, p_m[2] * f)
+
+    def _in_frame(self, p_m: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Express a tracker-frame point (metres) in the current frame."""
+        if self.frame == "tracker":
+            return p_m
+        x, y, z, rz = self.options.frames[self.frame]
+        dx, dy, dz = p_m[0] - x * 1e-3, p_m[1] - y * 1e-3, p_m[2] - z * 1e-3
+        c, s = math.cos(math.radians(rz)), math.sin(math.radians(rz))
+        return (c * dx + s * dy, -s * dx + c * dy, dz)
 
     async def _relock(self, session: _Session) -> None:
         await asyncio.sleep(0.001)
@@ -371,7 +516,7 @@ class LtpTrackerSimulator:
         try:
             if self._tcp_session is not None and not self._tcp_session.closed:
                 # One client at a time, as a real bridge.
-                line = ltp.format_event("FAULT", {"code": 14, "msg": "another client is connected"})
+                line = ltp.format_event("FAULT", {"code": 14, "msg": "BUSY"})
                 with contextlib.suppress(Exception):
                     await write(line.encode() + b"\r\n")
                 return
