@@ -35,7 +35,8 @@ def register(sub: Any) -> None:
                    help="another model to compare (e.g. constant=MODEL-constant.json, "
                         "nominal=..., cpa=...); repeatable")
     p.add_argument("--config", metavar="CONFIG.toml",
-                   help=f"daemon configuration, for CAMPAIGN_ID (default {DEFAULT_CONFIG})")
+                   help="daemon configuration, for CAMPAIGN_ID (default $ROBOCAL_CONFIG, "
+                        f"then {DEFAULT_CONFIG})")
     p.add_argument("--selected", metavar="NAME", help="model the verdict is about")
     p.add_argument("--max-rms-mm", type=float, help="acceptance: held-out RMS limit (mm)")
     p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
@@ -182,6 +183,24 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
                               f"config digest {rec.config_digest}"])
 
 
+def _daemon_config(given: str | None) -> str:
+    """The daemon configuration for a campaign source: --config, $ROBOCAL_CONFIG, the default."""
+    import os
+
+    from robocal.errors import ConfigError
+
+    path = given or os.environ.get("ROBOCAL_CONFIG") or DEFAULT_CONFIG
+    if not Path(path).exists():
+        what = (f"--config {path}: file not found" if given else
+                f"ROBOCAL_CONFIG={path}: file not found" if os.environ.get("ROBOCAL_CONFIG")
+                else f"no daemon configuration at {path}")
+        raise ConfigError(
+            f"{what}. A campaign id is looked up in the daemon's "
+            "store: give --config FILE (the daemon's configuration) or set ROBOCAL_CONFIG; "
+            "for a model file give its path (MODEL.json)")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     """Build the input, write the report, print where and the verdict."""
     from robocal.errors import ConfigError
@@ -195,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
         if args.data or args.validate or args.compare:
             raise ConfigError("--data, --validate and --compare apply to a MODEL.json source, "
                               "not to a campaign")
-        inp = input_from_campaign(args.source, args.config or DEFAULT_CONFIG)
+        inp = input_from_campaign(args.source, _daemon_config(args.config))
     if args.selected:
         inp.selected = args.selected
     if args.title:

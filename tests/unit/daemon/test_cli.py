@@ -57,3 +57,11 @@ def test_daemon_errors_read_as_sentences(tmp_path, capsys):
     rc = main(["campaign", "status", "x", "--socket", str(tmp_path / "none.sock")])
     out = capsys.readouterr().err
     assert rc == 2 and "robocal daemon --config" in out and "Error" not in out.split(":")[0]
+
+
+def test_report_of_a_campaign_without_a_config_says_how(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("ROBOCAL_CONFIG", str(tmp_path / "none.toml"))
+    rc = main(["report", "0123abcd", "--out", str(tmp_path / "r.html")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "ROBOCAL_CONFIG=" in err and "--config FILE" in err
+    assert not (tmp_path / "r.html").exists()
