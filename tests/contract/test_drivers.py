@@ -18,6 +18,8 @@ from robocal.drivers.sim import (
     SimCell,
     SimWorld,
 )
+from robocal.drivers.sim import EmsconSimOptions, FaultConfig
+from robocal.drivers.sim.emscon import EmsconFaults
 
 
 @contextlib.asynccontextmanager
@@ -78,6 +80,16 @@ async def tracker_case(name: str) -> AsyncIterator[contracts.TrackerUnderTest]:
             position_tol_m=10 * sigma,
         )
         return
+    if name.startswith("emscon"):
+        async with emscon_cell(world, faulty=name == "emscon-faults") as cell:
+            options = cell.emscon_options()
+            yield contracts.TrackerUnderTest(
+                name,
+                make=lambda: load_tracker("emscon", options),
+                true_position=world.true_reflector_position,
+                position_tol_m=10 * sigma,
+            )
+        return
     via = name.split("-", 1)[1]
     async with SimCell(
         world=world,
@@ -95,8 +107,22 @@ async def tracker_case(name: str) -> AsyncIterator[contracts.TrackerUnderTest]:
         )
 
 
+def emscon_cell(world: SimWorld, *, faulty: bool) -> SimCell:
+    """The emScon simulator; ``faulty``: 10 % of measurements hit a broken beam or a busy
+    server, and packets are split, merged or preceded by unknown types (the driver must
+    recover from all of these by itself)."""
+    if not faulty:
+        return SimCell(world=world, fanuc=False, modbus=False, ltp=False,
+                       emscon=EmsconSimOptions(time_scale=0.0))
+    rates = EmsconFaults(busy_rate=0.05, split_rate=0.1, merge_rate=0.1,
+                         unknown_type_rate=0.1, error_packet_rate=0.05)
+    return SimCell(world=world, fanuc=False, modbus=False, ltp=False,
+                   emscon=EmsconSimOptions(time_scale=0.0, faults=rates),
+                   faults=FaultConfig(beam_break_rate=0.05, seed=9))
+
+
 ROBOTS = ["mock", "fanuc_rmi", "modbus_plc"]
-TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty"]
+TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty", "emscon", "emscon-faults"]
 
 
 @pytest.mark.parametrize("check", contracts.robot_checks(), ids=lambda c: c.__name__)

@@ -92,6 +92,9 @@ class TrackerReading:
         Environment at measurement: ``temp_c``, ``press_hpa``, ``hum_pct`` when known.
     point_id : str or None
         The caller's point identifier, echoed.
+    cov_m2 : 3 x 3 tuple of float or None
+        Covariance of ``position_m``, square metres, row-major, if the tracker reports it
+        (its diagonal is ``std_m`` squared).
     """
 
     position_m: tuple[float, float, float]
@@ -102,6 +105,7 @@ class TrackerReading:
     status: TrackerStatus = "ok"
     weather: Mapping[str, float] = field(default_factory=dict)
     point_id: str | None = None
+    cov_m2: tuple[tuple[float, float, float], ...] | None = None
 
 
 @runtime_checkable

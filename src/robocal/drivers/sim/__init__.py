@@ -29,6 +29,7 @@ from typing import Any, Literal
 
 import structlog
 
+from robocal.drivers.sim.emscon import EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
@@ -37,6 +38,8 @@ from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
 
 __all__ = [
     "DEFAULT_ROBOT",
+    "EmsconSimOptions",
+    "EmsconTrackerSimulator",
     "FanucRmiSimulator",
     "FanucSimOptions",
     "FaultConfig",
@@ -67,16 +70,19 @@ class SimCell:
         Which simulators to run (True: default options; False: not at all).
     ltp_tcp, ltp_pty : bool
         Serve the tracker on TCP and/or on a pty pair.
+    emscon : bool or options
+        Run the emScon tracker simulator (off by default).
     faults : FaultConfig, optional
         Injected faults, shared by all simulators (each draws with its own generator).
     host : str
         Listening address (loopback).
     ports : dict, optional
-        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp`` (0: free port).
+        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``
+        (0: free port).
 
     Attributes
     ----------
-    fanuc_sim, modbus_sim, ltp_sim
+    fanuc_sim, modbus_sim, ltp_sim, emscon_sim
         The running simulators (None when not requested).
     """
 
@@ -92,6 +98,7 @@ class SimCell:
         ltp: bool | LtpSimOptions = True,
         ltp_tcp: bool = True,
         ltp_pty: bool = False,
+        emscon: bool | EmsconSimOptions = False,
         faults: FaultConfig | None = None,
         host: str = "127.0.0.1",
         ports: dict[str, int] | None = None,
@@ -100,12 +107,14 @@ class SimCell:
         self._world = world
         self._fanuc, self._modbus, self._ltp = fanuc, modbus, ltp
         self.ltp_tcp, self.ltp_pty = ltp_tcp, ltp_pty
+        self._emscon = emscon
         self.faults = faults
         self.host = host
         self._fixed = dict(ports or {})
         self.fanuc_sim: FanucRmiSimulator | None = None
         self.modbus_sim: ModbusPlcSimulator | None = None
         self.ltp_sim: LtpTrackerSimulator | None = None
+        self.emscon_sim: EmsconTrackerSimulator | None = None
 
     @property
     def world(self) -> SimWorld:
@@ -135,6 +144,10 @@ class SimCell:
                     await self.ltp_sim.start_tcp(self.host, p.get("ltp", 0))
                 if self.ltp_pty:
                     await self.ltp_sim.start_pty()
+            if self._emscon is not False:
+                eopts = self._emscon if isinstance(self._emscon, EmsconSimOptions) else None
+                self.emscon_sim = EmsconTrackerSimulator(world, eopts, self.faults)
+                await self.emscon_sim.start(self.host, p.get("emscon", 0))
         except BaseException:
             await self.stop()
             raise
@@ -142,7 +155,7 @@ class SimCell:
 
     async def stop(self) -> None:
         """Stop every simulator; idempotent."""
-        for sim in (self.ltp_sim, self.modbus_sim, self.fanuc_sim):
+        for sim in (self.emscon_sim, self.ltp_sim, self.modbus_sim, self.fanuc_sim):
             if sim is not None:
                 await sim.stop()
 
@@ -168,6 +181,8 @@ class SimCell:
                 "port": self.ltp_sim.port or None,
                 "pty": self.ltp_sim.pty_path,
             }
+        if self.emscon_sim is not None:
+            out["emscon_tracker"] = {"port": self.emscon_sim.port}
         return out
 
     def robot_options(self, kind: Literal["fanuc_rmi", "modbus_plc", "mock"]) -> dict[str, Any]:
@@ -207,6 +222,12 @@ class SimCell:
         scheme = "tcp" if via == "tcp" else "socket"
         return {"url": f"{scheme}://{self.host}:{sim.port}"}
 
+    def emscon_options(self) -> dict[str, Any]:
+        """Options for ``load_tracker("emscon", ...)`` pointing at the emScon simulator."""
+        if self.emscon_sim is None:
+            raise RuntimeError("the emScon tracker simulator is not running")
+        return {"host": self.host, "port": self.emscon_sim.port}
+
 
 # --- process entry point -----------------------------------------------------------------------
 def _parser() -> argparse.ArgumentParser:
@@ -214,7 +235,10 @@ def _parser() -> argparse.ArgumentParser:
         prog="robocal sim",
         description="Run protocol simulators on loopback until SIGTERM/SIGINT.",
     )
-    p.add_argument("which", choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "all"])
+    p.add_argument(
+        "which",
+        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "all", "relay"],
+    )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
     p.add_argument("--scenario", default="paper", help="planted-error scenario")
     p.add_argument("--seed", type=int, default=1)
@@ -223,12 +247,16 @@ def _parser() -> argparse.ArgumentParser:
         "--port",
         type=int,
         default=0,
-        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3",
+        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
     p.add_argument("--time-scale", type=float, default=0.001, help="simulated time factor")
     p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
+    p.add_argument("--replay", type=Path, help="emscon-tracker: answer from this recording")
+    p.add_argument("--listen", default="127.0.0.1:0", help="relay: HOST:PORT to listen on")
+    p.add_argument("--target", help="relay: the tracker's HOST:PORT (e.g. 192.168.0.1:700)")
+    p.add_argument("--record", type=Path, help="relay: JSON-lines capture file to write")
     return p
 
 
@@ -241,11 +269,23 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return {"modbus": port}
     if which == "ltp-tracker":
         return {"ltp": port}
-    return {"fanuc_connect": port, "fanuc_main": port + 1, "modbus": port + 2, "ltp": port + 3}
+    if which == "emscon-tracker":
+        return {"emscon": port}
+    return {
+        "fanuc_connect": port,
+        "fanuc_main": port + 1,
+        "modbus": port + 2,
+        "ltp": port + 3,
+        "emscon": port + 4,
+    }
 
 
 async def _serve(args: argparse.Namespace) -> int:
     which = args.which
+    if which == "relay" or (which == "emscon-tracker" and args.replay is not None):
+        from robocal.drivers.sim.relay import serve_cli
+
+        return await serve_cli(args)
     scale = args.time_scale
     cell = SimCell(
         robot=args.robot,
@@ -255,6 +295,9 @@ async def _serve(args: argparse.Namespace) -> int:
         modbus=ModbusSimOptions(time_scale=scale) if which in ("modbus-plc", "all") else False,
         ltp=LtpSimOptions(time_scale=scale) if which in ("ltp-tracker", "all") else False,
         ltp_pty=args.pty,
+        emscon=(
+            EmsconSimOptions(time_scale=scale) if which in ("emscon-tracker", "all") else False
+        ),
         faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
         host=args.host,
         ports=_fixed_ports(which, args.port),

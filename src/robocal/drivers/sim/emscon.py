@@ -1,0 +1,852 @@
+"""A wire-faithful Leica emScon TPI tracker simulator (binary packets over TCP).
+
+It measures the reflector of the shared :class:`SimWorld` robot, like the LTP/1 simulator,
+but speaks the emScon C-API byte for byte (:mod:`robocal.protocols.emscon`): one command
+pending at a time (a second one gets ``ServerBusy``), replies echo the command ID,
+``StartMeasurement`` answers with a reply and a separate result packet, events are type-8
+packets.
+
+Where public sources leave the behaviour open (the note's section 10), :class:`EmsconSimOptions`
+makes it selectable, so the driver can be tested against every plausible server. Faults come
+from the shared :class:`FaultConfig` (beam breaks, unstable target, glitches, garbage = packets
+of unknown type, slow = late replies, dropped connections) plus the emScon-specific rates of
+:class:`EmsconFaults` (busy, split and merged TCP writes, bad size fields, ...).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import random
+import struct
+from typing import Any, Literal
+
+import numpy as np
+import structlog
+from pydantic import BaseModel, ConfigDict, Field
+
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.world import SimWorld
+from robocal.errors import FramingError, UnexpectedReply
+from robocal.protocols import emscon
+from robocal.protocols.emscon import Cmd, Event
+
+__all__ = ["EmsconFaults", "EmsconSimOptions", "EmsconTrackerSimulator", "SimReflector"]
+
+_log = structlog.get_logger(__name__)
+
+_P = Field(default=0.0, ge=0.0, le=1.0)
+# Factors from the base units (m, rad, °C, mbar) to each enum value (note, section 6).
+_LENGTH = {0: 1.0, 1: 1000.0, 2: 1e6, 3: 3.280839895, 4: 1.093613298, 5: 39.37007874}
+_ANGLE = {0: 1.0, 1: 57.29577951308232, 2: 63.66197723675813}
+_PRESSURE = {0: 1.0, 1: 1.0, 2: 0.1, 3: 1 / 1.33322, 4: 1 / 68.94757, 5: 1 / 2.49082,
+             6: 1 / 33.86379}
+_UNIT_FIELDS = ("length_unit", "angle_unit", "temperature_unit", "pressure_unit",
+                "humidity_unit")
+_UNIT_RANGE: dict[str, dict[int, float]] = {
+    "length_unit": _LENGTH, "angle_unit": _ANGLE, "temperature_unit": {0: 1.0, 1: 1.0},
+    "pressure_unit": _PRESSURE, "humidity_unit": {0: 1.0},
+}
+
+
+class EmsconFaults(BaseModel):
+    """emScon-specific fault rates (each drawn per opportunity).
+
+    Attributes
+    ----------
+    busy_rate
+        Per command: answered with ``ServerBusy`` (1) instead of being executed.
+    split_rate
+        Per packet sent: written in several pieces, even inside the 8-byte header.
+    merge_rate
+        Per packet sent: held back and written together with the next packet.
+    bad_size_rate
+        Per reply: a packet with an impossible size field is sent first (the stream is then
+        lost; the client must reconnect).
+    unknown_type_rate
+        Per reply: a packet of an unknown data type is sent first (clients skip it).
+    error_packet_rate
+        Per reply: an unrelated unsolicited type-1 error packet is sent first.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    busy_rate: float = _P
+    split_rate: float = _P
+    merge_rate: float = _P
+    bad_size_rate: float = _P
+    unknown_type_rate: float = _P
+    error_packet_rate: float = _P
+
+
+class SimReflector(BaseModel):
+    """A reflector the simulated tracker knows (``GetReflectors``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: int
+    name: str = Field(max_length=32)
+    target_type: int = 5
+    surface_offset_mm: float = 19.05
+
+
+_DEFAULT_REFLECTORS = (
+    SimReflector(id=1, name="RRR15", target_type=5, surface_offset_mm=19.05),
+    SimReflector(id=2, name="RRR05", target_type=6, surface_offset_mm=6.35),
+    SimReflector(id=3, name="BRR15", target_type=7, surface_offset_mm=19.05),
+)
+
+
+class EmsconSimOptions(BaseModel):
+    """Behaviour of the simulated emScon server. ``[10.n]``: an open point of the note.
+
+    Attributes
+    ----------
+    time_scale
+        Multiplies every simulated duration (measuring time, Initialize, motions); 0 answers
+        at once.
+    sample_period_s
+        Simulated sampling period: a measurement of ``lMeasTime`` averages
+        ``lMeasTime / sample_period_s`` samples of the world's noise (at most 20000).
+    initialize_s, motion_s
+        Durations of ``Initialize`` and of ``GoPosition``/``FindReflector``/``GoBirdBath``.
+    initialized
+        Start initialised (tracker processor status 5) instead of 4.
+    beam_broken_start_status
+        Reply status of ``StartMeasurement`` when nothing is locked. [10.1]
+    beam_lost_status
+        Status reported when the beam is lost during a measurement. [10.1]
+    beam_lost_signal
+        How a loss during the measurement is reported: ``error`` (type-1 packet naming
+        command 49), ``event`` (event 25 only), ``both``, ``result`` (a result packet with
+        a non-zero status) or ``reply`` (a failed reply, in result-first order). [10.1, 10.2]
+    beam_break_at
+        Where an injected beam break happens: ``start``, ``during`` or ``either``.
+    relock_after_s
+        A broken beam locks again by itself after this long (None: only FindReflector,
+        GoBirdBath re-acquire). [10.1]
+    find_fail_status
+        Non-zero: ``FindReflector`` fails with this status and event 25. [10.1]
+    result_order
+        ``reply_first`` or ``result_first`` for ``StartMeasurement``. [10.2]
+    failed_reply_size
+        ``basic`` (16 bytes) or ``full`` (the command's full reply size, zero-filled). [10.3]
+    events
+        ``ms``: the MS simulator's pattern (events after Set commands; 151, 27, 24 after
+        Initialize); ``none``. [10.4]
+    result_type
+        ``by_statistic_mode`` (Standard → 2, Extended → 9), ``always_2``, ``always_9``. [10.5]
+    stationary_mode
+        ``accept`` mode 0 or ``reject`` it with ``stationary_reject_status`` (profile-only
+        firmware). [10.6]
+    initial_units
+        Units before ``SetUnits`` (length, angle, temperature, pressure, humidity). [10.7]
+    keep_state_across_connections
+        Keep units, settings and initialisation when a client disconnects. [10.7, 10.10]
+    temp_range_c, press_range_hpa, hum_range_pct
+        Meteo accepted by ``SetEnvironmentParams`` (else status 57). [10.8]
+    monitor_overrides_meteo
+        With weather monitor status 2 the station's own values replace the ones set. [10.8]
+    scc_hz_counterclockwise
+        Sense of Hz in SCC (SCW is the opposite). [10.9]
+    second_client
+        ``refuse`` (close at once) or ``status`` (answer every command with 10011). [10.10]
+    announce_on_connect
+        Send event 999 (ServerStarted) when a client connects. [10.10]
+    initialize_status
+        Status of a successful ``Initialize`` (KEK saw 705). [10.11]
+    position_stream_period_s
+        Period of type-7 packets while locked and enabled (note: up to 10 Hz).
+    temp_c, press_hpa, hum_pct
+        The station's meteo (used when the monitor calculates).
+    serial, version
+        Reported by ``GetSystemStatus``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    time_scale: float = Field(default=0.001, ge=0.0)
+    sample_period_s: float = Field(default=0.001, gt=0.0)
+    initialize_s: float = Field(default=30.0, ge=0.0)
+    motion_s: float = Field(default=2.0, ge=0.0)
+    initialized: bool = False
+    beam_broken_start_status: int = 10004
+    beam_lost_status: int = 10009
+    beam_lost_signal: Literal["error", "event", "both", "result", "reply"] = "both"
+    beam_break_at: Literal["start", "during", "either"] = "either"
+    relock_after_s: float | None = Field(default=None, ge=0.0)
+    find_fail_status: int = 0
+    result_order: Literal["reply_first", "result_first"] = "reply_first"
+    failed_reply_size: Literal["basic", "full"] = "basic"
+    events: Literal["ms", "none"] = "ms"
+    result_type: Literal["by_statistic_mode", "always_2", "always_9"] = "by_statistic_mode"
+    stationary_mode: Literal["accept", "reject"] = "accept"
+    stationary_reject_status: int = 10023
+    initial_units: tuple[int, int, int, int, int] = (0, 0, 0, 0, 0)
+    keep_state_across_connections: bool = True
+    temp_range_c: tuple[float, float] = (-10.0, 50.0)
+    press_range_hpa: tuple[float, float] = (500.0, 1200.0)
+    hum_range_pct: tuple[float, float] = (0.0, 100.0)
+    monitor_overrides_meteo: bool = True
+    scc_hz_counterclockwise: bool = True
+    second_client: Literal["refuse", "status"] = "status"
+    announce_on_connect: bool = False
+    initialize_status: int = 0
+    position_stream_period_s: float = Field(default=0.1, gt=0.0)
+    temp_c: float = 20.4
+    press_hpa: float = 1012.6
+    hum_pct: float = 41.0
+    serial: int = 390123
+    version: tuple[int, int, int] = (3, 8, 7)
+    reflectors: tuple[SimReflector, ...] = _DEFAULT_REFLECTORS
+    faults: EmsconFaults = EmsconFaults()
+
+
+_SLOW = {Cmd.INITIALIZE, Cmd.START_MEASUREMENT, Cmd.GO_POSITION, Cmd.GO_POSITION_HVD,
+         Cmd.FIND_REFLECTOR, Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2}
+
+
+class _State:
+    """Server state that may survive a connection (``keep_state_across_connections``)."""
+
+    def __init__(self, o: EmsconSimOptions) -> None:
+        self.units = dict(zip(_UNIT_FIELDS, o.initial_units, strict=True))
+        self.initialized = o.initialized
+        self.locked = True
+        self.meas_mode = 0
+        self.statistic_mode = (0, 0)
+        self.coord_sys = 0
+        self.meas_time_ms = 1000
+        self.use_adm = 0
+        self.reflector_id = o.reflectors[0].id if o.reflectors else 0
+        self.search = (0.2, 10_000)
+        self.env = (o.temp_c, o.press_hpa, o.hum_pct)  # base units
+        self.settings = {
+            "weather_monitor_status": 2, "apply_transformation_params": 1,
+            "apply_station_orientation_params": 1, "keep_last_position": 1,
+            "send_unsolicited_messages": 0, "send_reflector_position_data": 0,
+            "try_measurement_mode": 0, "has_nivel": 1, "has_video_camera": 1,
+        }
+        self.long_params: dict[int, int] = {}
+        self.double_params: dict[int, float] = {}
+        self.direction = (0.0, math.pi / 2)
+
+
+class _Session:
+    """One client connection: framing, the pending command, and paced writes."""
+
+    def __init__(self, sim: EmsconTrackerSimulator, writer: asyncio.StreamWriter,
+                 *, refused: bool = False) -> None:
+        self.sim = sim
+        self.writer = writer
+        self.refused = refused
+        self.framer = emscon.PacketFramer()
+        self.pending: asyncio.Task[None] | None = None
+        self.pending_cmd: int | None = None
+        self.closed = False
+        self._held = b""
+        self._wlock = asyncio.Lock()
+        self._stream: asyncio.Task[None] | None = None
+
+    # --- writing -------------------------------------------------------------------------------
+    async def send(self, data: bytes) -> None:
+        """Write one packet, perhaps split into pieces or merged with the next one."""
+        if self.closed:
+            return
+        f = self.sim.emscon_faults
+        async with self._wlock:
+            try:
+                if f.fire("merge") and not self._held:
+                    self._held = data
+                    self.sim._track(self._flush_later())
+                    return
+                data, self._held = self._held + data, b""
+                if f.fire("split") and len(data) > 1:
+                    cuts = sorted(self.sim.rng.sample(range(1, len(data)), min(3, len(data) - 1)))
+                    pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)],
+                                                        strict=True)]
+                    for piece in pieces:
+                        self.writer.write(piece)
+                        await self.writer.drain()
+                        await asyncio.sleep(0.001)
+                else:
+                    self.writer.write(data)
+                    await self.writer.drain()
+            except (OSError, ConnectionError, RuntimeError):
+                self.closed = True
+
+    async def _flush_later(self) -> None:
+        await asyncio.sleep(0.005)
+        async with self._wlock:
+            if self._held and not self.closed:
+                data, self._held = self._held, b""
+                try:
+                    self.writer.write(data)
+                    await self.writer.drain()
+                except (OSError, ConnectionError, RuntimeError):
+                    self.closed = True
+
+    async def event(self, code: int) -> None:
+        await self.send(emscon.encode(emscon.StatusChange(int(code))))
+
+    async def reply(self, cmd: int, status: int = 0, **data: Any) -> None:
+        """Send the reply to ``cmd`` (with the injected pre-reply faults and delays)."""
+        sim = self.sim
+        if sim.faults.fire("slow"):
+            await asyncio.sleep(sim.faults.config.slow_s)
+        if sim.emscon_faults.fire("bad_size"):
+            await self.send(struct.pack("<ii", sim.rng.choice([3, 5, 1 << 20, -12]), 0))
+        if sim.faults.fire("garbage") or sim.emscon_faults.fire("unknown_type"):
+            kind = sim.rng.choice([3, 4, 5, 10, 11, 12, 57, 1000])
+            body = bytes(sim.rng.randrange(256) for _ in range(sim.rng.randrange(4, 41)))
+            await self.send(emscon.encode(emscon.UnknownPacket(kind, body)))
+        if sim.emscon_faults.fire("error_packet"):
+            await self.send(emscon.encode(emscon.ErrorResponse(66, 10015)))
+        await self.send(self.sim.reply_bytes(cmd, status, data))
+
+    # --- reading -------------------------------------------------------------------------------
+    async def feed(self, data: bytes) -> None:
+        self.framer.feed(data)
+        try:
+            frames = list(self.framer.frames())
+        except FramingError as err:
+            _log.warning("emscon sim: bad size from the client; closing", error=str(err))
+            self.close()
+            return
+        for frame in frames:
+            if self.closed:
+                return
+            await self.handle(frame)
+
+    async def handle(self, frame: bytes) -> None:
+        sim = self.sim
+        try:
+            packet = emscon.decode(frame, direction="from_client")
+        except (UnexpectedReply, FramingError):
+            (cmd,) = struct.unpack_from("<i", frame, 8) if len(frame) >= 12 else (-1,)
+            await self.reply(cmd, 3)  # WrongParameter: the command has the wrong size
+            return
+        if not isinstance(packet, emscon.Command):
+            await self.send(emscon.encode(emscon.ErrorResponse(-1, 3)))
+            return
+        sim.commands.append(packet)
+        cmd = packet.command
+        if cmd == Cmd.EXIT_APPLICATION:
+            _log.warning("emscon sim: ExitApplication received; the server stops")
+            sim.exit_received = True
+            self.close()
+            return
+        if self.refused:
+            await self.reply(cmd, emscon.Status.MULTI_CONNECTIONS_NOT_ALLOWED)
+            return
+        if sim.faults.fire("drop"):
+            _log.info("emscon sim: dropping the connection (injected)")
+            self.close()
+            return
+        if self.pending is not None and not self.pending.done():
+            if cmd == Cmd.STOP_MEASUREMENT and self.pending_cmd == Cmd.START_MEASUREMENT:
+                self.pending.cancel()
+                await self.reply(cmd)
+            else:
+                await self.reply(cmd, emscon.Status.SERVER_BUSY)
+            return
+        if sim.emscon_faults.fire("busy"):
+            await self.reply(cmd, emscon.Status.SERVER_BUSY)
+            return
+        if cmd in _SLOW:
+            self.pending_cmd = cmd
+            self.pending = asyncio.create_task(self._slow(packet), name="emscon-sim-cmd")
+            return
+        await sim.answer(packet, self)
+
+    async def _slow(self, packet: emscon.Command) -> None:
+        try:
+            await self.sim.answer(packet, self)
+        except asyncio.CancelledError:
+            _log.info("emscon sim: command cancelled", command=packet.command)
+
+    def start_stream(self) -> None:
+        if self._stream is None or self._stream.done():
+            self._stream = asyncio.create_task(self._position_stream())
+
+    async def _position_stream(self) -> None:
+        sim = self.sim
+        while not self.closed and sim.state.settings["send_reflector_position_data"]:
+            await asyncio.sleep(sim.options.position_stream_period_s)
+            if sim.state.locked and (self.pending is None or self.pending.done()):
+                v = sim.values(sim.world.measure(1))
+                await self.send(emscon.encode(emscon.ReflectorPosResult(0, *v[:3])))
+
+    def close(self) -> None:
+        self.closed = True
+        self.writer.close()
+
+    async def stop(self) -> None:
+        self.closed = True
+        for task in (self.pending, self._stream):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+
+
+class EmsconTrackerSimulator:
+    """Simulated emScon server on TCP.
+
+    Parameters
+    ----------
+    world : SimWorld
+        The robot whose reflector is measured.
+    options : EmsconSimOptions, optional
+        Server behaviour and emScon-specific faults.
+    faults : FaultConfig, optional
+        Shared faults.
+
+    Attributes
+    ----------
+    commands : list of emscon.Command
+        Every command received (tests assert on it).
+    exit_received : bool
+        True once a client sent ExitApplication (command 0).
+    """
+
+    def __init__(self, world: SimWorld, options: EmsconSimOptions | None = None,
+                 faults: FaultConfig | None = None) -> None:
+        self.world = world
+        self.options = options or EmsconSimOptions()
+        self.faults = FaultInjector(faults)
+        seed = self.faults.config.seed
+        self.emscon_faults = _RateInjector(self.options.faults, seed + 7)
+        self.rng = random.Random(seed + 3)
+        self.state = _State(self.options)
+        self.commands: list[emscon.Command] = []
+        self.exit_received = False
+        self.host = "127.0.0.1"
+        self.port = 0
+        self._server: asyncio.Server | None = None
+        self._session: _Session | None = None
+        self._sessions: set[_Session] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._relock: asyncio.TimerHandle | None = None
+
+    # --- units ---------------------------------------------------------------------------------
+    def _len(self) -> float:
+        return _LENGTH[self.state.units["length_unit"]]
+
+    def _ang(self) -> float:
+        return _ANGLE[self.state.units["angle_unit"]]
+
+    def _temp_out(self, c: float) -> float:
+        return c * 1.8 + 32.0 if self.state.units["temperature_unit"] == 1 else c
+
+    def _temp_in(self, t: float) -> float:
+        return (t - 32.0) / 1.8 if self.state.units["temperature_unit"] == 1 else t
+
+    def _press(self) -> float:
+        return _PRESSURE[self.state.units["pressure_unit"]]
+
+    def _env_out(self) -> tuple[float, float, float]:
+        t, p, h = self.state.env
+        return self._temp_out(t), p * self._press(), h
+
+    # --- measurement values --------------------------------------------------------------------
+    def values(self, m: Any) -> tuple[float, ...]:
+        """(val1..3, std1..3, covar12, covar13, covar23) in the session's CS type and units."""
+        k, a = self._len(), self._ang()
+        x, y, z = m.mean_m
+        cov = np.diag(np.square(m.std_m))
+        cs = self.state.coord_sys
+        if cs in (emscon.CoordSys.SCC, emscon.CoordSys.SCW):
+            ccw = self.options.scc_hz_counterclockwise
+            sign = 1.0 if (ccw if cs == emscon.CoordSys.SCC else not ccw) else -1.0
+            ys = sign * y
+            d = math.sqrt(x * x + ys * ys + z * z)
+            rho = math.hypot(x, ys)
+            hz, v = math.atan2(ys, x), math.atan2(rho, z)
+            # d(hz, v, d)/d(x, y, z); y enters with its sign.
+            jac = np.array([
+                [-ys / rho**2, sign * x / rho**2, 0.0],
+                [x * z / (d * d * rho), sign * ys * z / (d * d * rho), -rho / (d * d)],
+                [x / d, sign * ys / d, z / d],
+            ])
+            c = jac @ cov @ jac.T
+            scale = np.array([a, a, k])
+            c = c * np.outer(scale, scale)
+            vals = (hz * a, v * a, d * k)
+        else:
+            c = cov * k * k
+            vals = (x * k, y * k, z * k)
+        std = np.sqrt(np.diag(c))
+        return (*vals, *map(float, std), float(c[0, 1]), float(c[0, 2]), float(c[1, 2]))
+
+    def result_bytes(self, status: int, m: Any | None) -> bytes:
+        """A type-2 or type-9 result packet (zero values when ``m`` is None)."""
+        st = self.state
+        o = self.options
+        vals = self.values(m) if m is not None else (0.0,) * 9
+        t, p, h = self._env_out()
+        nine = o.result_type == "always_9" or (
+            o.result_type == "by_statistic_mode" and st.statistic_mode[0] == 1)
+        std_total = math.sqrt(sum(s * s for s in vals[3:6])) if m is not None else 0.0
+        if nine:
+            return emscon.encode(emscon.SingleMeasResult2(
+                status=status, meas_mode=st.meas_mode, val1=vals[0], val2=vals[1], val3=vals[2],
+                std1=vals[3], std2=vals[4], std3=vals[5], std_total=std_total,
+                covar12=vals[6], covar13=vals[7], covar23=vals[8], apriori_std1=vals[3],
+                apriori_std2=vals[4], apriori_std3=vals[5], apriori_std_total=std_total,
+                temperature=t, pressure=p, humidity=h))
+        return emscon.encode(emscon.SingleMeasResult(
+            status=status, meas_mode=st.meas_mode, val1=vals[0], val2=vals[1], val3=vals[2],
+            std1=vals[3], std2=vals[4], std3=vals[5], std_total=std_total,
+            apriori_std1=vals[3], apriori_std2=vals[4], apriori_std3=vals[5],
+            apriori_std_total=std_total, temperature=t, pressure=p, humidity=h))
+
+    def reply_bytes(self, cmd: int, status: int, data: dict[str, Any]) -> bytes:
+        """A reply packet; failed replies are 16 bytes or full size (``failed_reply_size``)."""
+        if status != 0:
+            spec = emscon.SPECS.get(cmd)
+            head = emscon.reply(cmd, status)
+            if self.options.failed_reply_size == "full" and spec is not None:
+                pad = spec.reply_size - 16
+                return struct.pack("<ii", spec.reply_size, 0) + head[8:] + b"\x00" * pad
+            return head
+        return emscon.reply(cmd, 0, **data)
+
+    # --- commands ------------------------------------------------------------------------------
+    async def _sleep(self, seconds: float) -> None:
+        s = seconds * self.options.time_scale
+        if s > 0:
+            await asyncio.sleep(s)
+
+    def _ms_event(self, s: _Session, code: int) -> None:
+        if self.options.events == "ms":
+            self._track(s.event(code))
+
+    def _beam_broken(self, s: _Session) -> None:
+        st = self.state
+        st.locked = False
+        self._track(s.event(Event.MEAS_STATUS_NOT_READY))
+        if self.options.relock_after_s is not None:
+            loop = asyncio.get_running_loop()
+            if self._relock is not None:
+                self._relock.cancel()
+            self._relock = loop.call_later(self.options.relock_after_s, self._lock_again, s)
+
+    def _lock_again(self, s: _Session) -> None:
+        if not self.state.locked:
+            self.state.locked = True
+            self._track(s.event(Event.MEAS_STATUS_READY))
+
+    async def answer(self, c: emscon.Command, s: _Session) -> None:
+        """Execute one command and send its reply (and result or events)."""
+        o, st, p, cmd = self.options, self.state, c.params, c.command
+        if cmd == Cmd.GET_SYSTEM_STATUS:
+            await s.reply(cmd, last_result_status=0,
+                          tracker_processor_status=5 if st.initialized else 4, laser_status=3,
+                          adm_status=2, version_major=o.version[0], version_minor=o.version[1],
+                          version_build=o.version[2],
+                          weather_monitor_status=st.settings["weather_monitor_status"],
+                          flags_value=0, tracker_serial_number=o.serial)
+        elif cmd == Cmd.GET_TRACKER_STATUS:
+            await s.reply(cmd, tracker_status=2 if st.initialized and st.locked else 0)
+        elif cmd == Cmd.SET_UNITS:
+            for i, name in enumerate(_UNIT_FIELDS):
+                if p[name] not in _UNIT_RANGE[name]:
+                    await s.reply(cmd, 4 + i)
+                    return
+            st.units = dict(p)
+            await s.reply(cmd)
+            self._ms_event(s, Event.UNITS_CHANGED)
+        elif cmd == Cmd.GET_UNITS:
+            await s.reply(cmd, **st.units)
+        elif cmd == Cmd.INITIALIZE:
+            await self._sleep(o.initialize_s)
+            st.initialized = True
+            await s.reply(cmd, o.initialize_status)
+            if o.events == "ms":
+                for ev in (Event.INITIALIZATION_STATUS_CHANGED, Event.MEAS_STATUS_READY,
+                           Event.STATISTIC_MODE_CHANGED):
+                    await s.event(ev)
+        elif cmd == Cmd.SET_ENVIRONMENT_PARAMS:
+            t = self._temp_in(p["temperature"])
+            pr = p["pressure"] / self._press()
+            h = p["humidity"]
+            for i, (v, (lo, hi)) in enumerate(
+                    ((t, o.temp_range_c), (pr, o.press_range_hpa), (h, o.hum_range_pct))):
+                if not lo <= v <= hi:
+                    await s.reply(cmd, emscon.Status.METEO_DATA_OUT_OF_RANGE)
+                    _log.info("emscon sim: meteo out of range", index=i, value=v)
+                    return
+            if not (o.monitor_overrides_meteo and st.settings["weather_monitor_status"] == 2):
+                st.env = (t, pr, h)
+            await s.reply(cmd)
+            self._ms_event(s, Event.ENVIRONMENT_PARAMS_CHANGED)
+        elif cmd == Cmd.GET_ENVIRONMENT_PARAMS:
+            t, pr, h = self._env_out()
+            await s.reply(cmd, temperature=t, pressure=pr, humidity=h)
+        elif cmd == Cmd.SET_MEASUREMENT_MODE:
+            mode = p["meas_mode"]
+            if mode == 0 and o.stationary_mode == "reject":
+                await s.reply(cmd, o.stationary_reject_status)
+            elif mode not in (0, 20, 21, 22, 23):
+                await s.reply(cmd, 4)
+            else:
+                st.meas_mode = mode
+                await s.reply(cmd)
+                self._ms_event(s, Event.MEASUREMENT_MODE_CHANGED)
+        elif cmd == Cmd.GET_MEASUREMENT_MODE:
+            await s.reply(cmd, meas_mode=st.meas_mode)
+        elif cmd == Cmd.SET_COORDINATE_SYSTEM_TYPE:
+            if p["coord_sys_type"] not in (0, 6, 7):
+                await s.reply(cmd, emscon.Status.NOT_IMPLEMENTED)
+                return
+            st.coord_sys = p["coord_sys_type"]
+            await s.reply(cmd)
+            self._ms_event(s, Event.COORDINATE_SYSTEM_TYPE_CHANGED)
+        elif cmd == Cmd.GET_COORDINATE_SYSTEM_TYPE:
+            await s.reply(cmd, coord_sys_type=st.coord_sys)
+        elif cmd == Cmd.SET_STATIONARY_MODE_PARAMS:
+            if p["meas_time"] <= 0:
+                await s.reply(cmd, 4)
+                return
+            st.meas_time_ms, st.use_adm = p["meas_time"], p["use_adm"]
+            await s.reply(cmd)
+            self._ms_event(s, Event.STATIONARY_MODE_PARAMS_CHANGED)
+        elif cmd == Cmd.GET_STATIONARY_MODE_PARAMS:
+            await s.reply(cmd, meas_time=st.meas_time_ms, use_adm=st.use_adm)
+        elif cmd == Cmd.SET_REFLECTOR:
+            if p["internal_reflector_id"] not in {r.id for r in o.reflectors}:
+                await s.reply(cmd, 4)
+                return
+            st.reflector_id = p["internal_reflector_id"]
+            await s.reply(cmd)
+            self._ms_event(s, Event.REFLECTOR_CHANGED)
+        elif cmd == Cmd.GET_REFLECTOR:
+            await s.reply(cmd, internal_reflector_id=st.reflector_id)
+        elif cmd == Cmd.GET_REFLECTORS:
+            if not o.reflectors:
+                await s.reply(cmd, emscon.Status.WRONG_PARAMETER)
+            for r in o.reflectors:
+                await s.reply(cmd, total_reflectors=len(o.reflectors), internal_reflector_id=r.id,
+                              target_type=r.target_type,
+                              surface_offset=r.surface_offset_mm / 1000 * self._len(),
+                              reflector_name=r.name)
+        elif cmd == Cmd.SET_SEARCH_PARAMS:
+            st.search = (p["search_radius"], p["timeout"])
+            await s.reply(cmd)
+        elif cmd == Cmd.GET_SEARCH_PARAMS:
+            await s.reply(cmd, search_radius=st.search[0], timeout=st.search[1])
+        elif cmd == Cmd.SET_SYSTEM_SETTINGS:
+            st.settings = dict(p)
+            await s.reply(cmd)
+            self._ms_event(s, Event.SYSTEM_SETTINGS_CHANGED)
+            if st.settings["send_reflector_position_data"]:
+                s.start_stream()
+        elif cmd == Cmd.GET_SYSTEM_SETTINGS:
+            await s.reply(cmd, **st.settings)
+        elif cmd == Cmd.SET_STATISTIC_MODE:
+            st.statistic_mode = (p["stationary_mode"], p["continuous_mode"])
+            await s.reply(cmd)
+            self._ms_event(s, Event.STATISTIC_MODE_CHANGED)
+        elif cmd == Cmd.GET_STATISTIC_MODE:
+            await s.reply(cmd, stationary_mode=st.statistic_mode[0],
+                          continuous_mode=st.statistic_mode[1])
+        elif cmd == Cmd.START_MEASUREMENT:
+            await self._measure(s)
+        elif cmd == Cmd.STOP_MEASUREMENT:
+            await s.reply(cmd)
+        elif cmd in (Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2):
+            await self._sleep(o.motion_s)
+            await s.reply(cmd)
+            self._lock_again(s)
+        elif cmd in (Cmd.GO_POSITION, Cmd.GO_POSITION_HVD):
+            await self._sleep(o.motion_s)
+            await s.reply(cmd)
+        elif cmd == Cmd.POSITION_RELATIVE_HV:
+            await s.reply(cmd)
+        elif cmd == Cmd.FIND_REFLECTOR:
+            await self._sleep(o.motion_s)
+            if o.find_fail_status:
+                await s.reply(cmd, o.find_fail_status)
+                await s.event(Event.MEAS_STATUS_NOT_READY)
+                return
+            await s.reply(cmd)
+            self._lock_again(s)
+        elif cmd == Cmd.GET_DIRECTION:
+            await s.reply(cmd, hz_angle=st.direction[0] * self._ang(),
+                          vt_angle=st.direction[1] * self._ang())
+        elif cmd == Cmd.GET_MEASUREMENT_STATUS_INFO:
+            bits = 1 | 2 | 4 | 8 | 4096
+            bits |= emscon.MSI_REFLECTOR_FOUND if st.locked else 0
+            bits |= emscon.MSI_INITIALIZED if st.initialized else 0
+            await s.reply(cmd, last_result_status=0, measurement_status_info=bits)
+        elif cmd == Cmd.SET_LONG_SYSTEM_PARAMETER:
+            st.long_params[p["system_param"]] = p["parameter"]
+            if p["system_param"] == 10:
+                st.settings["send_reflector_position_data"] = int(p["parameter"] != 0)
+                s.start_stream()
+            await s.reply(cmd)
+        elif cmd == Cmd.GET_LONG_SYSTEM_PARAMETER:
+            await s.reply(cmd, system_param=p["system_param"],
+                          parameter=st.long_params.get(p["system_param"], 0))
+        elif cmd == Cmd.SET_DOUBLE_SYSTEM_PARAMETER:
+            st.double_params[p["system_param"]] = p["parameter"]
+            await s.reply(cmd)
+        elif cmd == Cmd.GET_DOUBLE_SYSTEM_PARAMETER:
+            await s.reply(cmd, system_param=p["system_param"],
+                          parameter=st.double_params.get(p["system_param"], 0.0))
+        elif cmd == Cmd.CLEAR_COMMAND_QUEUE:
+            await s.reply(cmd)
+        elif cmd == Cmd.GET_TRACKER_INFO:
+            await s.reply(cmd, tracker_type=70, tracker_name="AT401 (robocal sim)",
+                          tracker_serial_number=o.serial, compensation_id=1, has_adm=1,
+                          has_overview_camera=1, has_nivel=1, nivel_mount_offset=0.0,
+                          max_distance=160.0 * self._len(), min_distance=0.8 * self._len(),
+                          max_data_rate=1000, number_of_faces=2,
+                          hz_angle_range=2 * math.pi * self._ang(),
+                          vt_angle_range=(145 / 180 * math.pi) * self._ang(), accuracy_model=0,
+                          lcp_firmware_major=2, lcp_firmware_minor=1)
+        elif cmd == Cmd.GET_SYSTEM_SOFTWARE_VERSION:
+            v = o.version
+            await s.reply(cmd, version=f"emScon {v[0]}.{v[1]}.{v[2]} (robocal sim)")
+        else:
+            await s.reply(cmd, emscon.Status.NOT_IMPLEMENTED)
+
+    async def _measure(self, s: _Session) -> None:
+        o, st, cmd = self.options, self.state, Cmd.START_MEASUREMENT
+        if not st.initialized:
+            await s.reply(cmd, emscon.Status.TRACKER_NOT_INITIALIZED)
+            return
+        broken_at: str | None = None
+        if self.faults.fire("beam_break"):
+            broken_at = o.beam_break_at
+            if broken_at == "either":
+                broken_at = self.rng.choice(["start", "during"])
+            if broken_at == "start":
+                self._beam_broken(s)
+        if not st.locked:
+            await s.reply(cmd, o.beam_broken_start_status)
+            return
+        if self.faults.fire("unstable"):
+            await s.reply(cmd, emscon.Status.SENSOR_NOT_STABLE)
+            return
+        first = o.result_order == "reply_first"
+        if first:
+            await s.reply(cmd)
+        duration = st.meas_time_ms / 1000.0
+        if broken_at == "during":
+            await self._sleep(duration / 2)
+            await self._lost_during(s, first)
+            return
+        await self._sleep(duration)
+        n = max(1, min(20_000, round(duration / o.sample_period_s)))
+        m = self.world.measure(n, glitch=self.faults.fire("glitch"))
+        await s.send(self.result_bytes(0, m))
+        if not first:
+            await s.reply(cmd)
+
+    async def _lost_during(self, s: _Session, replied: bool) -> None:
+        o, cmd = self.options, Cmd.START_MEASUREMENT
+        self.state.locked = False
+        signal = o.beam_lost_signal
+        if signal == "reply" and replied:
+            signal = "error"  # the reply went out already
+        if signal in ("event", "both"):
+            await s.event(Event.MEAS_STATUS_NOT_READY)
+        if signal in ("error", "both"):
+            await s.send(emscon.encode(emscon.ErrorResponse(cmd, o.beam_lost_status)))
+        elif signal == "result":
+            await s.send(self.result_bytes(o.beam_lost_status, None))
+            if not replied:
+                await s.reply(cmd)
+        elif signal == "reply":
+            await s.reply(cmd, o.beam_lost_status)
+        if o.relock_after_s is not None:
+            self._beam_broken(s)
+
+    def _track(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # --- TCP -----------------------------------------------------------------------------------
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
+        """Serve on ``host:port`` (0 picks a free port); return the bound port."""
+        self.host = host
+        self._server = await asyncio.start_server(self._on_client, host, port)
+        self.port = self._server.sockets[0].getsockname()[1]
+        _log.info("emscon sim listening", port=self.port)
+        return self.port
+
+    async def _on_client(self, reader: asyncio.StreamReader,
+                         writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)
+        busy = self._session is not None and not self._session.closed
+        session = _Session(self, writer, refused=busy)
+        try:
+            if busy and self.options.second_client == "refuse":
+                return
+            if not busy:
+                self._session = session
+            self._sessions.add(session)
+            if self.options.announce_on_connect and not busy:
+                await session.event(Event.SERVER_STARTED)
+            while not session.closed:
+                data = await reader.read(65536)
+                if not data:
+                    break
+                await session.feed(data)
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            await session.stop()
+            self._sessions.discard(session)
+            if self._session is session:
+                self._session = None
+                if not self.options.keep_state_across_connections:
+                    self.state = _State(self.options)
+            writer.close()
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await writer.wait_closed()
+            if task is not None:
+                self._tasks.discard(task)
+
+    async def stop(self) -> None:
+        """Stop serving; idempotent."""
+        if self._server is not None:
+            self._server.close()
+        if self._relock is not None:
+            self._relock.cancel()
+        for session in list(self._sessions):
+            session.close()
+            await session.stop()
+        tasks = list(self._tasks)
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        if self._server is not None:
+            with contextlib.suppress(Exception):
+                async with asyncio.timeout(2.0):
+                    await self._server.wait_closed()
+            self._server = None
+
+
+class _RateInjector:
+    """Draw the emScon-specific faults of :class:`EmsconFaults`."""
+
+    def __init__(self, rates: EmsconFaults, seed: int) -> None:
+        self.rates = rates
+        self._rng = random.Random(seed)
+        self.counts: dict[str, int] = {}
+
+    def fire(self, name: str) -> bool:
+        rate: float = getattr(self.rates, f"{name}_rate")
+        if rate > 0.0 and self._rng.random() < rate:
+            self.counts[name] = self.counts.get(name, 0) + 1
+            return True
+        return False
