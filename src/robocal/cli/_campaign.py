@@ -82,6 +82,13 @@ def register(sub: Any) -> None:
             a.add_argument("--reason", default="")
         if verb == "approve":
             a.add_argument("--model", help="approve this fitted model instead of the proposed")
+        if verb == "push":
+            a.add_argument("--force", action="store_true",
+                           help="push even if the table does not clearly improve on the "
+                                "nominal residual (recorded in the audit log)")
+            a.add_argument("--reason", default="", help="why (kept in the audit log)")
+            a.add_argument("--key", help="idempotency key: a retry with the same key never "
+                                         "writes the controller twice")
         add_client_options(a)
         a.set_defaults(handler=action, action=verb)
 
@@ -189,6 +196,10 @@ def action(args: argparse.Namespace) -> int:
         body["reason"] = args.reason
     if getattr(args, "model", None):
         body["model"] = args.model
+    if getattr(args, "force", False):
+        body["force"] = True
+    if getattr(args, "key", None):
+        body["key"] = args.key
     out = client(args).request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
     if args.json:
         emit(out)

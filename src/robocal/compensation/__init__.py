@@ -19,7 +19,9 @@ from robocal.compensation._build import (
     FrameFit,
     build_table,
     fit_frames,
+    ideal_positions,
     joint_corrections,
+    nominal_residual_mm,
     sample_poses,
     targets_table,
     valid_range,
@@ -38,6 +40,12 @@ from robocal.compensation._solve import (
     compensate,
     rotation_error,
 )
+from robocal.compensation._summary import (
+    PURPOSE,
+    describe_table,
+    improvement_refusal,
+    summary_line,
+)
 from robocal.compensation._table import (
     TABLE_FORMAT,
     CompensationTable,
@@ -54,6 +62,7 @@ from robocal.compensation._targets import (
 )
 
 __all__ = [
+    "PURPOSE",
     "STATUSES",
     "TABLE_FORMAT",
     "CompensationResult",
@@ -68,17 +77,22 @@ __all__ = [
     "TargetSet",
     "build_table",
     "compensate",
+    "describe_table",
     "diff_tables",
     "fit_frames",
     "has_closed_form",
+    "ideal_positions",
     "ik_solutions",
+    "improvement_refusal",
     "joint_corrections",
     "joints_csv_text",
     "nominal_fk",
     "nominal_ik",
+    "nominal_residual_mm",
     "read_targets_csv",
     "rotation_error",
     "sample_poses",
+    "summary_line",
     "targets_table",
     "valid_range",
     "write_joints_csv",

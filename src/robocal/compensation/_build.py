@@ -55,6 +55,28 @@ def valid_range(cal: CalibratedModel) -> Array:
     return np.stack([np.maximum(cov[:, 0], lim[:, 0]), np.minimum(cov[:, 1], lim[:, 1])], 1)
 
 
+def ideal_positions(cal: CalibratedModel, q: Array) -> Array:
+    """Reflector positions (n, 3) m of the *error-free* robot with the calibrated base and tool.
+
+    These are the Cartesian targets a program taught with joint values ``q`` (n, dof) rad
+    means; compensation finds the joints that reach them on the real (modelled) robot.
+    """
+    nominal = cal.model.with_spec(ErrorModelSpec(cal.robot.dof, ()))
+    x = cal.model.transfer(cal.params, nominal)
+    return nominal.positions(np.atleast_2d(np.asarray(q, dtype=float)), x)
+
+
+def nominal_residual_mm(cal: CalibratedModel, q: Array, p_target: Array | None = None) -> float:
+    """RMS distance (mm), predicted by the model, between where the *uncompensated* robot
+    goes at joints ``q`` (n, dof) rad and where it should go (``p_target`` (n, 3) m, default
+    :func:`ideal_positions`): the figure a table's predicted residual is compared with.
+    """
+    q2 = np.atleast_2d(np.asarray(q, dtype=float))
+    target = ideal_positions(cal, q2) if p_target is None else np.atleast_2d(p_target)
+    d = np.linalg.norm(cal.predict(q2) - target, axis=1)
+    return float(np.sqrt(np.mean(d**2)) * 1e3) if d.size else 0.0
+
+
 def sample_poses(cal: CalibratedModel, n: int, seed: int = 0) -> Array:
     """``n`` uniform random joint vectors (n, dof) rad inside :func:`valid_range` (seeded)."""
     rng = np.random.default_rng(seed)
@@ -416,6 +438,8 @@ def targets_table(cal: CalibratedModel, targets: TargetSet, result: Compensation
         "n_targets": float(len(result)), "n_ok": float(okr.size),
         "max_model_residual_mm": float(okr.max() * 1e3) if okr.size else 0.0,
         "n_outside_coverage": float(np.sum(result.ok & ~result.in_coverage)),
+        # the seeds are the program's joints when the targets come from a taught program
+        "nominal_residual_mm": nominal_residual_mm(cal, targets.q_seed, targets.p),
     }
     vr = _validation_rms_mm(cal)
     if vr is not None:
@@ -491,6 +515,7 @@ def build_table(cal: CalibratedModel, kind: Kind, *, targets: TargetSet | None =
                          **compensate_options)
         return targets_table(cal, targets, res, created=common["created"])
     Q = sample_poses(cal, samples, sample_seed)
+    stats["nominal_residual_mm"] = nominal_residual_mm(cal, Q)
     if kind == "joint":
         joints = joint_corrections(cal, tol_deg=interp_tol_deg, method=joint_method,
                                    samples=samples, sample_seed=sample_seed)

@@ -85,12 +85,20 @@ class ActionRequest(_Request):
     reason: str = Field(default="", max_length=1000)
     model: str | None = Field(default=None, max_length=64,
                               description="approve: the fitted model to approve")
+    force: bool = Field(default=False, description="push: push a table that does not clearly "
+                                                   "improve on nominal (audited)")
+    key: str | None = Field(default=None, min_length=8, max_length=64,
+                            pattern=r"^[A-Za-z0-9_.:-]+$",
+                            description="push: idempotency key (a retry with the same key "
+                                        "never writes twice)")
 
 
 class RollbackRequest(_Request):
     """Optional body of ``POST /compensation/rollback``."""
 
     reason: str = Field(default="", max_length=1000)
+    key: str | None = Field(default=None, min_length=8, max_length=64,
+                            pattern=r"^[A-Za-z0-9_.:-]+$", description="idempotency key")
 
 
 def _error(status: int, kind: str, message: str, **extra: Any) -> web.Response:
@@ -250,7 +258,8 @@ async def campaign_action(request: web.Request) -> web.Response:
     elif action == "approve":
         out = await svc.approve(cid, actor=actor, model=body.model)
     else:
-        out = await svc.push(cid, actor=actor)
+        out = await svc.push(cid, actor=actor, force=body.force, key=body.key,
+                             reason=body.reason)
     return web.json_response(out)
 
 
@@ -259,8 +268,9 @@ async def compensation(request: web.Request) -> web.Response:
 
 
 async def rollback(request: web.Request) -> web.Response:
-    await _body(request, RollbackRequest, required=False)
-    return web.json_response(await request.app[_SERVICE].rollback(actor=_actor(request)))
+    body = await _body(request, RollbackRequest, required=False)
+    return web.json_response(await request.app[_SERVICE].rollback(
+        actor=_actor(request), reason=body.reason, key=body.key))
 
 
 async def audit(request: web.Request) -> web.Response:

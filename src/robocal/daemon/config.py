@@ -166,14 +166,30 @@ class FitConfig(_Model):
 
 
 class CompensationConfig(_Model):
-    """What is pushed after approval: ``frames`` (base and tool), ``targets`` or ``joint``.
+    """What is pushed after approval (see ``docs/compensation-tables.md``).
 
-    ``targets_file`` (CSV, ``q1..qN`` in degrees) lists the program targets a ``targets``
-    table corrects; without it the campaign's validation poses are used.
+    Attributes
+    ----------
+    kind
+        ``targets`` (default): the production targets compensated with the approved model;
+        ``joint``: per-joint corrections; ``frames``: base/tool alignment only (not
+        compensation).
+    targets_file
+        CSV ``q1..qN`` (degrees): the robot program's targets as taught; row ``i`` is written
+        to position register ``pr_base + i`` (FANUC) or table row ``i`` (PLC). Without it the
+        campaign's validation poses are used.
+    max_residual_ratio
+        A table is pushed only if its predicted residual is below this fraction of the
+        nominal (uncompensated) residual, unless the operator forces it.
+    verify_count
+        Pushed targets measured again with the tracker after a push or rollback (spread over
+        the targets; 0: no verification run).
     """
 
-    kind: Literal["frames", "targets", "joint"] = "frames"
+    kind: Literal["frames", "targets", "joint"] = "targets"
     targets_file: Path | None = None
+    max_residual_ratio: float = Field(default=0.5, gt=0.0, le=1.0)
+    verify_count: int = Field(default=10, ge=0, le=10000)
 
 
 class LoggingConfig(_Model):

@@ -1,14 +1,21 @@
 """Compensation tables from an approved fit: building, safety bounds, push and rollback.
 
 A push writes the table through the robot driver's ``CompensationSink``, reads it back,
-compares content and checksum, and activates it when the driver can; the table before the
-first push is read from the controller and kept as the baseline. Tables beyond the configured
-bounds (joint correction, frame change) are refused before anything is written.
+compares content and checksum, and activates it when the driver can. Before robocal first
+writes a kind of table, the controller's own values in those slots are read
+(:func:`snapshot`) and journaled, so a rollback restores them. Tables beyond the configured
+bounds (joint correction, frame change) are refused before anything is written, and so are
+tables whose predicted residual is not clearly below the nominal one
+(:func:`robocal.compensation.improvement_refusal`) unless forced.
+
+``ROBOCAL_FAULT_POINT`` (comma-separated names) makes the daemon ``os._exit`` at those
+journaled points (:func:`fault_point`); the crash tests use it, nothing else should.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -16,30 +23,49 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.compensation import CompensationTable, Frame, build_table
+from robocal.compensation import ideal_positions as _ideal_positions
 from robocal.daemon.config import LimitsConfig
 from robocal.drivers import CompensationSink
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.errors import CompensationError, VerificationMismatch
-from robocal.kinematics import CalibratedModel, ErrorModelSpec, RobotDescription, wpr_to_matrix
+from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
 
 __all__ = [
+    "FAULT_POINTS",
     "build_campaign_table",
     "check_bounds",
+    "commanded_joints",
+    "fault_point",
     "ideal_positions",
+    "read_like",
+    "restore",
+    "snapshot",
+    "verification_errors",
+    "verification_indices",
     "write_and_verify",
 ]
+
+#: Journaled points where ``ROBOCAL_FAULT_POINT`` can kill the daemon (crash tests).
+FAULT_POINTS = (
+    "approve:before-commit", "approve:after-commit",
+    "push:after-snapshot", "push:after-intent", "push:after-write", "push:after-complete",
+    "rollback:after-intent", "rollback:after-write", "rollback:after-complete",
+)
+
+
+def fault_point(name: str) -> None:
+    """Exit the process at once (like kill -9) if ``ROBOCAL_FAULT_POINT`` names ``name``."""
+    wanted = os.environ.get("ROBOCAL_FAULT_POINT", "")
+    if wanted and name in {w.strip() for w in wanted.split(",")}:
+        os._exit(86)
 
 Array = NDArray[np.float64]
 
 
 def ideal_positions(cal: CalibratedModel, q: Array) -> Array:
-    """Reflector positions (n, 3) m of the *error-free* robot with the calibrated base and tool.
-
-    These are the Cartesian targets a program taught with joint values ``q`` (n, dof) rad
-    means; compensation finds the joints that reach them on the real (modelled) robot.
-    """
-    nominal = cal.model.with_spec(ErrorModelSpec(cal.robot.dof, ()))
-    x = cal.model.transfer(cal.params, nominal)
-    return nominal.positions(np.atleast_2d(np.asarray(q, dtype=float)), x)
+    """Reflector positions (n, 3) m the error-free robot reaches at ``q`` (n, dof) rad
+    (:func:`robocal.compensation.ideal_positions`)."""
+    return _ideal_positions(cal, q)
 
 
 def build_campaign_table(cal: CalibratedModel, kind: str, *,
@@ -58,7 +84,10 @@ def build_campaign_table(cal: CalibratedModel, kind: str, *,
         if targets_q is None:
             raise CompensationError("a targets table needs program targets")
         q = np.atleast_2d(np.asarray(targets_q, dtype=float))
-        table = build_table(cal, "targets", targets_p=ideal_positions(cal, q), seeds_q=q)
+        # the program joints are the right branch and within a fraction of a degree of the
+        # answer: start there, never from a closed-form IK that may pick another branch
+        table = build_table(cal, "targets", targets_p=ideal_positions(cal, q), seeds_q=q,
+                            start="seed")
     elif kind in ("frames", "joint"):
         table = build_table(cal, kind)  # type: ignore[arg-type]
     else:
@@ -182,3 +211,117 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
     if callable(activate):
         await activate(sealed)
     return back
+
+
+# --- controller snapshots and journal reconciliation -------------------------------------------
+async def snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
+    """What the controller holds in ``table``'s slots, or None if the driver cannot say."""
+    fn = getattr(robot, "snapshot_compensation", None)
+    if not callable(fn):
+        return None
+    snap = await fn(table)
+    return snap if isinstance(snap, ControllerSnapshot) else None
+
+
+async def read_like(robot: object, table: CompensationTable) -> CompensationTable | None:
+    """The controller's values in ``table``'s slots, as a table (None: nothing there)."""
+    fn = getattr(robot, "read_compensation_like", None)
+    if callable(fn):
+        back = await fn(table)
+    elif isinstance(robot, CompensationSink):
+        back = await robot.read_compensation()
+    else:
+        raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
+    return back if isinstance(back, CompensationTable) else None
+
+
+async def holds(robot: object, entry: CompensationTable | ControllerSnapshot) -> bool:
+    """Whether the controller holds ``entry`` (a table or a snapshot) right now."""
+    if isinstance(entry, ControllerSnapshot):
+        fn = getattr(robot, "snapshot_compensation", None)
+        if not callable(fn):
+            return False
+        template = entry
+        current = await fn(_template_for(template))
+        return not snapshot_diff(entry, current)
+    back = await read_like(robot, entry)
+    return back is not None and not table_diff(entry, back, tol=1e-3)
+
+
+def _template_for(snap: ControllerSnapshot) -> CompensationTable:
+    """A table with the snapshot's slots (the drivers read slots from a table)."""
+    raw = snap.items.get("template")
+    if isinstance(raw, str):
+        return CompensationTable.model_validate_json(raw)
+    raise CompensationError("snapshot does not say which slots it covers")
+
+
+async def take_snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
+    """:func:`snapshot`, remembering the slots (a copy of ``table``) to read them again."""
+    snap = await snapshot(robot, table)
+    if snap is None:
+        return None
+    return snap.model_copy(update={"items": {**snap.items, "template": table.model_dump_json()}})
+
+
+async def restore(robot: object, entry: CompensationTable | ControllerSnapshot
+                  ) -> CompensationTable | None:
+    """Write ``entry`` back (a table: :func:`write_and_verify`; a snapshot: the driver's
+    ``restore_snapshot``, which verifies the read-back)."""
+    if isinstance(entry, CompensationTable):
+        return await write_and_verify(robot, entry)
+    fn = getattr(robot, "restore_snapshot", None)
+    if not callable(fn):
+        raise CompensationError(f"{type(robot).__name__} cannot restore controller snapshots")
+    items = {k: v for k, v in entry.items.items() if k != "template"}
+    await fn(entry.model_copy(update={"items": items}))
+    return None
+
+
+def parse_entry(kind: str, text: str) -> CompensationTable | ControllerSnapshot:
+    """A stored ``tables`` row: a snapshot (kind ``snapshot``) or a sealed table."""
+    if kind == "snapshot":
+        return ControllerSnapshot.model_validate_json(text)
+    return CompensationTable.model_validate_json(text)
+
+
+# --- verification: the pushed targets measured again ---------------------------------------------
+def verification_indices(n: int, count: int) -> list[int]:
+    """``count`` indices spread evenly over ``range(n)`` (all of them when ``count >= n``)."""
+    if count <= 0 or n <= 0:
+        return []
+    if count >= n:
+        return list(range(n))
+    return sorted({int(x) for x in np.rint(np.linspace(0, n - 1, count))})
+
+
+def commanded_joints(entry: CompensationTable | ControllerSnapshot | None, q_program: Array
+                     ) -> tuple[Array, NDArray[np.bool_]]:
+    """Joints (n, dof) rad the robot runs for program joints ``q_program`` under ``entry``,
+    and which rows are compensated.
+
+    ``targets``: the table's row for each program target (``ok`` rows only); ``joint``:
+    program joints plus the table's offsets; anything else (frames, a controller snapshot,
+    nothing): the program joints themselves.
+    """
+    q = np.atleast_2d(np.asarray(q_program, dtype=float))
+    out = q.copy()
+    comp = np.zeros(len(q), dtype=bool)
+    if isinstance(entry, CompensationTable) and entry.kind == "targets":
+        for row in entry.targets or []:
+            if row.status == "ok" and 0 <= row.index < len(q):
+                out[row.index] = np.radians(row.q_deg)
+                comp[row.index] = True
+    elif isinstance(entry, CompensationTable) and entry.kind == "joint":
+        out = q + np.radians(entry.joint_offsets_deg(np.degrees(q)))
+        comp[:] = True
+    return out, comp
+
+
+def verification_errors(p_target_m: Array, p_measured_m: Array) -> dict[str, float]:
+    """RMS, mean and max (mm) of the distances between (n, 3) m targets and measurements."""
+    e = np.linalg.norm(np.asarray(p_measured_m) - np.asarray(p_target_m), axis=1) * 1e3
+    if e.size == 0:
+        return {"n": 0}
+    return {"n": int(e.size), "rms_mm": round(float(np.sqrt(np.mean(e**2))), 5),
+            "mean_mm": round(float(np.mean(e)), 5), "max_mm": round(float(np.max(e)), 5)}

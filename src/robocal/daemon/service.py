@@ -17,6 +17,7 @@ import contextlib
 import json
 import math
 import time
+import uuid
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -27,9 +28,10 @@ import structlog
 from robocal import __version__
 from robocal._core import read_joints_csv
 from robocal._core.files import private_dir
-from robocal.compensation import CompensationTable
+from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import pushing
-from robocal.daemon._plan import PlanDoc, parse_plan
+from robocal.daemon._journal import JournalEntry, PushJournal
+from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, limits_with_margin
@@ -38,6 +40,7 @@ from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import CampaignRecord, MeasurementRow, Store
 from robocal.drivers import check_joint_target
+from robocal.drivers._compensation import ControllerSnapshot
 from robocal.errors import (
     ApprovalRequired,
     CampaignError,
@@ -78,6 +81,8 @@ class CalibrationService:
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._push_lock = asyncio.Lock()
+        self.journal = PushJournal(self.store)
+        self._verify_tasks: dict[str, asyncio.Task[None]] = {}
         self._started = time.time()
         self.pose_times: list[float] = []
 
@@ -86,6 +91,7 @@ class CalibrationService:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
         private_dir(self.config.data_dir)
         self.store.open()
+        self.journal.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
         if connect:
@@ -101,11 +107,16 @@ class CalibrationService:
                 self._spawn_measure(rec.id)
             elif not rec.measure_only:
                 self._spawn_fit(rec.id)
+        if self.journal.pending():
+            await self.reconcile()
+        for key, _ in self.journal.open_verifications():
+            self._spawn_verify(key)
 
     async def stop(self) -> None:
         """Stop work (campaign states stay as they are, to resume on restart); close all."""
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
+        tasks += [t for t in self._verify_tasks.values() if not t.done()]
         for t in tasks:
             t.cancel()
         for t in tasks:
@@ -139,6 +150,8 @@ class CalibrationService:
         out["transitions"] = self.store.transitions(cid)
         out["pose_overhead_s"] = self._overhead()
         out["files"] = str(self._campaign_dir(cid))
+        out["compensation"] = self.campaign_compensation(cid)
+        out["push"] = self._push_summary(out["compensation"])
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
@@ -209,9 +222,12 @@ class CalibrationService:
                 raise CampaignError(f"campaign {other} is measuring; pause or abort it first")
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",
-                    only_from: Iterable[CampaignState] | None = None) -> CampaignRecord:
+                    only_from: Iterable[CampaignState] | None = None,
+                    selected_model: str | None = None,
+                    audit: tuple[str, dict[str, Any]] | None = None) -> CampaignRecord:
         rec = self.store.transition(cid, to, actor=actor, reason=reason,
-                                    only_from=None if only_from is None else list(only_from))
+                                    only_from=None if only_from is None else list(only_from),
+                                    selected_model=selected_model, audit=audit)
         self.events.emit("state", cid, state=rec.state.value, reason=reason,
                          poses_measured=rec.poses_measured, poses_total=rec.poses_total)
         _log.info("campaign state", campaign=cid, state=rec.state.value, reason=reason,
@@ -249,8 +265,10 @@ class CalibrationService:
         return self.status(cid)
 
     async def abort(self, cid: str, *, actor: str, reason: str = "") -> dict[str, Any]:
-        """Abort from any non-final state; motion and fitting for it stop."""
-        self._transition(cid, S.ABORTED, actor=actor, reason=reason or "aborted by operator")
+        """Abort from any non-final state (state and audit entry in one transaction); motion
+        and fitting for it stop."""
+        self._transition(cid, S.ABORTED, actor=actor, reason=reason or "aborted by operator",
+                         audit=("campaign.abort", {"reason": reason}))
         task = self._measure_task
         if task is not None and task[0] == cid and not task[1].done():
             task[1].cancel()
@@ -260,23 +278,26 @@ class CalibrationService:
         fit = self._fit_tasks.get(cid)
         if fit is not None:
             fit.cancel()
-        self.store.audit(actor=actor, action="campaign.abort", campaign=cid,
-                         detail={"reason": reason})
         return self.status(cid)
 
     async def approve(self, cid: str, *, actor: str, model: str | None = None
                       ) -> dict[str, Any]:
-        """``fitted -> approved``, optionally choosing another fitted model to push."""
+        """``fitted -> approved``, optionally choosing another fitted model to push.
+
+        The state, the chosen model and the audit entry are one transaction.
+        """
         rec = self.store.campaign(cid)
         chosen = model or rec.selected_model
         fits = self.store.fits(cid)
         if chosen is None or chosen not in fits or self.store.model_json(cid, chosen) is None:
             raise CampaignError(f"model {chosen!r} was not fitted in campaign {cid} "
                                 f"(fitted: {', '.join(fits) or 'none'})")
-        self._transition(cid, S.APPROVED, actor=actor, reason=f"model {chosen} approved")
-        self.store.set_selected_model(cid, chosen)
-        self.store.audit(actor=actor, action="campaign.approve", campaign=cid,
-                         detail={"model": chosen, "model_id": fits[chosen].get("model_id")})
+        pushing.fault_point("approve:before-commit")
+        self._transition(cid, S.APPROVED, actor=actor, reason=f"model {chosen} approved",
+                         selected_model=chosen,
+                         audit=("campaign.approve", {"model": chosen,
+                                                     "model_id": fits[chosen].get("model_id")}))
+        pushing.fault_point("approve:after-commit")
         return self.status(cid)
 
     # --- measuring and fitting tasks -----------------------------------------------------------
@@ -402,8 +423,16 @@ class CalibrationService:
                             raise CampaignError("the service stopped")
 
     # --- compensation --------------------------------------------------------------------------
+    def _entry(self, table_id: int) -> CompensationTable | ControllerSnapshot:
+        """A stored table or controller snapshot."""
+        row = self.store.table(table_id)
+        return pushing.parse_entry(str(row["kind"]), str(row["table_json"]))
+
     def _table(self, table_id: int) -> CompensationTable:
-        return CompensationTable.model_validate_json(self.store.table(table_id)["table_json"])
+        entry = self._entry(table_id)
+        if not isinstance(entry, CompensationTable):
+            raise CompensationError(f"stored entry {table_id} is a controller snapshot")
+        return entry
 
     def _targets_q(self, cid: str) -> np.ndarray | None:
         path = self.config.compensation.targets_file
@@ -411,80 +440,197 @@ class CalibrationService:
             return read_joints_csv(path, dof=self.robot.dof)
         rows = [p for p in self.store.poses(cid) if p.purpose == "validation"]
         if not rows:
-            rows = self.store.poses(cid)
+            rows = [p for p in self.store.poses(cid) if p.measure]
         return np.radians(np.array([p.q_deg for p in rows], dtype=float))
 
-    async def push(self, cid: str, *, actor: str) -> dict[str, Any]:
-        """Build, check, write, read back and activate the approved model's table.
+    def _covered_kinds(self, stack: builtins.list[int]) -> set[str]:
+        kinds: set[str] = set()
+        for tid in stack:
+            entry = self._entry(tid)
+            kinds.add(entry.covers if isinstance(entry, ControllerSnapshot) else entry.kind)
+        return kinds
+
+    def build_push_table(self, cid: str) -> tuple[CompensationTable, dict[str, Any]]:
+        """The table a push of ``cid`` would write, and its description (nothing written).
 
         Raises
         ------
-        ApprovalRequired
-            If the campaign is not ``approved``.
         CompensationError
-            If the table exceeds the bounds or the driver cannot store it (nothing written).
-        VerificationMismatch
-            If the read-back differs (the campaign stays ``approved``; see the audit log).
+            If the campaign has no approved model or the table cannot be built.
         """
         rec = self.store.campaign(cid)
-        if rec.state != S.APPROVED:
-            raise ApprovalRequired(f"campaign {cid} is {rec.state.value}; compensation is "
-                                   "pushed only after an operator approves the fit")
         model = rec.selected_model or ""
         text = self.store.model_json(cid, model)
         if text is None:
             raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
         cal = CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid}")
         kind = self.config.compensation.kind
-        targets = self._targets_q(cid) if kind == "targets" else None
-        table = pushing.build_campaign_table(cal, kind, targets_q=targets)
+        q_program = self._targets_q(cid)
+        table = pushing.build_campaign_table(
+            cal, kind, targets_q=q_program if kind == "targets" else None)
+        desc = describe_table(table)
+        desc.update(model=model, model_id=cal.model_id,
+                    program_q_deg=None if q_program is None
+                    else np.round(np.degrees(q_program), 9).tolist())
+        return table, desc
+
+    async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
+                   reason: str = "") -> dict[str, Any]:
+        """Build, check, journal, write, read back and activate the approved model's table.
+
+        The push is journaled as intended (idempotency ``key``, default a new one) before the
+        controller is written and completed after the read-back, in one transaction with the
+        history, the audit entry and ``approved -> pushed``. A ``key`` already completed
+        returns the status without writing again. Then the pushed targets are measured
+        again (:meth:`verification`).
+
+        Raises
+        ------
+        ApprovalRequired
+            If the campaign is not ``approved``.
+        CompensationError
+            If the table exceeds the bounds, does not clearly improve on the nominal
+            residual (unless ``force``), or the driver cannot store it (nothing written).
+        VerificationMismatch
+            If the read-back differs (the previous values are put back; the campaign stays
+            ``approved``; see the audit log).
+        """
+        if key is not None:
+            done = self.journal.find(key)
+            if done is not None:
+                if done.campaign != cid or done.action != "push":
+                    raise CampaignError(f"idempotency key {key!r} belongs to another action")
+                if done.state == "intended":
+                    await self.reconcile()
+                    done = self.journal.get(key)
+                if done.state == "completed":
+                    return self.status(cid)
+                raise CompensationError(f"push {key} was abandoned: {done.outcome}")
+        rec = self.store.campaign(cid)
+        if rec.state != S.APPROVED:
+            raise ApprovalRequired(f"campaign {cid} is {rec.state.value}; compensation is "
+                                   "pushed only after an operator approves the fit")
+        table, desc = self.build_push_table(cid)
+        refusal = improvement_refusal(table, self.config.compensation.max_residual_ratio)
+        summary = {k: desc[k] for k in ("kind", "purpose", "predicted_residual_mm",
+                                         "nominal_residual_mm", "model_accuracy_mm", "ratio",
+                                         "warnings", "model", "model_id")}
+        if refusal is not None and not force:
+            self.store.audit(actor=actor, action="compensation.push-refused", campaign=cid,
+                             checksum=table.checksum, detail={"refusal": refusal, **summary})
+            raise CompensationError(f"push refused: {refusal}; an operator may force it "
+                                    "(recorded in the audit log)")
         async with self._push_lock:
             self._ensure_idle()
+            await self._reconcile_locked()
+            if self.journal.pending():
+                raise CompensationError("an earlier push could not be reconciled with the "
+                                        "controller yet (is it reachable?); nothing written")
+            if self.store.campaign(cid).state != S.APPROVED:
+                raise ApprovalRequired(f"campaign {cid} is no longer approved")
             stack = self.store.table_stack()
-            previous = self._table(stack[-1]) if stack else None
+            previous = self._entry(stack[-1]) if stack else None
             pushing.check_bounds(
-                table, self.config.limits, self.robot, previous=previous,
-                seeds_q_deg=None if targets is None else np.degrees(targets).tolist())
-            table_id = self.store.add_table(campaign=cid, origin="campaign", kind=table.kind,
-                                            checksum=table.checksum,
-                                            table_json=table.model_dump_json())
+                table, self.config.limits, self.robot,
+                previous=previous if isinstance(previous, CompensationTable) else None,
+                seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
+            key = key or uuid.uuid4().hex
+            detail = {**summary, "forced": refusal is not None, "refusal": refusal,
+                      "reason": reason, "program_q_deg": desc["program_q_deg"]}
             try:
                 async with self.hub.lock:
                     robot = await self.hub.robot()
-                    if not stack:
-                        await self._baseline(robot, actor)
-                    await pushing.write_and_verify(robot, table)
+                    snap = None
+                    if table.kind not in self._covered_kinds(stack):
+                        snap = await pushing.take_snapshot(robot, table)
+                    pushing.fault_point("push:after-snapshot")
+                    self.journal.intend(
+                        key=key, action="push", campaign=cid, actor=actor,
+                        table=(table.kind, table.checksum, table.model_dump_json()),
+                        baseline=None if snap is None else (snap.checksum(),
+                                                            snap.model_dump_json()),
+                        detail=detail)
+                    pushing.fault_point("push:after-intent")
+                    try:
+                        await pushing.write_and_verify(robot, table)
+                    except (RobocalError, OSError) as err:
+                        await self._undo(robot, key, actor, f"write failed: {err}")
+                        raise
+                    pushing.fault_point("push:after-write")
+                    self.journal.complete(key, actor=actor)
+                    pushing.fault_point("push:after-complete")
             except (RobocalError, OSError) as err:
-                self.store.audit(actor=actor, action="compensation.push-failed", campaign=cid,
-                                 checksum=table.checksum,
-                                 detail={"table_id": table_id, "error": str(err)})
                 await self.hub.reset(f"push failed: {err}")
                 raise
-            self.store.record_push(action="push", table_id=table_id, campaign=cid, actor=actor,
-                                   checksum=table.checksum,
-                                   detail={"kind": table.kind, "model": model,
-                                           "model_id": cal.model_id})
-            self._transition(cid, S.PUSHED, actor=actor,
-                             reason=f"{table.kind} table {table.checksum[:12]} pushed")
-        self.events.emit("compensation", cid, action="push", checksum=table.checksum)
+        self.events.emit("compensation", cid, action="push", checksum=table.checksum, key=key)
+        _log.info("compensation pushed", campaign=cid, key=key, **summary)
+        self._spawn_verify(key)
         return self.status(cid)
 
-    async def _baseline(self, robot: object, actor: str) -> None:
-        """Keep whatever the controller holds before the first push (to restore it later)."""
-        read = getattr(robot, "read_compensation", None)
-        if read is None:
-            return
-        current = await read()
-        if current is None:
-            return
-        tid = self.store.add_table(campaign=None, origin="controller", kind=current.kind,
-                                   checksum=current.checksum or current.compute_checksum(),
-                                   table_json=current.model_dump_json())
-        self.store.record_push(action="baseline", table_id=tid, campaign=None, actor=actor,
-                               checksum=current.checksum, detail={"note": "read before push"})
+    async def _undo(self, robot: object, key: str, actor: str, reason: str) -> None:
+        """After a failed or unfinished write: put back what the slots held, abandon ``key``.
 
-    async def rollback(self, *, actor: str) -> dict[str, Any]:
-        """Restore the table active before the current one (written, read back, verified).
+        Never writes the journaled table again; writes the previous values only when the
+        controller holds something else.
+        """
+        e = self.journal.get(key)
+        prior: CompensationTable | ControllerSnapshot | None = None
+        if e.action == "push":
+            if e.baseline_id is not None:
+                prior = self._entry(e.baseline_id)
+            else:
+                stack = self.store.table_stack()
+                prior = self._entry(stack[-1]) if stack else None
+        elif e.rolled_back_id is not None:
+            prior = self._entry(e.rolled_back_id)
+        outcome = reason
+        try:
+            if prior is not None and not await pushing.holds(robot, prior):
+                await pushing.restore(robot, prior)
+                outcome += "; the previous values were written back and verified"
+            else:
+                outcome += "; the controller holds the previous values"
+        except (RobocalError, OSError) as err:
+            outcome += f"; restoring the previous values failed too: {err}"
+        self.journal.abandon(key, actor=actor, reason=outcome, what="failed")
+
+    async def reconcile(self) -> builtins.list[dict[str, Any]]:
+        """Settle journal entries left ``intended`` by a crash, by reading the controller."""
+        async with self._push_lock:
+            return await self._reconcile_locked()
+
+    async def _reconcile_locked(self) -> builtins.list[dict[str, Any]]:
+        out = []
+        for e in self.journal.pending():
+            target = self._entry(e.table_id)
+            try:
+                async with self.hub.lock:
+                    robot = await self.hub.robot()
+                    if await pushing.holds(robot, target):
+                        done = self.journal.complete(
+                            e.key, actor=e.actor,
+                            outcome="reconciled after a restart: the controller holds it",
+                            extra={"reconciled_by": "daemon"})
+                        self._spawn_verify(e.key)
+                    else:
+                        await self._undo(robot, e.key, "daemon",
+                                         "interrupted before the write was confirmed")
+                        done = self.journal.get(e.key)
+            except (RobocalError, OSError) as err:
+                _log.warning("push journal not reconciled", key=e.key, error=str(err))
+                await self.hub.reset(f"reconcile failed: {err}")
+                continue
+            _log.info("push journal reconciled", key=e.key, state=done.state,
+                      outcome=done.outcome)
+            self.events.emit("compensation", e.campaign, action=f"{e.action}-reconciled",
+                             key=e.key, state=done.state)
+            out.append(done.to_json())
+        return out
+
+    async def rollback(self, *, actor: str, reason: str = "", key: str | None = None
+                       ) -> dict[str, Any]:
+        """Restore the table (or the controller's original values) active before the current
+        one: journaled like a push, written, read back, verified, then measured again.
 
         Raises
         ------
@@ -493,38 +639,242 @@ class CalibrationService:
         """
         async with self._push_lock:
             self._ensure_idle()
+            await self._reconcile_locked()
+            if self.journal.pending():
+                raise CompensationError("an earlier push could not be reconciled with the "
+                                        "controller yet; nothing written")
             stack = self.store.table_stack()
             if len(stack) < 2:
                 raise CompensationError("no earlier compensation table to restore")
             current_id, previous_id = stack[-1], stack[-2]
-            table = self._table(previous_id)
-            table.verify()
+            entry = self._entry(previous_id)
+            if isinstance(entry, CompensationTable):
+                entry.verify()
+            # Re-measured afterwards: the restored table's own targets, or (restoring the
+            # controller's original) the rolled-back table's targets, now uncompensated.
+            source_id = previous_id if isinstance(entry, CompensationTable) else current_id
+            pushed = [j for j in self.journal.entries()
+                      if j.action == "push" and j.table_id == source_id]
+            program = pushed[-1].detail.get("program_q_deg") if pushed else None
+            model_campaign = self.store.table(source_id)["campaign"]
+            key = key or uuid.uuid4().hex
+            detail = {"reason": reason, "restored_table_id": previous_id,
+                      "rolled_back_table_id": current_id, "program_q_deg": program,
+                      "model_campaign": model_campaign,
+                      "restores": ("controller original" if isinstance(entry, ControllerSnapshot)
+                                   else f"{entry.kind} table")}
             try:
                 async with self.hub.lock:
                     robot = await self.hub.robot()
-                    await pushing.write_and_verify(robot, table)
+                    self.journal.intend(key=key, action="rollback", campaign=None, actor=actor,
+                                        table_id=previous_id, rolled_back_id=current_id,
+                                        detail=detail)
+                    pushing.fault_point("rollback:after-intent")
+                    try:
+                        await pushing.restore(robot, entry)
+                    except (RobocalError, OSError) as err:
+                        await self._undo(robot, key, actor, f"restore failed: {err}")
+                        raise
+                    pushing.fault_point("rollback:after-write")
+                    self.journal.complete(key, actor=actor)
+                    pushing.fault_point("rollback:after-complete")
             except (RobocalError, OSError) as err:
-                self.store.audit(actor=actor, action="compensation.rollback-failed",
-                                 checksum=table.checksum,
-                                 detail={"table_id": previous_id, "error": str(err)})
                 await self.hub.reset(f"rollback failed: {err}")
                 raise
-            self.store.record_push(action="rollback", table_id=current_id, campaign=None,
-                                   actor=actor, checksum=table.checksum,
-                                   detail={"restored_table_id": previous_id,
-                                           "rolled_back_table_id": current_id})
-        self.events.emit("compensation", None, action="rollback", checksum=table.checksum)
+        checksum = self.store.table(previous_id)["checksum"]
+        self.events.emit("compensation", None, action="rollback", checksum=checksum, key=key)
+        self._spawn_verify(key)
         return self.compensation()
 
+    # --- verification runs: the pushed targets measured again ----------------------------------
+    def _spawn_verify(self, key: str) -> None:
+        if key in self._verify_tasks and not self._verify_tasks[key].done():
+            return
+        task = asyncio.create_task(self._verify(key), name=f"verify-{key}")
+        self._verify_tasks[key] = task
+
+    async def wait_verification(self, key: str, *, timeout: float) -> dict[str, Any] | None:
+        """Wait (at most ``timeout`` s) for the verification run of ``key``; return it."""
+        task = self._verify_tasks.get(key)
+        if task is not None:
+            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(asyncio.shield(task), timeout)
+        return self.journal.verification(key)
+
+    async def _verify(self, key: str) -> None:
+        try:
+            v = self.journal.verification(key)
+            if v is None:
+                if not await self._start_verification(key):
+                    return
+                v = self.journal.verification(key)
+            if v is not None and v["state"] == "measuring":
+                await self._finish_verification(key)
+        except asyncio.CancelledError:
+            raise
+        except Exception as err:  # a verification bug must not take the daemon down
+            _log.exception("verification failed", key=key)
+            with contextlib.suppress(Exception):
+                self.journal.set_verification(key, state="failed",
+                                              result={"reason": f"{type(err).__name__}: {err}"})
+
+    async def _start_verification(self, key: str) -> bool:
+        e = self.journal.get(key)
+        count = self.config.compensation.verify_count
+        program = e.detail.get("program_q_deg")
+        entry = self._entry(e.table_id)
+        skip = None
+        if count <= 0:
+            skip = "verification disabled (compensation.verify_count = 0)"
+        elif not program:
+            skip = "no program targets recorded for this push"
+        elif isinstance(entry, CompensationTable) and entry.kind == "frames":
+            skip = ("a frames table changes the frames Cartesian programs use; measuring "
+                    "joint targets again would not test it")
+        if skip is not None:
+            self.journal.set_verification(key, state="skipped", result={"reason": skip})
+            return False
+        q_program = np.radians(np.asarray(program, dtype=float))
+        q_cmd, compensated = pushing.commanded_joints(entry, q_program)
+        rows = ([i for i in range(len(q_program)) if compensated[i]]
+                if isinstance(entry, CompensationTable) else list(range(len(q_program))))
+        idx = [rows[k] for k in pushing.verification_indices(len(rows), count)]
+        q_deg: builtins.list[builtins.list[float]] = []
+        purposes: builtins.list[str] = []
+        for i in idx:
+            q_deg += [np.degrees(q_program[i]).tolist(), np.degrees(q_cmd[i]).tolist()]
+            purposes += ["verify-before", "verify-after"]
+        doc = plan_from_poses(q_deg, purposes=purposes, robot=self.robot.name)
+        model_campaign = e.campaign or e.detail.get("model_campaign")
+        try:
+            vst = await self.create(parse_plan(doc, source="verification", strict=False),
+                                    actor="daemon", name=f"verify {e.action} {key[:12]}",
+                                    measure_only=True)
+        except RobocalError as err:
+            self.journal.set_verification(key, state="skipped",
+                                          result={"reason": f"not measured: {err}"})
+            return False
+        self.journal.set_verification(key, state="measuring", campaign=vst["id"],
+                                      result={"indices": idx, "model_campaign": model_campaign,
+                                              "action": e.action})
+        return True
+
+    async def _finish_verification(self, key: str) -> None:
+        v = self.journal.verification(key)
+        if v is None or not v.get("campaign"):
+            return
+        vcid = str(v["campaign"])
+        st = await self.wait(vcid, ["measured", "faulted"], timeout=24 * 3600.0)
+        if st["state"] != "measured":
+            self.journal.set_verification(
+                key, state="failed",
+                result={"reason": f"verification campaign {vcid} {st['state']}: "
+                                  f"{st['reason']}"})
+            return
+        e = self.journal.get(key)
+        cal = self.fitted_model(str(v["model_campaign"]))
+        q_program = np.radians(np.asarray(e.detail["program_q_deg"], dtype=float))
+        idx = [int(i) for i in v["indices"]]
+        rows = {m.pose_idx: m for m in self.store.measurements(vcid)}
+        p_before = np.array([rows[2 * k].p_mm for k in range(len(idx))]) * 1e-3
+        p_after = np.array([rows[2 * k + 1].p_mm for k in range(len(idx))]) * 1e-3
+        p_ideal = pushing.ideal_positions(cal, q_program[idx])
+        before = pushing.verification_errors(p_ideal, p_before)
+        after = pushing.verification_errors(p_ideal, p_after)
+        per_target = [{"index": i,
+                       "before_mm": round(float(np.linalg.norm(p_before[k] - p_ideal[k]) * 1e3),
+                                          5),
+                       "after_mm": round(float(np.linalg.norm(p_after[k] - p_ideal[k]) * 1e3),
+                                         5)}
+                      for k, i in enumerate(idx)]
+        result = {"before": before, "after": after, "per_target": per_target}
+        self.journal.set_verification(key, state="done", result=result)
+        self.store.audit(actor="daemon", action=f"compensation.{e.action}-verified",
+                         campaign=e.campaign,
+                         detail={"key": key, "verification_campaign": vcid,
+                                 "before_rms_mm": before.get("rms_mm"),
+                                 "after_rms_mm": after.get("rms_mm"), "n": after.get("n")})
+        self.events.emit("compensation", e.campaign, action="verified", key=key,
+                         before_rms_mm=before.get("rms_mm"), after_rms_mm=after.get("rms_mm"))
+        _log.info("compensation verified", key=key, before_rms_mm=before.get("rms_mm"),
+                  after_rms_mm=after.get("rms_mm"))
+        if e.campaign is not None and e.action == "push":
+            self._write_compensation_report(e.campaign)
+
+    def _write_compensation_report(self, cid: str) -> None:
+        """Add the compensation record to the campaign's report files (best effort)."""
+        out_dir = self._campaign_dir(cid)
+        try:
+            from robocal.report import add_compensation_section
+
+            add_compensation_section(out_dir, self.campaign_compensation(cid))
+        except (ImportError, RobocalError, OSError, ValueError) as err:
+            _log.warning("report not updated with the compensation", campaign=cid,
+                         error=str(err))
+
+    def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
+        """The pushes of ``cid``: journal state, table description, verification run."""
+        out = []
+        for e in self.journal.entries(campaign=cid):
+            row = self.store.table(e.table_id)
+            d = {k: v for k, v in e.detail.items() if k != "program_q_deg"}
+            out.append({"key": e.key, "action": e.action, "state": e.state, "actor": e.actor,
+                        "at": e.finished_at or e.intended_at, "outcome": e.outcome,
+                        "checksum": row["checksum"], "table_id": e.table_id, **d,
+                        "verification": self.journal.verification(e.key)})
+        return out
+
+    @staticmethod
+    def _push_summary(entries: builtins.list[dict[str, Any]]) -> dict[str, Any] | None:
+        """The campaign's last completed push in a few numbers (None if never pushed)."""
+        done = [e for e in entries if e["action"] == "push" and e["state"] == "completed"]
+        if not done:
+            return None
+        e = done[-1]
+        v = e.get("verification") or {}
+        return {"key": e["key"], "at": e["at"], "actor": e["actor"], "model": e.get("model"),
+                "kind": e.get("kind"), "checksum": e["checksum"],
+                "predicted_rms_mm": e.get("predicted_residual_mm"),
+                "nominal_rms_mm": e.get("nominal_residual_mm"), "forced": e.get("forced"),
+                "verification": v.get("state"),
+                "measured_before_rms_mm": (v.get("before") or {}).get("rms_mm"),
+                "measured_after_rms_mm": (v.get("after") or {}).get("rms_mm"),
+                "measured_n": (v.get("after") or {}).get("n")}
+
     def compensation(self) -> dict[str, Any]:
-        """The active table and the push history."""
+        """The active table (described) and the push history with verification runs."""
         stack = self.store.table_stack()
         active = None
         if stack:
             t = self.store.table(stack[-1])
             active = {"table_id": t["id"], "kind": t["kind"], "checksum": t["checksum"],
                       "campaign": t["campaign"], "origin": t["origin"]}
-        return {"active": active, "stack": stack, "history": self.store.pushes()}
+            entry = self._entry(stack[-1])
+            if isinstance(entry, CompensationTable):
+                active.update({k: v for k, v in describe_table(entry).items()
+                               if k not in ("kind", "checksum")})
+            else:
+                active["purpose"] = "the controller's own values from before robocal's first push"
+        journal = self.journal.entries()
+        by_table: dict[tuple[str, int | None], JournalEntry] = {}
+        for j in journal:
+            if j.state == "completed":
+                by_table[(j.action, j.rolled_back_id if j.action == "rollback"
+                          else j.table_id)] = j
+        history = []
+        for h in self.store.pushes():
+            hj = by_table.get((str(h["action"]), int(h["table_id"])))
+            if hj is not None:
+                h = {**h, "key": hj.key,
+                     **{k: hj.detail.get(k) for k in ("predicted_residual_mm",
+                                                      "nominal_residual_mm", "forced",
+                                                      "refusal", "reason")},
+                     "verification": self.journal.verification(hj.key)}
+            history.append(h)
+        return {"active": active, "stack": stack, "history": history,
+                "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()
+                                                        if k != "program_q_deg"}}
+                            for j in journal[-50:]]}
 
     def audit(self, *, limit: int = 1000) -> builtins.list[dict[str, Any]]:
         """The audit log (most recent ``limit`` entries)."""

@@ -387,8 +387,13 @@ class Store:
         actor: str,
         reason: str = "",
         only_from: Sequence[CampaignState] | None = None,
+        selected_model: str | None = None,
+        audit: tuple[str, dict[str, Any]] | None = None,
     ) -> CampaignRecord:
         """Move ``cid`` to state ``to`` atomically, checking the transition table.
+
+        ``selected_model`` (when given) and the ``audit`` entry ``(action, detail)`` are
+        stored in the same transaction, so an operator action is all there or not at all.
 
         Raises
         ------
@@ -413,6 +418,11 @@ class Store:
                 "VALUES(?,?,?,?,?,?)",
                 (cid, t, src.value, to.value, reason, actor),
             )
+            if selected_model is not None:
+                db.execute("UPDATE campaigns SET selected_model=? WHERE id=?",
+                           (selected_model, cid))
+            if audit is not None:
+                self._audit(db, actor, audit[0], cid, None, audit[1])
         return self.campaign(cid)
 
     def transitions(self, cid: str) -> list[dict[str, Any]]:

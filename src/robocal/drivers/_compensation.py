@@ -1,13 +1,18 @@
-"""Comparison of compensation tables for write-then-read-back verification."""
+"""Comparison of compensation tables for write-then-read-back verification, and snapshots of
+what a controller held before robocal wrote to it."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
-from typing import Any
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.compensation import CompensationTable
 
-__all__ = ["table_diff"]
+__all__ = ["ControllerSnapshot", "snapshot_diff", "table_diff"]
 
 
 def _walk(path: str, a: Any, b: Any, tol: float, out: list[str]) -> None:
@@ -55,4 +60,35 @@ def table_diff(
     b = {k: v for k, v in read.model_dump(mode="json").items() if k not in ignore}
     out: list[str] = []
     _walk("table", a, b, tol, out)
+    return out
+
+
+class ControllerSnapshot(BaseModel):
+    """What a controller held in the places a compensation table is written to, verbatim.
+
+    Read *before* robocal first writes there, so a rollback can put the controller's own
+    values back even though they were never a robocal table (FANUC user/tool frames and
+    position registers, the PLC's table registers). ``items`` maps a driver-specific slot
+    name (``"uframe:1"``, ``"pr:7"``, ``"hr:100"``) to the values read there; ``covers``
+    is the table kind whose slots were read.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    format: Literal["robocal.controller-snapshot/1"] = "robocal.controller-snapshot/1"
+    driver: str
+    covers: Literal["targets", "joint", "frames"]
+    items: dict[str, Any] = Field(default_factory=dict)
+
+    def checksum(self) -> str:
+        """SHA-256 of the canonical JSON (identifies the snapshot in the audit log)."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def snapshot_diff(expected: ControllerSnapshot, read: ControllerSnapshot, *,
+                  tol: float = 1e-3) -> list[str]:
+    """Readable differences between two snapshots of the same slots (empty when equal)."""
+    out: list[str] = []
+    _walk("snapshot", expected.items, read.items, tol, out)
     return out

@@ -27,7 +27,7 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import table_diff
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import JointReading, check_joint_target
 from robocal.errors import (
     CompensationError,
@@ -49,6 +49,9 @@ __all__ = ["FanucRmiOptions", "FanucRmiRobot"]
 
 MIN_MAJOR_VERSION = 6
 _SEQUENCE_ERRORS = frozenset({rmi.rmit(24), rmi.rmit(28), rmi.rmit(29)})
+#: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
+#: connect timeout).
+_SESSION_PORT_ATTEMPTS = 8
 
 
 class FanucRmiOptions(RobotOptions):
@@ -150,10 +153,18 @@ class FanucRmiRobot(RobotDriverBase):
                 kind=self.kind,
             )
         self.session_port = reply.get_int("PortNumber")
-        main = TcpTransport(o.host, self.session_port)
-        await main.open(timeout=max(0.1, deadline - time.monotonic()))
+        main = await self._open_session_port(self.session_port, deadline)
         self._stream = LineStream(main, max_length=rmi.MAX_LINE)
         self._reader = asyncio.create_task(self._read_loop(self._stream), name="rmi-reader")
+        # FANUC's reference sequence: GetStatus, Reset (clears a resettable alarm and HOLD),
+        # GetStatus again, then Initialize.
+        status = await self._command("FRC_GetStatus")
+        if _int_or(status.body.get("RMIMotionStatus"), 0):
+            # An earlier session left RMI running: abort it first.
+            await self._command("FRC_Abort", check=False)
+        reset = await self._command("FRC_Reset", check=False)
+        if reset.error_id:
+            self.log.warning("FRC_Reset refused", error=rmi.describe_error(reset.error_id))
         status = await self._command("FRC_GetStatus")
         self.log.info(
             "rmi session",
@@ -162,6 +173,11 @@ class FanucRmiRobot(RobotDriverBase):
             servo_ready=status.body.get("ServoReady"),
             tp_mode=status.body.get("TPMode"),
         )
+        if _int_or(status.body.get("TPMode"), 0):
+            raise ConnectFailed(
+                "the teach pendant is enabled: disable it (AUTO mode) and connect again",
+                kind=self.kind,
+            )
         init = await self._command("FRC_Initialize", check=False, GroupMask=1 << (o.group - 1))
         if init.error_id == rmi.rmit(15):
             # An earlier session left RMI running: abort it and initialise afresh.
@@ -174,12 +190,40 @@ class FanucRmiRobot(RobotDriverBase):
                 kind=self.kind,
             )
         if init.error_id:
+            alarm = ""
+            with contextlib.suppress(Exception):
+                alarm = f"; controller alarm: {await self.read_error()}"
             raise ConnectFailed(
-                f"FRC_Initialize refused: {rmi.describe_error(init.error_id)}", kind=self.kind
+                f"FRC_Initialize refused: {rmi.describe_error(init.error_id)}{alarm}",
+                kind=self.kind,
             )
-        self._next_seq = 1
+        # Newer controllers keep NextSequenceID across FRC_Initialize and drop stale IDs
+        # silently, so continue from what the controller expects rather than from 1.
+        after = await self._command("FRC_GetStatus")
+        nxt = _int_or(after.body.get("NextSequenceID"), 0)
+        self._next_seq = nxt if 1 <= nxt <= rmi.MAX_SEQUENCE_ID else 1
         if o.override_pct is not None:
             await self._command("FRC_SetOverRide", Value=o.override_pct)
+
+    async def _open_session_port(self, port: int, deadline: float) -> TcpTransport:
+        """Connect to the session port, retrying with back-off: it may not listen at once."""
+        delay = 0.02
+        for attempt in range(1, _SESSION_PORT_ATTEMPTS + 1):
+            main = TcpTransport(self.options.host, port)
+            try:
+                await main.open(timeout=max(0.1, deadline - time.monotonic()))
+                return main
+            except TransportError as err:
+                remaining = deadline - time.monotonic()
+                if attempt == _SESSION_PORT_ATTEMPTS or remaining <= delay:
+                    raise ConnectFailed(
+                        f"session port {port} not listening after {attempt} attempts: {err}",
+                        kind=self.kind,
+                    ) from err
+                self.log.info("session port not listening yet; retrying", delay_s=delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 0.5)
+        raise AssertionError("unreachable")  # pragma: no cover
 
     async def _read_packet(self, stream: LineStream, name: str, deadline: float) -> rmi.Packet:
         """Read until the packet ``name`` arrives, skipping garbage; bounded by ``deadline``."""
@@ -567,12 +611,92 @@ class FanucRmiRobot(RobotDriverBase):
         """Return the last table written in this session, its numbers re-read from the controller.
 
         RMI has nowhere to keep a table's metadata, so without a table written in this session
-        there is nothing to read and the result is None.
+        there is nothing to read and the result is None (see :meth:`read_compensation_like`).
         """
         self._live_stream()
         table = self._last_table
         if table is None:
             return None
+        return await self.read_compensation_like(table)
+
+    async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
+        """Read what the controller holds in the frames / registers ``table`` would write.
+
+        Kept by the daemon before its first write, so a rollback restores the controller's
+        own values (position registers with their configuration, user and tool frames).
+        """
+        self._live_stream()
+        o = self.options
+        items: dict[str, Any] = {}
+        if table.kind == "frames":
+            uf = await self._command(
+                "FRC_ReadUFrameData", FrameNumber=o.uframe_number, Group=o.group
+            )
+            ut = await self._command("FRC_ReadUToolData", ToolNumber=o.utool_number, Group=o.group)
+            items[f"uframe:{o.uframe_number}"] = list(rmi.parse_frame(uf.body))
+            items[f"utool:{o.utool_number}"] = list(rmi.parse_frame(ut.body))
+        elif table.kind == "targets":
+            for r in table.targets or []:
+                if r.status != "ok":
+                    continue
+                if not 0 <= r.index < o.pr_count:
+                    raise CompensationError(f"target index {r.index} outside the "
+                                            f"{o.pr_count} configured position registers")
+                n = o.pr_base + r.index
+                pr = await self._command("FRC_ReadPositionRegister", RegisterNumber=n,
+                                         Group=o.group)
+                config = pr.body.get("Configuration")
+                items[f"pr:{n}"] = {
+                    "position": list(rmi.parse_frame(pr.body, "Position")),
+                    "configuration": dict(config) if isinstance(config, Mapping) else {},
+                }
+        else:
+            raise CompensationError(
+                f"{self.kind} stores only 'frames' and 'targets' tables, not {table.kind!r}"
+            )
+        return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
+
+    async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
+        """Write a snapshot's values back, read them again and compare.
+
+        Raises
+        ------
+        VerificationMismatch
+            The controller holds different values afterwards.
+        """
+        self._live_stream()
+        o = self.options
+        for key, value in snapshot.items.items():
+            slot, _, num = key.partition(":")
+            n = int(num)
+            if slot in ("uframe", "utool"):
+                frame = rmi.frame_fields(*value)
+                if slot == "uframe":
+                    await self._command("FRC_WriteUFrameData", FrameNumber=n, Frame=frame,
+                                        Group=o.group)
+                else:
+                    await self._command("FRC_WriteUToolData", ToolNumber=n, Frame=frame,
+                                        Group=o.group)
+            elif slot == "pr":
+                await self._command(
+                    "FRC_WritePositionRegister", RegisterNumber=n,
+                    Configuration=dict(value["configuration"]),
+                    Position=rmi.frame_fields(*value["position"]), Group=o.group,
+                )
+            else:
+                raise CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
+        self._last_table = None
+        dummy = _snapshot_template(snapshot, o.pr_base)
+        back = await self.snapshot_compensation(dummy)
+        diff = snapshot_diff(snapshot, back, tol=self.options.verify_tol)
+        if diff:
+            raise VerificationMismatch(
+                f"restored values read back differ: {diff[0]}", kind=self.kind, diff=diff
+            )
+
+    async def read_compensation_like(self, table: CompensationTable) -> CompensationTable:
+        """``table`` with its numbers replaced by what the controller holds in its slots."""
+        self._live_stream()
         o = self.options
         if table.kind == "frames":
             uf = await self._command(
@@ -596,6 +720,19 @@ class FanucRmiRobot(RobotDriverBase):
             update = {"targets": rows}
         back = table.model_copy(update=update)
         return back.model_copy(update={"checksum": back.compute_checksum()})
+
+
+def _snapshot_template(snapshot: ControllerSnapshot, pr_base: int) -> CompensationTable:
+    """A table whose slots are the snapshot's (to read the same slots again)."""
+    common: dict[str, Any] = {"model_id": "snapshot", "robot": "", "valid_range_deg": [],
+                              "predicted_residual_mm": 0.0}
+    if snapshot.covers == "frames":
+        zero = Frame(x=0.0, y=0.0, z=0.0, w=0.0, p=0.0, r=0.0)
+        return CompensationTable(kind="frames", frames=FramesPayload(base=zero, tool=zero),
+                                 **common)
+    rows = [TargetRow(index=int(k.partition(":")[2]) - pr_base, q_deg=[0.0], status="ok",
+                      model_residual_mm=0.0) for k in snapshot.items]
+    return CompensationTable(kind="targets", targets=rows, **common)
 
 
 def _int_or(value: Any, default: int) -> int:

@@ -17,9 +17,9 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
-from robocal.compensation import CompensationTable
+from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
-from robocal.drivers._compensation import table_diff
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import JointReading, TrackerReading
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
 from robocal.errors import (
@@ -63,6 +63,12 @@ class MockTrackerOptions(_WorldOptions):
     unstable_rate: float = Field(default=0.0, ge=0.0, le=1.0)
     fault_seed: int = 0
     measure_time_s: float = Field(default=0.0, ge=0.0)
+
+
+_ZERO_FRAME = Frame(x=0.0, y=0.0, z=0.0, w=0.0, p=0.0, r=0.0)
+_EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
+                                  valid_range_deg=[], predicted_residual_mm=0.0,
+                                  frames=FramesPayload(base=_ZERO_FRAME, tool=_ZERO_FRAME))
 
 
 class MockRobot(RobotDriverBase):
@@ -191,6 +197,29 @@ class MockRobot(RobotDriverBase):
         if self._stored is None:
             return None
         return CompensationTable.model_validate_json(self._stored)
+
+    async def read_compensation_like(self, table: CompensationTable) -> CompensationTable | None:
+        """The stored table (the mock keeps whole tables, so the slots are the table)."""
+        return await self.read_compensation()
+
+    async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
+        """What the mock holds before a write (``None`` when it holds no table)."""
+        self._ensure_connected()
+        return ControllerSnapshot(driver=self.kind, covers=table.kind,
+                                  items={"table": self._stored})
+
+    async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
+        """Put a snapshot back and verify it."""
+        self._ensure_connected()
+        stored = snapshot.items.get("table")
+        self._stored = stored if isinstance(stored, str) else None
+        back = await self.snapshot_compensation(
+            CompensationTable.model_validate_json(stored) if isinstance(stored, str)
+            else _EMPTY_FRAMES)
+        diff = snapshot_diff(snapshot.model_copy(update={"covers": back.covers}), back)
+        if diff:
+            raise VerificationMismatch(f"restored table differs: {diff[0]}", kind=self.kind,
+                                       diff=diff)
 
 
 class MockTracker(DriverBase):

@@ -31,7 +31,7 @@ from pydantic import Field, model_validator
 
 from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import table_diff
+from robocal.drivers._compensation import ControllerSnapshot, table_diff
 from robocal.drivers.api import JointReading, check_joint_target
 from robocal.errors import (
     CompensationError,
@@ -534,3 +534,64 @@ class ModbusPlcRobot(RobotDriverBase):
                     )
                 words = await client.read_holding(m.table, total)
         return self._table_from_block(mb.decode_table_block(words, m.word_order))
+
+    async def read_compensation_like(self, table: CompensationTable) -> CompensationTable | None:
+        """The table in the PLC's block (the block carries the whole table)."""
+        return await self.read_compensation()
+
+    async def _table_words(self) -> list[int]:
+        """The table block's registers: the whole block, or its header when there is none."""
+        client = self._live_client()
+        m = self.options.register_map
+        async with self._op_lock:
+            with self.translate_errors():
+                header = await client.read_holding(m.table, mb.TABLE_HEADER_WORDS)
+                if header[0] != mb.TABLE_MAGIC:
+                    return header
+                try:
+                    total = mb.table_block_length(header, m.word_order)
+                except FramingError:
+                    return header
+                total = min(max(total, mb.TABLE_HEADER_WORDS), m.table_words)
+                return await client.read_holding(m.table, total)
+
+    async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
+        """The PLC's table registers as they are, before robocal writes its block there."""
+        words = await self._table_words()
+        m = self.options.register_map
+        return ControllerSnapshot(driver=self.kind, covers=table.kind,
+                                  items={f"hr:{m.table}": words})
+
+    async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
+        """Write the saved registers back (applied again when they hold a table block).
+
+        A PLC block without robocal's magic word is restored as raw registers: the PLC
+        program then finds no table there, as before the first push.
+
+        Raises
+        ------
+        VerificationMismatch
+            The registers read back differ, or the PLC refuses the restored block.
+        """
+        m = self.options.register_map
+        words = [int(w) for w in snapshot.items.get(f"hr:{m.table}", [])]
+        if not words or len(words) > m.table_words:
+            raise CompensationError(f"snapshot holds no {self.kind} table registers")
+        if words[0] == mb.TABLE_MAGIC:
+            await self._command(
+                mb.Cmd.APPLY_TABLE, [(m.table, words)], self.options.request_timeout_s * 4
+            )
+        else:
+            client = self._live_client()
+            async with self._op_lock:
+                with self.translate_errors():
+                    await client.write_registers(m.table, words)
+        client = self._live_client()
+        async with self._op_lock:
+            with self.translate_errors():
+                back = await client.read_holding(m.table, len(words))
+        diff = [f"register {m.table + i}: wrote {a}, read {b}"
+                for i, (a, b) in enumerate(zip(words, back, strict=True)) if a != b]
+        if diff:
+            raise VerificationMismatch(f"restored registers differ: {diff[0]}", kind=self.kind,
+                                       diff=diff[:20])

@@ -16,7 +16,27 @@ from robocal.errors import (
     InvalidTransition,
     VerificationMismatch,
 )
+from robocal.daemon._plan import parse_plan, plan_from_poses
+from robocal.kinematics import load_robot
 from tests.unit.daemon.conftest import ROBOT, random_plan
+
+
+def program_plan(n: int, *, seed: int = 0, validation: int = 10):
+    """Random poses with the wrist at least 20 deg from its singularity (|J5| >= 20 deg).
+
+    A production program keeps away from it; at J5 = 0 the 6-D compensation of a target
+    turns J4 and J6 by tens of degrees, which the correction bound rightly refuses.
+    """
+    import numpy as np
+
+    robot = load_robot(ROBOT)
+    rng = np.random.default_rng(seed)
+    lim = np.degrees(robot.joint_limits)
+    q = rng.uniform(lim[:, 0] + 10, lim[:, 1] - 10, (4 * n, robot.dof))
+    q = q[np.abs(q[:, 4]) >= 20.0][:n]
+    purposes = ["calibration" if i < n - validation else "validation" for i in range(n)]
+    return parse_plan(plan_from_poses(q.tolist(), robot=ROBOT, purposes=purposes),
+                      source="test", strict=False)
 
 
 @pytest.fixture
@@ -42,7 +62,7 @@ def _unique(svc, cid):
 
 
 async def test_campaign_runs_fits_and_pushes_after_approval(service):
-    svc = await service()
+    svc = await service(limits={"max_joint_correction_deg": 5.0})
     st = await svc.create(random_plan(24, validation=4, via_every=5), actor="alice")
     cid = st["id"]
     assert st["state"] == "running" and st["poses_total"] == 24
@@ -58,7 +78,7 @@ async def test_campaign_runs_fits_and_pushes_after_approval(service):
     st = await svc.push(cid, actor="bob")
     assert st["state"] == "pushed"
     comp = svc.compensation()
-    assert comp["active"]["kind"] == "frames" and comp["active"]["campaign"] == cid
+    assert comp["active"]["kind"] == "targets" and comp["active"]["campaign"] == cid
     robot = await svc.hub.robot()
     stored = await robot.read_compensation()
     assert stored is not None and stored.checksum == comp["active"]["checksum"]
@@ -68,25 +88,47 @@ async def test_campaign_runs_fits_and_pushes_after_approval(service):
     assert states == ["created", "running", "measured", "fitted", "approved", "pushed"]
 
 
-async def test_rollback_restores_the_previous_table(service):
-    svc = await service()
-    checksums = []
+async def test_rollback_restores_the_previous_table_then_the_original_and_remeasures(service):
+    svc = await service(limits={"max_joint_correction_deg": 5.0},
+                        compensation={"verify_count": 4})
+    checksums, keys = [], []
     for seed in (1, 2):
-        st = await svc.create(random_plan(20, seed=seed), actor="alice")
+        st = await svc.create(program_plan(40, seed=seed), actor="alice")
         st = await svc.wait(st["id"], ["fitted"], timeout=60)
         await svc.approve(st["id"], actor="alice")
-        await svc.push(st["id"], actor="alice")
+        st = await svc.push(st["id"], actor="alice")
+        keys.append(st["push"]["key"])
+        v = await svc.wait_verification(keys[-1], timeout=60)
+        assert v is not None and v["state"] == "done", v
+        # measured on the simulated robot: the pushed targets are far better than before
+        assert v["after"]["n"] == 4 and v["after"]["rms_mm"] < 0.6 * v["before"]["rms_mm"]
         checksums.append(svc.compensation()["active"]["checksum"])
     assert checksums[0] != checksums[1]
-    out = await svc.rollback(actor="carol")
+    robot = await svc.hub.robot()
+    out = await svc.rollback(actor="carol", reason="second fit suspect")
     assert out["active"]["checksum"] == checksums[0]
-    stored = await (await svc.hub.robot()).read_compensation()
-    assert stored.checksum == checksums[0]
+    assert (await robot.read_compensation()).checksum == checksums[0]
+    last = [a for a in svc.audit() if a["action"] == "compensation.rollback"][-1]
+    assert last["actor"] == "carol" and last["checksum"] == checksums[0]
+    assert last["detail"]["reason"] == "second fit suspect"
+    rb_key = last["detail"]["key"]
+    v = await svc.wait_verification(rb_key, timeout=60)
+    assert v is not None and v["state"] == "done" and v["after"]["n"] == 4
+    assert v["after"]["rms_mm"] < 0.6 * v["before"]["rms_mm"]
+    # rolling back the first push restores what the controller held before it: nothing
+    out = await svc.rollback(actor="carol")
+    assert out["active"]["kind"] == "snapshot" and out["active"]["origin"] == "controller"
+    assert await robot.read_compensation() is None
+    v = await svc.wait_verification(
+        [a for a in svc.audit() if a["action"] == "compensation.rollback"][-1]["detail"]["key"],
+        timeout=60)
+    # the original: the uncompensated program targets, measured again
+    assert v is not None and v["state"] == "done"
+    assert v["after"]["rms_mm"] == pytest.approx(v["before"]["rms_mm"], rel=0.05)
     with pytest.raises(CompensationError, match="no earlier"):
         await svc.rollback(actor="carol")
-    last = svc.audit()[-1]
-    assert last["action"] == "compensation.rollback" and last["actor"] == "carol"
-    assert last["checksum"] == checksums[0]
+    history = [h["action"] for h in svc.compensation()["history"]]
+    assert history == ["baseline", "push", "push", "rollback", "rollback"]
 
 
 async def test_pause_and_resume_keep_every_measurement_once(service):
@@ -190,19 +232,21 @@ async def test_plan_for_another_robot_is_refused(service):
 
 
 async def test_out_of_bounds_compensation_is_refused(service):
-    svc = await service(limits={"max_frame_translation_mm": 0.001})
+    svc = await service(limits={"max_frame_translation_mm": 0.001},
+                        compensation={"kind": "frames", "max_residual_ratio": 1.0})
     st = await svc.create(random_plan(20), actor="a")
     st = await svc.wait(st["id"], ["fitted"], timeout=60)
     await svc.approve(st["id"], actor="a")
     with pytest.raises(CompensationError, match="tool frame changes"):
-        await svc.push(st["id"], actor="a")
+        await svc.push(st["id"], actor="a", force=True)
     assert svc.store.campaign(st["id"]).state.value == "approved"
     assert await (await svc.hub.robot()).read_compensation() is None
 
 
 async def test_read_back_mismatch_is_reported_and_audited(service):
-    svc = await service(robot={"options": {"corrupt_readback": True}})
-    st = await svc.create(random_plan(20), actor="a")
+    svc = await service(robot={"options": {"corrupt_readback": True}},
+                        limits={"max_joint_correction_deg": 5.0})
+    st = await svc.create(program_plan(40), actor="a")
     st = await svc.wait(st["id"], ["fitted"], timeout=60)
     await svc.approve(st["id"], actor="a")
     with pytest.raises(VerificationMismatch):
@@ -212,16 +256,48 @@ async def test_read_back_mismatch_is_reported_and_audited(service):
     assert svc.compensation()["active"] is None
 
 
-@pytest.mark.parametrize("kind", ["targets", "joint"])
-async def test_other_table_kinds_push(service, kind):
-    svc = await service(compensation={"kind": kind},
-                        limits={"max_joint_correction_deg": 10.0})
-    st = await svc.create(random_plan(24, validation=4), actor="a")
+async def test_targets_table_is_the_default_and_pushes_the_program_targets(service):
+    svc = await service(limits={"max_joint_correction_deg": 5.0},
+                        compensation={"verify_count": 0})
+    st = await svc.create(program_plan(40), actor="a")
     st = await svc.wait(st["id"], ["fitted"], timeout=60)
     await svc.approve(st["id"], actor="a")
     st = await svc.push(st["id"], actor="a")
     assert st["state"] == "pushed"
     table = await (await svc.hub.robot()).read_compensation()
-    assert table.kind == kind
-    if kind == "targets":
-        assert len(table.targets) == 4 and all(r.status == "ok" for r in table.targets)
+    assert table.kind == "targets"
+    assert len(table.targets) == 10 and all(r.status == "ok" for r in table.targets)
+    push = st["push"]
+    assert push["kind"] == "targets" and push["checksum"] == table.checksum
+    # the comparison the gate made is stored with the push
+    assert push["predicted_rms_mm"] < 0.5 * push["nominal_rms_mm"]
+    assert push["nominal_rms_mm"] == pytest.approx(table.stats["nominal_residual_mm"], abs=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["joint", "frames"])
+async def test_a_table_that_does_not_improve_on_nominal_is_refused_unless_forced(service, kind):
+    svc = await service(compensation={"kind": kind, "verify_count": 0},
+                        limits={"max_joint_correction_deg": 10.0,
+                                "max_frame_translation_mm": 100.0,
+                                "max_frame_rotation_deg": 10.0})
+    st = await svc.create(program_plan(40), actor="a")
+    cid = st["id"]
+    st = await svc.wait(cid, ["fitted"], timeout=60)
+    await svc.approve(cid, actor="a")
+    table, desc = svc.build_push_table(cid)
+    # on this robot neither kind gets below half the nominal residual
+    assert desc["predicted_residual_mm"] >= 0.5 * desc["nominal_residual_mm"]
+    with pytest.raises(CompensationError, match="push refused.*not below 50%"):
+        await svc.push(cid, actor="a")
+    robot = await svc.hub.robot()
+    assert await robot.read_compensation() is None
+    assert svc.store.campaign(cid).state.value == "approved"
+    refused = svc.audit()[-1]
+    assert refused["action"] == "compensation.push-refused"
+    assert refused["detail"]["nominal_residual_mm"] == desc["nominal_residual_mm"]
+    st = await svc.push(cid, actor="a", force=True, reason="alignment only, known")
+    assert st["state"] == "pushed" and st["push"]["forced"] is True
+    done = [a for a in svc.audit() if a["action"] == "compensation.push"][-1]
+    assert done["detail"]["forced"] is True and "not below" in done["detail"]["refusal"]
+    assert done["detail"]["reason"] == "alignment only, known"
+    assert (await robot.read_compensation()).kind == kind
