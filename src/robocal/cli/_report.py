@@ -10,6 +10,7 @@ Writes ``report.html`` (self-contained) and ``report.json`` beside it, prints th
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -25,7 +26,8 @@ def register(sub: Any) -> None:
         "report", help="write the HTML calibration report (and a JSON summary)",
         description="Write a self-contained HTML calibration report and report.json beside "
                     "it. SOURCE is a MODEL.json file (richer with --data/--validate) or the id "
-                    "of a campaign in the daemon's store (found through --config).")
+                    "of a campaign in the daemon's store (found through --config). Exits 1 when "
+                    "the verdict is 'failed'.")
     p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID")
     p.add_argument("--out", default="report.html", metavar="report.html",
                    help="output page (default report.html); the JSON goes beside it")
@@ -115,7 +117,7 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
     from robocal.daemon.store import Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
-    from robocal.report import MeasurementLog, ModelEntry, ReportInput
+    from robocal.report import MeasurementLog, ReportInput, model_entry
 
     cfg = load_config(config)
     db = Path(cfg.db_path)
@@ -138,9 +140,13 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
         cm = CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid} / {name}")
         summ = summ if isinstance(summ, dict) else {}
         stored = {k: summ[k] for k in ("train", "validation") if isinstance(summ.get(k), dict)}
-        models[name] = ModelEntry(name, cm, tuple(str(o) for o in summ.get("outliers") or ()),
-                                  tuple(str(r) for r in (cm.fit or {}).get("removed") or ()),
-                                  str(summ.get("status", "")), stored or dict(cm.metrics))
+        # the same reading of MODEL.json as the daemon's own report (removed parameters,
+        # rank and singular values from the fit), with the store's summaries on top
+        base = model_entry(name, cm)
+        models[name] = dataclasses.replace(
+            base, outliers=tuple(str(o) for o in summ.get("outliers") or ()) or base.outliers,
+            status=str(summ.get("status", "")) or base.status,
+            stored=stored or dict(cm.metrics))
 
     def mset(sel: list[Any]) -> MeasurementSet | None:
         if not sel:
@@ -167,7 +173,10 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
         iso_set = MeasurementSet(np.radians(np.array([r.q_cmd_deg for r in iso_rows])),
                                  np.array([r.p_mm for r in iso_rows]) * 1e-3,
                                  pose_id=tuple(f"P{r.pose_idx:04d}" for r in iso_rows))
-    weather = [dict(r.weather) for r in rows if r.weather]
+    weather: list[dict[str, float]] = []
+    for r in rows:  # each change of the weather once, not a copy per pose
+        if r.weather and (not weather or weather[-1] != dict(r.weather)):
+            weather.append(dict(r.weather))
     log = MeasurementLog(planned=rec.poses_total, measured=len(rows),
                          retries=sum(max(0, r.attempts - 1) for r in rows),
                          beam_losses=sum(r.beam_losses for r in rows),
@@ -228,4 +237,5 @@ def run(args: argparse.Namespace) -> int:
     else:
         sys.stdout.write(f"{summary['verdict']['headline']}\nwrote {html_path} and "
                          f"{json_path}\n")
-    return 0
+    # scripts and CI gate on the exit code: a failed calibration is not a success
+    return 1 if summary["verdict"].get("outcome") == "failed" else 0

@@ -155,11 +155,18 @@ class FitConfig(_Model):
     timeout_s: float = Field(default=1800.0, gt=0.0)
     report: bool = True
     options: dict[str, Any] = Field(default_factory=dict)
+    #: The report's verdict thresholds for this cell (keys of :class:`robocal.report.Acceptance`,
+    #: e.g. ``max_rms_mm = 0.3``, ``min_percent_described = 70``).
+    acceptance: dict[str, float | None] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _check(self) -> FitConfig:
         if not self.models:
             raise ValueError("models must name at least one model")
+        if self.acceptance:  # imported only when used: the report package is not small
+            from robocal.report import Acceptance
+
+            Acceptance.from_mapping(self.acceptance)
         if self.select != "best" and self.select not in self.models:
             raise ValueError(f"select={self.select!r} is not among models {list(self.models)}")
         return self

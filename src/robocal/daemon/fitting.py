@@ -74,9 +74,11 @@ def fit_options(options: Mapping[str, Any] | None) -> Any:
 def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[MeasurementRow],
                   models: Sequence[str], cpa: bool, out_dir: Path | None, report: bool,
                   log: Mapping[str, Any] | None = None,
-                  options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                  options: Mapping[str, Any] | None = None,
+                  acceptance: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Plain-data description of one campaign's fit (picklable)."""
     return {
+        "acceptance": dict(acceptance or {}),
         "options": dict(options or {}),
         "campaign": campaign,
         "robot": robot.to_dict(),
@@ -251,46 +253,27 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
 def _write_report(job: Mapping[str, Any], robot: RobotDescription, results: dict[str, Any],
                   train: MeasurementSet, validation: MeasurementSet | None,
                   out_dir: Path) -> dict[str, Any]:
-    """Call ``robocal.report.write_report`` if it exists; otherwise say why not."""
+    """Write ``report.html`` and ``report.json`` into ``out_dir``; a failure is reported, not
+    raised (the fit stands without its report)."""
+    from robocal.report import Acceptance, MeasurementLog, ReportInput, write_report
+
     try:
-        from robocal import report as report_pkg
-    except ImportError as err:  # pragma: no cover
-        return {"skipped": f"robocal.report cannot be imported: {err}"}
-    write_report = getattr(report_pkg, "write_report", None)
-    report_input = getattr(report_pkg, "ReportInput", None)
-    if write_report is None or report_input is None:
-        reason = "robocal.report.write_report is not available"
-        _log.info("report skipped", reason=reason)
-        return {"skipped": reason}
-    log = dict(job.get("log") or {})
-    try:
-        kwargs: dict[str, Any] = {"models": results, "calibration": train,
-                                  "validation": validation, "robot": robot,
-                                  "campaign_id": str(job.get("campaign", ""))}
-        log_cls = getattr(report_pkg, "MeasurementLog", None)
-        if log_cls is not None and log:
-            kwargs["log"] = log_cls.from_mapping(log)
-        if job.get("selected") and job["selected"] in results:
-            kwargs["selected"] = job["selected"]
         iso_rows = [r for r in _rows(job) if r.purpose.startswith("iso-")]
-        if iso_rows:
-            kwargs["iso_measurements"] = measurement_set(iso_rows, commanded=True)
-            kwargs["iso_purposes"] = [r.purpose for r in iso_rows]
-        inp = report_input(**kwargs)
-        written = write_report(inp, out_dir)
+        selected = job.get("selected")
+        inp = ReportInput(
+            models=results, calibration=train, validation=validation, robot=robot,
+            campaign_id=str(job.get("campaign", "")),
+            log=MeasurementLog.from_mapping(job["log"]) if job.get("log") else None,
+            selected=selected if selected in results else None,
+            iso_measurements=measurement_set(iso_rows, commanded=True) if iso_rows else None,
+            iso_purposes=[r.purpose for r in iso_rows],
+            acceptance=Acceptance.from_mapping(job.get("acceptance") or None))
+        html_path, json_path = write_report(inp, out_dir)
     except (RobocalError, OSError, TypeError, ValueError) as err:
         reason = f"report failed: {type(err).__name__}: {err}"
         _log.warning("report failed", error=reason)
         return {"skipped": reason}
-    paths: dict[str, str] = {}
-    if isinstance(written, Mapping):
-        paths = {str(k): str(v) for k, v in written.items()}
-    elif isinstance(written, list | tuple):
-        paths = {Path(str(p)).suffix.lstrip(".") or str(i): str(p)
-                 for i, p in enumerate(written)}
-    elif written is not None:
-        paths = {"html": str(written)}
-    return {"paths": paths}
+    return {"paths": {"html": str(html_path), "json": str(json_path)}}
 
 
 def _worker_init() -> None:  # pragma: no cover - runs in the worker process

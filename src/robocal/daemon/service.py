@@ -358,7 +358,8 @@ class CalibrationService:
                             models=self.config.fit.models, cpa=self.config.fit.cpa,
                             out_dir=out_dir, report=self.config.fit.report,
                             log=self._measurement_log(cid, rows),
-                            options=self.config.fit.options)
+                            options=self.config.fit.options,
+                            acceptance=self.config.fit.acceptance)
         if self.config.fit.select != "best":
             job["selected"] = self.config.fit.select
         self.events.emit("fit", cid, phase="started", models=list(self.config.fit.models))

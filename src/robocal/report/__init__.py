@@ -8,6 +8,8 @@ joint-dependent errors with ±2σ bands, identifiability, ISO 9283 AP/RP, predic
 over the workspace, the measurement log and provenance.
 """
 
+from typing import TYPE_CHECKING, Any
+
 from robocal.report._analysis import Analysis, analyse
 from robocal.report._input import (
     BASELINE,
@@ -33,7 +35,21 @@ from robocal.report._metrics import (
     joint_curves,
     verdict,
 )
-from robocal.report._write import REPORT_FORMAT, summary, write_report
+
+if TYPE_CHECKING:
+    from robocal.report._write import REPORT_FORMAT, summary, write_report
+
+# Writing needs matplotlib (about a second to import): loaded on first use, so that reading
+# acceptance thresholds or analysing costs nothing of it.
+_LAZY = {"REPORT_FORMAT", "summary", "write_report"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        from robocal.report import _write
+
+        return getattr(_write, name)
+    raise AttributeError(f"module 'robocal.report' has no attribute {name!r}")
 
 __all__ = [
     "BASELINE",

@@ -31,6 +31,9 @@ WIDE = 11.8  # inches: the page's content width at 96 dpi
 COLORS = {"nominal": "#7f7f7f", "cpa": "#9467bd", "constant": "#ff7f0e",
           "high-order": "#1f77b4", "auto": "#2ca02c"}
 _EXTRA = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
+# Markers tell the models apart where colours alone do not (grey/purple, blue/green, print).
+MARKERS = {"nominal": "o", "cpa": "v", "constant": "s", "high-order": "^", "auto": "x"}
+_EXTRA_MARKERS = ("D", "P", "*", "h", "<")
 COMP_COLORS = {"dx": "#1f77b4", "dy": "#ff7f0e", "dz": "#2ca02c",
                "ex": "#1f77b4", "ey": "#ff7f0e", "ez": "#2ca02c"}
 COMP_LABEL = {"dx": "δx", "dy": "δy", "dz": "δz", "ex": "εx", "ey": "εy", "ez": "εz"}
@@ -53,6 +56,16 @@ class Plot:
 def color(name: str, i: int = 0) -> str:
     """Colour of a model name."""
     return COLORS.get(name, _EXTRA[i % len(_EXTRA)])
+
+
+def marker(name: str, i: int = 0) -> str:
+    """Marker of a model name."""
+    return MARKERS.get(name, _EXTRA_MARKERS[i % len(_EXTRA_MARKERS)])
+
+
+def _hollow(mk: str) -> dict[str, Any]:
+    """Open markers where the marker has an inside, so overlapping points stay visible."""
+    return {} if mk in ("x", "+", "P", "*") else {"markerfacecolor": "none"}
 
 
 def _new(w: float, h: float, *, margins: tuple[float, float, float, float] | None = None,
@@ -185,8 +198,9 @@ def per_pose(an: Analysis) -> Plot:
             if s is None or s.norms is None:
                 continue
             idx = np.arange(s.norms.size)
-            ax.plot(idx, s.norms * 1e3, ".", ms=3.2, color=color(name, i), label=name,
-                    alpha=0.85)
+            mk = marker(name, i)
+            ax.plot(idx, s.norms * 1e3, mk, ms=3.4, mew=0.8, color=color(name, i),
+                    label=name, alpha=0.85, **_hollow(mk))
             if s.inlier is not None and (~s.inlier).any() and name == (an.selected or name):
                 ax.plot(idx[~s.inlier], s.norms[~s.inlier] * 1e3, "x", ms=7, mew=1.6,
                         color="#d62728", label="rejected outlier")
@@ -200,8 +214,10 @@ def per_pose(an: Analysis) -> Plot:
 
 def joint_plot(an: Analysis, jc: JointCurves) -> Plot:
     """One joint: translation and rotation error terms with ±2σ bands, residuals vs angle."""
-    fig = _new(WIDE, 2.7, margins=(0.65, 0.1, 0.45, 0.3), wspace=0.32)
-    axes = fig.subplots(1, 3)
+    with_data = any(an.data.get(w) is not None for w in SETS)
+    # legends go below the axes (never over the curves); the left margin fits "-0.075"
+    fig = _new(WIDE, 3.3, margins=(0.8, 0.15, 1.0, 0.3), wspace=0.4)
+    axes = fig.subplots(1, 3 if with_data else 2)
     ang = np.degrees(jc.angle)
     for ax, kind, scale, unit in ((axes[0], "d", 1e3, "mm"), (axes[1], "e", 180 / math.pi,
                                                                "deg")):
@@ -223,23 +239,31 @@ def joint_plot(an: Analysis, jc: JointCurves) -> Plot:
         ax.set_title("translation δ (about its mean) ±2σ" if kind == "d"
                      else "rotation ε (about its mean) ±2σ")
         if shown:
-            ax.legend(fontsize=7, framealpha=0.85, edgecolor="none")
+            ax.legend(fontsize=7, frameon=False, loc="upper center",
+                      bbox_to_anchor=(0.5, -0.2), ncol=3)
         else:
             ax.text(0.5, 0.5, "no joint-dependent terms", transform=ax.transAxes,
                     ha="center", va="center", color="#777")
+    if not with_data:  # a report from a model file alone: no empty residual panel
+        _style(fig)
+        return _render(f"joint{jc.joint + 1}", fig,
+                       f"Joint {jc.joint + 1}: identified joint-dependent errors with 2-sigma "
+                       "bands")
     ax = axes[2]
     for i, name in enumerate(dict.fromkeys(["constant", an.joint_model, an.selected])):
         m = an.models.get(name) if name else None
         if not name or m is None:
             continue
-        for which, marker in (("calibration", "."), ("validation", "+")):
+        for which, size, alpha in (("calibration", 3.2, 0.55), ("validation", 4.5, 0.95)):
             s = m.sets.get(which)
             d = an.data.get(which)
             if s is None or s.norms is None or d is None:
                 continue
             ok = s.inlier if s.inlier is not None else np.ones(s.norms.size, dtype=bool)
-            ax.plot(np.degrees(d.q[ok, jc.joint]), s.norms[ok] * 1e3, marker, ms=3.5,
-                    color=color(name, i), alpha=0.7, label=f"{name}, {which[:3]}.")
+            mk = marker(name, i)
+            ax.plot(np.degrees(d.q[ok, jc.joint]), s.norms[ok] * 1e3, mk, ms=size, mew=0.8,
+                    color=color(name, i), alpha=alpha, label=f"{name}, {which[:3]}.",
+                    **_hollow(mk))
             if name == an.selected and (~ok).any():
                 ax.plot(np.degrees(d.q[~ok, jc.joint]), s.norms[~ok] * 1e3, "x", ms=6,
                         mew=1.4, color="#d62728")
@@ -248,10 +272,11 @@ def joint_plot(an: Analysis, jc: JointCurves) -> Plot:
     ax.set_ylabel("|residual| (mm, log)")
     ax.set_title("residuals vs joint angle")
     if ax.lines:
-        ax.legend(fontsize=7, ncol=2, framealpha=0.85, edgecolor="none")
+        ax.legend(fontsize=7, ncol=2, frameon=False, loc="upper center",
+                  bbox_to_anchor=(0.5, -0.2))
     else:
-        ax.text(0.5, 0.5, "no measurements given", transform=ax.transAxes, ha="center",
-                va="center", color="#777")
+        ax.text(0.5, 0.5, "no measurements of these poses", transform=ax.transAxes,
+                ha="center", va="center", color="#777")
     _style(fig)
     return _render(f"joint{jc.joint + 1}", fig,
                    f"Joint {jc.joint + 1}: identified joint-dependent errors with 2-sigma bands "
@@ -272,12 +297,22 @@ def singular_values(an: Analysis) -> Plot:
     """Normalised singular values of the scaled identification Jacobian."""
     assert an.ident is not None and an.ident.singular_values is not None
     s = an.ident.singular_values
+    rank = an.ident.rank if an.ident.rank is not None else s.size
     fig = _new(5.2, 2.6)
     ax = fig.add_subplot()
-    ax.semilogy(np.arange(1, s.size + 1), s / s[0], ".-", ms=3, color="#1f77b4", linewidth=0.8)
+    rel = np.maximum(s / s[0], np.finfo(float).tiny)  # exact zeros cannot sit on a log axis
+    k = np.arange(1, s.size + 1)
+    ax.semilogy(k[:rank], rel[:rank], ".-", ms=3, color="#1f77b4", linewidth=0.8,
+                label=f"identified ({rank})")
+    if rank < s.size:
+        ax.semilogy(k[rank:], rel[rank:], "x", ms=3, color="#d62728",
+                    label=f"removed ({s.size - rank})")
+        ax.axvline(rank + 0.5, color="#888", linewidth=0.6, linestyle="--")
+        ax.legend(loc="lower left", fontsize=7, frameon=False)
     ax.set_xlabel("index")
     ax.set_ylabel("σ_k / σ_1")
-    ax.set_title(f"scaled Jacobian, {s.size} free parameters, cond {an.ident.condition:.3g}")
+    cond = "–" if an.ident.condition is None else f"{an.ident.condition:.3g}"
+    ax.set_title(f"rank {rank} of {s.size} parameters, cond {cond}", fontsize=9)
     _style(fig)
     return _render("singular_values", fig, "Singular values of the identification Jacobian")
 

@@ -49,6 +49,7 @@ th,td{padding:4px 9px;border-bottom:1px solid #e3e7ee;text-align:right;vertical-
 th:first-child,td:first-child,td.l,th.l{text-align:left}
 thead th{background:#eef1f6;font-weight:600}
 .note{color:#5a6375;font-size:12.5px;margin:4px 0}
+.note.warn{color:#b35c00}
 figure{margin:10px 0;background:#fff;border-radius:8px;padding:6px;
 box-shadow:0 1px 3px rgba(0,0,0,.08)}
 figure img{max-width:100%;height:auto;display:block}
@@ -239,6 +240,16 @@ def _accuracy(an: Analysis, plots: Mapping[str, Plot]) -> str:
     out.append("<h3>% of measured error described</h3>")
     out.append(_table(["model", "cal. RMS-based", "cal. mean-based", "cal. R²",
                        "val. RMS-based", "val. mean-based", "val. R²"], rows, raw=True))
+    worse = [m.entry.label for m in an.models.values()
+             if any(s.described is not None and s.described.rms is not None
+                    and s.described.rms < 0 for s in m.sets.values())]
+    if worse:
+        out.append('<p class="note warn">A negative percentage means the model predicts the '
+                   "robot <em>worse</em> than the nominal baseline does: "
+                   f"{esc(', '.join(worse))}. Such a model must not be used for compensation."
+                   " For Circle Point Analysis the usual causes are short arcs (the reflector "
+                   "is visible over only part of a joint's range), small circle radii and "
+                   "joint-dependent errors, which CPA cannot average out.</p>")
     n_out = len(an.outliers)
     n_gl = len(an.validation_glitches)
     gl = (f" ({n_gl} of them validation poses with an error above "

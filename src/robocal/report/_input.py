@@ -41,8 +41,12 @@ class Acceptance:
     """Thresholds of the verdict, applied to the held-out (validation) poses.
 
     ``min_percent_described``: RMS-based share of the nominal error the model must describe for
-    "succeeded" (below it: "marginal"; zero or less: "failed"). ``max_rms_mm`` /
-    ``max_error_mm``: optional absolute limits (exceeded: "failed"). Outlier fractions above
+    "succeeded" (below it: "marginal"; zero or less: "failed"). ``max_rms_mm`` (default
+    0.5 mm, the accuracy a calibrated industrial arm of up to ~2 m reach is expected to reach;
+    set it per cell, ``None`` switches it off) and ``max_error_mm`` (optional): absolute
+    limits (exceeded: "failed"). A held-out RMS above ``implausible_rms_mm`` fails in any
+    case: no calibrated robot is that far off, so the data or the robot description are
+    wrong (joints in radians, positions in metres, another robot variant). Outlier fractions above
     ``max_outlier_fraction`` make the result marginal, above ``fail_outlier_fraction`` failed.
     A validation RMS above ``max_overfit_ratio`` times the calibration RMS (and more than
     ``overfit_floor_mm`` above it) flags over-fitting (marginal); the ratio is first divided
@@ -53,8 +57,9 @@ class Acceptance:
     """
 
     min_percent_described: float = 50.0
-    max_rms_mm: float | None = None
+    max_rms_mm: float | None = 0.5
     max_error_mm: float | None = None
+    implausible_rms_mm: float = 25.0
     max_outlier_fraction: float = 0.05
     fail_outlier_fraction: float = 0.20
     max_overfit_ratio: float = 1.5
@@ -63,7 +68,8 @@ class Acceptance:
 
     def __post_init__(self) -> None:
         for name in ("min_percent_described", "max_outlier_fraction", "fail_outlier_fraction",
-                     "max_overfit_ratio", "overfit_floor_mm", "validation_outlier_factor"):
+                     "max_overfit_ratio", "overfit_floor_mm", "validation_outlier_factor",
+                     "implausible_rms_mm"):
             if not math.isfinite(float(getattr(self, name))):
                 raise ConfigError("must be a finite number", key=f"acceptance.{name}")
         for name in ("max_rms_mm", "max_error_mm"):

@@ -533,6 +533,11 @@ def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
                             f"describes {pct:.1f} % of the nominal error (RMS-based; "
                             f"threshold {acc.min_percent_described:.0f} %)"))
     # absolute limits
+    if rms_mm > acc.implausible_rms_mm:
+        checks.append(Check("plausibility", FAIL,
+                            f"{j.on} RMS {_f(rms_mm)} is implausible for a calibrated robot "
+                            f"(> {_f(acc.implausible_rms_mm)}): check the units of the data "
+                            "(joints in degrees, positions in mm) and the robot description"))
     if acc.max_rms_mm is not None:
         ok = rms_mm <= acc.max_rms_mm
         checks.append(Check("RMS limit", PASS if ok else FAIL,

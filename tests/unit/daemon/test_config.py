@@ -108,3 +108,16 @@ def test_systemd_unit_is_notify_and_hardened():
     assert int(lines["WatchdogSec"]) > 0
     rule = (REPO / "deploy" / "udev" / "99-robocal-tracker.rules").read_text()
     assert 'SYMLINK+="robocal-tracker"' in rule and 'MODE="0660"' in rule
+
+
+def test_fit_acceptance_is_checked_at_load(tmp_path):
+    from robocal.daemon.config import parse_config
+    from robocal.errors import ConfigError
+
+    from .conftest import base_config
+
+    cfg = parse_config(base_config(tmp_path, fit={"acceptance": {"max_rms_mm": 0.3}}),
+                       source="t")
+    assert cfg.fit.acceptance == {"max_rms_mm": 0.3}
+    with pytest.raises(ConfigError, match="max_rms"):
+        parse_config(base_config(tmp_path, fit={"acceptance": {"max_rms": 0.3}}), source="t")

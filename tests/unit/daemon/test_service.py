@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -301,3 +303,14 @@ async def test_a_table_that_does_not_improve_on_nominal_is_refused_unless_forced
     assert done["detail"]["forced"] is True and "not below" in done["detail"]["refusal"]
     assert done["detail"]["reason"] == "alignment only, known"
     assert (await robot.read_compensation()).kind == kind
+
+async def test_report_verdict_uses_the_cells_acceptance(service):
+    """The per-cell absolute limit decides the verdict of the daemon's own report."""
+    svc = await service(fit={"report": True, "acceptance": {"max_rms_mm": 0.0001}})
+    st = await svc.create(random_plan(40, validation=10), actor="a")
+    st = await svc.wait(st["id"], ["fitted", "faulted"], timeout=120)
+    assert st["state"] == "fitted", st["reason"]
+    summary = json.loads((Path(st["files"]) / "report.json").read_text())
+    assert summary["acceptance"]["max_rms_mm"] == 0.0001
+    assert summary["verdict"]["outcome"] == "failed"
+    assert "limit 0.000 mm" in summary["verdict"]["headline"]

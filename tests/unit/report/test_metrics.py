@@ -133,7 +133,8 @@ def test_verdict_succeeds() -> None:
     v = verdict(_judged(0.05, 1.0, cal_mm=0.045), Acceptance())
     assert v.outcome == "succeeded"
     assert "0.050 mm" in v.headline and "95.0 %" in v.headline
-    assert {c.name for c in v.checks} == {"improvement", "over-fitting", "outliers"}
+    assert {c.name for c in v.checks} == {"improvement", "RMS limit", "over-fitting",
+                                          "outliers"}
     assert all(c.status == "pass" for c in v.checks)
 
 
@@ -143,7 +144,11 @@ def test_verdict_succeeds() -> None:
     (_judged(0.05, 1.0), Acceptance(max_error_mm=0.08), "failed", "max error"),
     (_judged(0.05, 1.0, outliers=50), Acceptance(), "failed", "50 of 200"),
     (_judged(0.05, 1.0, status="not converged"), Acceptance(), "failed", "status"),
-    (_judged(0.7, 1.0), Acceptance(), "marginal", "only 30.0 %"),
+    (_judged(0.7, 1.0), Acceptance(max_rms_mm=None), "marginal", "only 30.0 %"),
+    # the default absolute limit: describing 65 % of a 2 mm error still leaves 0.7 mm
+    (_judged(0.7, 2.0), Acceptance(), "failed", "limit 0.500 mm"),
+    # joints read as radians: never "marginal", whatever the limits
+    (_judged(411.0, 1500.0), Acceptance(max_rms_mm=None), "failed", "implausible"),
     (_judged(0.05, 1.0, on="calibration"), Acceptance(), "marginal", "no validation poses"),
     (_judged(0.05, 1.0, outliers=20), Acceptance(), "marginal", "20 of 200"),
     (_judged(0.05, 1.0, cal_mm=0.02), Acceptance(), "marginal", "ratio 2.50"),
