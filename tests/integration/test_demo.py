@@ -35,6 +35,15 @@ def test_demo_end_to_end(tmp_path):
     assert val["high-order"] < val["constant"] < val["nominal"]
     comp = summary["compensation"]
     assert comp["auto"]["rms_mm"] < 0.25 * comp["before"]["rms_mm"]
+    # what was pushed (the validation targets, compensated with the approved model) was
+    # measured again by the daemon on the simulated robot after the push
+    push = summary["push"]
+    assert push["kind"] == "targets" and push["verification"] == "done"
+    assert push["measured_n"] == comp["targets"]
+    assert push["measured_after_rms_mm"] <= 0.02
+    assert push["measured_before_rms_mm"] > 20 * push["measured_after_rms_mm"]
+    assert push["predicted_rms_mm"] < 0.5 * push["nominal_rms_mm"]
+    assert f"-> {push['measured_after_rms_mm']:.4f} mm RMS after" in text
     files = summary["files"]
     for key in ("report_html", "report_json"):
         assert key in files and (tmp_path / files[key]).exists()

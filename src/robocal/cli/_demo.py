@@ -8,9 +8,12 @@ What it does (everything in-process, loopback only, no arguments needed):
 2. plans the campaign (D-optimal calibration poses, validation poses, CPA sweeps);
 3. runs it through the real drivers and the daemon's campaign engine, with an SQLite store;
 4. fits the constant, high-order and auto models (and CPA), and writes the report;
-5. compensates the validation targets with each model and measures them again;
-6. approves the fit and pushes the frames table to the simulated controller (read back,
-   verified, audited);
+5. compensates the validation targets with each model and measures them again (a model
+   comparison; nothing is pushed yet);
+6. approves the fit and pushes the validation targets, compensated with the approved model,
+   to the simulated controller's position registers (journaled, read back, verified,
+   audited); the daemon then moves the robot to the pushed values and measures them with the
+   tracker, before and after (the number the acceptance is about);
 7. prints a summary table and says where the files are.
 """
 
@@ -27,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._defaults import VALIDATION_HELP, default_validation
+
 _MODELS = ("constant", "high-order", "auto")
 
 
@@ -42,7 +47,7 @@ def register(sub: Any) -> None:
     p.add_argument("--poses", type=int, default=250,
                    help="calibration poses (default 250; the high-order model needs about 64)")
     p.add_argument("--validation", type=int, default=None,
-                   help="validation poses (default: a fifth of --poses, at least 10)")
+                   help=VALIDATION_HELP)
     p.add_argument("--seed", type=int, default=1, help="seed of the virtual robot and plan")
     p.add_argument("--scenario", default="paper", choices=["paper", "strain-wave"],
                    help="planted errors (default paper)")
@@ -204,7 +209,8 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
 
     out: Path = args.out
     progress = _Progress(args.quiet)
-    validation = args.validation if args.validation is not None else max(10, args.poses // 5)
+    validation = args.validation if args.validation is not None \
+        else default_validation(args.poses)
     progress.step(f"robocal demo: virtual {args.robot} with planted '{args.scenario}' errors, "
                   f"{args.fault_rate:.0%} injected tracker faults")
 
@@ -227,10 +233,14 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
             "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
                                                    "stab_ms": 100}},
-            "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
+            # validation poses are random, some close to the wrist singularity, where the
+            # 6-D correction turns J4/J6 by up to a degree or two
+            "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0,
+                       "max_joint_correction_deg": 3.0},
             "measurement": {"samples": 5, "settle_s": 0.0, "backoff_s": 0.01, "retries": 8},
             "fit": {"models": list(_MODELS), "select": "auto", "executor": "process"},
-            "compensation": {"kind": "frames"},
+            # the production targets are the validation poses; every one is re-measured
+            "compensation": {"kind": "targets", "verify_count": validation},
             "logging": {"level": "info", "format": "json"},
         }, source="demo")
         svc = CalibrationService(config)
@@ -325,14 +335,19 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
                       "converged": int(ok.sum())}
     figures["compensation"] = comp
 
-    # Approve and push the frames table (read back, verified, audited).
+    # Approve and push the compensated validation targets, then the daemon measures them.
     try:
         await svc.approve(cid, actor="demo")
         pushed = await svc.push(cid, actor="demo")
-        active = svc.compensation()["active"]
-        figures["push"] = {"state": pushed["state"], "kind": active["kind"],
-                           "checksum": active["checksum"]}
         figures["state"] = pushed["state"]
+        key = pushed["push"]["key"]
+        progress.step("  pushed the compensated targets; measuring them again (before/after)")
+        await svc.wait_verification(key, timeout=600.0)
+        st = svc.status(cid)
+        figures["push"] = {**st["push"], "state": st["state"],
+                           "verification_detail": (st["compensation"][-1] or {}).get(
+                               "verification")}
+        figures["compensation_status"] = st["compensation"]
     except RobocalError as err:
         figures["push"] = {"error": str(err)}
         figures["state"] = svc.store.campaign(cid).state.value
@@ -396,8 +411,19 @@ def _print_summary(f: dict[str, Any]) -> None:
         if "error" in push:
             w(f"\nPush: {push['error']}\n")
         else:
-            w(f"\nApproved and pushed: {push['kind']} table {push['checksum'][:16]} "
-              "(written, read back, verified, audited)\n")
+            w(f"\nApproved ({push.get('model')}) and pushed: {push['kind']} table "
+              f"{push['checksum'][:16]} (journaled, written, read back, verified, audited)\n")
+            w(f"  predicted residual {_fmt(push.get('predicted_rms_mm'), 4)} mm (targets "
+              f"solved on the model; its held-out accuracy {_fmt(push.get('model_accuracy_mm'), 4)}"
+              f" mm) against {_fmt(push.get('nominal_rms_mm'), 4)} mm nominal\n")
+            if push.get("measured_after_rms_mm") is not None:
+                w(f"  measured on the robot after the push, {push.get('measured_n')} pushed "
+                  f"targets: {_fmt(push.get('measured_before_rms_mm'), 4)} mm RMS before -> "
+                  f"{_fmt(push.get('measured_after_rms_mm'), 4)} mm RMS after\n")
+            else:
+                v = push.get("verification_detail") or {}
+                w(f"  not measured after the push: {v.get('reason', push.get('verification'))}"
+                  "\n")
     files = f.get("files") or {}
     w(f"\nDone in {f.get('wall_time_s')} s (measuring {f.get('measure_s')} s, fitting "
       f"{f.get('fit_s')} s).\n")
