@@ -323,6 +323,7 @@ class EmsconTracker(DriverBase):
         self.system_status: dict[str, Any] = {}
         self.reflectors: list[dict[str, Any]] = []
         self.events: list[int] = []
+        self._events_total = 0
         self.async_errors: list[tuple[int, int]] = []
         self.live_position_m: tuple[float, float, float] | None = None
         self.bad_packets = 0
@@ -498,6 +499,7 @@ class EmsconTracker(DriverBase):
         """Handle a packet that is not an answer to the pending command; True if consumed."""
         if isinstance(p, emscon.StatusChange):
             self.events.append(p.event)
+            self._events_total += 1
             del self.events[:-200]
             self.log.debug("tracker event", code=p.event, name=emscon.event_name(p.event))
             return True
@@ -657,17 +659,21 @@ class EmsconTracker(DriverBase):
     async def initialize(self) -> None:
         """Send ``Initialize`` (slow: up to ``initialize_timeout_s``)."""
         o = self.options
+        mark = self._events_total
         await self._call(
             Cmd.INITIALIZE, timeout=o.initialize_timeout_s, ok_statuses=o.initialize_ok_statuses
         )
         if o.wait_event_after_initialize is not None:
-            await self._wait_event(o.wait_event_after_initialize, o.request_timeout_s)
+            await self._wait_event(o.wait_event_after_initialize, o.request_timeout_s, mark)
 
-    async def _wait_event(self, event: int, seconds: float) -> None:
+    def _seen_since(self, event: int, mark: int) -> bool:
+        new = min(self._events_total - mark, len(self.events))
+        return new > 0 and event in self.events[-new:]
+
+    async def _wait_event(self, event: int, seconds: float, mark: int) -> None:
         deadline = time.monotonic() + seconds
-        start = len(self.events)
         async with self._lock:
-            while event not in self.events[start:]:
+            while not self._seen_since(event, mark):
                 if time.monotonic() >= deadline:
                     raise DriverTimeout(f"event {event} not received", kind=self.kind)
                 try:

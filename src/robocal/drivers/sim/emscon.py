@@ -409,6 +409,8 @@ class EmsconTrackerSimulator:
         Every command received (tests assert on it).
     exit_received : bool
         True once a client sent ExitApplication (command 0).
+    state
+        The server state (units, settings, lock, initialisation).
     """
 
     def __init__(self, world: SimWorld, options: EmsconSimOptions | None = None,
@@ -422,6 +424,8 @@ class EmsconTrackerSimulator:
         self.state = _State(self.options)
         self.commands: list[emscon.Command] = []
         self.exit_received = False
+        #: Tests: break the beam at the next StartMeasurement ("start" or "during").
+        self.next_beam_break: Literal["start", "during"] | None = None
         self.host = "127.0.0.1"
         self.port = 0
         self._server: asyncio.Server | None = None
@@ -523,10 +527,11 @@ class EmsconTrackerSimulator:
         if self.options.events == "ms":
             self._track(s.event(code))
 
-    def _beam_broken(self, s: _Session) -> None:
+    def _beam_broken(self, s: _Session, *, announce: bool = True) -> None:
         st = self.state
         st.locked = False
-        self._track(s.event(Event.MEAS_STATUS_NOT_READY))
+        if announce:
+            self._track(s.event(Event.MEAS_STATUS_NOT_READY))
         if self.options.relock_after_s is not None:
             loop = asyncio.get_running_loop()
             if self._relock is not None:
@@ -718,13 +723,15 @@ class EmsconTrackerSimulator:
         if not st.initialized:
             await s.reply(cmd, emscon.Status.TRACKER_NOT_INITIALIZED)
             return
-        broken_at: str | None = None
-        if self.faults.fire("beam_break"):
+        broken_at: str | None = self.next_beam_break
+        self.next_beam_break = None
+        if broken_at is None and self.faults.fire("beam_break"):
             broken_at = o.beam_break_at
             if broken_at == "either":
                 broken_at = self.rng.choice(["start", "during"])
-            if broken_at == "start":
-                self._beam_broken(s)
+        if broken_at == "start":
+            await s.event(Event.MEAS_STATUS_NOT_READY)
+            self._beam_broken(s, announce=False)
         if not st.locked:
             await s.reply(cmd, o.beam_broken_start_status)
             return
@@ -763,7 +770,7 @@ class EmsconTrackerSimulator:
         elif signal == "reply":
             await s.reply(cmd, o.beam_lost_status)
         if o.relock_after_s is not None:
-            self._beam_broken(s)
+            self._beam_broken(s, announce=False)
 
     def _track(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)
