@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._defaults import DEFAULT_MODEL, MODELS
+
 
 def register(sub: Any) -> None:
     """Add the ``fit`` subcommand."""
@@ -19,10 +21,21 @@ def register(sub: Any) -> None:
                     "[mm][,sx,sy,sz]) and write MODEL.json. Percentages are relative to the "
                     "nominal model with only the tracker<-base transform and the reflector "
                     "offset fitted.")
-    p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")
+    p.add_argument("--robot", help="built-in robot name or robot TOML file (required unless "
+                                    "--reuse, which takes the earlier model's robot)")
     p.add_argument("--data", required=True, help="training measurements (CSV)")
-    p.add_argument("--model", required=True, choices=("constant", "high-order", "auto"),
-                   help="error model")
+    p.add_argument("--model", choices=MODELS,
+                   help=f"error model (default {DEFAULT_MODEL}; not with --reuse)")
+    p.add_argument("--reuse", metavar="PREVIOUS_MODEL.json",
+                   help="keep the joint-dependent terms of an earlier model and refit only the "
+                        "constant errors, tracker<-base transform and reflector offset (after "
+                        "re-mastering, a crash or a tracker move; same robot, same joints' "
+                        "mechanics, data inside the earlier model's joint ranges)")
+    p.add_argument("--max-rms-mm", type=float, metavar="MM",
+                   help="fail (exit 1, no file written) when the RMS error (validation if "
+                        "given, else training) exceeds this")
+    p.add_argument("--no-sanity", action="store_true",
+                   help="skip the unit and robot-variant plausibility checks")
     p.add_argument("--out", required=True, help="MODEL.json to write (atomically)")
     p.add_argument("--validate", metavar="VAL.csv", help="held-out measurements (CSV)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -79,10 +92,23 @@ def run(args: argparse.Namespace) -> int:
     """Fit, save atomically, print a summary."""
     from robocal._core.measurements import MeasurementSet
     from robocal.errors import ConfigError
-    from robocal.identification import fit
-    from robocal.kinematics import load_robot
+    from robocal.identification import fit, refit_frozen
+    from robocal.kinematics import CalibratedModel, load_robot
 
-    robot = load_robot(args.robot)
+    if args.reuse is None and args.robot is None:
+        raise ConfigError("--robot is required (unless --reuse)")
+    if args.reuse is None and args.model is None:
+        args.model = DEFAULT_MODEL
+    if args.reuse is not None and args.model is not None:
+        raise ConfigError("--reuse keeps the earlier model's structure; leave out --model")
+    if args.max_rms_mm is not None and not args.max_rms_mm > 0:
+        raise ConfigError("--max-rms-mm must be positive")
+    previous = CalibratedModel.load(args.reuse) if args.reuse else None
+    robot = previous.robot if previous is not None else load_robot(args.robot)
+    if previous is not None and args.robot is not None \
+            and load_robot(args.robot).name != robot.name:
+        raise ConfigError(f"--robot {args.robot} differs from the reused model's robot "
+                          f"{robot.name!r}")
     out = Path(args.out)
     if not out.parent.exists():
         raise ConfigError("directory does not exist", source=str(out.parent))

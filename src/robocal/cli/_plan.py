@@ -14,6 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._defaults import DEFAULT_MODEL, MODELS, VALIDATION_HELP, default_validation
+
 
 def register(sub: Any) -> None:
     """Add the ``plan`` subcommand."""
@@ -27,12 +29,12 @@ def register(sub: Any) -> None:
     p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")
     p.add_argument("--cell", required=True,
                    help="cell description TOML file, or a built-in cell name (demo)")
-    p.add_argument("--model", default="constant", choices=("constant", "high-order", "auto"),
-                   help="error model the poses are optimised for (default constant)")
+    p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS,
+                   help=f"error model the poses are optimised for (default {DEFAULT_MODEL})")
     p.add_argument("--count", required=True, type=int, help="number of calibration poses")
     p.add_argument("--out", required=True, type=Path, metavar="PLAN.json", help="output file")
-    p.add_argument("--validation", type=int, default=0, metavar="M",
-                   help="validation poses, disjoint from the calibration poses (default 0)")
+    p.add_argument("--validation", type=int, default=None, metavar="M",
+                   help=VALIDATION_HELP + "; disjoint from the calibration poses")
     p.add_argument("--cpa", action="store_true", help="add single-joint CPA sweeps")
     p.add_argument("--cpa-points", type=int, default=12, metavar="K",
                    help="points per CPA sweep (default 12)")
@@ -69,8 +71,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("output directory does not exist", source=str(out))
     if out.is_dir():
         raise ConfigError("is a directory", source=str(out))
+    validation = default_validation(args.count) if args.validation is None else args.validation
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
-                         validation=args.validation, cpa=args.cpa, cpa_points=args.cpa_points,
+                         validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
                          iso=not args.no_iso, seed=args.seed, candidates=args.candidates)
     plan.save(out)
     s = _summary(plan, out)

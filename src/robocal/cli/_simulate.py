@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._defaults import VALIDATION_HELP, default_validation
+
 SCENARIO_HELP = ("planted truth: nominal, constant, paper (constant + joint-dependent harmonics "
                  "and pitch), strain-wave (paper + gear ripple), fine-map (fine joint-angle "
                  "errors, gravity torsion)")
@@ -25,8 +27,8 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=1, help="seed of the planted errors and noise")
     p.add_argument("--plan", type=Path, help="PLAN.json whose poses to measure")
     p.add_argument("--poses", type=int, default=250, help="random poses when no --plan")
-    p.add_argument("--validation", type=int, default=50,
-                   help="random validation poses when no --plan (0: none)")
+    p.add_argument("--validation", type=int, default=None,
+                   help=VALIDATION_HELP + "; random, when no --plan")
     p.add_argument("--outliers", type=float, default=0.0,
                    help="fraction of calibration readings with a beam-break glitch")
     p.add_argument("--out", type=Path, required=True, help="calibration MEAS.csv to write")
@@ -43,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from robocal.errors import ConfigError
     from robocal.simulation import VirtualCell
 
+    if args.validation is None:
+        args.validation = default_validation(args.poses)
     if args.poses < 1 or args.validation < 0 or not 0.0 <= args.outliers < 0.5:
         raise ConfigError("--poses must be >= 1, --validation >= 0, --outliers in [0, 0.5)")
     cell = VirtualCell.create(args.robot, args.scenario, seed=args.seed)
