@@ -16,9 +16,14 @@ def register(sub: Any) -> None:
                                    "file and key path) or print the JSON schema.")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     c = verbs.add_parser("check", help="validate configuration files")
-    c.add_argument("files", nargs="+", type=Path, metavar="FILE")
+    c.add_argument("files", nargs="*", type=Path, metavar="FILE")
+    c.add_argument("--config", action="append", type=Path, default=[], metavar="FILE",
+                   help="a configuration file (like the other commands; repeatable)")
     c.add_argument("--drivers", action="store_true",
                    help="also build (not connect) the drivers to validate their options")
+    c.add_argument("--connect", action="store_true",
+                   help="also connect to the robot and the tracker (pre-flight check of the "
+                        "cell); implies --drivers")
     c.set_defaults(handler=check)
     s = verbs.add_parser("schema", help="print the configuration's JSON schema")
     s.set_defaults(handler=schema)
@@ -32,20 +37,26 @@ def check(args: argparse.Namespace) -> int:
     Risky settings (a non-loopback TCP bind) are printed as warnings and do not fail.
     """
     from robocal.daemon.config import config_errors, config_warnings, load_config
-    from robocal.errors import RobocalError
+    from robocal.errors import ConfigError, RobocalError
 
+    files = [*args.files, *args.config]
+    if not files:
+        raise ConfigError("name a configuration file: robocal config check --config FILE")
     bad = 0
-    for path in args.files:
+    for path in files:
         errors = config_errors(path)
         warnings: list[str] = []
         if not errors:
             try:
                 cfg = load_config(path)
                 warnings = config_warnings(cfg)
-                if args.drivers:
+                if args.drivers or args.connect:
                     from robocal.daemon.main import preflight
 
                     preflight(cfg)
+                if args.connect:
+                    for line in _connect(cfg):
+                        sys.stdout.write(f"{path}: {line}\n")
             except RobocalError as err:
                 errors = [f"{path}: {err}"]
         for w in warnings:
@@ -57,6 +68,22 @@ def check(args: argparse.Namespace) -> int:
         else:
             sys.stdout.write(f"{path}: ok\n")
     return 1 if bad else 0
+
+
+def _connect(cfg: Any) -> list[str]:
+    """Connect to each configured device once; raise ConnectFailed naming the one down."""
+    import asyncio
+
+    from robocal.daemon.service import CalibrationService
+
+    async def run() -> dict[str, str]:
+        svc = CalibrationService(cfg)
+        try:
+            return await svc.preflight()
+        finally:
+            await svc.hub.close()
+
+    return [f"{what} ({kind}) answers" for what, kind in asyncio.run(run()).items()]
 
 
 def schema(args: argparse.Namespace) -> int:

@@ -46,10 +46,14 @@ from robocal.errors import (
     CampaignError,
     CompensationError,
     ConfigError,
+    ConnectFailed,
+    DriverError,
     IdentificationError,
     InvalidTransition,
     LimitViolation,
+    ProtocolError,
     RobocalError,
+    StorageError,
 )
 from robocal.kinematics import CalibratedModel, RobotDescription, load_robot
 
@@ -188,6 +192,27 @@ class CalibrationService:
                                   f"{self.config.limits.joint_margin_deg} deg)",
                                   source="plan", key=f"poses[{p.idx}]") from err
 
+    async def preflight(self) -> dict[str, str]:
+        """Connect to the robot and the tracker before anything is stored or moved.
+
+        Raises
+        ------
+        ConnectFailed
+            Naming the device that does not answer and why; nothing was created.
+        """
+        out: dict[str, str] = {}
+        for what, cfg, connect in (("robot", self.config.robot, self.hub.robot),
+                                   ("tracker", self.config.tracker, self.hub.tracker)):
+            try:
+                await connect()
+            except (DriverError, ProtocolError, OSError, TimeoutError) as err:
+                await self.hub.reset(f"pre-flight: {what} unreachable")
+                raise ConnectFailed(
+                    f"the {what} ({cfg.kind}) does not answer: {err}. Nothing was started; "
+                    f"check that it is on and reachable, then try again") from err
+            out[what] = cfg.kind
+        return out
+
     async def create(self, plan: Mapping[str, Any] | str | PlanDoc, *, actor: str,
                      name: str | None = None, start: bool = True,
                      measure_only: bool = False) -> dict[str, Any]:
@@ -204,6 +229,7 @@ class CalibrationService:
         self._check_plan(doc)
         if start:
             self._ensure_idle()
+            await self.preflight()
         rec = self.store.create_campaign(
             name=name or f"campaign {time.strftime('%Y-%m-%d %H:%M')}", robot=self.robot.name,
             poses=doc.poses, plan_json=doc.text, plan_digest=doc.digest,

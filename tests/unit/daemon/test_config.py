@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -121,3 +122,36 @@ def test_fit_acceptance_is_checked_at_load(tmp_path):
     assert cfg.fit.acceptance == {"max_rms_mm": 0.3}
     with pytest.raises(ConfigError, match="max_rms"):
         parse_config(base_config(tmp_path, fit={"acceptance": {"max_rms": 0.3}}), source="t")
+
+
+def test_config_check_connect_is_a_preflight_of_the_cell(tmp_path, capsys):
+    import socket
+
+    from .conftest import base_config
+
+    def write(cfg: dict, name: str) -> Path:
+        lines = [f'data_dir = "{cfg["data_dir"]}"',
+                 f'robot_description = "{cfg["robot_description"]}"']
+        for sec in ("robot", "tracker"):
+            opts = ", ".join(f"{k} = {json.dumps(v)}" for k, v in cfg[sec]["options"].items())
+            lines += [f"[{sec}]", f'kind = "{cfg[sec]["kind"]}"', "connect_timeout_s = 2.0",
+                      f"options = {{ {opts} }}"]
+        path = tmp_path / name
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    cfg = base_config(tmp_path)
+    ok = write(cfg, "ok.toml")
+    assert main(["config", "check", "--config", str(ok), "--connect"]) == 0
+    out = capsys.readouterr().out
+    assert "robot (mock) answers" in out and "tracker (mock) answers" in out
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg["robot"] = {"kind": "fanuc_rmi", "options": {"host": "127.0.0.1", "connect_port": port}}
+    down = write(cfg, "down.toml")
+    assert main(["config", "check", "--config", str(down), "--connect"]) == 1
+    out = capsys.readouterr().out
+    assert "the robot (fanuc_rmi) does not answer" in out
+    assert main(["config", "check"]) == 2
+    assert "--config FILE" in capsys.readouterr().err

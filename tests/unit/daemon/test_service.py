@@ -314,3 +314,28 @@ async def test_report_verdict_uses_the_cells_acceptance(service):
     assert summary["acceptance"]["max_rms_mm"] == 0.0001
     assert summary["verdict"]["outcome"] == "failed"
     assert "limit 0.000 mm" in summary["verdict"]["headline"]
+
+
+async def test_start_refuses_when_a_device_does_not_answer(tmp_path):
+    """Pre-flight: nothing is created or moved when the robot controller is down."""
+    import socket
+
+    from robocal.daemon.config import parse_config
+    from robocal.errors import ConnectFailed
+
+    from .conftest import base_config
+
+    with socket.socket() as s:  # a loopback port that nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = base_config(tmp_path)
+    cfg["robot"] = {"kind": "fanuc_rmi", "connect_timeout_s": 2.0,
+                    "options": {"host": "127.0.0.1", "connect_port": port}}
+    svc = CalibrationService(parse_config(cfg, source="test"))
+    await svc.start()
+    try:
+        with pytest.raises(ConnectFailed, match=r"the robot \(fanuc_rmi\) does not answer"):
+            await svc.create(random_plan(10), actor="a")
+        assert svc.list() == []
+    finally:
+        await svc.stop()
