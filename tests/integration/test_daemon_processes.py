@@ -64,13 +64,15 @@ def stop_process(proc: subprocess.Popen[bytes], timeout: float = 10.0) -> None:
 
 
 @contextlib.contextmanager
-def simulators(tmp: Path, *, fault_rate: float = 0.0, seed: int = 5) -> Iterator[dict[str, Any]]:
+def simulators(tmp: Path, *, fault_rate: float = 0.0, seed: int = 5,
+               time_scale: float | None = None) -> Iterator[dict[str, Any]]:
     """``python -m robocal.drivers.sim all`` on free loopback ports; yields the ports JSON."""
     ports = tmp / "ports.json"
     log = (tmp / "sim.log").open("wb")
+    scale = [] if time_scale is None else ["--time-scale", str(time_scale)]
     proc = subprocess.Popen(
         [PY, "-m", "robocal.drivers.sim", "all", "--robot", ROBOT, "--seed", str(seed),
-         "--fault-rate", str(fault_rate), "--ports-file", str(ports)],
+         "--fault-rate", str(fault_rate), "--ports-file", str(ports), *scale],
         stdout=log, stderr=subprocess.STDOUT, env=_env())
     try:
         data = wait_for(lambda: ports.exists() and json.loads(ports.read_text()), 60,
@@ -243,6 +245,44 @@ def test_kill9_at_five_random_points_loses_and_duplicates_nothing(tmp_path):
             daemon.stop()
     # no fit worker outlives its daemon, whether that was killed or stopped
     wait_for(lambda: not _processes_writing_to(tmp_path), 10, "fit workers to exit")
+
+
+@pytest.mark.slow
+def test_sigterm_mid_move_stops_the_robot_before_the_daemon_exits(tmp_path):
+    """SIGTERM while the robot moves (simulated in real time): the daemon stops it first
+    (FRC_Abort), audits ``motion.stop`` with trigger ``shutdown``, exits 0, and the
+    campaign stays ``running`` to resume at the next start."""
+    with simulators(tmp_path, time_scale=0.5) as ports:
+        plan = small_plan(tmp_path, count=12, validation=2)
+        daemon = Daemon(tmp_path, write_config(tmp_path, ports))
+        daemon.start()
+        try:
+            out = daemon.cli("campaign", "start", "--socket", str(tmp_path / "api.sock"),
+                             "--plan", str(plan))
+            cid = out.stdout.strip()
+            wait_for(lambda: daemon.status(cid)["poses_measured"] >= 1, 120, "a measured pose")
+            time.sleep(0.03)  # the next move has started (moves take about a second here)
+            assert daemon.proc is not None
+            daemon.proc.send_signal(signal.SIGTERM)
+            assert daemon.proc.wait(30) == 0, daemon.log_tail()
+        finally:
+            daemon.stop()
+        db = sqlite3.connect(f"file:{tmp_path / 'state' / 'robocal.sqlite3'}?mode=ro", uri=True)
+        try:
+            stops = [json.loads(d) for (d,) in db.execute(
+                "SELECT detail FROM audit WHERE action='motion.stop' AND campaign=?", (cid,))]
+            (state,) = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
+        finally:
+            db.close()
+        assert [(s["trigger"], s["outcome"]) for s in stops] == [("shutdown", "stopped")]
+        assert state == "running"
+        logged = [json.loads(line) for line in daemon.log_tail(200_000).splitlines()
+                  if line.startswith("{")]
+        events = [e.get("event") for e in logged]
+        assert "robot stopped" in events and "daemon stopped" in events
+        assert events.index("robot stopped") < events.index("drivers reset")
+    sim_log = (tmp_path / "sim.log").read_text(errors="replace")
+    assert "rmi sim: abort" in sim_log
 
 
 def _processes_writing_to(directory: Path) -> list[int]:

@@ -11,8 +11,11 @@ For every pose not yet in the store, in plan order:
    (sample RMS) or a reading too far from the prediction, with exponential backoff;
 5. persist the measurement in one SQLite transaction, *before* the next motion.
 
-Between poses the executor re-reads the campaign state, so a pause takes effect after the
-pose in progress. Any driver failure faults the campaign with a reason; the operator resumes.
+Between poses the executor re-reads the campaign state. Pause, abort and shutdown do not wait
+for the pose in progress: the service cancels the executor and stops the robot at once (the
+unfinished pose is redone on resume, nothing of it is stored). Any driver failure stops the
+robot, then faults the campaign with a reason; the operator resumes. Every stop is logged and
+audited (``motion.stop``: trigger, reason, when, how long the controller took to confirm).
 """
 
 from __future__ import annotations
@@ -47,7 +50,13 @@ from robocal.kinematics import (
     rigid_fit,
 )
 
-__all__ = ["CampaignRunner", "MeasurementRejected", "Predictor", "limits_with_margin"]
+__all__ = [
+    "CampaignRunner",
+    "MeasurementRejected",
+    "Predictor",
+    "halt_motion",
+    "limits_with_margin",
+]
 
 Array = NDArray[np.float64]
 _log = structlog.get_logger(__name__)
@@ -55,6 +64,39 @@ _log = structlog.get_logger(__name__)
 
 class MeasurementRejected(MeasurementError):
     """A reading failed validation (stability or distance from the prediction)."""
+
+
+def _raise_if_cancelling(cause: BaseException | None = None) -> None:
+    """Re-raise a cancellation that a library swallowed (Python 3.11's ``asyncio.wait_for``
+    can lose one when its future completes at the same moment, as pymodbus's requests do)."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError from cause
+
+
+async def halt_motion(hub: DriverHub, store: Store, *, campaign: str | None, actor: str,
+                      trigger: str, reason: str, audit_idle: bool = False) -> bool:
+    """Stop the robot now and record when and why (structlog and the ``motion.stop`` audit).
+
+    ``trigger`` names the cause (``pause``, ``abort``, ``shutdown``, ``driver-fault``, ...).
+    Returns True when the controller confirmed the halt or no robot is connected. Nothing is
+    audited for an unconnected robot unless ``audit_idle``.
+    """
+    requested_at = now_iso()
+    t0 = time.monotonic()
+    outcome, detail = await hub.stop_motion(f"{trigger}: {reason}")
+    seconds = round(time.monotonic() - t0, 4)
+    _log.warning("motion stop", campaign=campaign, trigger=trigger, reason=reason,
+                 outcome=outcome, detail=detail, stop_s=seconds)
+    if outcome != "not-connected" or audit_idle:
+        try:
+            store.audit(actor=actor, action="motion.stop", campaign=campaign,
+                        detail={"trigger": trigger, "reason": reason, "outcome": outcome,
+                                "detail": detail, "requested_at": requested_at,
+                                "stop_s": seconds})
+        except Exception as err:  # the stop itself matters more than its record
+            _log.error("motion stop not audited", error=repr(err))
+    return outcome != "failed"
 
 
 def limits_with_margin(robot: RobotDescription, margin_deg: float) -> tuple[tuple[float, float],
@@ -184,6 +226,7 @@ class CampaignRunner:
         try:
             async with self.hub.lock:
                 for pose in todo:
+                    _raise_if_cancelling()
                     state = self._state(cid)
                     if state != CampaignState.RUNNING:
                         log.info("stopped between poses", state=state.value)
@@ -209,12 +252,17 @@ class CampaignRunner:
             raise
         except (RobocalError, OSError) as err:
             reason = f"{type(err).__name__}: {err}"
+            _raise_if_cancelling(err)  # stopped on purpose (pause, abort, shutdown): no fault
             log.warning("campaign faulted", error=reason)
+            await halt_motion(self.hub, self.store, campaign=cid, actor=self.actor,
+                              trigger="driver-fault", reason=reason)
             await self.hub.reset(reason)
             return self._fault(cid, reason)
         except Exception as err:  # a bug must fault the campaign, never kill the daemon
             reason = f"internal error: {type(err).__name__}: {err}"
             log.exception("campaign faulted by an internal error")
+            await halt_motion(self.hub, self.store, campaign=cid, actor=self.actor,
+                              trigger="internal-error", reason=reason)
             await self.hub.reset(reason)
             return self._fault(cid, reason)
         state = self._state(cid)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import Any
+import time
+from typing import Any, Literal
 
 import structlog
 
@@ -79,6 +80,35 @@ class DriverHub:
             self._tracker = drv
             _log.info("tracker connected", driver=cfg.kind)
         return self._tracker
+
+    @property
+    def robot_connected(self) -> bool:
+        """True while a robot driver is connected (only then can anything be moving)."""
+        return self._robot is not None
+
+    async def stop_motion(
+        self, reason: str, *, timeout: float = 5.0
+    ) -> tuple[Literal["stopped", "not-connected", "failed"], str]:
+        """Halt the robot at once with the driver's ``stop()``; never waits for :attr:`lock`.
+
+        Returns ``(outcome, detail)``: ``"stopped"`` (the controller confirmed the halt),
+        ``"not-connected"`` (no robot driver, so nothing of ours can be moving) or
+        ``"failed"`` with the error; never raises a driver error.
+        """
+        robot = self._robot
+        if robot is None:
+            return "not-connected", ""
+        t0 = time.monotonic()
+        try:
+            async with asyncio.timeout(timeout):
+                await robot.stop()
+        except Exception as err:  # any failure to confirm a stop is reported, not raised
+            what = f"{type(err).__name__}: {err}"
+            _log.error("robot stop failed", reason=reason, error=what)
+            return "failed", what
+        seconds = time.monotonic() - t0
+        _log.warning("robot stopped", reason=reason, stop_s=round(seconds, 4))
+        return "stopped", f"confirmed in {seconds:.3f} s"
 
     async def connect(self) -> None:
         """Connect both drivers."""

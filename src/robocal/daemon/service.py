@@ -34,7 +34,7 @@ from robocal.daemon._journal import JournalEntry, PushJournal
 from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig, config_digest
-from robocal.daemon.engine import CampaignRunner, limits_with_margin
+from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margin
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options
 from robocal.daemon.hub import DriverHub
@@ -117,7 +117,11 @@ class CalibrationService:
             self._spawn_verify(key)
 
     async def stop(self) -> None:
-        """Stop work (campaign states stay as they are, to resume on restart); close all."""
+        """Stop work (campaign states stay as they are, to resume on restart); close all.
+
+        Motion stops first, at once (the driver's ``stop()``), before anything else closes.
+        """
+        await self.stop_motion(trigger="shutdown", reason="daemon stopping")
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
@@ -269,9 +273,33 @@ class CalibrationService:
         return self.status(cid)
 
     async def pause(self, cid: str, *, actor: str, reason: str = "") -> dict[str, Any]:
-        """``running -> paused``; the pose in progress is finished and kept."""
-        self._transition(cid, S.PAUSED, actor=actor, reason=reason or "paused by operator")
+        """``running -> paused``, stopping the robot at once (not after the pose in progress).
+
+        The unfinished pose keeps nothing; resume moves to it again and measures it.
+        """
+        why = reason or "paused by operator"
+        self._transition(cid, S.PAUSED, actor=actor, reason=why)
+        await self.stop_motion(trigger="pause", reason=why, actor=actor, cid=cid)
         return self.status(cid)
+
+    async def stop_motion(self, *, trigger: str, reason: str, actor: str = "daemon",
+                          cid: str | None = None) -> bool:
+        """Halt the robot now: cancel the measuring task (of ``cid``, or whichever runs) and
+        call the robot driver's ``stop()``; logged and audited as ``motion.stop``.
+
+        Returns False when the controller could not confirm the halt.
+        """
+        task = self._measure_task
+        running = task is not None and not task[1].done() and (cid is None or task[0] == cid)
+        if task is not None and running:
+            task[1].cancel()
+        campaign = task[0] if task is not None and running else cid
+        ok = await halt_motion(self.hub, self.store, campaign=campaign, actor=actor,
+                               trigger=trigger, reason=reason, audit_idle=running)
+        if task is not None and running:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await asyncio.wait_for(task[1], 10.0)
+        return ok
 
     async def resume(self, cid: str, *, actor: str) -> dict[str, Any]:
         """``paused | faulted -> running``: continue at the first unmeasured pose."""
@@ -281,7 +309,7 @@ class CalibrationService:
                                     "only paused or faulted campaigns resume")
         task = self._measure_task
         if task is not None and task[0] == cid and not task[1].done():
-            # The pose in progress at the pause finishes first (bounded by the move timeout).
+            # pause() cancelled the executor; let it finish unwinding (bounded).
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(asyncio.shield(task[1]),
                                        self.config.measurement.move_timeout_s)
@@ -293,13 +321,12 @@ class CalibrationService:
     async def abort(self, cid: str, *, actor: str, reason: str = "") -> dict[str, Any]:
         """Abort from any non-final state (state and audit entry in one transaction); motion
         and fitting for it stop."""
-        self._transition(cid, S.ABORTED, actor=actor, reason=reason or "aborted by operator",
+        why = reason or "aborted by operator"
+        self._transition(cid, S.ABORTED, actor=actor, reason=why,
                          audit=("campaign.abort", {"reason": reason}))
         task = self._measure_task
         if task is not None and task[0] == cid and not task[1].done():
-            task[1].cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(task[1], 10.0)
+            await self.stop_motion(trigger="abort", reason=why, actor=actor, cid=cid)
             await self.hub.reset("campaign aborted")
         fit = self._fit_tasks.get(cid)
         if fit is not None:

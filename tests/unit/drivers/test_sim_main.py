@@ -45,7 +45,9 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
         line = await asyncio.wait_for(proc.stdout.readline(), 30)
         ports = json.loads(line)
         assert json.loads(ports_file.read_text()) == ports
-        assert set(ports) == {"host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker"}
+        assert set(ports) == {
+            "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker"
+        }
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")
         limits = [(-90.0, 90.0)] * 6

@@ -181,6 +181,7 @@ class EmsconRelay:
         assert rec is not None
         self._streams.add(c_writer)
         t_writer: asyncio.StreamWriter | None = None
+        opened = False
         try:
             try:
                 async with asyncio.timeout(self.connect_timeout_s):
@@ -193,6 +194,7 @@ class EmsconRelay:
                 return
             self._streams.add(t_writer)
             rec.write({"t": rec.now(), "conn": conn, "dir": "open"})
+            opened = True
             pumps = [
                 asyncio.create_task(self._pump(c_reader, t_writer, conn, "c2s")),
                 asyncio.create_task(self._pump(t_reader, c_writer, conn, "s2c")),
@@ -205,10 +207,11 @@ class EmsconRelay:
                 for p in pumps:
                     with contextlib.suppress(asyncio.CancelledError, Exception):
                         await p
-            rec.write({"t": rec.now(), "conn": conn, "dir": "close"})
         except asyncio.CancelledError:
             pass
         finally:
+            if opened:
+                rec.write({"t": rec.now(), "conn": conn, "dir": "close"})
             for w in (c_writer, t_writer):
                 if w is not None:
                     self._streams.discard(w)
