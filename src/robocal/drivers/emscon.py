@@ -363,8 +363,8 @@ class EmsconTracker(DriverBase):
         self.system_status = dict(status.data)
         await self._call(Cmd.SET_UNITS, _UNITS, timeout=left())
         if o.verify_units:
-            units = await self._call(Cmd.GET_UNITS, timeout=left())
-            if dict(units.data) != _UNITS:
+            units = await self._call(Cmd.GET_UNITS, timeout=left(), ok_statuses=(2,))
+            if units.ok and dict(units.data) != _UNITS:
                 raise UnexpectedReply(f"units read back {dict(units.data)}, set {_UNITS}")
         settings = dict((await self._call(Cmd.GET_SYSTEM_SETTINGS, timeout=left())).data)
         settings["send_unsolicited_messages"] = 1
@@ -388,10 +388,12 @@ class EmsconTracker(DriverBase):
         await self._set_meas_mode(left())
         if o.statistic_mode != "keep":
             mode = 1 if o.statistic_mode == "extended" else 0
+            # Optional: a server without it (NotImplemented) sends type-2 results.
             await self._call(
                 Cmd.SET_STATISTIC_MODE,
                 {"stationary_mode": mode, "continuous_mode": 0},
                 timeout=left(),
+                ok_statuses=(2,),
             )
         await self._call(
             Cmd.SET_COORDINATE_SYSTEM_TYPE,
@@ -616,7 +618,15 @@ class EmsconTracker(DriverBase):
             try:
                 async with self._lock:
                     with self.translate_errors():
-                        out = await self._exchange(cmd, params or {}, wait, measurement=measurement)
+                        try:
+                            out = await self._exchange(
+                                cmd, params or {}, wait, measurement=measurement
+                            )
+                        except TransportTimeout:
+                            if not measurement and o.abort_drain_s > 0:
+                                # Its late reply would answer the next command of this ID.
+                                await self._drain(o.abort_drain_s)
+                            raise
             except ConnectFailed:
                 if reconnected or not o.reconnect or self.state != "connected":
                     raise

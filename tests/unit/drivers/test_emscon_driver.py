@@ -185,6 +185,19 @@ async def test_driver_defaults_work_with_every_simulated_server(world, sim_optio
                 assert_close(r, world)
 
 
+async def test_optional_commands_may_be_missing_on_the_server(world):
+    async with running(world, not_implemented=(Cmd.SET_STATISTIC_MODE, Cmd.GET_UNITS)) as sim, \
+            driver(sim) as tracker:
+        r = await tracker.measure(samples=2, timeout=2.0)
+        assert_close(r, world)
+        cov = np.asarray(r.cov_m2)
+        assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0  # type-2 results
+    async with running(world, not_implemented=(Cmd.SET_COORDINATE_SYSTEM_TYPE,)) as sim:
+        with pytest.raises(EmsconStatusError, match="NotImplemented"):
+            async with driver(sim):
+                pass
+
+
 async def test_strict_result_order_rejects_the_other_order(world):
     async with running(world, result_order="reply_first") as sim, driver(
             sim, result_order="result_first", reconnect=False) as tracker:

@@ -162,6 +162,12 @@ class EmsconSimOptions(BaseModel):
         The station's meteo (used when the monitor calculates).
     serial, version
         Reported by ``GetSystemStatus``.
+    reflectors
+        The reflectors ``GetReflectors`` lists.
+    not_implemented
+        Command IDs answered with ``NotImplemented`` (2), as an older or smaller server.
+    faults
+        emScon-specific fault rates.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -200,6 +206,7 @@ class EmsconSimOptions(BaseModel):
     serial: int = 390123
     version: tuple[int, int, int] = (3, 8, 7)
     reflectors: tuple[SimReflector, ...] = _DEFAULT_REFLECTORS
+    not_implemented: tuple[int, ...] = ()
     faults: EmsconFaults = EmsconFaults()
 
 
@@ -350,6 +357,9 @@ class _Session:
                 await self.reply(cmd)
             else:
                 await self.reply(cmd, emscon.Status.SERVER_BUSY)
+            return
+        if cmd in sim.options.not_implemented:
+            await self.reply(cmd, emscon.Status.NOT_IMPLEMENTED)
             return
         if sim.emscon_faults.fire("busy"):
             await self.reply(cmd, emscon.Status.SERVER_BUSY)
