@@ -10,15 +10,16 @@ import pytest
 from robocal.drivers import contracts, load_robot, load_tracker
 from robocal.drivers.mock import MockRobot, MockTracker
 from robocal.drivers.sim import (
+    EmsconSimOptions,
     FanucRmiSimulator,
     FanucSimOptions,
+    FaultConfig,
     LtpSimOptions,
     ModbusPlcSimulator,
     ModbusSimOptions,
     SimCell,
     SimWorld,
 )
-from robocal.drivers.sim import EmsconSimOptions, FaultConfig
 from robocal.drivers.sim.emscon import EmsconFaults
 
 

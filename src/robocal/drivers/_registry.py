@@ -13,7 +13,15 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Literal
 
 from robocal.drivers._base import validate_options
-from robocal.drivers.api import RobotDriver, TrackerDriver
+from robocal.drivers.api import (
+    Connectable,
+    JointMover,
+    JointReader,
+    PointMeasurer,
+    RobotDriver,
+    Stoppable,
+    TrackerDriver,
+)
 from robocal.errors import ConfigError, DriverImportError, DriverNotFound
 
 __all__ = [
@@ -90,8 +98,16 @@ def _load(kind: str, options: Mapping[str, Any] | None, role: Role) -> Any:
         ) from err
     expected = RobotDriver if role == "robot" else TrackerDriver
     if not isinstance(driver, expected):
+        parts: tuple[type, ...] = (
+            (Connectable, JointMover, JointReader, Stoppable)
+            if role == "robot"
+            else (Connectable, PointMeasurer)
+        )
+        missing = ", ".join(p.__name__ for p in parts if not isinstance(driver, p))
         raise DriverImportError(
-            f"{cls.__qualname__} does not implement the {role} driver protocols", kind=kind
+            f"{cls.__qualname__} does not implement the {role} driver protocols "
+            f"(missing: {missing})",
+            kind=kind,
         )
     return driver
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robocal.drivers import Stoppable, load_robot, require
+from robocal.drivers import Stoppable, _registry, load_robot, require
 from robocal.drivers.mock import MockRobot
 from robocal.drivers.sim import (
     FanucRmiSimulator,
@@ -26,7 +26,7 @@ from robocal.drivers.sim import (
     ModbusSimOptions,
     SimWorld,
 )
-from robocal.errors import MotionStopped
+from robocal.errors import DriverImportError, MotionStopped
 from robocal.protocols import modbus as mb
 
 HALT_BOUND_S = 0.2  # acceptance: halt within 0.2 s of the stop request
@@ -285,3 +285,12 @@ async def test_fanuc_stop_cancels_a_move_not_yet_sent(world):
             async with asyncio.timeout(5):
                 await move
         assert not [p for p in sim.received if "Instruction" in p]
+
+
+def test_a_robot_driver_without_stop_is_refused_by_name(monkeypatch):
+    class NoStop(MockRobot):
+        stop = None  # type: ignore[assignment]
+
+    monkeypatch.setattr(_registry, "driver_class", lambda kind, role: NoStop)
+    with pytest.raises(DriverImportError, match=r"missing: Stoppable"):
+        load_robot("no_stop", {})
