@@ -8,7 +8,7 @@ from typing import Any
 
 def register(sub: Any) -> None:
     """Add the ``sim`` subcommand; every argument goes to ``robocal.drivers.sim.main``."""
-    p = sub.add_parser("sim", help="run FANUC RMI / Modbus PLC / LTP tracker simulators",
+    p = sub.add_parser("sim", help="run the robot/tracker simulators or the emScon relay",
                        description="Run protocol simulators on loopback until SIGTERM/SIGINT, "
                                    "e.g. 'robocal sim all --ports-file ports.json' "
                                    "(options: 'robocal sim --help').",
