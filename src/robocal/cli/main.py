@@ -31,7 +31,7 @@ COMMANDS: dict[str, str] = {
     "daemon": "run the calibration daemon (systemd Type=notify)",
     "campaign": "start, watch and control campaigns on the daemon",
     "compensation": "list pushed compensation tables or roll back",
-    "sim": "run FANUC RMI / Modbus PLC / LTP tracker simulators",
+    "sim": "run the robot/tracker simulators or the emScon relay",
     "simulate": "write MEAS.csv files measured on the virtual robot",
     "robots": "list built-in robots, or show/validate one",
     "drivers": "list installed drivers or show a driver's options",
