@@ -1,17 +1,26 @@
 """FANUC robot over RMI (Remote Motion Interface, option R912): JSON lines over TCP.
 
-Session: ``FRC_Connect`` on the connect port (16001) names the session port; on it
-``FRC_GetStatus`` then ``FRC_Initialize``; instructions carry consecutive SequenceIDs from 1,
-at most 8 in flight. Motions are ``FRC_JointMotionJRep`` with ``TermType FINE``, whose reply
+Protocol as robocal speaks it: ``docs/protocols/fanuc-rmi.md``.
+
+Session: ``FRC_Connect`` on the connect port (16001) names the session port (connected with
+bounded retries: it may not listen at once); on it ``FRC_GetStatus``, ``FRC_Reset``,
+``FRC_GetStatus``, ``FRC_Initialize`` (FANUC's reference sequence, so a resettable alarm does
+not stop the connection), then ``FRC_GetStatus`` for NextSequenceID, which newer controllers
+keep across ``FRC_Initialize``; instructions carry consecutive SequenceIDs from it, at most 8
+in flight. Motions are ``FRC_JointMotionJRep`` with ``TermType FINE``, whose reply
 arrives when the robot is in position; actual joints come from ``FRC_ReadJointAngles``,
 which returns encoder positions only from RMI MajorVersion 6 on, so older controllers are
 refused. A HOLD (SequenceID gap, buffer overrun, system fault) is recovered with
 ``FRC_GetStatus`` (NextSequenceID) and ``FRC_Reset`` before the next motion.
 
 Compensation: ``frames`` tables go to ``FRC_WriteUFrameData``/``FRC_WriteUToolData``;
-``targets`` tables to position registers PR[pr_base + index] with joint angles J1..J6 in
-the X..R slots (robocal's convention; RMI writes PRs only in Cartesian form, so a TP helper
-program reads them back element-wise with ``PR[i,j]``). Everything is read back and compared.
+``targets`` tables to two position registers per row: J1..J3 in X, Y, Z of
+PR[pr_base + 2 index] and J4..J6 in X, Y, Z of PR[pr_base + 2 index + 1], W/P/R zero. RMI
+writes PRs only in Cartesian form, whose W/P/R the controller keeps in canonical ranges (a
+J6 of 270 or a J5 of 100 degrees would not read back), while X, Y, Z are stored as written;
+a TP helper program copies the values element-wise with ``PR[i,j]`` into a joint PR. The PR
+configuration names UFrame 0 (world) and the configured UTool (never 0, which has no
+documented meaning). Everything is read back and compared.
 """
 
 from __future__ import annotations
@@ -52,6 +61,12 @@ _SEQUENCE_ERRORS = frozenset({rmi.rmit(24), rmi.rmit(28), rmi.rmit(29)})
 #: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
 #: connect timeout).
 _SESSION_PORT_ATTEMPTS = 8
+#: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
+#: connect timeout).
+_SESSION_PORT_ATTEMPTS = 8
+#: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
+#: connect timeout).
+_SESSION_PORT_ATTEMPTS = 8
 
 
 class FanucRmiOptions(RobotOptions):
@@ -70,7 +85,9 @@ class FanucRmiOptions(RobotOptions):
     uframe_number, utool_number
         Frames written by a ``frames`` compensation table.
     pr_base, pr_count
-        Position registers available to a ``targets`` table: PR[pr_base + index].
+        Position registers available to a ``targets`` table: PR[pr_base] to
+        PR[pr_base + pr_count - 1], two per row (row ``i`` uses ``pr_base + 2i`` and
+        ``pr_base + 2i + 1``).
     verify_tol
         Read-back tolerance, mm and degrees.
     override_pct
@@ -571,41 +588,56 @@ class FanucRmiRobot(RobotDriverBase):
 
     def _pr_rows(self, table: CompensationTable) -> list[TargetRow]:
         rows = [r for r in (table.targets or []) if r.status == "ok"]
-        o = self.options
         if self.dof > 6:
             raise CompensationError("targets tables through PRs support at most 6 joints")
         for r in rows:
-            if not 0 <= r.index < o.pr_count:
-                raise CompensationError(
-                    f"target index {r.index} outside PR[{o.pr_base}..{o.pr_base + o.pr_count - 1}]"
-                )
+            self._pr_numbers(r.index)
             check_joint_target(
                 [math.radians(v) for v in r.q_deg], self.joint_limits_rad, kind=self.kind
             )
         return rows
 
+    def _pr_numbers(self, index: int) -> tuple[int, int]:
+        """Return the two PRs of target row ``index`` (J1..J3, then J4..J6, in X, Y, Z).
+
+        Raises
+        ------
+        CompensationError
+            If they lie outside the configured registers.
+        """
+        o = self.options
+        if not 0 <= 2 * index + 1 < o.pr_count:
+            raise CompensationError(
+                f"target index {index} needs PR[{o.pr_base + 2 * index}] and "
+                f"PR[{o.pr_base + 2 * index + 1}], outside the configured "
+                f"PR[{o.pr_base}..{o.pr_base + o.pr_count - 1}]"
+            )
+        return o.pr_base + 2 * index, o.pr_base + 2 * index + 1
+
     async def _write_targets(self, table: CompensationTable) -> None:
         rows = self._pr_rows(table)  # every row checked before anything is written
         o = self.options
+        config = {
+            "UToolNumber": o.utool_number,
+            "UFrameNumber": 0,
+            "Front": 1,
+            "Up": 1,
+            "Left": 0,
+            "Flip": 0,
+            "Turn4": 0,
+            "Turn5": 0,
+            "Turn6": 0,
+        }
         for r in rows:
-            slots = [*r.q_deg, *([0.0] * (6 - len(r.q_deg)))]
-            await self._command(
-                "FRC_WritePositionRegister",
-                RegisterNumber=o.pr_base + r.index,
-                Configuration={
-                    "UToolNumber": 0,
-                    "UFrameNumber": 0,
-                    "Front": 1,
-                    "Up": 1,
-                    "Left": 0,
-                    "Flip": 0,
-                    "Turn4": 0,
-                    "Turn5": 0,
-                    "Turn6": 0,
-                },
-                Position=rmi.frame_fields(*slots),
-                Group=o.group,
-            )
+            q = [*r.q_deg, *([0.0] * (6 - len(r.q_deg)))]
+            for n, xyz in zip(self._pr_numbers(r.index), (q[:3], q[3:6]), strict=True):
+                await self._command(
+                    "FRC_WritePositionRegister",
+                    RegisterNumber=n,
+                    Configuration=config,
+                    Position=rmi.frame_fields(xyz[0], xyz[1], xyz[2], 0.0, 0.0, 0.0),
+                    Group=o.group,
+                )
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the last table written in this session, its numbers re-read from the controller.
@@ -639,17 +671,14 @@ class FanucRmiRobot(RobotDriverBase):
             for r in table.targets or []:
                 if r.status != "ok":
                     continue
-                if not 0 <= r.index < o.pr_count:
-                    raise CompensationError(f"target index {r.index} outside the "
-                                            f"{o.pr_count} configured position registers")
-                n = o.pr_base + r.index
-                pr = await self._command("FRC_ReadPositionRegister", RegisterNumber=n,
-                                         Group=o.group)
-                config = pr.body.get("Configuration")
-                items[f"pr:{n}"] = {
-                    "position": list(rmi.parse_frame(pr.body, "Position")),
-                    "configuration": dict(config) if isinstance(config, Mapping) else {},
-                }
+                for n in self._pr_numbers(r.index):
+                    pr = await self._command("FRC_ReadPositionRegister", RegisterNumber=n,
+                                             Group=o.group)
+                    config = pr.body.get("Configuration")
+                    items[f"pr:{n}"] = {
+                        "position": list(rmi.parse_frame(pr.body, "Position")),
+                        "configuration": dict(config) if isinstance(config, Mapping) else {},
+                    }
         else:
             raise CompensationError(
                 f"{self.kind} stores only 'frames' and 'targets' tables, not {table.kind!r}"
@@ -712,11 +741,13 @@ class FanucRmiRobot(RobotDriverBase):
                 if r.status != "ok":
                     rows.append(r)
                     continue
-                pr = await self._command(
-                    "FRC_ReadPositionRegister", RegisterNumber=o.pr_base + r.index, Group=o.group
-                )
-                pos = rmi.parse_frame(pr.body, "Position")
-                rows.append(r.model_copy(update={"q_deg": list(pos[: len(r.q_deg)])}))
+                q: list[float] = []
+                for n in self._pr_numbers(r.index):
+                    pr = await self._command(
+                        "FRC_ReadPositionRegister", RegisterNumber=n, Group=o.group
+                    )
+                    q.extend(rmi.parse_frame(pr.body, "Position")[:3])
+                rows.append(r.model_copy(update={"q_deg": q[: len(r.q_deg)]}))
             update = {"targets": rows}
         back = table.model_copy(update=update)
         return back.model_copy(update={"checksum": back.compute_checksum()})
@@ -730,8 +761,10 @@ def _snapshot_template(snapshot: ControllerSnapshot, pr_base: int) -> Compensati
         zero = Frame(x=0.0, y=0.0, z=0.0, w=0.0, p=0.0, r=0.0)
         return CompensationTable(kind="frames", frames=FramesPayload(base=zero, tool=zero),
                                  **common)
-    rows = [TargetRow(index=int(k.partition(":")[2]) - pr_base, q_deg=[0.0], status="ok",
-                      model_residual_mm=0.0) for k in snapshot.items]
+    # Row i owns PR[pr_base + 2i] and PR[pr_base + 2i + 1].
+    indices = sorted({(int(k.partition(":")[2]) - pr_base) // 2 for k in snapshot.items})
+    rows = [TargetRow(index=i, q_deg=[0.0], status="ok", model_residual_mm=0.0)
+            for i in indices]
     return CompensationTable(kind="targets", targets=rows, **common)
 
 

@@ -1,4 +1,4 @@
-"""Sans-I/O codec for FANUC RMI (Remote Motion Interface, option R912), protocols.md 1.1.
+"""Sans-I/O codec for FANUC RMI (Remote Motion Interface, option R912).
 
 Wire layout: one JSON object per CR LF line over TCP. The **first key** names the packet
 category and its value the packet name::
@@ -12,15 +12,19 @@ category and its value the packet name::
     {"Communication":"FRC_SystemFault","SequenceID":7}                unsolicited
 
 Angles are degrees and lengths millimetres on the wire. ``SID`` is accepted for
-``SequenceID``. :func:`decode` raises :class:`~robocal.errors.FramingError` for anything that
-is not such a packet; :class:`~robocal.errors.UnexpectedReply` for well-formed packets whose
-fields have the wrong types.
+``SequenceID``, ``JointAngles`` for ``JointAngle``, and number forms strict JSON refuses
+(``-.0123``, ``1.``, ``+2``) are normalised before decoding. What robocal speaks is described
+in ``docs/protocols/fanuc-rmi.md``. :func:`decode` raises
+:class:`~robocal.errors.FramingError` for anything that is not such a packet;
+:class:`~robocal.errors.UnexpectedReply` for well-formed packets whose fields have the wrong
+types.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -31,6 +35,7 @@ __all__ = [
     "CATEGORIES",
     "DEFAULT_CONNECT_PORT",
     "ERROR_TEXT",
+    "JOINT_KEYS",
     "MAX_IN_FLIGHT",
     "MAX_LINE",
     "MAX_SEQUENCE_ID",
@@ -43,6 +48,7 @@ __all__ = [
     "joint_angles",
     "joint_motion_jrep",
     "next_sequence_id",
+    "normalise_numbers",
     "parse_frame",
     "rmit",
 ]
@@ -61,48 +67,87 @@ def rmit(n: int) -> int:
     return RMIT_BASE + n
 
 
-#: ErrorID -> meaning, from the operator's manual (RMIT-nnn = 2556928 + nnn) plus MEMO codes.
+#: RMIT-nnn alarm texts (ErrorID = 2556928 + nnn), in our words, after the operator's manual
+#: B-84184EN and the tables public RMI clients carry (see docs/protocols/fanuc-rmi.md).
+_RMIT_TEXT: dict[int, str] = {
+    1: "internal system error",
+    2: "invalid UTool number",
+    3: "invalid UFrame number",
+    4: "invalid position register",
+    5: "invalid speed override",
+    6: "cannot execute TP program",
+    7: "controller servo is off",
+    8: "teach pendant is enabled",
+    9: "RMI is not running",
+    10: "TP program is not paused",
+    11: "cannot resume TP program",
+    12: "cannot reset controller",
+    13: "invalid RMI command",
+    14: "RMI command failed",
+    15: "invalid controller state",
+    16: "cycle power (hot start is disabled while RMI runs)",
+    17: "invalid payload schedule",
+    18: "invalid motion option",
+    19: "invalid vision register",
+    20: "invalid RMI instruction",
+    21: "invalid value",
+    22: "invalid text string",
+    23: "invalid position data",
+    24: "RMI is in HOLD state",
+    25: "remote device disconnected",
+    26: "robot is already connected",
+    27: "wait for command done",
+    28: "wait for instruction done (more than 8 in flight)",
+    29: "invalid sequence ID number",
+    30: "invalid speed type",
+    31: "invalid speed value",
+    32: "invalid term type",
+    33: "invalid term value",
+    34: "invalid LCB port type",
+    35: "invalid ACC value",
+    36: "invalid destination position",
+    37: "invalid VIA position",
+    38: "invalid port number",
+    39: "invalid group number",
+    40: "invalid group mask",
+    41: "joint motion with COORD",
+    42: "incremental motion with COORD",
+    43: "robot in single step mode",
+    44: "invalid position data type",
+    45: "not ready for ASCII packet",
+    46: "ASCII conversion failed",
+    47: "invalid ASCII instruction",
+    48: "invalid number of groups",
+    49: "invalid instruction packet",
+    50: "invalid ASCII packet",
+    51: "invalid ASCII string size",
+    52: "invalid application tool",
+    53: "invalid call program name",
+    54: "joint motion with ALIM",
+    55: "ALIM option is not loaded",
+    56: "need to finish S-motion",
+    57: "spline option is not loaded",
+}
+
+#: ErrorID -> meaning: every RMIT alarm above plus the MEMO codes FRC_Initialize returns.
 ERROR_TEXT: dict[int, str] = {
-    rmit(1): "RMIT-001 internal system error",
-    rmit(2): "RMIT-002 invalid UTool number",
-    rmit(3): "RMIT-003 invalid UFrame number",
-    rmit(4): "RMIT-004 invalid position register",
-    rmit(5): "RMIT-005 invalid speed override",
-    rmit(6): "RMIT-006 cannot execute TP program",
-    rmit(7): "RMIT-007 controller servo is off",
-    rmit(8): "RMIT-008 teach pendant is enabled",
-    rmit(9): "RMIT-009 RMI is not running",
-    rmit(13): "RMIT-013 invalid RMI command",
-    rmit(15): "RMIT-015 invalid controller state",
-    rmit(16): "RMIT-016 hot start is disabled while RMI runs",
-    rmit(21): "RMIT-021 invalid value",
-    rmit(22): "RMIT-022 invalid text string",
-    rmit(23): "RMIT-023 invalid position data",
-    rmit(24): "RMIT-024 RMI is in HOLD state",
-    rmit(25): "RMIT-025 remote device disconnected",
-    rmit(26): "RMIT-026 robot is already connected",
-    rmit(27): "RMIT-027 wait for command done",
-    rmit(28): "RMIT-028 wait for instruction done (more than 8 in flight)",
-    rmit(29): "RMIT-029 invalid sequence ID number",
-    rmit(30): "RMIT-030 invalid speed type",
-    rmit(31): "RMIT-031 invalid speed value",
-    rmit(32): "RMIT-032 invalid term type",
-    rmit(33): "RMIT-033 invalid term value",
-    rmit(38): "RMIT-038 invalid port number",
-    rmit(39): "RMIT-039 invalid group number",
-    rmit(40): "RMIT-040 invalid group mask",
+    **{rmit(n): f"RMIT-{n:03d} {text}" for n, text in _RMIT_TEXT.items()},
     7004: "MEMO-004 specified program is in use (RMI_MOVE selected on the pendant)",
     7015: "MEMO-015 program already exists (RMI_MOVE selected on the pendant)",
 }
 
 
 def describe_error(error_id: int) -> str:
-    """Return a readable text for a controller ErrorID (``"RMIT-029 invalid sequence ID"``)."""
+    """Return a readable text for a controller ErrorID (``"RMIT-029 invalid sequence ID"``).
+
+    A code outside the table says so explicitly, naming the RMIT number when it lies in the
+    RMIT range, so an operator can look it up in the controller's alarm manual.
+    """
     if error_id in ERROR_TEXT:
         return ERROR_TEXT[error_id]
     if RMIT_BASE < error_id < RMIT_BASE + 1000:
-        return f"RMIT-{error_id - RMIT_BASE:03d}"
-    return f"ErrorID {error_id}"
+        return f"RMIT-{error_id - RMIT_BASE:03d} (not in robocal's RMIT table; ErrorID {error_id})"
+    return f"unknown ErrorID {error_id} (not an RMIT alarm; see the controller's alarm history)"
 
 
 def next_sequence_id(seq: int) -> int:
@@ -175,6 +220,35 @@ def _strip_order(obj: Any) -> Any:
     return obj
 
 
+# A JSON string (kept as is) or a number as controllers write it: optional sign, digits with
+# an optional point, or a point and digits, optional exponent.
+_STRING_OR_NUMBER = re.compile(
+    r'"(?:[^"\\]|\\.)*"|(?<![A-Za-z0-9_.])[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?'
+)
+
+
+def _json_number(m: re.Match[str]) -> str:
+    token = m.group(0)
+    if token.startswith('"'):
+        return token
+    sign = "-" if token[0] == "-" else ""
+    body = token.lstrip("+-")
+    mantissa, e, exponent = body.partition("e") if "e" in body else body.partition("E")
+    whole, point, frac = mantissa.partition(".")
+    whole = whole.lstrip("0") or "0"
+    out = sign + whole + ("." + (frac or "0") if point else "")
+    return out + (e.lower() + exponent if e else "")
+
+
+def normalise_numbers(text: str) -> str:
+    """Rewrite the number forms controllers send into strict JSON, leaving strings alone.
+
+    Some controllers write numbers without a leading zero (``-.0123``, `` .0456``), with a
+    trailing point (``1.``), a plus sign or leading zeros; ``json`` refuses all of these.
+    """
+    return _STRING_OR_NUMBER.sub(_json_number, text)
+
+
 def encode(packet: Mapping[str, Any]) -> bytes:
     """Serialise one packet (without CR LF); the first key must be a category.
 
@@ -210,7 +284,7 @@ def decode(line: bytes | str) -> Packet:
     if len(raw) > MAX_LINE:
         raise FramingError(f"RMI line of {len(raw)} bytes exceeds {MAX_LINE}")
     try:
-        text = raw.decode("utf-8")
+        text = normalise_numbers(raw.decode("utf-8"))
         obj = json.loads(text, object_pairs_hook=_pairs_hook, parse_constant=_reject_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as err:
         raise FramingError(f"RMI line is not valid JSON: {err}"[:200], last_frames=[raw]) from err
@@ -259,14 +333,21 @@ def joint_motion_jrep(
     }
 
 
-def joint_angles(body: Mapping[str, Any], dof: int, *, key: str = "JointAngle") -> list[float]:
-    """Return ``J1..J<dof>`` (degrees) from a ``JointAngle`` mapping.
+#: Keys a joint-angle object comes under: newer firmware answers ``JointAngle``, older
+#: firmware ``JointAngles``.
+JOINT_KEYS = ("JointAngle", "JointAngles")
+
+
+def joint_angles(body: Mapping[str, Any], dof: int, *, key: str | None = None) -> list[float]:
+    """Return ``J1..J<dof>`` (degrees) from a ``JointAngle`` (or ``JointAngles``) mapping.
 
     Raises
     ------
     UnexpectedReply
         If the mapping or a joint is missing or not a finite number.
     """
+    if key is None:
+        key = next((k for k in JOINT_KEYS if k in body), JOINT_KEYS[0])
     angles = body.get(key)
     if not isinstance(angles, Mapping):
         raise UnexpectedReply(f"reply has no {key} object")

@@ -55,9 +55,12 @@ async def test_session_setup_and_consecutive_sequence_ids(world):
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
         assert robot.controller_version == (7, 0) and robot.session_port == sim.main_port
-        assert [next(iter(p.values())) for p in sim.received[:2]] == [
+        assert [next(iter(p.values())) for p in sim.received[:5]] == [
+            "FRC_GetStatus",
+            "FRC_Reset",
             "FRC_GetStatus",
             "FRC_Initialize",
+            "FRC_GetStatus",
         ]
         for i in range(12):
             q = [0.01 * i] * world.dof
@@ -278,8 +281,8 @@ async def test_compensation_frames_and_targets(world):
         ]
         table = targets_table(rows)
         await robot.write_compensation(table)
-        assert sorted(sim.position_registers) == [50, 57]
-        assert sim.position_registers[57]["Position"]["R"] == 60.125
+        assert sorted(sim.position_registers) == [50, 51, 64, 65]
+        assert sim.position_registers[65]["Position"]["Z"] == 60.125
         back = await robot.read_compensation()
         assert back == table
         await robot.close()
@@ -394,8 +397,8 @@ async def answer_rest(reader, writer):
 
 
 async def good_setup(reader, writer):
-    """Answer GetStatus and Initialize properly."""
-    for _ in range(2):
+    """Answer the setup (GetStatus, Reset, GetStatus, Initialize, GetStatus) properly."""
+    for _ in range(5):
         writer.write(reply_for(await reader.readline()))
     await writer.drain()
 

@@ -106,9 +106,60 @@ def test_encode_enforces_first_key_and_finiteness():
 def test_error_table_and_numbering():
     assert rmi.rmit(29) == 2556957 and rmi.rmit(28) == 2556956
     assert rmi.describe_error(2556957).startswith("RMIT-029")
-    assert rmi.describe_error(rmi.rmit(999)) == "RMIT-999"
     assert rmi.describe_error(7015).startswith("MEMO-015")
-    assert rmi.describe_error(42) == "ErrorID 42"
+    assert rmi.next_sequence_id(1) == 2 and rmi.next_sequence_id(2**31 - 1) == 1
+
+
+def test_error_table_is_complete_and_unknown_codes_are_explicit():
+    """Item 7: every RMIT-001..057 has a text; anything else says it is not in the table."""
+    for n in range(1, 58):
+        text = rmi.describe_error(2556928 + n)
+        assert text.startswith(f"RMIT-{n:03d} ") and "not in" not in text, text
+    assert rmi.describe_error(rmi.rmit(10)) == "RMIT-010 TP program is not paused"
+    assert rmi.describe_error(rmi.rmit(43)) == "RMIT-043 robot in single step mode"
+    unknown = rmi.describe_error(rmi.rmit(999))
+    assert unknown.startswith("RMIT-999") and "not in robocal's RMIT table" in unknown
+    assert rmi.describe_error(42) == (
+        "unknown ErrorID 42 (not an RMIT alarm; see the controller's alarm history)"
+    )
+
+
+#: Replies as controllers write them (number forms seen in public RMI client logs).
+RECORDED = [
+    (
+        b'{"Command":"FRC_ReadJointAngles","ErrorID":0,"TimeTag":10552,"JointAngle":'
+        b'{"J1":-.0123,"J2": .0456,"J3":-90.,"J4":0,"J5":+45.5,"J6":180.000,"J7":0.000,'
+        b'"J8":0.000,"J9":0.000}}',
+        [-0.0123, 0.0456, -90.0, 0.0, 45.5, 180.0],
+    ),
+    (
+        b'{"Command": "FRC_ReadJointAngles", "ErrorID": 0, "TimeTag": 7,  "JointAngles": '
+        b'{"J1": 12.5, "J2": -.5, "J3": .75, "J4": -0.0, "J5": 1.e1, "J6": 003.25}}',
+        [12.5, -0.5, 0.75, 0.0, 10.0, 3.25],
+    ),
+]
+
+
+@pytest.mark.parametrize(("line", "q_deg"), RECORDED)
+def test_recorded_style_packets_decode(line, q_deg):
+    """Items 1 and 3: numbers without a leading zero, and the plural key of older firmware."""
+    packet = rmi.decode(line)
+    assert rmi.joint_angles(packet.body, 6) == pytest.approx(q_deg)
+
+
+def test_number_normalising_leaves_strings_alone():
+    text = '{"Command":"FRC_ReadError","ErrorID":0,"ErrorData":"SRVO-002 at -.5 \\"x\\" 1."}'
+    assert rmi.normalise_numbers(text) == text
+    assert rmi.decode(text.encode()).body["ErrorData"] == 'SRVO-002 at -.5 "x" 1.'
+    with pytest.raises(FramingError):
+        rmi.decode(b'{"Command":"X","A":1.2.3}')
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False))
+def test_controller_number_forms_parse_to_the_same_value(x):
+    for form in (repr(x), f"{x:.6f}", f"{x:e}", f"{x:.3f}".replace("0.", ".", 1)):
+        line = f'{{"Command":"FRC_ReadTCPSpeed","ErrorID":0,"Speed":{form}}}'
+        assert rmi.decode(line.encode()).body["Speed"] == pytest.approx(float(form), rel=1e-12)
     assert rmi.next_sequence_id(1) == 2 and rmi.next_sequence_id(2**31 - 1) == 1
 
 

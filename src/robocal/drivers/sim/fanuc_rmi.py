@@ -16,9 +16,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import re
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
@@ -40,6 +41,15 @@ class FanucSimOptions(BaseModel):
 
     ``time_scale`` multiplies simulated motion and wait times (0 = instantaneous, 1 = real
     time); the default is fast. ``joint_limits_deg`` overrides the world's robot limits.
+
+    Behaviours of real controllers, each a switch (docs/protocols/fanuc-rmi.md):
+    ``number_style="no_leading_zero"`` writes numbers in (-1, 1) as ``-.0123`` and `` .0456``;
+    ``sequence_persists`` keeps NextSequenceID across ``FRC_Initialize`` and sessions
+    (starting at ``initial_sequence_id``) and silently drops instructions with stale IDs;
+    ``joint_key`` is the key of ``FRC_ReadJointAngles`` replies (older firmware: plural);
+    ``alarm_at_connect`` starts with a resettable alarm (servo off until ``FRC_Reset``);
+    ``session_port_delay_s`` is how long after ``FRC_Connect`` the session port starts
+    listening (connections before that are refused).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -47,6 +57,12 @@ class FanucSimOptions(BaseModel):
     major_version: int = 7
     minor_version: int = 0
     time_scale: float = Field(default=0.001, ge=0.0)
+    number_style: Literal["json", "no_leading_zero"] = "json"
+    sequence_persists: bool = False
+    initial_sequence_id: int = Field(default=1, ge=1)
+    joint_key: Literal["JointAngle", "JointAngles"] = "JointAngle"
+    alarm_at_connect: bool = False
+    session_port_delay_s: float = Field(default=0.0, ge=0.0)
     max_joint_speed_deg_s: float = Field(default=180.0, gt=0.0)
     min_motion_s: float = Field(default=0.012, ge=0.0)
     check_sequence_ids: bool = True
@@ -72,6 +88,41 @@ _ZERO_CONFIG = {
     "Turn5": 0,
     "Turn6": 0,
 }
+
+
+_NO_LEADING_ZERO = re.compile(rb"(?<=[:,\[])( ?)(-?)0\.(?=[0-9])")
+
+
+def _stale(seq: int, expected: int) -> bool:
+    """True if ``seq`` was used before ``expected`` (within half the wrapping ID range)."""
+    return 0 < (expected - seq) % rmi.MAX_SEQUENCE_ID < rmi.MAX_SEQUENCE_ID // 2
+
+
+def normalise_wpr(w: float, p: float, r: float) -> tuple[float, float, float]:
+    """Return the canonical W/P/R (degrees) of the same orientation: P in [-90, 90],
+    W and R in (-180, 180], as a controller stores a Cartesian orientation."""
+    cw, sw = math.cos(math.radians(w)), math.sin(math.radians(w))
+    cp, sp = math.cos(math.radians(p)), math.sin(math.radians(p))
+    cr, sr = math.cos(math.radians(r)), math.sin(math.radians(r))
+    # R = Rz(r) Ry(p) Rx(w); read back the angles from its entries.
+    r20, r21, r22 = -sp, cp * sw, cp * cw
+    r10, r00 = sr * cp, cr * cp
+    p2 = math.degrees(math.asin(max(-1.0, min(1.0, -r20))))
+    if abs(r20) < 1.0 - 1e-12:
+        w2 = math.degrees(math.atan2(r21, r22))
+        r2 = math.degrees(math.atan2(r10, r00))
+    else:  # gimbal lock: only W - R (or W + R) is defined; keep R
+        w2, r2 = w - r if r20 < 0 else w + r, r
+    return tuple(_wrap180(a) for a in (w2, p2, r2))  # type: ignore[return-value]
+
+
+def _wrap180(a: float) -> float:
+    a = math.fmod(a, 360.0)
+    if a <= -180.0:
+        a += 360.0
+    elif a > 180.0:
+        a -= 360.0
+    return 0.0 if a == 0.0 else a
 
 
 class _Session:
@@ -107,7 +158,7 @@ class _Session:
             try:
                 if faults.fire("garbage"):
                     self.writer.write(faults.garbage() + b"\r\n")
-                self.writer.write(rmi.encode(packet) + b"\r\n")
+                self.writer.write(self.sim.render(packet) + b"\r\n")
                 await self.writer.drain()
             except (ConnectionError, RuntimeError):
                 self.closed = True
@@ -192,6 +243,11 @@ class _Session:
             return
         if self.in_flight >= rmi.MAX_IN_FLIGHT:
             await self.send({**reply, "ErrorID": rmi.rmit(28)})
+            return
+        persists = sim.options.sequence_persists and sim.options.check_sequence_ids
+        if persists and _stale(seq, sim.next_sequence_id):
+            # Newer controllers drop an instruction with an already used ID silently.
+            sim.dropped_stale += 1
             return
         if sim.options.check_sequence_ids and seq != sim.next_sequence_id:
             sim.hold = True
@@ -292,6 +348,9 @@ class FanucRmiSimulator:
         self.active_uframe = 0
         self.active_utool = 1
         self.override = 100
+        self.next_sequence_id = self.options.initial_sequence_id
+        self.dropped_stale = 0
+        self.alarm_active = self.options.alarm_at_connect
         self.host = "127.0.0.1"
         self.connect_port = 0
         self.main_port = 0
@@ -299,6 +358,7 @@ class FanucRmiSimulator:
         self._session: _Session | None = None
         self._session_task: asyncio.Task[None] | None = None
         self._handshake_pending = False
+        self._main_server: asyncio.Server | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t0 = time.monotonic()
         self._reset_state()
@@ -307,8 +367,18 @@ class FanucRmiSimulator:
         self.initialized = False
         self.hold = False
         self.moving = False
-        self.next_sequence_id = 1
-        self.last_alarm = ""
+        if not self.options.sequence_persists:
+            self.next_sequence_id = 1
+        self.last_alarm = "SRVO-037 IMSTP input (Group:1)" if self.alarm_active else ""
+
+    def render(self, packet: Mapping[str, Any]) -> bytes:
+        """Encode a packet as this controller writes it (``number_style``)."""
+        data = rmi.encode(packet)
+        if self.options.number_style == "no_leading_zero":
+            data = _NO_LEADING_ZERO.sub(
+                lambda m: m.group(1) + (b"-." if m.group(2) else b" ."), data
+            )
+        return data
 
     # --- lifecycle -----------------------------------------------------------------------------
     async def start(
@@ -317,10 +387,16 @@ class FanucRmiSimulator:
         """Listen on both ports (0 picks free ones); return ``(connect_port, main_port)``."""
         self.host = host
         main = await asyncio.start_server(self._on_main, host, main_port)
-        self._servers.append(main)
+        self.main_port = main.sockets[0].getsockname()[1]
+        if self.options.session_port_delay_s > 0:
+            # Not listening until a while after each FRC_Connect (see _listen_late).
+            main.close()
+            await main.wait_closed()
+        else:
+            self._servers.append(main)
+            self._main_server = main
         conn = await asyncio.start_server(self._on_connect, host, connect_port)
         self._servers.append(conn)
-        self.main_port = main.sockets[0].getsockname()[1]
         self.connect_port = conn.sockets[0].getsockname()[1]
         _log.info("rmi sim listening", connect_port=self.connect_port, main_port=self.main_port)
         return self.connect_port, self.main_port
@@ -377,6 +453,8 @@ class FanucRmiSimulator:
                 reply = {"Communication": "FRC_Connect", "ErrorID": rmi.rmit(26)}
             else:
                 self._handshake_pending = True
+                if self.options.session_port_delay_s > 0 and self._main_server is None:
+                    self._track(self._listen_late())
                 reply = {
                     "Communication": "FRC_Connect",
                     "ErrorID": 0,
@@ -396,6 +474,22 @@ class FanucRmiSimulator:
             if task is not None:
                 self._tasks.discard(task)
 
+    async def _listen_late(self) -> None:
+        """Start listening on the session port ``session_port_delay_s`` after FRC_Connect."""
+        await asyncio.sleep(self.options.session_port_delay_s)
+        if self._main_server is None:
+            server = await asyncio.start_server(self._on_main, self.host, self.main_port)
+            self._main_server = server
+            self._servers.append(server)
+
+    async def _stop_listening_late(self) -> None:
+        """After a session, the next FRC_Connect again finds the session port closed."""
+        server, self._main_server = self._main_server, None
+        if server is not None and self.options.session_port_delay_s > 0:
+            server.close()
+            if server in self._servers:
+                self._servers.remove(server)
+
     async def _on_main(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if not self._handshake_pending or (self._session is not None and not self._session.closed):
             writer.close()
@@ -403,6 +497,7 @@ class FanucRmiSimulator:
                 await writer.wait_closed()
             return
         self._handshake_pending = False
+        await self._stop_listening_late()
         self._reset_state()
         self.sessions += 1
         session = _Session(self, reader, writer)
@@ -430,7 +525,7 @@ class FanucRmiSimulator:
         if name == "FRC_GetStatus":
             return {
                 **ok,
-                "ServoReady": int(self.options.servo_ready),
+                "ServoReady": int(self.options.servo_ready and not self.alarm_active),
                 "TPMode": int(self.options.tp_enabled),
                 "RMIMotionStatus": int(self.initialized),
                 "ProgramStatus": 0 if self.initialized and not self.hold else 1,
@@ -443,7 +538,7 @@ class FanucRmiSimulator:
         if name == "FRC_Initialize":
             if self.options.tp_enabled:
                 return err(8)
-            if not self.options.servo_ready:
+            if not self.options.servo_ready or self.alarm_active:
                 return err(7)
             if self.options.rmi_move_selected:
                 return {"Command": name, "ErrorID": 7015}
@@ -451,7 +546,8 @@ class FanucRmiSimulator:
                 return err(15)
             self.initialized = True
             self.hold = False
-            self.next_sequence_id = 1
+            if not self.options.sequence_persists:
+                self.next_sequence_id = 1
             return {**ok, "GroupMask": int(body.get("GroupMask", 1) or 1)}
         if name == "FRC_Abort":
             if not self.initialized:
@@ -463,6 +559,7 @@ class FanucRmiSimulator:
             return ok
         if name == "FRC_Reset":
             self.hold = False
+            self.alarm_active = False
             self.last_alarm = ""
             return ok
         if name == "FRC_Pause":
@@ -482,7 +579,7 @@ class FanucRmiSimulator:
         if name == "FRC_ReadJointAngles":
             q = [math.degrees(v) for v in self.world.q_actual_rad]
             angles = {f"J{i + 1}": (q[i] if i < len(q) else 0.0) for i in range(9)}
-            return {**ok, "TimeTag": self._time_tag(), "JointAngle": angles}
+            return {**ok, "TimeTag": self._time_tag(), self.options.joint_key: angles}
         if name == "FRC_GetUFrameUTool":
             return {**ok, "UFrameNumber": self.active_uframe, "UToolNumber": self.active_utool}
         if name == "FRC_SetUFrameUTool":
@@ -515,7 +612,14 @@ class FanucRmiSimulator:
                 config = body.get("Configuration")
                 if not isinstance(config, Mapping):
                     return err(23)
-                position = dict(zip("XYZWPR", pos, strict=True))
+                uf = config.get("UFrameNumber")
+                if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
+                    return err(3)
+                # UToolNumber is stored as given: whether a controller accepts 0 is not
+                # documented, and the driver sends only configured tools (1..10).
+                # A Cartesian PR holds an orientation: the controller keeps W/P/R in their
+                # canonical ranges, so angles beyond them do not read back as written.
+                position = dict(zip("XYZWPR", (*pos[:3], *normalise_wpr(*pos[3:])), strict=True))
                 self.position_registers[n] = {"Configuration": dict(config), "Position": position}
                 return {**ok, "RegisterNumber": n}
             stored = self.position_registers.get(
