@@ -183,8 +183,8 @@ class CompensationConfig(_Model):
         compensation).
     targets_file
         CSV ``q1..qN`` (degrees): the robot program's targets as taught; row ``i`` is written
-        to position register ``pr_base + i`` (FANUC) or table row ``i`` (PLC). Without it the
-        campaign's validation poses are used.
+        to position registers ``pr_base + 2i`` and ``pr_base + 2i + 1`` (FANUC) or table row
+        ``i`` (PLC). Without it the campaign's validation poses are used.
     max_residual_ratio
         A table is pushed only if its predicted residual is below this fraction of the
         nominal (uncompensated) residual, unless the operator forces it.
