@@ -2,8 +2,8 @@
 
 Start-up: validate the configuration, take the data directory's lock (one daemon per store),
 open the store, connect the drivers, resume interrupted campaigns, serve the API, then tell
-systemd ``READY=1``. SIGTERM/SIGINT: ``STOPPING=1``, stop serving, stop motion and fits
-(campaign states stay, to resume on the next start), close the drivers.
+systemd ``READY=1``. SIGTERM/SIGINT: ``STOPPING=1``, stop the robot at once, stop serving,
+stop fits (campaign states stay, to resume on the next start), close the drivers.
 """
 
 from __future__ import annotations
@@ -101,6 +101,9 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
                 watchdog.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await watchdog
+            # The robot stops before anything else winds down (the API may take a while).
+            with contextlib.suppress(Exception):
+                await service.stop_motion(trigger="shutdown", reason="daemon stopping")
             service.events.close()
             await api.stop()
             await service.stop()
@@ -112,15 +115,15 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
 
 def run(config: AppConfig) -> int:
     """Configure logging and run :func:`serve` (the one ``asyncio.run``); return exit code."""
-    configure_logging(config.logging.level, config.logging.format)
-    for warning in config_warnings(config):
-        _log.warning("insecure setting", warning=warning)
-        sys.stderr.write(f"robocal daemon: WARNING: {warning}\n")
     try:
         preflight(config)
     except RobocalError as err:
         sys.stderr.write(f"robocal daemon: error: {err}\n")
         return 2
+    configure_logging(config.logging.level, config.logging.format)
+    for warning in config_warnings(config):
+        _log.warning("insecure setting", warning=warning)
+        sys.stderr.write(f"robocal daemon: WARNING: {warning}\n")
     # Files the daemon creates (reports, models, the socket before its chmod) are not for
     # everybody, whatever umask the caller had; the state directory is 0750 and the
     # database 0600 (see private_dir and Store.open).

@@ -85,16 +85,19 @@ class CalibrationService:
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._push_lock = asyncio.Lock()
+        self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
         self._verify_tasks: dict[str, asyncio.Task[None]] = {}
         self._started = time.time()
         self.pose_times: list[float] = []
+        self._shutdown_stopped = False
 
     # --- lifecycle -------------------------------------------------------------------------
     async def start(self, *, connect: bool = True) -> None:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
         private_dir(self.config.data_dir)
         self.store.open()
+        self._storage_task = asyncio.create_task(self._storage_watch(), name="storage-watch")
         self.journal.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
@@ -121,10 +124,14 @@ class CalibrationService:
 
         Motion stops first, at once (the driver's ``stop()``), before anything else closes.
         """
-        await self.stop_motion(trigger="shutdown", reason="daemon stopping")
+        task = self._measure_task
+        if not self._shutdown_stopped or (task is not None and not task[1].done()):
+            await self.stop_motion(trigger="shutdown", reason="daemon stopping")
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
+        if self._storage_task is not None:
+            tasks.append(self._storage_task)
         for t in tasks:
             t.cancel()
         for t in tasks:
@@ -289,6 +296,8 @@ class CalibrationService:
 
         Returns False when the controller could not confirm the halt.
         """
+        if trigger == "shutdown":
+            self._shutdown_stopped = True
         task = self._measure_task
         running = task is not None and not task[1].done() and (cid is None or task[0] == cid)
         if task is not None and running:
