@@ -85,7 +85,6 @@ class CalibrationService:
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._push_lock = asyncio.Lock()
-        self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
         self._verify_tasks: dict[str, asyncio.Task[None]] = {}
         self._started = time.time()
@@ -97,7 +96,6 @@ class CalibrationService:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
         private_dir(self.config.data_dir)
         self.store.open()
-        self._storage_task = asyncio.create_task(self._storage_watch(), name="storage-watch")
         self.journal.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
@@ -130,8 +128,6 @@ class CalibrationService:
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
-        if self._storage_task is not None:
-            tasks.append(self._storage_task)
         for t in tasks:
             t.cancel()
         for t in tasks:
