@@ -174,5 +174,10 @@ class InvalidTransition(CampaignError):
         super().__init__(f"{msg}: {reason}" if reason else msg)
 
 
+class StorageError(RobocalError):
+    """The daemon's store cannot write (disk full, I/O error). Nothing stored is lost; the
+    work that needed the write is paused until space is back."""
+
+
 class ApprovalRequired(CampaignError, PermissionError):
     """Compensation was to be pushed without operator approval."""

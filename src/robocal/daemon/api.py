@@ -32,6 +32,7 @@ import os
 import pwd
 import re
 import socket
+import sqlite3
 import struct
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -45,7 +46,7 @@ from robocal import __version__
 from robocal._core.files import atomic_write_text
 from robocal.daemon.config import AppConfig, config_warnings
 from robocal.daemon.service import CalibrationService
-from robocal.daemon.store import UnknownCampaign
+from robocal.daemon.store import UnknownCampaign, is_storage_fault
 from robocal.errors import (
     CampaignError,
     CompensationError,
@@ -54,6 +55,7 @@ from robocal.errors import (
     IdentificationError,
     ProtocolError,
     RobocalError,
+    StorageError,
 )
 
 __all__ = ["ApiServer", "make_app", "openapi_spec"]
@@ -109,6 +111,8 @@ def _error(status: int, kind: str, message: str, **extra: Any) -> web.Response:
 def _status_for(err: RobocalError) -> int:
     if isinstance(err, UnknownCampaign):
         return 404
+    if isinstance(err, StorageError):
+        return 503
     if isinstance(err, ConfigError):
         return 422
     if isinstance(err, CompensationError):
@@ -133,6 +137,11 @@ async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
         return _error(_status_for(err), type(err).__name__, str(err))
     except asyncio.CancelledError:
         raise
+    except sqlite3.Error as err:
+        if is_storage_fault(err):  # a read hit the disk fault: not the client's doing
+            return _error(503, "StorageError", f"the store cannot be read: {err}")
+        _log.exception("request failed", path=request.path, method=request.method)
+        return _error(500, "InternalError", f"{type(err).__name__}: {err}")
     except Exception as err:
         _log.exception("request failed", path=request.path, method=request.method)
         return _error(500, "InternalError", f"{type(err).__name__}: {err}")

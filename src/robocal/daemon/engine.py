@@ -41,6 +41,7 @@ from robocal.errors import (
     MeasurementError,
     MotionRejected,
     RobocalError,
+    StorageError,
 )
 from robocal.kinematics import (
     CalibratedModel,
@@ -250,6 +251,8 @@ class CampaignRunner:
         except asyncio.CancelledError:
             log.info("measuring cancelled")
             raise
+        except StorageError:
+            raise  # the robot stands still between poses; the service pauses the campaign
         except (RobocalError, OSError) as err:
             reason = f"{type(err).__name__}: {err}"
             _raise_if_cancelling(err)  # stopped on purpose (pause, abort, shutdown): no fault

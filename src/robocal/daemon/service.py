@@ -16,6 +16,7 @@ import builtins
 import contextlib
 import json
 import math
+import sqlite3
 import time
 import uuid
 from collections.abc import Iterable, Mapping
@@ -85,6 +86,7 @@ class CalibrationService:
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._push_lock = asyncio.Lock()
+        self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
         self._verify_tasks: dict[str, asyncio.Task[None]] = {}
         self._started = time.time()
@@ -96,6 +98,7 @@ class CalibrationService:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
         private_dir(self.config.data_dir)
         self.store.open()
+        self._storage_task = asyncio.create_task(self._storage_watch(), name="storage-watch")
         self.journal.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
@@ -128,6 +131,8 @@ class CalibrationService:
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
+        if self._storage_task is not None:
+            tasks.append(self._storage_task)
         for t in tasks:
             t.cancel()
         for t in tasks:
@@ -142,7 +147,9 @@ class CalibrationService:
     def health(self) -> dict[str, Any]:
         """Daemon status: version, uptime, drivers, active work."""
         return {
-            "status": "ok",
+            "status": "ok" if self.store.fault is None else "degraded",
+            "storage": self.store.fault or "ok",
+            "unsaved_states": self.store.pending,
             "version": __version__,
             "uptime_s": round(time.time() - self._started, 3),
             "robot": self.robot.name,
@@ -382,6 +389,9 @@ class CalibrationService:
             state = await runner.run(cid)
         except asyncio.CancelledError:
             raise
+        except StorageError as err:
+            self._storage_pause(cid, err)
+            return
         except Exception:  # the runner faults campaigns itself; this is a last resort
             _log.exception("measuring task failed", campaign=cid)
             return
@@ -391,10 +401,37 @@ class CalibrationService:
         if state == S.MEASURED and not self.store.campaign(cid).measure_only:
             self._spawn_fit(cid)
 
+    def _storage_pause(self, cid: str, err: StorageError) -> None:
+        """Pause a measuring campaign whose data cannot be written; held in memory (and
+        shown) until the store can write again, then persisted by :meth:`_storage_watch`."""
+        reason = f"storage fault: {err}"
+        _log.error("campaign paused: the store cannot write", campaign=cid, error=str(err))
+        try:
+            if self.store.campaign(cid).state == S.RUNNING:
+                self._transition(cid, S.PAUSED, actor="daemon", reason=reason)
+        except (RobocalError, sqlite3.Error) as again:
+            _log.error("storage fault: campaign state unknown", campaign=cid, error=str(again))
+
+    async def _fit_guarded(self, cid: str) -> None:
+        try:
+            await self._fit(cid)
+        except StorageError as err:
+            # Never stuck in "measured": faulted (held in memory until saved); resume fits again.
+            _log.error("fit not saved: the store cannot write", campaign=cid, error=str(err))
+            with contextlib.suppress(RobocalError, sqlite3.Error):
+                self._fault_fit(cid, f"storage fault while saving the fit: {err}")
+
+    async def _storage_watch(self, period_s: float = 1.0) -> None:
+        """Write states held in memory by a storage fault as soon as the store can."""
+        while True:
+            await asyncio.sleep(period_s)
+            if self.store.pending and self.store.flush_pending():
+                _log.info("storage recovered: held campaign states saved")
+
     def _spawn_fit(self, cid: str) -> None:
         if cid in self._fit_tasks and not self._fit_tasks[cid].done():
             return
-        task = asyncio.create_task(self._fit(cid), name=f"fit-{cid}")
+        task = asyncio.create_task(self._fit_guarded(cid), name=f"fit-{cid}")
         self._fit_tasks[cid] = task
         task.add_done_callback(lambda _t: self._fit_tasks.pop(cid, None))
 

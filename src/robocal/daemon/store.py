@@ -16,16 +16,16 @@ import json
 import os
 import sqlite3
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from robocal._core.files import private_file
 from robocal.daemon.campaign import CampaignState, check_transition
-from robocal.errors import CampaignError, ConfigError, InvalidTransition
+from robocal.errors import CampaignError, ConfigError, InvalidTransition, StorageError
 
-__all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "now_iso"]
+__all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "is_storage_fault", "now_iso"]
 
 SCHEMA_VERSION = 1
 
@@ -126,6 +126,19 @@ CREATE TRIGGER IF NOT EXISTS pushes_no_delete BEFORE DELETE ON pushes
     BEGIN SELECT RAISE(ABORT, 'the push history is append-only'); END;
 CREATE INDEX IF NOT EXISTS transitions_by_campaign ON transitions(campaign, id);
 """
+
+
+_STORAGE_FAULTS = (10, 13)  # SQLITE_IOERR, SQLITE_FULL (primary result codes)
+
+
+def is_storage_fault(err: BaseException) -> bool:
+    """True for SQLite errors caused by the disk (full, I/O error), not by the request."""
+    code = getattr(err, "sqlite_errorcode", None)
+    if isinstance(code, int):
+        return code & 0xFF in _STORAGE_FAULTS
+    text = str(err).lower()
+    return isinstance(err, sqlite3.OperationalError) and (
+        "disk is full" in text or "disk i/o error" in text)
 
 
 def now_iso() -> str:
@@ -239,6 +252,13 @@ class Store:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self._db: sqlite3.Connection | None = None
+        #: Last storage fault (text) or None once a write succeeded again.
+        self.fault: str | None = None
+        #: Test seam: called with "begin" / "commit" in every write transaction; raising
+        #: ``sqlite3.OperationalError("database or disk is full")`` there is a full disk.
+        self.fault_hook: Callable[[str], None] | None = None
+        # cid -> (state on disk, state held in memory, reason, actor, time)
+        self._pending: dict[str, tuple[CampaignState, CampaignState, str, str, str]] = {}
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> Store:
@@ -292,15 +312,64 @@ class Store:
 
     @contextlib.contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
-        """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error)."""
+        """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error).
+
+        Transitions held in memory by a storage fault (see :meth:`transition`) are written
+        first, in the same transaction. A full disk or an I/O error raises
+        :class:`StorageError`; the connection is left usable (rolled back).
+        """
         db = self.db
-        db.execute("BEGIN IMMEDIATE")
         try:
-            yield db
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-        db.execute("COMMIT")
+            if self.fault_hook is not None:
+                self.fault_hook("begin")
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                flushed = self._write_pending(db)
+                yield db
+                if self.fault_hook is not None:
+                    self.fault_hook("commit")
+                db.execute("COMMIT")
+            except BaseException:
+                # SQLite may already have rolled back by itself (SQLITE_FULL, SQLITE_IOERR).
+                if db.in_transaction:
+                    with contextlib.suppress(sqlite3.Error):
+                        db.execute("ROLLBACK")
+                raise
+        except sqlite3.Error as err:
+            if not is_storage_fault(err):
+                raise
+            self.fault = f"{type(err).__name__}: {err}"
+            raise StorageError(f"the store cannot write ({err}); free space or fix the disk, "
+                               "then resume") from err
+        for cid in flushed:
+            self._pending.pop(cid, None)
+        self.fault = None
+
+    # --- storage faults --------------------------------------------------------------------
+    def _write_pending(self, db: sqlite3.Connection) -> list[str]:
+        done = []
+        for cid, (src, to, reason, actor, at) in list(self._pending.items()):
+            row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
+            if row is not None and row[0] == src.value:
+                db.execute("UPDATE campaigns SET state=?, reason=?, updated=? WHERE id=?",
+                           (to.value, reason, at, cid))
+                db.execute(
+                    "INSERT INTO transitions(campaign, at, from_state, to_state, reason, actor) "
+                    "VALUES(?,?,?,?,?,?)", (cid, at, src.value, to.value, reason, actor))
+            done.append(cid)
+        return done
+
+    @property
+    def pending(self) -> dict[str, CampaignState]:
+        """Campaign states known only in memory (their write hit a storage fault)."""
+        return {cid: p[1] for cid, p in self._pending.items()}
+
+    def flush_pending(self) -> bool:
+        """Try to write the transitions held in memory; True when none is left."""
+        if self._pending:
+            with contextlib.suppress(StorageError), self.transaction():
+                pass
+        return not self._pending
 
     # --- campaigns -------------------------------------------------------------------------
     def create_campaign(
@@ -348,9 +417,13 @@ class Store:
         n = self.db.execute(
             "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
         ).fetchone()[0]
+        state, reason = CampaignState(row["state"]), row["reason"]
+        held = self._pending.get(row["id"])
+        if held is not None:
+            state, reason = held[1], f"{held[2]} (not yet saved: {self.fault})"
         return CampaignRecord(
             id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
-            state=CampaignState(row["state"]), reason=row["reason"], robot=row["robot"],
+            state=state, reason=reason, robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
@@ -395,11 +468,36 @@ class Store:
         ``selected_model`` (when given) and the ``audit`` entry ``(action, detail)`` are
         stored in the same transaction, so an operator action is all there or not at all.
 
+        A move to ``paused`` or ``faulted`` that hits a storage fault is held in memory
+        (reads show it, the reason says it is not saved) and written with the next
+        successful transaction; other transitions raise :class:`StorageError`.
+
         Raises
         ------
         InvalidTransition
             If the table (or ``only_from``) does not allow it from the current state.
+        StorageError
+            If the store cannot write and ``to`` is not a state that stops work.
         """
+        try:
+            return self._transition(cid, to, actor=actor, reason=reason, only_from=only_from,
+                                    selected_model=selected_model, audit=audit)
+        except StorageError:
+            if to not in (CampaignState.PAUSED, CampaignState.FAULTED):
+                raise
+            current = self.campaign(cid).state
+            check_transition(current, to)
+            if only_from is not None and current not in only_from:
+                raise InvalidTransition(current.value, to.value,
+                                        "not from this state here") from None
+            held = self._pending.get(cid)
+            on_disk = held[0] if held is not None else current
+            self._pending[cid] = (on_disk, to, reason, actor, now_iso())
+            return self.campaign(cid)
+
+    def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str,
+                    only_from: Sequence[CampaignState] | None, selected_model: str | None,
+                    audit: tuple[str, dict[str, Any]] | None) -> CampaignRecord:
         with self.transaction() as db:
             row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:
