@@ -9,9 +9,15 @@
    cross-validated selection (acceptance: < 30 s); skipped when the data set is absent.
    A virtual ``fine-map`` run of the same size is timed as well.
 
+4. ``--splits N``: spread of the ``auto`` model's held-out RMS over N random 50/50 splits of
+   each real UR10 series (issue 14: worst split <= 1.3x the median; B <= 0.13 mm, C <= 0.12
+   mm), and the ``--reuse`` workflow (maps from series A, constants from 50 poses of B / D).
+5. ``--startup``: whole-process times of ``robocal --help`` and ``robocal fit`` (hyperfine if
+   installed, else repeated subprocess runs).
+
 Run from the repository root::
 
-    /work/venv/bin/python bench/bench_fit.py [--quick]
+    .venv/bin/python bench/bench_fit.py [--quick] [--splits 20] [--series B,C] [--startup]
 """
 
 from __future__ import annotations
@@ -52,10 +58,115 @@ def _row(label: str, n: int, secs: float, res=None) -> None:
     print(f"{label:34s}{n:>7d}{secs:10.2f} s{extra}")
 
 
+def splits(n_splits: int, series: str, max_a: int) -> None:
+    """Held-out RMS of ``auto`` over random 50/50 splits, per series."""
+    from robocal.identification.datasets import ipa_series_path
+
+    print(f"\n== auto on real UR10 data: {n_splits} random 50/50 splits per series "
+          "(held-out RMS, screened gross outliers excluded)")
+    print(f"{'series':8s}{'poses':>7s}{'median':>9s}{'worst':>9s}{'best':>9s}"
+          f"{'worst/median':>14s}{'const median':>14s}{'s/fit':>8s}")
+    for s in series.split(","):
+        data = load_ipa_series(ipa_series_path(DATA, s), max_poses=max_a if s == "A" else None)
+        rms, crms, secs = [], [], []
+        for seed in range(n_splits):
+            train, val = data.split(0.5, seed=seed)
+            t = time.perf_counter()
+            res = fit("ur10", train, "auto", validation=val)
+            secs.append(time.perf_counter() - t)
+            assert res.validation is not None and res.constant is not None
+            rms.append(res.validation.rms_m * 1e3)
+            e = np.linalg.norm(res.constant.predict(val.q) - val.p, axis=1)
+            crms.append(float(np.sqrt(np.mean(e**2))) * 1e3)
+            print(f"  {s} split {seed:2d}: {rms[-1]:.4f} mm", flush=True)
+        med = float(np.median(rms))
+        print(f"{s:8s}{len(data):7d}{med:9.4f}{max(rms):9.4f}{min(rms):9.4f}"
+              f"{max(rms) / med:14.2f}{float(np.median(crms)):14.4f}{np.mean(secs):8.1f}")
+
+
+def reuse(n_new: int = 50, repeats: int = 10) -> None:
+    """Maps of an ``auto`` fit on series A, constants refitted on ``n_new`` poses of B and D."""
+    from robocal.identification import refit_frozen
+    from robocal.identification.datasets import ipa_series_path
+
+    print(f"\n== --reuse: maps from series A (auto), constants from {n_new} poses of the new "
+          f"series, held-out = the rest; {repeats} random draws")
+    src = fit("ur10", load_ipa_series(ipa_series_path(DATA, "A")), "auto")
+    print(f"{'series':8s}{'median':>9s}{'worst':>9s}{'constant-only median':>22s}")
+    for s in ("B", "D"):
+        data = load_ipa_series(ipa_series_path(DATA, s))
+        r, c = [], []
+        for seed in range(repeats):
+            rng = np.random.default_rng(seed)
+            pick = np.zeros(len(data), dtype=bool)
+            pick[rng.choice(len(data), n_new, replace=False)] = True
+            train, val = data.subset(pick), data.subset(~pick)
+            res = refit_frozen(src.calibrated, train, validation=val)
+            assert res.validation is not None and res.constant is not None
+            r.append(res.validation.rms_m * 1e3)
+            e = np.linalg.norm(res.constant.predict(val.q) - val.p, axis=1)
+            c.append(float(np.sqrt(np.mean(e**2))) * 1e3)
+        print(f"{s:8s}{np.median(r):9.4f}{max(r):9.4f}{np.median(c):22.4f}")
+
+
+def startup() -> None:
+    """Whole-process start-up and fit times of the console script."""
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    exe = str(Path(sys.executable).with_name("robocal"))
+    with tempfile.TemporaryDirectory() as d:
+        meas = Path(d) / "m.csv"
+        subprocess.run([exe, "simulate", "--robot", "fanuc_lrmate200i", "--scenario", "paper",
+                        "--poses", "250", "--validation", "0", "--out", str(meas)],
+                       check=True, capture_output=True)
+        cmds = {"robocal --help": [exe, "--help"]}
+        for model in ("constant", "high-order"):
+            cmds[f"robocal fit --model {model} (250 poses)"] = [
+                exe, "fit", "--robot", "fanuc_lrmate200i", "--data", str(meas), "--model",
+                model, "--out", str(Path(d) / f"{model}.json")]
+        print("\n== whole-process times")
+        if shutil.which("hyperfine"):
+            for label, cmd in cmds.items():
+                out = subprocess.run(["hyperfine", "-N", "-w", "3", "-r", "20", "--style",
+                                      "basic", " ".join(cmd)], capture_output=True, text=True)
+                lines = [ln.strip() for ln in out.stdout.splitlines() if "Time" in ln
+                         or "Range" in ln]
+                print(f"{label}: " + "; ".join(lines))
+            return
+        for label, cmd in cmds.items():
+            best = []
+            for _ in range(10):
+                t = time.perf_counter()
+                subprocess.run(cmd, check=True, capture_output=True)
+                best.append(time.perf_counter() - t)
+            print(f"{label:40s} min {min(best):.3f} s  median {np.median(best):.3f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the 5,000-pose and real-data runs")
+    ap.add_argument("--splits", type=int, default=0, help="random 50/50 splits per UR10 series")
+    ap.add_argument("--series", default="A,B,C,D", help="series for --splits")
+    ap.add_argument("--max-a", type=int, default=3000, help="poses of series A for --splits")
+    ap.add_argument("--reuse", action="store_true", help="time/accuracy of map re-use only")
+    ap.add_argument("--startup", action="store_true", help="whole-process times only")
     args = ap.parse_args()
+    if args.startup:
+        startup()
+        return
+    if args.splits or args.reuse:
+        if not (DATA / "Series_C").is_dir():
+            print(f"(real data not found at {DATA})")
+            return
+        with blas_threads(1):
+            if args.splits:
+                splits(args.splits, args.series, args.max_a)
+            if args.reuse:
+                reuse()
+        return
 
     print("== whole fit() calls (virtual LR Mate 200i, 'paper' scenario)")
     print(f"{'model':34s}{'poses':>7s}{'time':>12s}")

@@ -123,10 +123,7 @@ def test_non_convergence_is_an_error_and_writes_nothing(files, tmp_path, capsys,
     real = _solver.levenberg_marquardt
 
     def stuck(*a, **k):
-        info = real(*a, **{**k, "max_iter": 1})
-        info.converged = False
-        info.message = "maximum number of iterations reached"
-        return info
+        return real(*a, **{**k, "max_iter": 1})     # status max-iterations, still descending
 
     monkeypatch.setattr(_engine, "levenberg_marquardt", stuck)
     out = tmp_path / "nc.json"
@@ -209,3 +206,95 @@ def test_help_lists_every_subcommand_with_its_modules_help_line(
     out = capsys.readouterr().out
     for name, text in COMMANDS.items():
         assert name in out and text.split()[0] in out
+
+
+def _rewrite(src: Path, dst: Path, *, joints: float = 1.0, xyz: float = 1.0) -> Path:
+    """Copy a measurement CSV with joints and/or positions scaled (wrong units)."""
+    ms = MeasurementSet.read_csv(src, dof=6)
+    # read_csv converts deg -> rad and mm -> m; write_csv converts back, so scaling the SI
+    # values by 180/pi writes radians into the degree columns, by 1e-3 metres into the mm ones
+    MeasurementSet(ms.q * joints, ms.p * xyz, ms.sigma, ms.pose_id).write_csv(dst)
+    return dst
+
+
+def test_wrong_units_and_wrong_robot_get_one_line_hints(files, tmp_path, capsys):
+    out = tmp_path / "m.json"
+    base = ["fit", "--model", "constant", "--out", str(out)]
+    rad = _rewrite(files["train"], tmp_path / "rad.csv", joints=np.pi / 180)
+    _expect_error(capsys, [*base, "--robot", "fanuc_lrmate200i", "--data", str(rad)], out,
+                  "look like radians")
+    metres = _rewrite(files["train"], tmp_path / "m.csv", xyz=1e-3)
+    _expect_error(capsys, [*base, "--robot", "fanuc_lrmate200i", "--data", str(metres)], out,
+                  "look like metres")
+    _expect_error(capsys, [*base, "--robot", "fanuc_lrmate200id", "--data",
+                           str(files["train"])], out, "right robot/variant")
+    _expect_error(capsys, [*base, "--robot", "ur10", "--data", str(files["train"])], out,
+                  "right robot/variant")
+    # the override fits anyway (and the absurd result is visible in the summary)
+    assert main([*base, "--robot", "fanuc_lrmate200id", "--data", str(files["train"]),
+                 "--no-sanity", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["train"]["baseline_rms_mm"] > 10.0
+
+
+def test_max_rms_threshold_fails_the_fit(files, tmp_path, capsys):
+    ok, out = _fit(files, tmp_path, "constant", "--max-rms-mm", "5")
+    assert ok == 0 and out.exists()
+    capsys.readouterr()
+    out2 = tmp_path / "strict.json"
+    code = main(["fit", "--robot", "fanuc_lrmate200i", "--data", str(files["train"]),
+                 "--model", "constant", "--out", str(out2), "--validate", str(files["val"]),
+                 "--max-rms-mm", "0.01"])
+    err = capsys.readouterr().err
+    assert code == 1 and not out2.exists()
+    assert "validation RMS" in err and "exceeds --max-rms-mm 0.01" in err
+
+
+def test_reuse_keeps_the_joint_dependent_terms(files, tmp_path, capsys):
+    code, first = _fit(files, tmp_path, "high-order", "--json")
+    assert code == 0
+    capsys.readouterr()
+    prev = CalibratedModel.load(first)
+    # a new session: 60 of the held-out poses, the tracker moved (new base), same robot
+    val = MeasurementSet.read_csv(files["val"], dof=6)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = MeasurementSet(val.q, val.p @ R.T + np.array([0.3, -0.2, 0.05]), None, val.pose_id)
+    new, rest = moved.subset(np.arange(60)), moved.subset(np.arange(60, len(moved)))
+    new.write_csv(tmp_path / "new.csv")
+    rest.write_csv(tmp_path / "rest.csv")
+    out = tmp_path / "reused.json"
+    code = main(["fit", "--reuse", str(first), "--data", str(tmp_path / "new.csv"),
+                 "--validate", str(tmp_path / "rest.csv"), "--out", str(out), "--json"])
+    assert code == 0
+    s = json.loads(capsys.readouterr().out)
+    cal = CalibratedModel.load(out)
+    assert cal.kind == "refit:high-order" and cal.fit["frozen_from"] == prev.model_id
+    assert cal.data["reused"] == str(first)
+    joint_dep = [i for i, n in enumerate(cal.model.names)
+                 if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))]
+    assert joint_dep and np.allclose(cal.params[joint_dep], prev.params[joint_dep])
+    const = main(["fit", "--robot", "fanuc_lrmate200i", "--model", "constant", "--data",
+                  str(tmp_path / "new.csv"), "--validate", str(tmp_path / "rest.csv"),
+                  "--out", str(tmp_path / "c.json"), "--json"])
+    assert const == 0
+    c = json.loads(capsys.readouterr().out)
+    # the reused maps beat a constant model fitted on the same 60 poses
+    assert s["validation"]["rms_mm"] < 0.6 * c["validation"]["rms_mm"]
+    _expect_error(capsys, ["fit", "--reuse", str(first), "--model", "auto", "--data",
+                           str(tmp_path / "new.csv"), "--out", str(tmp_path / "x.json")],
+                  tmp_path / "x.json", "--reuse")
+
+
+def test_report_exit_code_follows_the_verdict(files, tmp_path, capsys):
+    code, good = _fit(files, tmp_path, "high-order")
+    assert code == 0
+    assert main(["report", str(good), "--out", str(tmp_path / "ok.html")]) == 0
+    # joints scrambled: the model is useless on these poses -> failed verdict, exit 1
+    bad_q = MeasurementSet.read_csv(files["val"], dof=6)
+    scrambled = MeasurementSet(bad_q.q[::-1], bad_q.p, None, bad_q.pose_id)
+    scrambled.write_csv(tmp_path / "scrambled.csv")
+    capsys.readouterr()
+    code = main(["report", str(good), "--validate", str(tmp_path / "scrambled.csv"),
+                 "--out", str(tmp_path / "bad.html"), "--json"])
+    verdict = json.loads(capsys.readouterr().out)["verdict"]
+    assert verdict["outcome"] == "failed" and code == 1

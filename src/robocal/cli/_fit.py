@@ -85,6 +85,7 @@ def _options(args: argparse.Namespace) -> Any:
     if args.seed is not None:
         kw["seed"] = args.seed
     kw["fallback"] = not args.no_fallback
+    kw["sanity"] = not args.no_sanity
     return FitOptions(**kw)
 
 
@@ -112,10 +113,23 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not out.parent.exists():
         raise ConfigError("directory does not exist", source=str(out.parent))
+    if out.is_dir():
+        raise ConfigError("is a directory", source=str(out))
     data = MeasurementSet.read_csv(args.data, dof=robot.dof)
     val = MeasurementSet.read_csv(args.validate, dof=robot.dof) if args.validate else None
     opts = _options(args)
-    res = fit(robot, data, args.model, options=opts, validation=val)
+    if previous is not None:
+        res = refit_frozen(previous, data, options=opts, validation=val)
+        res.calibrated.data["reused"] = str(args.reuse)
+    else:
+        res = fit(robot, data, args.model, options=opts, validation=val)
+    if args.max_rms_mm is not None:
+        acc, on = (res.validation, "validation") if res.validation is not None \
+            else (res.train, "training")
+        if not acc.rms_m * 1e3 <= args.max_rms_mm:
+            sys.stderr.write(f"robocal fit: error: {on} RMS {acc.rms_m * 1e3:.4f} mm exceeds "
+                             f"--max-rms-mm {args.max_rms_mm:g}; {out} not written\n")
+            return 1
     res.calibrated.data["source"] = str(args.data)
     if args.validate:
         res.calibrated.data["validation_source"] = str(args.validate)
@@ -162,7 +176,7 @@ def format_summary(s: dict[str, Any]) -> str:
                  + ", ".join(f"{k} {v}" for k, v in s["terms"].items()))
     lines.append(f"variance factor {_f(s['variance_factor'], '{:.3g}')} "
                  f"(sigma0 {_f(s['sigma0'], '{:.3g}')}); {s['iterations']} iteration(s), "
-                 f"{'converged' if s['converged'] else 'NOT converged'}, "
+                 f"{'converged' if s['converged'] else 'NOT converged (' + s['status'] + ')'}, "
                  f"{s['elapsed_s']:.2f} s")
     if s["outliers"]:
         lines.append("outliers: " + ", ".join(s["outliers"]))

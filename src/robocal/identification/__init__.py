@@ -6,13 +6,15 @@ Public API::
     res = fit(robot, data, "constant" | "high-order" | "auto", options=..., validation=...)
     res.calibrated.save("MODEL.json")
 
-plus :func:`identifiability`, :func:`refit_frozen` (re-use joint-dependent terms on a new
+plus :func:`min_poses` (fewest poses a fit accepts; the planner uses it),
+:func:`identifiability`, :func:`refit_frozen` (re-use joint-dependent terms on a new
 session), :func:`cpa_fit` (Circle Point Analysis baseline; the internal
 ``_cpa.cpa_sweeps`` makes sweep joint sets for the virtual robot in tests) and
 :func:`load_ipa_series` (public UR10 data set).
 """
 
 from robocal.identification._cpa import CircleFit, CPAResult, cpa_fit, poe_positions
+from robocal.identification._engine import min_poses
 from robocal.identification._fit import MODELS, FitOptions, FitResult, fit, refit_frozen
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
 from robocal.identification._solver import Identifiability, identifiability
@@ -34,6 +36,7 @@ __all__ = [
     "fit",
     "identifiability",
     "load_ipa_series",
+    "min_poses",
     "poe_positions",
     "refit_frozen",
     "whitening",

@@ -39,10 +39,13 @@ from robocal.identification._engine import Solution
 from robocal.identification._linalg import block_diag, cho_solve, cholesky, spd_solve
 from robocal.identification._models import (
     MapPrior,
-    covered_knots,
+    knot_counts,
     knots_for_spacing,
     map_terms,
     second_difference,
+    span_knots,
+    weak_knots,
+    weak_penalty,
 )
 from robocal.identification._solver import Problem, analyse
 from robocal.kinematics import COMPONENTS, ErrorModelSpec, KinematicModel, Term, gravity_torques
@@ -65,10 +68,12 @@ class Group:
     joint: int = 0
     n_knots: int = 0
     knots: tuple[int, ...] = ()
+    weak: tuple[int, ...] = ()
     cols: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     # map prior pieces in scaled coordinates
     D2: Array | None = None       # scaled D^T D (g, g)
     ridge: Array | None = None    # scaled ridge diagonal (g,)
+    tie: Array | None = None      # scaled tie penalty of weak knots (g, g)
     lam_unit: float = 1.0         # absolute lambda per unit relative lambda
 
     @property
@@ -97,10 +102,12 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
             groups.append(Group(f"j{j + 1}:gravity", [Term(j, "ez", "gravity")], joint=j))
         if opts.auto_maps:
             K = knots_for_spacing(opts.map_spacing_deg)
-            kn = covered_knots(q[:, j], K)
-            if len(kn) >= 4:
+            kn = span_knots(q[:, j], K)
+            counts = knot_counts(q[:, j], K)
+            weak = weak_knots(kn, counts, opts.map_min_points)
+            if len(kn) - len(weak) >= 4:
                 groups.append(Group(f"j{j + 1}:map", map_terms(j, kn), is_map=True, joint=j,
-                                    n_knots=K, knots=tuple(int(v) for v in kn)))
+                                    n_knots=K, knots=tuple(int(v) for v in kn), weak=weak))
     return groups
 
 
@@ -323,6 +330,8 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
     b_f /= s[None]
     cv = _CV(G_f, b_f, c_f)
     ridge_sigma = math.radians(opts.map_ridge_deg)
+    tie_sigma = math.radians(opts.map_tie_deg)
+    weak_sigma = math.radians(opts.map_weak_deg)
     for g in groups:
         if g.is_map:
             sc = s[g.cols]
@@ -330,11 +339,15 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
             DtD = D.T @ D
             g.D2 = DtD / np.outer(sc, sc)
             g.ridge = 1.0 / (ridge_sigma**2 * sc**2)
+            if g.weak:
+                g.tie = weak_penalty(g.knots, g.n_knots, g.weak, tie_sigma,
+                                     weak_sigma) / np.outer(sc, sc)
             g.lam_unit = float(np.mean(sc**2))
 
     def map_pen(g: Group, lam_rel: float) -> Array:
         assert g.D2 is not None and g.ridge is not None
-        return lam_rel * g.lam_unit * g.D2 + np.diag(g.ridge)
+        P = lam_rel * g.lam_unit * g.D2 + np.diag(g.ridge)
+        return P if g.tie is None else P + g.tie
 
     # ------------------------------------------------------------------ forward selection
     chosen: dict[str, float | None] = {}   # group key -> relative lambda (maps) or None
@@ -441,7 +454,8 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
         if g.is_map:
             assert lam is not None
             final_knots[g.joint] = g.n_knots
-            priors.append(MapPrior(g.joint, g.n_knots, g.knots, lam * g.lam_unit, ridge_sigma))
+            priors.append(MapPrior(g.joint, g.n_knots, g.knots, lam * g.lam_unit, ridge_sigma,
+                                   weak=g.weak, tie_sigma=tie_sigma, weak_sigma=weak_sigma))
     spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots),
                             label="auto:" + ",".join(chosen) if chosen else "auto:constant")
     mf = KinematicModel(f.robot, spec_f, const.model.T_ref)

@@ -14,6 +14,7 @@ from robocal.errors import NotConverged, NotIdentifiable
 from robocal.identification._linalg import CHI2_3_MEDIAN, chi2_3_isf, median
 from robocal.identification._models import MapPrior, map_terms, penalty_for
 from robocal.identification._solver import (
+    MAX_ITERATIONS,
     Identifiability,
     Problem,
     SolveInfo,
@@ -38,6 +39,7 @@ class EngineSettings:
     rank_tol: float = 3e-4
     max_iter: int = 100
     ftol: float = 1e-10
+    creep_ftol: float = 1e-7
     detect_outliers: bool = True
     outlier_alpha: float = 0.01
     outlier_sigma: float | None = None
@@ -46,6 +48,22 @@ class EngineSettings:
     outlier_max_fraction: float = 0.2
     min_redundancy: float = 0.1
     chunk: int = 2048
+
+
+def min_poses(identifiable: int, *, min_redundancy: float = 0.1) -> int:
+    """Fewest poses a fit accepts for ``identifiable`` parameters (3 coordinates per pose).
+
+    The fit needs a redundancy (coordinates minus identifiable parameters) of at least 6 and
+    at least ``min_redundancy`` of the coordinates, so that the variance factor and the
+    outlier test mean something. The planner uses this too, so a plan of this many poses for
+    a model always fits (when its poses identify as many parameters as the planner counted).
+    """
+    if identifiable < 0 or not 0 <= min_redundancy < 1:
+        raise ValueError("identifiable must be >= 0 and min_redundancy in [0, 1)")
+    n = max(1, math.ceil((identifiable + 6) / 3))
+    while 3 * n - identifiable < max(6, math.ceil(min_redundancy * 3 * n)):
+        n += 1
+    return n
 
 
 @dataclass
@@ -126,13 +144,12 @@ class Engine:
         ident, keep, _ = analyse(prob, x0, rows, cand, tol=self.s.rank_tol)
         free = np.sort(np.concatenate([cand[keep], pen_idx])).astype(np.intp)
         removed = [names[i] for i in cand[~keep]]
-        m_obs = 3 * len(rows)
-        need = ident.rank + max(6, math.ceil(self.s.min_redundancy * m_obs))
-        if m_obs < need or ident.rank == 0:
+        if len(rows) < min_poses(ident.rank, min_redundancy=self.s.min_redundancy) \
+                or ident.rank == 0:
             raise NotIdentifiable(
-                f"too few poses for the {what}: {len(rows)} poses give {m_obs} coordinates for "
-                f"{ident.rank} identifiable parameters (need at least "
-                f"{math.ceil((ident.rank + 6) / (3 * (1 - self.s.min_redundancy)))} poses)",
+                f"too few poses for the {what}: {len(rows)} poses give {3 * len(rows)} "
+                f"coordinates for {ident.rank} identifiable parameters (need at least "
+                f"{min_poses(ident.rank, min_redundancy=self.s.min_redundancy)} poses)",
                 parameters=removed)
         robust = self.s.detect_outliers if robust is None else robust
         pen_free = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
@@ -140,9 +157,13 @@ class Engine:
         def run(x_start: Array, act: BoolArray) -> tuple[SolveInfo, Array]:
             info = levenberg_marquardt(prob, x_start, free, np.flatnonzero(act),
                                        max_iter=self.s.max_iter, ftol=self.s.ftol)
-            if not info.converged:
+            # a run that hits max_iter while creeping along a flat valley is kept (reported
+            # as not converged, with its status); every other failure is an error
+            creeping = (info.status == MAX_ITERATIONS
+                        and info.last_decrease <= self.s.creep_ftol)
+            if not (info.converged or creeping):
                 raise NotConverged(f"the {what} fit did not converge after {info.iterations} "
-                                   f"iterations ({info.message})")
+                                   f"iterations ({info.status}: {info.message})")
             N = info.normal if pen_free is None else info.normal + pen_free
             return info, inverse_spd(N)
 

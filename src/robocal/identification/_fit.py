@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
-from robocal.errors import ConfigError, DataError
+from robocal.errors import ConfigError, DataError, NotConverged
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
 from robocal.identification._linalg import median
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
@@ -46,7 +46,10 @@ class FitOptions(EngineSettings):
     Solver
         ``rank_tol``: relative singular-value threshold of the column-scaled identification
         Jacobian below which parameter combinations count as unidentifiable (held fixed).
-        ``max_iter``, ``ftol``: Levenberg-Marquardt limits. ``chunk``: poses per Jacobian block.
+        ``max_iter``, ``ftol``: Levenberg-Marquardt limits; ``creep_ftol``: a run that hits
+        ``max_iter`` with a last relative decrease below this is kept (status
+        ``max-iterations``, reported as not converged), otherwise it is an error.
+        ``chunk``: poses per Jacobian block.
     Outliers
         ``detect_outliers``; ``outlier_alpha``: family-wise false-alarm rate of the normalised
         residual test (Bonferroni over poses); ``outlier_sigma_min``: never flag below this
@@ -61,9 +64,17 @@ class FitOptions(EngineSettings):
         ``cv_folds``; ``cv_group_tol_deg`` (poses this close in every joint share a fold);
         ``auto_max_order``; ``auto_maps`` and ``map_spacing_deg`` (knot spacing of
         joint-angle maps); ``map_lambdas`` (relative smoothness weights tried by CV);
-        ``map_ridge_deg`` (prior sigma of map values); ``auto_gravity``;
+        ``map_ridge_deg`` (prior sigma of map values); knots with fewer than
+        ``map_min_points`` poses in their support are tied to their neighbours (prior sigma
+        ``map_tie_deg`` per knot step) and shrunk to zero (prior sigma ``map_weak_deg``), so
+        thin data and gaps are bridged smoothly and left to the parametric terms;
+        ``auto_gravity``;
         ``auto_strain_wave``; ``auto_min_improvement`` (relative CV gain needed to add a term
         group); ``seed`` of the CV folds.
+    Sanity
+        ``sanity``: refuse data whose joints look like radians or positions like metres, and
+        data the nominal robot cannot explain: median pose error above
+        ``sanity_baseline_mm`` after fitting only base and reflector (wrong robot or variant).
     Output
         ``fallback``: store a constant-model fallback for poses outside the covered joint range
         (the training range of each joint widened by ``coverage_margin_deg``; the full joint
@@ -83,10 +94,15 @@ class FitOptions(EngineSettings):
     map_spacing_deg: float = 1.25
     map_lambdas: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3, 1e4)
     map_ridge_deg: float = 0.1
+    map_min_points: int = 8
+    map_tie_deg: float = 5e-4
+    map_weak_deg: float = 2e-3
     auto_gravity: bool = True
     auto_strain_wave: bool = True
     auto_min_improvement: float = 0.01
     seed: int = 0
+    sanity: bool = True
+    sanity_baseline_mm: float = 10.0
     fallback: bool = True
     coverage_margin_deg: float = 5.0
 
@@ -99,8 +115,9 @@ class FitOptions(EngineSettings):
             raise ConfigError("orders must not be negative")
         if self.cv_folds < 2:
             raise ConfigError("cv_folds must be at least 2")
-        if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0:
-            raise ConfigError("map_spacing_deg and map_ridge_deg must be positive")
+        if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0 or self.map_tie_deg <= 0 \
+                or self.map_weak_deg <= 0:
+            raise ConfigError("map_spacing_deg, map_ridge_deg and map_tie_deg must be positive")
 
     def engine_settings(self) -> EngineSettings:
         """The subset the engine needs."""
@@ -142,6 +159,7 @@ class FitResult:
     elapsed_s: float
     validation_all: Accuracy | None = None
     validation_outliers: list[str] = field(default_factory=list)
+    status: str = "converged"
 
     def correlations(self) -> tuple[list[str], Array]:
         """Names and correlation matrix (k, k) of the estimated parameters."""
@@ -175,6 +193,7 @@ class FitResult:
             "n_free": self.n_free,
             "iterations": self.iterations,
             "converged": self.converged,
+            "status": self.status,
             "terms": _term_summary(self.calibrated.model.spec),
             "selection": self.selection,
             "elapsed_s": round(self.elapsed_s, 3),
@@ -234,7 +253,72 @@ def _check_inputs(robot: RobotDescription | str, data: MeasurementSet,
             raise DataError(f"{name} has non-positive or non-finite sigmas")
     if len(data) < 4:
         raise DataError(f"need at least 4 poses, got {len(data)}")
+    for name, ds in (("data", data), ("validation", validation)):
+        # beyond any robot: a value like this would only overflow the kinematics
+        if ds is not None and float(np.abs(ds.q).max(initial=0.0)) > _MAX_JOINT_RAD:
+            raise DataError(f"{name}: a joint value of "
+                            f"{math.degrees(float(np.abs(ds.q).max())):.3g} deg is not plausible")
+        if ds is not None and float(np.abs(ds.p).max(initial=0.0)) > _MAX_POSITION_M:
+            raise DataError(f"{name}: a position of {float(np.abs(ds.p).max()) * 1e3:.3g} mm "
+                            "from the tracker is not plausible")
     return rob
+
+
+_MAX_JOINT_RAD = 100 * 2 * math.pi
+_MAX_POSITION_M = 1e3
+#: every joint within this of zero looks like radians written where degrees belong
+_RADIANS_LOOK_RAD = math.radians(2 * 180 / math.pi + 0.1)   # |q| <= 2 pi "degrees"
+
+
+def sanity_check(robot: RobotDescription, data: MeasurementSet, *, what: str = "data",
+                 tool: Array | None = None) -> None:
+    """Refuse data whose units look wrong, with a one-line hint (:class:`DataError`).
+
+    * Joints: if every joint value lies within +-6.4 deg although the robot's joints range
+      over far more, the file most likely holds radians where degrees belong.
+    * Positions: the spread of the measured points is compared with the spread of the
+      nominal reflector positions for the same joints; about 1/1000 of it means metres where
+      millimetres belong, about 1000 times micrometres.
+    """
+    if len(data) < 6:
+        return
+    q = data.q
+    lim = robot.joint_limits
+    wide = float(np.max(lim[:, 1] - lim[:, 0])) > math.radians(60.0)
+    qmax = float(np.abs(q).max())
+    if wide and qmax <= _RADIANS_LOOK_RAD and float(np.ptp(q, axis=0).max()) > 0:
+        raise DataError(
+            f"{what}: every joint value lies within +-{math.degrees(qmax):.2f} deg; the joints "
+            "look like radians, but robocal's files give joints in degrees (convert, or "
+            "override the check with --no-sanity)")
+    m0 = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
+    x0 = m0.nominal_params()
+    x0[6:9] = robot.tool if tool is None else tool
+    src = m0.positions(q, x0)
+    nominal = float(np.sqrt(np.mean(np.sum((src - src.mean(axis=0)) ** 2, axis=1))))
+    measured = float(np.sqrt(np.mean(np.sum((data.p - data.p.mean(axis=0)) ** 2, axis=1))))
+    if nominal <= 1e-3:
+        return
+    ratio = measured / nominal
+    if ratio < 0.02:
+        raise DataError(
+            f"{what}: the measured points spread {measured * 1e3:.3g} mm, but the nominal "
+            f"robot moves the reflector {nominal * 1e3:.0f} mm over these joints; the positions "
+            "look like metres, but robocal's files give positions in millimetres (convert, or "
+            "override the check with --no-sanity)")
+    if ratio > 50:
+        raise DataError(
+            f"{what}: the measured points spread {measured * 1e3:.3g} mm, but the nominal "
+            f"robot moves the reflector only {nominal * 1e3:.0f} mm over these joints; the "
+            "positions look like micrometres or another unit, robocal's files give "
+            "millimetres (convert, or override the check with --no-sanity)")
+
+
+def _baseline_hint(robot: RobotDescription, rms_m: float | None) -> str:
+    left = "does not converge" if rms_m is None else f"leaves {rms_m * 1e3:.1f} mm RMS"
+    return (f"the nominal {robot.name} with only the tracker<-base transform and the reflector "
+            f"fitted {left}: is this the right robot/variant (and joint order, zero offsets, "
+            "units)? Override the check with --no-sanity")
 
 
 def _initial_base(robot: RobotDescription, data: MeasurementSet, tool: Array) -> Array:
@@ -366,8 +450,7 @@ def _fit(robot: RobotDescription | str, data: MeasurementSet, model: str | Error
     t0 = time.perf_counter()
     opts = options or FitOptions()
     rob = _check_inputs(robot, data, model, validation)
-    f = _Fitter(rob, data, opts)
-    base0 = f.baseline()
+    f, base0 = _start(rob, data, opts, validation)
     const = f.constant(base0)
     selection: list[dict[str, Any]] = []
     if isinstance(model, ErrorModelSpec):
@@ -385,6 +468,31 @@ def _fit(robot: RobotDescription | str, data: MeasurementSet, model: str | Error
         final, selection = auto_select(f, const)
         kind = model
     return _finish(f, kind, final, const, selection, validation, t0)
+
+
+def _start(rob: RobotDescription, data: MeasurementSet, opts: FitOptions,
+           validation: MeasurementSet | None) -> tuple[_Fitter, Solution]:
+    """Unit sanity checks, the fitter, and the nominal (base + reflector) baseline fit."""
+    tool = None if opts.tool_m is None else np.asarray(opts.tool_m, float)
+    if opts.sanity:
+        sanity_check(rob, data, what="data", tool=tool)
+        if validation is not None:
+            sanity_check(rob, validation, what="validation", tool=tool)
+    f = _Fitter(rob, data, opts)
+    try:
+        base0 = f.baseline()
+    except NotConverged as err:
+        if opts.sanity:
+            raise NotConverged(f"{err}; {_baseline_hint(rob, None)}") from None
+        raise
+    if opts.sanity:
+        r = base0.model.positions(data.q, base0.x) - data.p
+        d = np.sqrt(np.sum(r * r, axis=1))
+        # the median pose error, so that a few gross glitches cannot trip the check
+        med = median(d)
+        if med > opts.sanity_baseline_mm * 1e-3:
+            raise DataError(_baseline_hint(rob, float(np.sqrt(np.mean(d * d)))))
+    return f, base0
 
 
 def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
@@ -428,7 +536,8 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
     cal.fit = {
         "model": kind,
         "solver": {"method": SOLVER, "iterations": final.info.iterations,
-                   "converged": final.info.converged, "message": final.info.message,
+                   "converged": final.info.converged, "status": final.info.status,
+                   "message": final.info.message,
                    "cost": final.info.cost, "max_iter": opts.max_iter, "ftol": opts.ftol,
                    "rank_tol": opts.rank_tol},
         "options": opts.to_dict(),
@@ -476,7 +585,7 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
         variance_factor=final.variance_factor, dof_effective=final.dof_effective,
         n_params=final.model.size, n_free=final.n_free, iterations=final.info.iterations,
         converged=final.info.converged, selection=selection, options=opts, elapsed_s=elapsed,
-        validation_all=val_all, validation_outliers=val_out)
+        validation_all=val_all, validation_outliers=val_out, status=final.info.status)
 
 
 def refit_frozen(previous: CalibratedModel, data: MeasurementSet, *,
@@ -499,8 +608,7 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     t0 = time.perf_counter()
     opts = options or FitOptions()
     rob = _check_inputs(previous.robot, data, "constant", validation)
-    f = _Fitter(rob, data, opts)
-    base0 = f.baseline()
+    f, base0 = _start(rob, data, opts, validation)
     const = f.constant(base0)
     spec = previous.model.spec
     # register the previous model (its own terms, tool) to the new session

@@ -25,7 +25,7 @@ def cholesky(A: Array) -> Array:
     L = np.linalg.cholesky(A)
     if not np.all(np.isfinite(L)):
         raise np.linalg.LinAlgError("matrix is not positive definite")
-    return L
+    return np.asarray(L, dtype=np.float64)
 
 
 def cho_solve(L: Array, B: Array) -> Array:

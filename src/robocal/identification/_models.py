@@ -53,6 +53,35 @@ def covered_knots(q: Array, n_knots: int) -> NDArray[np.intp]:
     return np.unique(idx)
 
 
+def knot_counts(q: Array, n_knots: int) -> NDArray[np.intp]:
+    """Number of angles ``q`` (n,) rad in the B-spline support of each knot (n_knots,)."""
+    idx, _, _ = spline_weights(np.asarray(q, dtype=float), n_knots)
+    return np.bincount(idx.ravel(), minlength=n_knots).astype(np.intp)
+
+
+def span_knots(q: Array, n_knots: int) -> NDArray[np.intp]:
+    """Knot indices (sorted) of the whole arc the angles ``q`` (n,) rad span.
+
+    Unlike :func:`covered_knots`, gaps between data inside the range are bridged: a map
+    that simply stops at a gap drops to zero there, far from its values on both sides (a
+    pose in the gap then gets a worse correction than the constant model's). Only the
+    largest empty arc of the circle is left out (all knots if the data leave no gap wider
+    than a knot support).
+    """
+    u = np.sort(np.mod(np.asarray(q, dtype=float), 2 * math.pi)) * n_knots / (2 * math.pi)
+    if len(u) == 0:
+        return np.zeros(0, dtype=np.intp)
+    gaps = np.diff(np.concatenate([u, [u[0] + n_knots]]))
+    g = int(np.argmax(gaps))
+    if gaps[g] <= 4.0:
+        return np.arange(n_knots, dtype=np.intp)
+    start = math.floor(u[(g + 1) % len(u)]) - 1          # first data point after the gap
+    stop = math.floor(u[g]) + 2                          # last data point before it
+    if stop < start:
+        stop += n_knots
+    return np.unique(np.arange(start, stop + 1) % n_knots).astype(np.intp)
+
+
 def map_terms(joint: int, knots: Sequence[int] | NDArray[np.intp]) -> list[Term]:
     """Map terms of one joint for the given knot indices."""
     return [Term(joint, "ez", "map", int(i)) for i in knots]
@@ -93,17 +122,76 @@ class MapPrior:
     knots: tuple[int, ...]
     lam: float
     ridge_sigma: float
+    weak: tuple[int, ...] = ()
+    tie_sigma: float = math.inf
+    weak_sigma: float = math.inf
 
     def matrix(self) -> Array:
         """Penalty matrix (k, k) over this map's coefficients."""
         D = second_difference(self.knots, self.n_knots)
-        return self.lam * (D.T @ D) + np.eye(len(self.knots)) / self.ridge_sigma**2
+        P = self.lam * (D.T @ D) + np.eye(len(self.knots)) / self.ridge_sigma**2
+        if self.weak:
+            P = P + weak_penalty(self.knots, self.n_knots, self.weak, self.tie_sigma,
+                                 self.weak_sigma)
+        return P
 
     def to_dict(self) -> dict[str, object]:
         """JSON-friendly description (spacing in degrees)."""
         return {"joint": self.joint + 1, "n_knots": self.n_knots,
                 "spacing_deg": 360.0 / self.n_knots, "n_coefficients": len(self.knots),
-                "lambda_per_rad2": self.lam, "ridge_sigma_deg": math.degrees(self.ridge_sigma)}
+                "lambda_per_rad2": self.lam, "ridge_sigma_deg": math.degrees(self.ridge_sigma),
+                "weak_knots": len(self.weak),
+                "tie_sigma_deg": (math.degrees(self.tie_sigma) if math.isfinite(self.tie_sigma)
+                                  else None),
+                "weak_sigma_deg": (math.degrees(self.weak_sigma)
+                                   if math.isfinite(self.weak_sigma) else None)}
+
+
+def weak_knots(knots: Sequence[int] | NDArray[np.intp], counts: NDArray[np.intp],
+               min_points: int) -> tuple[int, ...]:
+    """Knots of ``knots`` with fewer than ``min_points`` angles in their support."""
+    return tuple(int(k) for k in knots if counts[int(k)] < min_points)
+
+
+def weak_penalty(knots: Sequence[int] | NDArray[np.intp], n_knots: int, weak: Sequence[int],
+                 tie_sigma: float, weak_sigma: float) -> Array:
+    """Extra prior (k, k) on sparsely supported knots: tied to neighbours, shrunk to zero.
+
+    Where few poses constrain a map, the maps of neighbouring joints (and the harmonics) can
+    trade large opposite values that cancel on those poses only; shrinking the weak knots
+    towards zero leaves such regions to the parametric terms and the constant model.
+    """
+    k = len(knots)
+    P = np.zeros((k, k))
+    if math.isfinite(tie_sigma):
+        T = tie_rows(knots, n_knots, weak)
+        P += (T.T @ T) / tie_sigma**2
+    if math.isfinite(weak_sigma):
+        pos = {int(v): i for i, v in enumerate(knots)}
+        for w in weak:
+            P[pos[int(w)], pos[int(w)]] += 1.0 / weak_sigma**2
+    return P
+
+
+def tie_rows(knots: Sequence[int] | NDArray[np.intp], n_knots: int,
+             weak: Sequence[int]) -> Array:
+    """First-difference rows (m, len(knots)) ``c[k+1] - c[k]`` for neighbours one of which is weak.
+
+    Tying sparsely supported knots to their neighbours makes the map interpolate linearly
+    across thin data and stay flat beyond the last well supported knot, instead of following
+    the one or two poses that happen to lie there.
+    """
+    pos = {int(k): i for i, k in enumerate(knots)}
+    wk = {int(k) for k in weak}
+    rows = []
+    for k in pos:
+        b = (k + 1) % n_knots
+        if b in pos and b != k and (k in wk or b in wk):
+            r = np.zeros(len(pos))
+            r[pos[k]] -= 1.0
+            r[pos[b]] += 1.0
+            rows.append(r)
+    return np.array(rows).reshape(-1, len(pos))
 
 
 def penalty_for(names: Sequence[str], priors: Sequence[MapPrior]) -> Array | None:

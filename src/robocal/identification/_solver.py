@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal.errors import NotConverged, NotIdentifiable
 from robocal.identification._linalg import cho_solve, cholesky
 from robocal.kinematics import KinematicModel, Term
 
@@ -112,47 +113,72 @@ class Problem:
 
 # ----------------------------------------------------------------------------------------------
 # Levenberg-Marquardt
+#: Solver outcomes (like scipy's ``status``): only ``converged`` is a success.
+CONVERGED = "converged"
+MAX_ITERATIONS = "max-iterations"
+NON_FINITE = "non-finite"
+NO_PROGRESS = "no-progress"
+
+
 @dataclass
 class SolveInfo:
-    """Outcome of :func:`levenberg_marquardt`."""
+    """Outcome of :func:`levenberg_marquardt`.
+
+    ``status`` is one of :data:`CONVERGED`, :data:`MAX_ITERATIONS` (``last_decrease`` tells
+    whether it was still creeping), :data:`NON_FINITE` (the model gave non-finite values at the
+    start or on every trial step) or :data:`NO_PROGRESS` (no damped step lowers the cost
+    although the gradient says one should).
+    """
 
     x: Array
     cost: float
     data_cost: float
     iterations: int
-    converged: bool
+    status: str
     message: str
     normal: Array       # data normal matrix at the solution (k, k), free columns
     gradient: Array     # J^T r at the solution (k,)
+    last_decrease: float = math.inf   # relative cost decrease of the last accepted step
+
+    @property
+    def converged(self) -> bool:
+        """True only for status :data:`CONVERGED`."""
+        return self.status == CONVERGED
 
 
 def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray, *,
                         max_iter: int = 50, ftol: float = 1e-10, xtol: float = 1e-10,
-                        mu0: float = 1e-9, slow_ftol: float = 1e-7) -> SolveInfo:
+                        mu0: float = 1e-9, gtol: float = 1e-7) -> SolveInfo:
     """Minimise data cost over ``rows`` + prior, varying parameters ``free`` only.
 
     Column-scaled Levenberg-Marquardt on the normal equations (Cholesky; a truncated
     eigen-solve if the damped matrix is numerically singular), Nielsen's damping update.
     Converged when the (predicted or actual) relative cost decrease falls below ``ftol`` or
-    the scaled step below ``xtol``; a run that hits ``max_iter`` while its last relative
-    decrease was below ``slow_ftol`` also counts as converged (creeping along a flat valley).
+    the scaled step below ``xtol``. When the damping grows past 1e12 without an accepted step,
+    the point counts as converged only if the undamped model predicts a relative decrease
+    below ``gtol`` (a minimum within rounding); otherwise the status is ``no-progress``, or
+    ``non-finite`` when the trial steps produced non-finite model values. Hitting
+    ``max_iter`` is status ``max-iterations``, never "converged".
     """
     x = np.array(x0, dtype=float)
     free = np.asarray(free, dtype=np.intp)
     if len(free) == 0:
         c = prob.cost(x, rows)
-        return SolveInfo(x, c, c - prob.prior_cost(x), 0, True, "no free parameters",
+        st = CONVERGED if math.isfinite(c) else NON_FINITE
+        return SolveInfo(x, c, c - prob.prior_cost(x), 0, st, "no free parameters",
                          np.zeros((0, 0)), np.zeros(0))
     Pm = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
     A, g, cd = prob.normal_equations(x, rows, free)
     cost = cd + prob.prior_cost(x)
+    if not (math.isfinite(cost) and np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
+        return SolveInfo(x, cost, cd, 0, NON_FINITE,
+                         "the model gives non-finite values at the starting point", A, g)
     At = A if Pm is None else A + Pm
     scale = np.sqrt(np.clip(np.diag(At), 0.0, None))
     scale[scale <= 1e-300] = 1.0
     mu, nu = mu0, 2.0
     last_decrease = math.inf
-    converged = False
-    message = "maximum number of iterations reached"
+    status, message = MAX_ITERATIONS, f"maximum number of iterations ({max_iter}) reached"
     it = 0
     while it < max_iter:
         it += 1
@@ -163,14 +189,16 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
         predicted = float(2.0 * d @ gs - d @ As @ d)
         step = float(np.linalg.norm(d))
         xs = float(np.linalg.norm(x[free] * scale))
-        if predicted <= ftol * cost or step <= xtol * (xs + xtol):
-            converged = True
-            message = "converged"
+        # the convergence tests only count after an accepted step: after rejections the
+        # damping shrinks the step, which says nothing about being at the minimum
+        if nu == 2.0 and (predicted <= ftol * cost or step <= xtol * (xs + xtol)):
+            status, message = CONVERGED, "converged"
             break
         x_new = x.copy()
         x_new[free] += d / scale
         c_new = prob.cost(x_new, rows)
-        rho = (cost - c_new) / predicted if np.isfinite(c_new) else -1.0
+        finite = bool(np.isfinite(c_new))
+        rho = (cost - c_new) / predicted if finite else -1.0
         if rho > 0:
             decrease = cost - c_new
             x = x_new
@@ -178,23 +206,29 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
             cost = cd + prob.prior_cost(x)
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
-            if decrease <= ftol * cost:
-                converged = True
-                message = "converged"
-                break
             last_decrease = decrease / max(cost, 1e-300)
+            if decrease <= ftol * cost:
+                status, message = CONVERGED, "converged"
+                break
         else:
             mu *= nu
             nu *= 2.0
             if mu > 1e12:
-                message = "no step reduces the cost"
-                converged = True
+                d0 = _damped_solve(As, gs, mu0)
+                pred0 = float(2.0 * d0 @ gs - d0 @ As @ d0)
+                if pred0 <= gtol * cost:
+                    status = CONVERGED
+                    message = "converged (no further decrease within rounding)"
+                elif not finite:
+                    status = NON_FINITE
+                    message = "every trial step gives non-finite model values"
+                else:
+                    status = NO_PROGRESS
+                    message = (f"no step reduces the cost although a relative decrease of "
+                               f"{pred0 / cost:.2g} is predicted")
                 break
-    if not converged and last_decrease <= slow_ftol:
-        converged = True
-        message = "converged slowly (relative decrease per iteration below slow_ftol)"
-    return SolveInfo(x=x, cost=cost, data_cost=cd, iterations=it, converged=converged,
-                     message=message, normal=A, gradient=g)
+    return SolveInfo(x=x, cost=cost, data_cost=cd, iterations=it, status=status,
+                     message=message, normal=A, gradient=g, last_decrease=last_decrease)
 
 
 def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
@@ -205,7 +239,12 @@ def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
             return d
     except np.linalg.LinAlgError:
         pass
-    w, V = np.linalg.eigh(As)
+    if not (np.all(np.isfinite(As)) and np.all(np.isfinite(gs))):
+        return np.zeros(k)
+    try:
+        w, V = np.linalg.eigh(As)
+    except np.linalg.LinAlgError:
+        return np.zeros(k)
     keep = w > 1e-13 * max(w.max(), 1e-300)
     return V[:, keep] @ ((V[:, keep].T @ gs) / (w[keep] + mu))
 
@@ -218,7 +257,13 @@ def inverse_spd(A: Array) -> Array:
     try:
         inv = cho_solve(cholesky(As), np.eye(len(s)))
     except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(As, rcond=1e-12, hermitian=True)
+        if not np.all(np.isfinite(As)):
+            raise NotConverged("the normal matrix is not finite (non-finite model values)") \
+                from None
+        try:
+            inv = np.linalg.pinv(As, rcond=1e-12, hermitian=True)
+        except np.linalg.LinAlgError as err:
+            raise NotConverged(f"the normal matrix cannot be inverted ({err})") from None
     return inv / np.outer(s, s)
 
 
@@ -284,8 +329,26 @@ def analyse(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *, tol: flo
         rep = Identifiability(0, math.inf, [names[c] for c in cols], np.zeros(0))
         return rep, keep, norms
     sub = cols[nz]
+    if not np.all(np.isfinite(A)):
+        raise NotIdentifiable("the measurement Jacobian is not finite at the starting point "
+                              "(check units and the robot description)")
     R = _tsqr(prob, x, rows, sub, norms[nz])
-    _, S, Vt = np.linalg.svd(R, full_matrices=False)
+    try:
+        _, S, Vt = np.linalg.svd(R, full_matrices=False)
+    except np.linalg.LinAlgError:
+        # LAPACK's divide-and-conquer SVD occasionally fails on ill-scaled input; the
+        # symmetric eigen-decomposition of R^T R gives the same subspaces (squared values)
+        try:
+            w, V = np.linalg.eigh(R.T @ R)
+        except np.linalg.LinAlgError as err:
+            raise NotIdentifiable(f"rank analysis failed ({err}); the poses or the model are "
+                                  "degenerate") from None
+        order = np.argsort(w)[::-1]
+        S = np.sqrt(np.clip(w[order], 0.0, None))
+        Vt = V[:, order].T
+    if not S[0] > 0:
+        rep = Identifiability(0, math.inf, [names[c] for c in cols], np.zeros(0))
+        return rep, keep, norms
     rank = int(np.count_nonzero(S / S[0] > tol))
     cond = float(S[0] / S[rank - 1]) if rank else math.inf
     M = S[:rank, None] * Vt[:rank]                      # (rank, k_nz): columns in row space

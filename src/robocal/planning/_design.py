@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
+from robocal.identification import min_poses
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
 
 Array = NDArray[np.float64]
@@ -99,8 +100,9 @@ class Observability:
     """Observability of the identifiable parameters over one pose set.
 
     ``parameters``: all model parameters; ``identifiable``: the rank kept after removing
-    redundant columns; ``min_poses``: ceil(identifiable / 3); ``recommended_poses``: 3
-    equations per identifiable parameter (:data:`REDUNDANCY`), at least ``min_poses + 10``.
+    redundant columns; ``min_poses``: the fit's minimum (``identification.min_poses``);
+    ``recommended_poses``: 3 equations per identifiable parameter (:data:`REDUNDANCY`), at
+    least ``min_poses + 10``.
     """
 
     poses: int
@@ -273,8 +275,8 @@ class DesignSpace:
 
     @property
     def min_poses(self) -> int:
-        """Fewest poses that can identify the kept parameters (3 equations per pose)."""
-        return math.ceil(self.identifiable / 3)
+        """Fewest poses the fit accepts for the kept parameters (identification's rule)."""
+        return min_poses(self.identifiable)
 
     @property
     def recommended_poses(self) -> int:

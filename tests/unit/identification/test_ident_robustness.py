@@ -1,0 +1,115 @@
+"""Solver status, degenerate data, pose-count agreement with the planner (issue 14)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robocal._core.measurements import MeasurementSet
+from robocal.errors import RobocalError
+from robocal.identification import _solver as solver
+from robocal.identification import fit, min_poses
+from robocal.identification._models import high_order_spec
+from robocal.identification._weights import TrackerSigma, whitening
+from robocal.kinematics import KinematicModel, load_robot
+from robocal.simulation import VirtualCell
+
+
+def test_min_poses_meets_the_redundancy_rule() -> None:
+    for rank in (0, 1, 27, 60, 183, 400):
+        n = min_poses(rank)
+        assert 3 * n - rank >= max(6, int(np.ceil(0.3 * n)))
+        assert n == 1 or 3 * (n - 1) - rank < max(6, int(np.ceil(0.3 * (n - 1))))
+
+
+@pytest.mark.parametrize("model", ["constant", "high-order"])
+def test_a_plan_of_min_poses_always_fits(model: str) -> None:
+    from robocal.planning import plan_campaign
+
+    robot = "fanuc_lrmate200i"
+    probe = plan_campaign(robot, "demo", count=80, model=model, iso=False, seed=1,
+                          candidates=1024)
+    n = probe.observability.calibration.min_poses
+    assert n == min_poses(probe.observability.calibration.identifiable)
+    plan = plan_campaign(robot, "demo", count=n, model=model, iso=False, seed=1,
+                         candidates=1024)
+    q = plan.joint_targets("calibration")          # rad
+    assert len(q) == n
+    cell = VirtualCell.create(robot, "paper", seed=2)
+    qm, p, s, _ = cell.simulate(q, np.random.default_rng(3))
+    res = fit(robot, MeasurementSet(qm, p, s), model)
+    assert res.train.n == n and res.converged
+    assert min_poses(res.rank) <= n           # the planner never counts fewer than the fit
+
+
+def _problem(n: int = 60) -> tuple[solver.Problem, np.ndarray]:
+    cell = VirtualCell.create("fanuc_lrmate200i", "paper", seed=4)
+    rng = np.random.default_rng(5)
+    q, p, _, _ = cell.simulate(cell.random_joints(n, rng), rng)
+    robot = load_robot("fanuc_lrmate200i")
+    m = KinematicModel(robot, high_order_spec(robot, order=1), cell.T_tracker_base)
+    prob = solver.Problem(m, q, p, whitening(p, TrackerSigma()))
+    x0 = m.nominal_params()
+    x0[6:9] = robot.tool
+    return prob, x0
+
+
+def test_status_is_converged_only_on_success() -> None:
+    prob, x0 = _problem()
+    rows = np.arange(prob.n)
+    free = np.arange(prob.model.size)[:9]
+    ok = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=100)
+    assert ok.status == solver.CONVERGED and ok.converged
+    short = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=1)
+    assert short.status == solver.MAX_ITERATIONS and not short.converged
+    bad = x0.copy()
+    bad[0] = np.nan
+    nf = solver.levenberg_marquardt(prob, bad, free, rows)
+    assert nf.status == solver.NON_FINITE and not nf.converged
+
+
+def test_non_finite_trial_steps_are_not_converged(monkeypatch: pytest.MonkeyPatch) -> None:
+    prob, x0 = _problem()
+    rows = np.arange(prob.n)
+    free = np.arange(9)
+    start = prob.cost(x0, rows)
+    real_cost = prob.cost
+
+    def cost(x: np.ndarray, r: np.ndarray) -> float:
+        # the model blows up everywhere except at the start point
+        return start if np.array_equal(x, x0) else float("inf")
+
+    monkeypatch.setattr(prob, "cost", cost)
+    info = solver.levenberg_marquardt(prob, x0, free, rows)
+    assert info.status == solver.NON_FINITE and not info.converged
+    monkeypatch.setattr(prob, "cost", lambda x, r: real_cost(x, r) + 1e-3 * start
+                        * float(not np.array_equal(x, x0)))
+    info = solver.levenberg_marquardt(prob, x0, free, rows)
+    assert info.status == solver.NO_PROGRESS and not info.converged
+
+
+def test_degenerate_data_gives_a_robocal_error_not_linalgerror() -> None:
+    robot = load_robot("fanuc_lrmate200i")
+    rng = np.random.default_rng(0)
+    # every pose the same configuration: nothing to register or identify
+    q = np.tile(np.radians([10.0, 20, -30, 40, -50, 60]), (80, 1))
+    p = rng.normal(0.0, 1e-5, (80, 3)) + np.array([1.5, 0.2, 0.3])
+    for model in ("constant", "high-order", "auto"):
+        with pytest.raises(RobocalError):
+            fit(robot, MeasurementSet(q, p), model)
+    # absurd magnitudes (overflow in the kinematics): one clear error
+    q2 = rng.uniform(-1.0, 1.0, (80, 6)) * 1e200
+    p2 = rng.uniform(-1.0, 1.0, (80, 3)) * 1e200
+    with pytest.raises(RobocalError):
+        fit(robot, MeasurementSet(q2, p2), "high-order")
+    # only two joints move: most parameters unobservable; either a fit or a robocal error
+    q3 = np.tile(np.radians([10.0, 20, -30, 40, -50, 60]), (80, 1))
+    q3[:, :2] += rng.uniform(-0.5, 0.5, (80, 2))
+    p3 = VirtualCell.create("fanuc_lrmate200i", "paper", seed=1).simulate(q3, rng)[1]
+    for model in ("high-order", "auto"):
+        try:
+            res = fit(robot, MeasurementSet(q3, p3), model)
+        except RobocalError:
+            continue
+        assert res.status in (solver.CONVERGED, solver.MAX_ITERATIONS)
+        assert len(res.removed) > 0
