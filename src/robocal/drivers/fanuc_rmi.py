@@ -529,7 +529,7 @@ class FanucRmiRobot(RobotDriverBase):
                 )
             status = await self._command("FRC_GetStatus")
             nxt = _int_or(status.body.get("NextSequenceID"), 0)
-            self._next_seq = nxt if nxt >= 1 else 1
+            self._next_seq = nxt if 1 <= nxt <= rmi.MAX_SEQUENCE_ID else 1
             self._needs_recovery = False
         self.log.info("stopped", next_sequence_id=self._next_seq)
 

@@ -294,3 +294,32 @@ def test_a_robot_driver_without_stop_is_refused_by_name(monkeypatch):
     monkeypatch.setattr(_registry, "driver_class", lambda kind, role: NoStop)
     with pytest.raises(DriverImportError, match=r"missing: Stoppable"):
         load_robot("no_stop", {})
+
+
+async def test_fanuc_stop_continues_the_sequence_ids_a_controller_keeps(world):
+    """Controllers that keep NextSequenceID across FRC_Initialize: the move after a stop
+    carries the next ID (a restart at 1 would be dropped as stale)."""
+    sim = FanucRmiSimulator(world, FanucSimOptions(time_scale=1.0, sequence_persists=True))
+    await sim.start()
+    robot = load_robot(
+        "fanuc_rmi",
+        {"joint_limits_deg": world.joint_limits_deg, "connect_port": sim.connect_port},
+    )
+    try:
+        await robot.connect(timeout=5)
+        start = world.q_actual_rad
+        far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
+        move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
+        await _wait_until(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        await robot.stop()
+        with pytest.raises(MotionStopped):
+            await move
+        sim.options = sim.options.model_copy(update={"time_scale": 0.0})
+        back = [lo + 0.45 * (hi - lo) for lo, hi in world.joint_limits_rad]
+        r = await robot.move_to(back, speed_pct=50, timeout=10)
+        assert _max_diff(r.q_rad, back) < 1e-3
+        seqs = [p["SequenceID"] for p in sim.received if "Instruction" in p]
+        assert seqs[-2:] == [seqs[-2], seqs[-2] + 1]  # continued, not restarted at 1
+    finally:
+        await robot.close()
+        await sim.stop()
