@@ -17,7 +17,7 @@ from robocal.errors import ConfigError, DriverImportError, DriverNotFound
 def test_available_lists_declared_entry_points():
     assert available() == {
         "robots": ["fanuc_rmi", "mock", "modbus_plc"],
-        "trackers": ["ltp", "mock"],
+        "trackers": ["emscon", "ltp", "mock"],
     }
 
 
