@@ -1,4 +1,6 @@
-"""Modbus-TCP register map, value codecs and the pymodbus boundary (protocols.md 1.5).
+"""Modbus-TCP register map, value codecs and the pymodbus boundary.
+
+The map and handshake robocal speaks are described in ``docs/protocols/modbus-plc.md``.
 
 This is the **only** module that imports pymodbus; the pinned series is ``>=3.16,<3.17``.
 It maps our names (``device_id``, ``address``, ``count``) onto pymodbus and turns its

@@ -1,4 +1,4 @@
-"""An asyncio FANUC RMI controller simulator (protocols.md 1.1, "fidelity checklist").
+"""An asyncio FANUC RMI controller simulator (docs/protocols/fanuc-rmi.md).
 
 Two listening sockets on loopback: ``FRC_Connect`` is accepted only on the connect port, whose
 reply names the session port; the simulator then closes that connection. On the session port:

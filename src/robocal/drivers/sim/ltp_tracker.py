@@ -1,5 +1,8 @@
 """An LTP/1 laser-tracker simulator served over TCP and over a pty pair.
 
+It implements the protocol as ``docs/protocols/ltp1.md`` describes it, including every
+``ERR 3 BAD_ARG`` check, tagged ``ERR 1 SYNTAX`` replies and the WEATHER override.
+
 The simulated tracker measures the reflector of the shared :class:`SimWorld` robot: the true
 reflector position for the robot's actual joints plus the virtual tracker's noise, averaged
 over ``n`` samples. Faults (beam breaks, unstable target, glitches, garbage lines, slow
