@@ -48,7 +48,7 @@ from robocal.errors import (
 )
 from robocal.protocols import LineStream, ltp, open_transport
 
-__all__ = ["LtpOptions", "LtpTracker", "wire_point_id"]
+__all__ = ["LtpOptions", "LtpTracker", "decimal_text", "wire_point_id"]
 
 _TO_M = {"mm": 1e-3, "m": 1.0, "in": 0.0254}
 
@@ -143,7 +143,7 @@ class LtpTracker(DriverBase):
         if o.smr:
             args: dict[str, object] = {"type": o.smr}
             if o.smr_offset_mm:
-                args["offset_mm"] = f"{o.smr_offset_mm:.4f}"
+                args["offset_mm"] = decimal_text(o.smr_offset_mm, 4)
             await self._request("SMR", args, deadline=deadline, retry=False)
         await self._request("UNITS", {"len": "mm", "ang": "deg"}, deadline=deadline, retry=False)
         self._units = "mm"
@@ -371,7 +371,7 @@ class LtpTracker(DriverBase):
             {
                 "mode": o.mode,
                 "n": samples,
-                "stab_mm": f"{o.stab_mm:g}",
+                "stab_mm": decimal_text(o.stab_mm),
                 "stab_ms": o.stab_ms,
                 "timeout_ms": max(1, int(timeout * 1000)),
             }
@@ -457,6 +457,12 @@ def wire_point_id(point_id: str) -> str:
             key="point_id",
         )
     return wire
+
+
+def decimal_text(x: float, places: int = 6) -> str:
+    """Return ``x`` as an LTP/1 decimal: fixed point, no exponent (``1e-05`` is not one)."""
+    text = f"{x:.{places}f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
 
 
 def _finite(x: float) -> bool:

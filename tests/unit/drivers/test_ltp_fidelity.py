@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from robocal.drivers.ltp import LtpTracker, wire_point_id
+from robocal.drivers.ltp import LtpTracker, decimal_text, wire_point_id
 from robocal.drivers.sim import LtpSimOptions, LtpTrackerSimulator
 from robocal.errors import ConfigError, ConnectFailed, DriverTimeout, MeasurementError
 
@@ -221,6 +221,26 @@ async def test_point_ids_are_made_valid_or_refused(world):
         with pytest.raises(ConfigError):
             await t.measure(samples=1, timeout=1.0, point_id="y" * 80)
         assert len(sim.requests) == n
+        await t.close()
+    finally:
+        await sim.stop()
+
+
+def test_decimals_are_sent_without_exponent():
+    assert decimal_text(0.01) == "0.01" and decimal_text(1e-5) == "0.00001"
+    assert (
+        decimal_text(2.0) == "2" and decimal_text(-1e-9) == "0" and decimal_text(-1.25) == "-1.25"
+    )
+
+
+async def test_small_stability_band_is_a_valid_decimal(world):
+    sim = LtpTrackerSimulator(world, LtpSimOptions(time_scale=0.0))
+    await sim.start_tcp()
+    try:
+        t = LtpTracker({"url": f"tcp://127.0.0.1:{sim.port}", "stab_mm": 1e-5})
+        await t.connect(timeout=2)
+        await t.measure(samples=1, timeout=1.0)  # "1e-05" used to get ERR 3 BAD_ARG
+        assert sim.requests[-1].args["stab_mm"] == "0.00001"
         await t.close()
     finally:
         await sim.stop()
