@@ -1,4 +1,5 @@
-"""100 poses through fanuc_rmi + emscon against the simulators, with ~10 % tracker faults.
+"""100 poses through fanuc_rmi + emscon against the simulators, with ~10 % tracker faults:
+driver level (with ``measure_with_retry``) and through the daemon with the deploy config.
 
 Beam breaks are re-acquired inside the emscon driver (GoPosition + FindReflector), an
 unstable target is retried by the caller (``measure_with_retry``), busy replies and split,
@@ -8,8 +9,15 @@ a few reported sigmas of the virtual robot's true reflector position.
 
 from __future__ import annotations
 
-import numpy as np
+import asyncio
+import tomllib
+from pathlib import Path
 
+import numpy as np
+from tests.unit.daemon.conftest import ROBOT, random_plan
+
+from robocal.daemon.config import parse_config
+from robocal.daemon.service import CalibrationService
 from robocal.drivers import load_robot, load_tracker, measure_with_retry
 from robocal.drivers.sim import EmsconSimOptions, FanucSimOptions, FaultConfig, SimCell
 from robocal.drivers.sim.emscon import EmsconFaults
@@ -70,3 +78,36 @@ async def test_fanuc_rmi_and_emscon_campaign_with_faults():
     # The reported uncertainty is honest: normalised errors have unit variance (3 x 100).
     var = float(np.mean(np.square(z_scores)))
     assert 0.7 < var < 1.4, var
+
+
+async def test_daemon_campaign_with_the_documented_emscon_config(tmp_path):
+    """The daemon runs a 100-pose campaign with deploy/config/emscon.toml's tracker options."""
+    deploy = Path(__file__).resolve().parents[2] / "deploy" / "config" / "emscon.toml"
+    doc = tomllib.loads(deploy.read_text())
+    cell = SimCell(robot=ROBOT, seed=4, fanuc=FanucSimOptions(time_scale=0.0), modbus=False,
+                   ltp=False, emscon=EmsconSimOptions(time_scale=0.001),
+                   faults=FaultConfig(beam_break_rate=0.05, unstable_rate=0.05, seed=5))
+    async with cell:
+        doc["data_dir"] = str(tmp_path / "state")
+        doc["robot_description"] = ROBOT
+        doc["robot"]["options"] = cell.robot_options("fanuc_rmi")
+        doc["tracker"]["options"].update(cell.emscon_options())
+        doc["api"] = {"socket": str(tmp_path / "api.sock")}
+        doc["measurement"].update({"settle_s": 0.0, "backoff_s": 0.001})
+        doc["fit"] = {"models": ["constant"], "select": "constant", "executor": "thread",
+                      "report": False}
+        svc = CalibrationService(parse_config(doc, source=str(deploy)))
+        await svc.start()
+        try:
+            st = await svc.create(random_plan(N_POSES), actor="t")
+            st = await svc.wait(st["id"], ["fitted", "faulted"], timeout=120)
+            assert st["state"] == "fitted", st.get("reason")
+            rows = svc.store.measurements(st["id"])
+            assert sorted(r.pose_idx for r in rows) == list(range(N_POSES))
+            assert all(r.samples == doc["measurement"]["samples"] for r in rows)
+            assert any(r.attempts > 1 for r in rows)  # injected faults were retried
+        finally:
+            await svc.stop()
+            await asyncio.sleep(0.05)
+    sim = cell.emscon_sim
+    assert sim is not None and sim.faults.counts.get("unstable", 0) > 0
