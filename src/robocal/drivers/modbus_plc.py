@@ -136,6 +136,7 @@ class ModbusPlcRobot(RobotDriverBase):
         self._fault: Exception | None = None
         self._stop_lock = asyncio.Lock()
         self._stop_gen = 0
+        self._move_unacked = False  # a MOVE_JOINT went out and its ACK was not seen yet
         self.last_status: PlcStatus | None = None
 
     # --- connection ----------------------------------------------------------------------------
@@ -158,6 +159,11 @@ class ModbusPlcRobot(RobotDriverBase):
         self._heartbeat_task = asyncio.create_task(self._heartbeat(), name="modbus-heartbeat")
 
     async def _close_impl(self) -> None:
+        if self._move_unacked and self._client is not None:
+            # Like RMI's FRC_Abort on disconnect: never leave a PLC robot moving on its own.
+            with contextlib.suppress(Exception):
+                async with asyncio.timeout(self.options.request_timeout_s * 2):
+                    await self.stop()
         if self._heartbeat_task is not None:
             self._heartbeat_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -258,6 +264,8 @@ class ModbusPlcRobot(RobotDriverBase):
                     raise MotionStopped("stop requested before the move started", kind=self.kind)
                 seq = self._next_seq()
                 pair = [int(cmd), seq] if m.cmd < m.cmd_seq else [seq, int(cmd)]
+                if cmd == mb.Cmd.MOVE_JOINT:
+                    self._move_unacked = True
                 await client.write_registers(min(m.cmd, m.cmd_seq), pair)
                 while True:
                     st = await self._read_status()
@@ -265,6 +273,8 @@ class ModbusPlcRobot(RobotDriverBase):
                     if self._fault is not None:
                         raise self._fault
                     if st.ack_seq == seq:
+                        if cmd == mb.Cmd.MOVE_JOINT:
+                            self._move_unacked = False
                         break
                     if gen != self._stop_gen:
                         # ABORT took over CMD_SEQ; stop() waits for its acknowledgement.
@@ -372,6 +382,7 @@ class ModbusPlcRobot(RobotDriverBase):
                 while True:
                     st = await self._read_status()
                     if st.ack_seq == seq:
+                        self._move_unacked = False
                         break
                     if time.monotonic() > deadline:
                         raise DriverTimeout(

@@ -323,3 +323,24 @@ async def test_fanuc_stop_continues_the_sequence_ids_a_controller_keeps(world):
     finally:
         await robot.close()
         await sim.stop()
+
+
+async def test_modbus_close_during_a_move_sends_abort(world):
+    """A PLC robot is never left moving on its own: close() with a move in flight (its
+    move_to cancelled) writes ABORT, as RMI's disconnect aborts."""
+    async with _robot("modbus_plc", world) as (robot, sim):
+        start = world.q_actual_rad
+        far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
+        move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
+        await _wait_until(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        move.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await move
+        assert world.moving  # the PLC moves on after the client gave up waiting
+        await robot.close()
+        assert not world.moving and world.halts == 1
+        assert [c for c, _ in sim.commands] == [mb.Cmd.MOVE_JOINT, mb.Cmd.ABORT]
+        # an idle close sends nothing
+        await robot.connect(timeout=5)
+        await robot.close()
+        assert [c for c, _ in sim.commands] == [mb.Cmd.MOVE_JOINT, mb.Cmd.ABORT]
