@@ -241,9 +241,10 @@ async def holds(robot: object, entry: CompensationTable | ControllerSnapshot) ->
         fn = getattr(robot, "snapshot_compensation", None)
         if not callable(fn):
             return False
-        template = entry
-        current = await fn(_template_for(template))
-        return not snapshot_diff(entry, current)
+        current = await fn(_template_for(entry))
+        saved = entry.model_copy(update={"items": {k: v for k, v in entry.items.items()
+                                                   if k != "template"}})
+        return not snapshot_diff(saved, current)
     back = await read_like(robot, entry)
     return back is not None and not table_diff(entry, back, tol=1e-3)
 

@@ -663,7 +663,8 @@ class CalibrationService:
         self._spawn_verify(key)
         return self.status(cid)
 
-    async def _undo(self, robot: object, key: str, actor: str, reason: str) -> None:
+    async def _undo(self, robot: object, key: str, actor: str, reason: str,
+                    what: str = "failed") -> None:
         """After a failed or unfinished write: put back what the slots held, abandon ``key``.
 
         Never writes the journaled table again; writes the previous values only when the
@@ -688,7 +689,7 @@ class CalibrationService:
                 outcome += "; the controller holds the previous values"
         except (RobocalError, OSError) as err:
             outcome += f"; restoring the previous values failed too: {err}"
-        self.journal.abandon(key, actor=actor, reason=outcome, what="failed")
+        self.journal.abandon(key, actor=actor, reason=outcome, what=what)
 
     async def reconcile(self) -> builtins.list[dict[str, Any]]:
         """Settle journal entries left ``intended`` by a crash, by reading the controller."""
@@ -710,7 +711,8 @@ class CalibrationService:
                         self._spawn_verify(e.key)
                     else:
                         await self._undo(robot, e.key, "daemon",
-                                         "interrupted before the write was confirmed")
+                                         "interrupted before the write was confirmed",
+                                         what="abandoned")
                         done = self.journal.get(e.key)
             except (RobocalError, OSError) as err:
                 _log.warning("push journal not reconciled", key=e.key, error=str(err))
