@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import stat
+import tempfile
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -16,20 +17,52 @@ from robocal.errors import ConfigError
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` via a temporary file in the same directory, then rename.
 
-    The data are flushed to disk before the rename; on any error the temporary file is
-    removed and ``path`` keeps its previous content (or stays absent).
+    The data are flushed to disk before the rename and the directory entry after it, so a
+    power cut leaves the old file or the new one. On any error the temporary file is removed
+    and ``path`` keeps its previous content (or stays absent). The temporary name is unique
+    (``mkstemp``), so two writers never share one.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = Path(name)
     try:
-        with open(tmp, "w", encoding="utf-8") as fh:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
+        # mkstemp creates 0600; a written file gets the permissions an ordinary one would
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    _fsync_dir(path.parent)
+
+
+def _umask() -> int:
+    """The process umask, read without changing it (``os.umask`` would, for every thread)."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (a no-op where directories cannot be opened)."""
+    try:
+        dfd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
 
 
 def json_default(o: Any) -> Any:
@@ -49,7 +82,8 @@ def read_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file; raise :class:`ConfigError` naming the file and the problem."""
     src = str(path)
     try:
-        return tomllib.loads(Path(path).read_text())
+        with open(path, "rb") as fh:  # binary, as tomllib wants: it decodes UTF-8 itself
+            return tomllib.load(fh)
     except (tomllib.TOMLDecodeError, RecursionError) as err:
         raise ConfigError(f"not valid TOML: {err or 'nested too deeply'}", source=src) from err
     except (OSError, UnicodeDecodeError) as err:

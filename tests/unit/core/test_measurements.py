@@ -116,3 +116,21 @@ def test_bad_cell_is_quoted_as_written(tmp_path):
     with pytest.raises(DataError) as info:
         MeasurementSet.read_csv(path)
     assert "'2,0mm'" in str(info.value) and "row 2" in str(info.value)
+
+
+def test_atomic_write_leaves_no_temporary_and_keeps_umask_permissions(tmp_path):
+    import os
+    import stat
+
+    from robocal._core.files import atomic_write_text
+
+    old = os.umask(0o027)
+    try:
+        target = tmp_path / "out.txt"
+        atomic_write_text(target, "one")
+        atomic_write_text(target, "two")
+    finally:
+        os.umask(old)
+    assert target.read_text() == "two"
+    assert stat.S_IMODE(target.stat().st_mode) == 0o640
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
