@@ -63,3 +63,11 @@ def test_commands_share_their_defaults(tmp_path, capsys: pytest.CaptureFixture[s
     summary = json.loads(capsys.readouterr().out)
     assert summary["by_purpose"]["validation"] == default_validation(80)
     assert json.loads(plan.read_text())["model"]["name"] == DEFAULT_MODEL
+
+
+def test_version_comes_from_the_package_metadata() -> None:
+    from importlib.metadata import version
+
+    import robocal
+
+    assert robocal.__version__ == version("robocal")
