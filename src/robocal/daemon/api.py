@@ -44,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal import __version__
 from robocal._core.files import atomic_write_text
+from robocal.daemon._gate import ConnectionGate, GatedTCPSite, GatedUnixSite
 from robocal.daemon.config import AppConfig, config_warnings
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import UnknownCampaign, is_storage_fault
@@ -64,6 +65,7 @@ _log = structlog.get_logger(__name__)
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 _SERVICE: web.AppKey[CalibrationService] = web.AppKey("service", CalibrationService)
 _TOKEN_AUTH: web.AppKey[bool] = web.AppKey("token_auth", bool)
+_BODY_TIMEOUT: web.AppKey[float] = web.AppKey("body_timeout", float)
 _ACTOR_RE = re.compile(r"[^A-Za-z0-9_.@:-]")
 _ACTIONS = ("start", "pause", "resume", "abort", "approve", "push")
 
@@ -187,7 +189,11 @@ def _actor(request: web.Request) -> str:
 
 
 async def _body(request: web.Request, model: type[_Request], *, required: bool) -> Any:
-    raw = await request.read()
+    try:
+        async with asyncio.timeout(request.app[_BODY_TIMEOUT]):
+            raw = await request.read()
+    except TimeoutError as err:
+        raise web.HTTPRequestTimeout(reason="the request body did not arrive in time") from err
     if not raw.strip():
         if required:
             raise web.HTTPBadRequest(reason="a JSON body is required")
@@ -313,8 +319,9 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
     """Server-Sent Events: ``id: seq``, ``event: kind``, ``data: JSON``; keep-alive comments."""
     svc = request.app[_SERVICE]
     after = _int_query(request, "after", 0, 0, 2**62)
-    with contextlib.suppress(ValueError):
-        after = max(after, int(request.headers.get("Last-Event-ID", "0")))
+    last_id = request.headers.get("Last-Event-ID")
+    if last_id:
+        after = max(after, svc.events.after_event_id(last_id))
     campaign = request.query.get("campaign") or None
     resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                        "Cache-Control": "no-cache"})
@@ -322,7 +329,8 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
 
     async def send(ev: dict[str, Any]) -> None:
         data = json.dumps(ev, default=str)
-        await resp.write(f"id: {ev['seq']}\nevent: {ev['kind']}\ndata: {data}\n\n".encode())
+        await resp.write(f"id: {svc.events.event_id(ev)}\nevent: {ev['kind']}\n"
+                         f"data: {data}\n\n".encode())
 
     try:
         async with svc.events.subscribe() as q:
@@ -349,7 +357,8 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
 
 
 def make_app(service: CalibrationService, *, token: str | None = None,
-             max_body_bytes: int = 8 * 1024 * 1024) -> web.Application:
+             max_body_bytes: int = 8 * 1024 * 1024,
+             body_timeout_s: float = 60.0) -> web.Application:
     """The aiohttp application; with ``token``, every request must carry it (TCP)."""
     middlewares: list[Any] = [_errors]
     if token is not None:
@@ -357,6 +366,7 @@ def make_app(service: CalibrationService, *, token: str | None = None,
     app = web.Application(middlewares=middlewares, client_max_size=max_body_bytes)
     app[_SERVICE] = service
     app[_TOKEN_AUTH] = token is not None
+    app[_BODY_TIMEOUT] = body_timeout_s
     r = app.router
     r.add_get("/health", health)
     r.add_get("/openapi.json", openapi)
@@ -474,6 +484,8 @@ class ApiServer:
         self._runners: list[web.AppRunner] = []
         self.socket_path: Path | None = None
         self.tcp_port: int | None = None
+        self.tcp_gate: ConnectionGate | None = None
+        self.unix_gate: ConnectionGate | None = None
 
     async def start(self) -> None:
         """Bind and serve.
@@ -490,16 +502,16 @@ class ApiServer:
                 await self._start_unix(sock, api.socket_mode)
             if api.tcp_port is not None:
                 token = self.config.read_token()
-                runner = web.AppRunner(make_app(self.service, token=token,
-                                                max_body_bytes=api.max_body_bytes),
-                                       access_log=None, shutdown_timeout=2.0)
+                runner = self._runner(token)
                 await runner.setup()
                 self._runners.append(runner)
-                site = web.TCPSite(runner, api.tcp_host, api.tcp_port)
+                self.tcp_gate = ConnectionGate(
+                    max_connections=api.max_connections,
+                    max_per_client=api.max_connections_per_client,
+                    header_timeout_s=api.header_timeout_s)
+                site = GatedTCPSite(runner, api.tcp_host, api.tcp_port, gate=self.tcp_gate)
                 await site.start()
-                server = getattr(site, "_server", None)
-                sockets = getattr(server, "sockets", None) or []
-                self.tcp_port = int(sockets[0].getsockname()[1]) if sockets else api.tcp_port
+                self.tcp_port = site.port
                 _log.info("api listening", url=f"http://{api.tcp_host}:{self.tcp_port}")
                 for warning in config_warnings(self.config):
                     _log.warning("insecure setting", warning=warning)
@@ -514,12 +526,14 @@ class ApiServer:
             if _socket_in_use(path):
                 raise ConfigError("another daemon is listening on this socket", source=str(path))
             path.unlink()  # stale, from a daemon that was killed
-        runner = web.AppRunner(make_app(self.service,
-                                        max_body_bytes=self.config.api.max_body_bytes),
-                               access_log=None, shutdown_timeout=2.0)
+        api = self.config.api
+        runner = self._runner(None)
         await runner.setup()
         self._runners.append(runner)
-        site = web.UnixSite(runner, str(path))
+        # Local clients share one budget, separate from TCP's (a TCP flood cannot use it up).
+        self.unix_gate = ConnectionGate(max_connections=api.max_connections, max_per_client=None,
+                                        header_timeout_s=api.header_timeout_s)
+        site = GatedUnixSite(runner, str(path), gate=self.unix_gate)
         # Create the socket with no more permission than asked, then set the mode exactly.
         old = os.umask(0o777 & ~mode)
         try:
@@ -529,6 +543,13 @@ class ApiServer:
         os.chmod(path, mode)
         self.socket_path = path
         _log.info("api listening", socket=str(path), mode=oct(mode))
+
+    def _runner(self, token: str | None) -> web.AppRunner:
+        api = self.config.api
+        app = make_app(self.service, token=token, max_body_bytes=api.max_body_bytes,
+                       body_timeout_s=api.body_timeout_s)
+        return web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
+                             keepalive_timeout=api.keepalive_timeout_s)
 
     def _write_endpoints(self) -> None:
         """Write ``api.json`` (socket and TCP URL) to ``data_dir`` for clients and tests."""

@@ -75,6 +75,11 @@ class ApiConfig(_Model):
     ``socket`` (default ``robocal.sock`` in ``data_dir``) is a Unix socket whose file mode
     (``socket_mode``, default 0660) is the access control. TCP is off unless ``tcp_port`` is
     set, and then ``token_file`` (a file holding the bearer token) is required.
+
+    Each listener admits ``max_connections`` connections (TCP: ``max_connections_per_client``
+    per address); more are reset on arrival. Request headers must arrive within
+    ``header_timeout_s``, a body within ``body_timeout_s``; idle keep-alive connections close
+    after ``keepalive_timeout_s``. A TCP flood therefore cannot starve the Unix socket.
     """
 
     socket: Path | None = Path("robocal.sock")
@@ -83,6 +88,11 @@ class ApiConfig(_Model):
     tcp_port: int | None = Field(default=None, ge=0, le=65535)
     token_file: Path | None = None
     max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024)
+    max_connections: int = Field(default=64, ge=1, le=4096)
+    max_connections_per_client: int = Field(default=8, ge=1, le=4096)
+    header_timeout_s: float = Field(default=10.0, gt=0.0, le=300.0)
+    body_timeout_s: float = Field(default=60.0, gt=0.0, le=3600.0)
+    keepalive_timeout_s: float = Field(default=15.0, gt=0.0, le=3600.0)
 
     @model_validator(mode="after")
     def _check(self) -> ApiConfig:
@@ -111,7 +121,9 @@ class LimitsConfig(_Model):
 
     joint_margin_deg: float = Field(default=1.0, ge=0.0, le=90.0)
     speed_pct: float = Field(default=20.0, gt=0.0, le=100.0)
-    max_joint_correction_deg: float = Field(default=0.5, gt=0.0)
+    # a targets table's 6-D corrections reach a degree where the joint zero offsets are off
+    # by tenths of a degree and near the wrist singularity; the demo cell needs up to ~1.5
+    max_joint_correction_deg: float = Field(default=2.0, gt=0.0)
     max_frame_translation_mm: float = Field(default=10.0, gt=0.0)
     max_frame_rotation_deg: float = Field(default=1.0, gt=0.0)
 

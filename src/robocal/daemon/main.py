@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import fcntl
 import os
+import resource
 import signal
 import sys
 from collections.abc import Iterator, Sequence
@@ -113,6 +114,20 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
             _log.info("daemon stopped")
 
 
+def raise_fd_limit(wanted: int = 65536) -> int:
+    """Raise the soft ``RLIMIT_NOFILE`` towards ``wanted`` (not above the hard limit).
+
+    systemd's unit sets ``LimitNOFILE``; outside systemd the soft limit is often 1024. Return
+    the soft limit now in force.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if soft != resource.RLIM_INFINITY and soft < target:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    return resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+
+
 def run(config: AppConfig) -> int:
     """Configure logging and run :func:`serve` (the one ``asyncio.run``); return exit code."""
     try:
@@ -121,6 +136,11 @@ def run(config: AppConfig) -> int:
         sys.stderr.write(f"robocal daemon: error: {err}\n")
         return 2
     configure_logging(config.logging.level, config.logging.format)
+    fds = raise_fd_limit()
+    # Both listeners at their limits plus drivers, store and fit workers must fit.
+    if fds < 2 * config.api.max_connections + 64:
+        _log.warning("few file descriptors for the API connection limits", nofile=fds,
+                     max_connections=config.api.max_connections)
     for warning in config_warnings(config):
         _log.warning("insecure setting", warning=warning)
         sys.stderr.write(f"robocal daemon: WARNING: {warning}\n")

@@ -1,0 +1,142 @@
+"""The API's admission control over real sockets on 127.0.0.1: header deadline, connection
+limits per listener and per client, body deadline; and the rate-limited logs."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+
+import pytest
+
+from robocal.daemon.api import ApiServer
+from robocal.daemon.logging import RateLimiter
+from robocal.daemon.service import CalibrationService
+
+TOKEN = "gate-token-0123456789abcdef"
+
+
+@pytest.fixture
+async def api(make_config, tmp_path):
+    tok = tmp_path / "token"
+    tok.write_text(TOKEN)
+    tok.chmod(0o600)
+    cfg = make_config(api={"socket": str(tmp_path / "api.sock"), "tcp_port": 0,
+                           "token_file": str(tok), "header_timeout_s": 0.3,
+                           "body_timeout_s": 0.3, "max_connections": 6,
+                           "max_connections_per_client": 4})
+    svc = CalibrationService(cfg)
+    await svc.start()
+    server = ApiServer(svc, cfg)
+    await server.start()
+    yield server
+    await server.stop()
+    await svc.stop()
+
+
+async def _closed_by_peer(reader: asyncio.StreamReader, timeout: float) -> bool:
+    """True if the server closes (or resets) the connection within ``timeout`` s."""
+    try:
+        async with asyncio.timeout(timeout):
+            data = await reader.read(65536)
+            while data:
+                data = await reader.read(65536)
+    except TimeoutError:
+        return False
+    except ConnectionError:
+        return True
+    return True
+
+
+async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str,
+               token: str = TOKEN) -> int:
+    writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                 "\r\n".encode())
+    await writer.drain()
+    async with asyncio.timeout(5):
+        status = int((await reader.readline()).split()[1])
+        length = 0
+        while (line := await reader.readline()) not in (b"\r\n", b""):
+            if line.lower().startswith(b"content-length:"):
+                length = int(line.split(b":")[1])
+        await reader.readexactly(length)
+    return status
+
+
+async def test_partial_headers_are_cut_off(api):
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(b"GET /health HTTP/1.1\r\nHost: x\r\n")  # never finished
+    await w.drain()
+    assert await _closed_by_peer(r, 3.0)
+    assert api.tcp_gate is not None and api.tcp_gate.timed_out == 1
+    w.close()
+
+
+async def test_keep_alive_requests_each_get_the_full_deadline(api):
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    for _ in range(3):  # spread over more than one header deadline, on one connection
+        assert await _get(r, w, "/health") == 200
+        await asyncio.sleep(0.2)
+    body = json.dumps({"reason": "x"}).encode()
+    w.write(b"POST /campaigns/nope/pause HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+            + TOKEN.encode() + b"\r\nContent-Type: application/json\r\nContent-Length: "
+            + str(len(body)).encode() + b"\r\n\r\n" + body)
+    await w.drain()
+    async with asyncio.timeout(5):
+        assert b" 404 " in await r.readline()
+    w.close()
+
+
+async def test_a_slow_body_is_408(api):
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(b"POST /campaigns HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer " + TOKEN.encode()
+            + b"\r\nContent-Length: 100\r\n\r\n{\"plan\"")
+    await w.drain()
+    async with asyncio.timeout(5):
+        assert b" 408 " in await r.readline()
+    w.close()
+
+
+async def test_oversized_headers_are_cut_off(api):
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    with contextlib.suppress(ConnectionError):
+        w.write(b"GET /health HTTP/1.1\r\n" + b"X-Pad: " + b"a" * 40_000 + b"\r\n")
+        await w.drain()
+    assert await _closed_by_peer(r, 3.0)
+    w.close()
+
+
+async def test_connection_limits_and_the_unix_socket_is_separate(api):
+    held = [await asyncio.open_connection("127.0.0.1", api.tcp_port) for _ in range(4)]
+    # a fifth from the same client is reset on arrival, without waiting for any deadline
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _closed_by_peer(r, 0.2)
+    w.close()
+    assert api.tcp_gate is not None and api.tcp_gate.refused == 1
+    # the TCP listener's budget does not touch the Unix socket's
+    ur, uw = await asyncio.open_unix_connection(str(api.socket_path))
+    assert await _get(ur, uw, "/health", token="") == 200
+    uw.close()
+    for _, hw in held:
+        hw.close()
+    # once the held ones go (closed here, or cut off by the deadline), clients get in again
+    async def admitted() -> bool:
+        cr, cw = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+        try:
+            return await _get(cr, cw, "/health") == 200
+        except (ConnectionError, asyncio.IncompleteReadError, IndexError):
+            return False
+        finally:
+            cw.close()
+
+    async with asyncio.timeout(5):
+        while not await admitted():
+            await asyncio.sleep(0.02)
+
+
+def test_rate_limiter_counts_what_it_drops():
+    lim = RateLimiter(burst=3, window_s=10.0)
+    got = [lim.allow("k", now=float(i) * 0.01) for i in range(10)]
+    assert got == [0, 0, 0, None, None, None, None, None, None, None]
+    assert lim.allow("other", now=0.5) == 0
+    assert lim.allow("k", now=11.0) == 7  # next window reports the 7 dropped
