@@ -3,7 +3,8 @@
 The store is the record; events are for watching (``GET /events`` as Server-Sent Events,
 ``robocal campaign watch``). Each event is a JSON object with ``seq`` (increasing within one
 daemon run), ``time``, ``kind`` and ``campaign``; a subscriber that reconnects passes the last
-``seq`` it saw and gets what it missed from a bounded replay buffer.
+``seq`` it saw (or, over SSE, the ``Last-Event-ID`` ``BOOT-SEQ``, which names the daemon run)
+and gets what it missed from a bounded replay buffer.
 
 Kinds: ``state`` (a transition), ``pose`` (a pose measured), ``retry`` (a reading retried),
 ``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``log``.
@@ -14,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import secrets
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -33,6 +35,9 @@ class EventBus:
     """
 
     def __init__(self, *, replay: int = 2000, queue_size: int = 1000) -> None:
+        #: Names this daemon run: sequence numbers restart with every run, so an event id
+        #: (``BOOT-SEQ``) from an earlier run must not be read as "seen up to SEQ".
+        self.boot_id = secrets.token_hex(4)
         self._seq = 0
         self._buffer: collections.deque[dict[str, Any]] = collections.deque(maxlen=replay)
         self._subscribers: set[asyncio.Queue[dict[str, Any] | None]] = set()
@@ -56,6 +61,21 @@ class EventBus:
                     q.get_nowait()
             q.put_nowait(event)
         return event
+
+    def event_id(self, event: dict[str, Any]) -> str:
+        """The SSE ``id`` of an event: ``BOOT-SEQ``."""
+        return f"{self.boot_id}-{event['seq']}"
+
+    def after_event_id(self, last_event_id: str) -> int:
+        """The ``seq`` to replay after for a client's ``Last-Event-ID``.
+
+        An id of this run gives its sequence number; one of an earlier run (or a bare number
+        from a client of an older daemon) gives 0: everything buffered is news to that client.
+        """
+        boot, sep, seq = last_event_id.strip().rpartition("-")
+        if sep and boot == self.boot_id and seq.isdigit():
+            return min(int(seq), self._seq)
+        return 0
 
     def history(self, *, after: int = 0, campaign: str | None = None) -> list[dict[str, Any]]:
         """Buffered events with ``seq > after`` (optionally of one campaign)."""
