@@ -85,6 +85,27 @@ async def test_sse_stream(client, svc):
     assert json.loads(lines[2][len("data: "):])["text"] == "hello"
 
 
+async def _first_event(client, last_event_id: str) -> dict:
+    async with client.get("/events", headers={"Last-Event-ID": last_event_id}) as r:
+        async for raw in r.content:
+            line = raw.decode().rstrip("\n")
+            if line.startswith("data: "):
+                return json.loads(line[len("data: "):])
+    raise AssertionError("no event")
+
+
+async def test_sse_ids_name_the_daemon_run(client, svc):
+    """A client reconnecting with an id from an earlier daemon run is not starved."""
+    first = svc.events.emit("log", None, text="one")
+    svc.events.emit("log", None, text="two")
+    own = svc.events.event_id(first)
+    assert own == f"{svc.events.boot_id}-{first['seq']}"
+    assert (await _first_event(client, own))["text"] == "two"        # this run: after it
+    stale = f"0000dead-{first['seq'] + 500}"                          # an earlier run, later seq
+    assert (await _first_event(client, stale))["text"] == "one"       # replayed from the start
+    assert (await _first_event(client, "17"))["text"] == "one"        # an old-style bare number
+
+
 @pytest.mark.parametrize(("method", "path", "body", "status"), [
     ("POST", "/campaigns", b"{not json", 400),
     ("POST", "/campaigns", b"[1, 2]", 400),
