@@ -172,6 +172,7 @@ async def test_stop_aborts_a_running_meas_which_answers_first(world):
     try:
         await c.send("1 MEAS n=1 stab_ms=5000")
         assert (await c.ask("2 STATUS?")).startswith('2 ERR 14 BUSY msg="')
+        assert (await c.ask("5 STOP now=1")).startswith('5 ERR 3 BAD_ARG msg="')
         await c.send("3 STOP")
         assert (await c.line()).startswith('1 ERR 16 ABORTED msg="')
         assert await c.line() == "3 OK"

@@ -210,7 +210,9 @@ class _Session:
             self._close()
             return
         if self.busy is not None and not self.busy.done():
-            if req.verb == "STOP" and not req.args:
+            if req.verb == "STOP" and req.args:
+                await self.send(sim.answer(req, self))  # ERR 3 BAD_ARG; the MEAS runs on
+            elif req.verb == "STOP":
                 # The aborted MEAS answers first (ERR 16 ABORTED), then STOP.
                 self.busy.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
