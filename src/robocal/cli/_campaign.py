@@ -60,13 +60,13 @@ def register(sub: Any) -> None:
     s.set_defaults(handler=start)
 
     st = verbs.add_parser("status", help="show a campaign")
-    st.add_argument("id")
-    st.add_argument("--json", action="store_true")
+    st.add_argument("id", help="campaign id (see campaign list)")
+    st.add_argument("--json", action="store_true", help="print the status as JSON")
     add_client_options(st)
     st.set_defaults(handler=status)
 
     ls = verbs.add_parser("list", help="list campaigns")
-    ls.add_argument("--json", action="store_true")
+    ls.add_argument("--json", action="store_true", help="print the list as JSON")
     add_client_options(ls)
     ls.set_defaults(handler=list_)
 
@@ -76,10 +76,12 @@ def register(sub: Any) -> None:
                        ("approve", "approve the fit (required before push)"),
                        ("push", "push the approved compensation to the robot")):
         a = verbs.add_parser(verb, help=text)
-        a.add_argument("id")
-        a.add_argument("--json", action="store_true")
+        a.add_argument("id", help="campaign id (see campaign list)")
+        a.add_argument("--json", action="store_true",
+                       help="print the campaign's status afterwards as JSON")
         if verb in ("pause", "abort"):
-            a.add_argument("--reason", default="")
+            a.add_argument("--reason", default="",
+                           help="why (kept in the campaign history and the audit log)")
         if verb == "approve":
             a.add_argument("--model", help="approve this fitted model instead of the proposed")
         if verb == "push":
@@ -93,7 +95,7 @@ def register(sub: Any) -> None:
         a.set_defaults(handler=action, action=verb)
 
     w = verbs.add_parser("watch", help="follow a campaign's progress")
-    w.add_argument("id")
+    w.add_argument("id", help="campaign id (see campaign list)")
     w.add_argument("--json", action="store_true", help="JSON lines instead of a progress bar")
     add_client_options(w)
     w.set_defaults(handler=watch)

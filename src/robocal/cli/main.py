@@ -14,7 +14,6 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from robocal import __version__
 from robocal.errors import RobocalError
 
 # Every subcommand with its one-line help, in the order ``--help`` lists them. Only the
@@ -39,6 +38,43 @@ COMMANDS: dict[str, str] = {
 }
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Shows every option's default where the help text does not already state it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (not action.option_strings or "default" in text or default is None
+                or default is argparse.SUPPRESS or isinstance(default, bool)
+                or default == []):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class _Parser(argparse.ArgumentParser):
+    """Every (sub)command parser: the help formatter above."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+
+
+class _Version(argparse.Action):
+    """``--version``, resolved only when asked (reading package metadata is not free)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS, help: str = "show the version and exit"
+                 ) -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        import robocal
+
+        sys.stdout.write(f"robocal {robocal.__version__}\n")
+        parser.exit()
+
+
 def _command_of(argv: Sequence[str]) -> str | None:
     """The subcommand named in ``argv`` (top-level options take no values), or None."""
     for a in argv:
@@ -56,13 +92,13 @@ def build_parser(only: str | None = None, *, lazy: bool = False) -> argparse.Arg
     propagates: no command is dropped silently). With ``lazy`` true only ``only`` (if any) is
     imported; the other commands are listed with their help line and no arguments.
     """
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="robocal",
         description="Calibrate industrial robots: measure with a laser tracker, fit constant and "
                     "high-order joint-dependent error models, compensate.",
     )
-    parser.add_argument("--version", action="version", version=f"robocal {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser.add_argument("--version", action=_Version)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, text in COMMANDS.items():
         if lazy and name != only:
             sub.add_parser(name, help=text, add_help=False)

@@ -71,3 +71,49 @@ def test_version_comes_from_the_package_metadata() -> None:
     import robocal
 
     assert robocal.__version__ == version("robocal")
+
+
+def _parsers(parser, path=()):
+    """Every (sub)command parser with its command path."""
+    import argparse
+
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*path, name))
+
+
+def test_every_command_verb_and_option_is_explained() -> None:
+    """Help text for every sub-verb and option; defaults shown where there is one."""
+    import argparse
+
+    from robocal.cli.main import COMMANDS, build_parser
+
+    parser = build_parser()
+    seen = set()
+    for path, p in _parsers(parser):
+        seen.add(path[:1])
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for choice in action._choices_actions:
+                    assert choice.help, f"robocal {' '.join(path)} {choice.dest}: no help"
+                continue
+            if action.option_strings and action.help != argparse.SUPPRESS:
+                assert action.help, f"robocal {' '.join(path)} {action.option_strings}: no help"
+        text = p.format_help()
+        for action in p._actions:
+            if (action.option_strings and isinstance(action.default, int | float | str)
+                    and not isinstance(action.default, bool) and action.default != ""
+                    and action.default is not argparse.SUPPRESS):
+                assert "default" in (action.help or "") or "(default:" in text, \
+                    f"robocal {' '.join(path)} {action.option_strings}: default not shown"
+    assert {p[0] for p in seen if p} == set(COMMANDS)
+
+
+def test_version_option(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out == f"robocal {version('robocal')}\n"
