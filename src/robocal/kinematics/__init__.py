@@ -3,7 +3,15 @@
 from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
 from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
 from robocal.kinematics._model import ChainState, KinematicModel
-from robocal.kinematics._robot import Joint, RobotDescription, builtin_robots, load_robot
+from robocal.kinematics._robot import (
+    Joint,
+    RobotDescription,
+    builtin_robots,
+    load_robot,
+    matrix_to_rpy,
+    robot_to_toml,
+    rpy_to_matrix,
+)
 from robocal.kinematics._spec import (
     BASE_NAMES,
     COMPONENTS,
@@ -12,6 +20,13 @@ from robocal.kinematics._spec import (
     ErrorModelSpec,
     ParameterLayout,
     Term,
+)
+from robocal.kinematics._urdf import (
+    calibrated_to_urdf,
+    constant_part,
+    load_urdf,
+    robot_to_urdf,
+    urdf_to_robot,
 )
 from robocal.kinematics._transforms import (
     euler_xyz_to_matrix,
@@ -36,13 +51,21 @@ __all__ = [
     "RobotDescription",
     "Term",
     "builtin_robots",
+    "calibrated_to_urdf",
+    "constant_part",
     "euler_xyz_to_matrix",
     "evaluate_basis",
     "gravity_torques",
     "load_robot",
+    "load_urdf",
     "matrix_to_euler_xyz",
+    "matrix_to_rpy",
     "matrix_to_wpr",
     "rigid_fit",
+    "robot_to_toml",
+    "robot_to_urdf",
+    "rpy_to_matrix",
     "spline_weights",
+    "urdf_to_robot",
     "wpr_to_matrix",
 ]

@@ -60,7 +60,8 @@ def gravity_torques(robot: RobotDescription, q: Array) -> Array:
     axes = np.empty((n, dof, 3))
     origins = np.empty((n, dof, 3))
     coms = np.empty((n, dof, 3))
-    g = np.asarray(robot.gravity, dtype=float)
+    # gravity is given in the robot root frame; the chain below starts at DH frame 0
+    g = robot.T_root_dh0[:3, :3].T @ np.asarray(robot.gravity, dtype=float)
     for i, jt in enumerate(robot.joints):
         axes[:, i] = R[:, :, 2]
         origins[:, i] = o

@@ -2,8 +2,9 @@
 
 Chain, for joint values ``q`` (n, dof) and parameters ``x``::
 
-    T_tracker_flange = T_ref · E_base(x_base)
+    T_tracker_flange = T_ref · E_base(x_base) · T_root_dh0
                        · Π_i [ Rz(theta_i) · E_i(q_i) · Tz(d_i) Tx(a_i) Rx(alpha_i) ]
+                       · T_dhn_flange
     p_tracker_smr    = T_tracker_flange · x_tool
 
 with ``E(dx, dy, dz, ex, ey, ez) = Tx(dx) Ty(dy) Tz(dz) Rx(ex) Ry(ey) Rz(ez)``. Derivatives are
@@ -107,6 +108,9 @@ class KinematicModel:
         self._theta_off = np.array([j.theta_offset for j in robot.joints])
         self._C = robot.coupling_matrix
         self._dh = [(j.d, j.a, math.cos(j.alpha), math.sin(j.alpha)) for j in robot.joints]
+        # fixed robot root -> DH frame 0 and DH frame n -> flange transforms (None: identity)
+        self._T_base = robot.T_root_dh0 if robot.has_base else None
+        self._T_flange = robot.T_dhn_flange if robot.has_flange else None
 
     # -- parameters -----------------------------------------------------------------------
     @property
@@ -176,6 +180,7 @@ class KinematicModel:
         ang_cols: list[Array] = []
         pivots: list[Array] = []
         R, o = _apply_error(R0, o0, np.broadcast_to(x[:6], (n, 6)), lin_cols, ang_cols, pivots)
+        R, o = _fixed(R, o, self._T_base)
         jaxes = []
         jorig = []
         for i in range(dof):
@@ -187,6 +192,7 @@ class KinematicModel:
             d, a, ca, sa = self._dh[i]
             o = o + d * R[:, :, 2] + a * R[:, :, 0]
             _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
+        R, o = _fixed(R, o, self._T_flange)
         p = o + R @ x[6:9]
         lin = np.stack(lin_cols, axis=2)
         ang = np.stack(ang_cols, axis=2)
@@ -216,12 +222,14 @@ class KinematicModel:
         R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
         o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
         R, o = _apply_error_fast(R, o, np.broadcast_to(x[:6], (n, 6)))
+        R, o = _fixed(R, o, self._T_base)
         for i in range(dof):
             _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
             R, o = _apply_error_fast(R, o, E[:, i, :])
             d, a, ca, sa = self._dh[i]
             o = o + d * R[:, :, 2] + a * R[:, :, 0]
             _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
+        R, o = _fixed(R, o, self._T_flange)
         p = o + R @ x[6:9]
         return p, R, o
 
@@ -286,6 +294,13 @@ def _scatter_columns(values: Array, cols: NDArray[np.intp], width: int) -> Array
     S = np.zeros((values.shape[1], width))
     S[np.arange(values.shape[1]), cols] = 1.0
     return values @ S
+
+
+def _fixed(R: Array, o: Array, T: Array | None) -> tuple[Array, Array]:
+    """Frame (R (n, 3, 3), o (n, 3)) followed by the fixed transform T (4, 4), if any."""
+    if T is None:
+        return R, o
+    return R @ T[:3, :3], o + R @ T[:3, 3]
 
 
 def _apply_error_fast(R: Array, o: Array, e: Array) -> tuple[Array, Array]:

@@ -24,13 +24,26 @@ The public format, all lengths in mm and angles in degrees::
 The chain angle of joint i is ``theta_i = sign_i * (q_i + coupling_i * q_{coupled_to}) +
 theta_offset_i`` and the link transform is ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` (standard DH).
 Joint values ``q`` (what the controller reports and accepts) are what robocal stores in files.
+
+Optional top-level keys:
+
+* ``base_xyz_mm``, ``base_rpy_deg``: fixed transform robot root -> DH frame 0 (default
+  identity); ``flange_xyz_mm``, ``flange_rpy_deg``: DH frame n -> flange (default identity).
+  ``tool_mm`` is given in the flange frame. rpy as in URDF: ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+* ``convention = "modified"``: the joint tables are Craig's modified DH, link transform
+  ``Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i) Tz(d_i)``: table i holds ``a_mm = a_{i-1}`` and
+  ``alpha_deg = alpha_{i-1}`` with ``d_mm = d_i`` and ``theta_offset_deg``. It is converted
+  exactly on load: ``Rx(alpha_0) Tx(a_0)`` joins the base transform and the standard
+  ``a_i, alpha_i`` are the next table's values (the last joint gets 0). Default
+  ``"standard"``. :func:`to_modified_dict` writes the modified layout.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -45,7 +58,46 @@ _JOINT_KEYS = {
     "a_mm", "d_mm", "alpha_deg", "theta_offset_deg", "min_deg", "max_deg", "gear_ratio",
     "mass_kg", "com_mm", "sign", "coupled_to", "coupling", "name", "max_speed_deg_s",
 }
-_TOP_KEYS = {"name", "manufacturer", "tool_mm", "gravity", "joints", "source", "notes"}
+_TOP_KEYS = {"name", "manufacturer", "tool_mm", "gravity", "joints", "source", "notes",
+             "convention", "base_xyz_mm", "base_rpy_deg", "flange_xyz_mm", "flange_rpy_deg"}
+_ZERO3 = (0.0, 0.0, 0.0)
+
+
+def rpy_to_matrix(rpy: tuple[float, float, float] | NDArray[np.float64]) -> NDArray[np.float64]:
+    """URDF roll-pitch-yaw (rad) -> rotation (3, 3): ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    r, p, y = (float(v) for v in rpy)
+    cr, sr, cp, sp, cy, sy = (math.cos(r), math.sin(r), math.cos(p), math.sin(p),
+                              math.cos(y), math.sin(y))
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def matrix_to_rpy(R: NDArray[np.float64]) -> tuple[float, float, float]:
+    """Inverse of :func:`rpy_to_matrix`, accurate near pitch = +-90 deg.
+
+    Yaw comes first from the first column; roll and pitch are then read from
+    ``Rz(yaw)^T R = Ry(pitch) Rx(roll)``, whose large entries stay well conditioned even
+    when yaw itself is poorly defined (gimbal lock), so the angles reproduce ``R`` to
+    rounding error.
+    """
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    M = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
+    roll = math.atan2(-M[1, 2], M[1, 1])
+    pitch = math.atan2(-M[2, 0], M[0, 0])
+    return roll, pitch, yaw
+
+
+def transform(xyz: tuple[float, float, float], rpy: tuple[float, float, float]
+              ) -> NDArray[np.float64]:
+    """Homogeneous transform (4, 4) from a translation (m) and URDF rpy (rad)."""
+    T = np.eye(4)
+    T[:3, :3] = rpy_to_matrix(rpy)
+    T[:3, 3] = xyz
+    return T
 
 
 @dataclass(frozen=True)
@@ -78,6 +130,10 @@ class RobotDescription:
     tool: tuple[float, float, float] = (0.0, 0.0, 0.05)
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     source: str = ""
+    base_xyz: tuple[float, float, float] = _ZERO3     # root -> DH frame 0, m
+    base_rpy: tuple[float, float, float] = _ZERO3     # rad, URDF rpy
+    flange_xyz: tuple[float, float, float] = _ZERO3   # DH frame n -> flange, m
+    flange_rpy: tuple[float, float, float] = _ZERO3
     _coupling: NDArray[np.float64] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -99,6 +155,26 @@ class RobotDescription:
     def coupling_matrix(self) -> NDArray[np.float64]:
         """Matrix ``C`` (dof, dof) with ``theta = q @ C.T + theta_offset``."""
         return self._coupling
+
+    @property
+    def T_root_dh0(self) -> NDArray[np.float64]:
+        """Fixed transform robot root -> DH frame 0 (4, 4), m."""
+        return transform(self.base_xyz, self.base_rpy)
+
+    @property
+    def T_dhn_flange(self) -> NDArray[np.float64]:
+        """Fixed transform DH frame n -> flange (4, 4), m."""
+        return transform(self.flange_xyz, self.flange_rpy)
+
+    @property
+    def has_base(self) -> bool:
+        """True when the root -> DH frame 0 transform is not the identity."""
+        return self.base_xyz != _ZERO3 or self.base_rpy != _ZERO3
+
+    @property
+    def has_flange(self) -> bool:
+        """True when the DH frame n -> flange transform is not the identity."""
+        return self.flange_xyz != _ZERO3 or self.flange_rpy != _ZERO3
 
     @property
     def joint_limits(self) -> NDArray[np.float64]:
@@ -147,11 +223,41 @@ class RobotDescription:
                 d["name"] = j.name
             d["max_speed_deg_s"] = math.degrees(j.max_speed)
             joints.append(d)
-        return {
+        out: dict[str, Any] = {
             "name": self.name, "manufacturer": self.manufacturer,
             "tool_mm": [t * 1e3 for t in self.tool], "gravity": list(self.gravity),
-            "source": self.source, "joints": joints,
+            "source": self.source,
         }
+        if self.has_base:
+            out["base_xyz_mm"] = [v * 1e3 for v in self.base_xyz]
+            out["base_rpy_deg"] = [math.degrees(v) for v in self.base_rpy]
+        if self.has_flange:
+            out["flange_xyz_mm"] = [v * 1e3 for v in self.flange_xyz]
+            out["flange_rpy_deg"] = [math.degrees(v) for v in self.flange_rpy]
+        out["joints"] = joints
+        return out
+
+    def to_modified_dict(self) -> dict[str, Any]:
+        """Return the description in the public layout with Craig's modified DH tables.
+
+        Exact inverse of the conversion on load: table i gets the standard ``a, alpha`` of
+        joint i-1 (0 for the first), the last joint's ``a, alpha`` join the flange transform.
+        """
+        d = self.to_dict()
+        std = d["joints"]
+        last_a, last_alpha = std[-1]["a_mm"], std[-1]["alpha_deg"]
+        for i in range(len(std) - 1, 0, -1):
+            std[i]["a_mm"], std[i]["alpha_deg"] = std[i - 1]["a_mm"], std[i - 1]["alpha_deg"]
+        std[0]["a_mm"], std[0]["alpha_deg"] = 0.0, 0.0
+        T = (np.eye(4) if not self.has_flange else self.T_dhn_flange)
+        T = _tx_rx(last_a * 1e-3, math.radians(last_alpha)) @ T
+        d.pop("flange_xyz_mm", None)
+        d.pop("flange_rpy_deg", None)
+        if not np.allclose(T, np.eye(4), rtol=0.0, atol=1e-15):
+            d["flange_xyz_mm"] = [float(v) * 1e3 for v in T[:3, 3]]
+            d["flange_rpy_deg"] = [math.degrees(v) for v in matrix_to_rpy(T[:3, :3])]
+        d["convention"] = "modified"
+        return d
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, source: str = "<robot>") -> RobotDescription:
@@ -182,11 +288,29 @@ def _vec3(d: dict[str, Any], key: str, src: str) -> tuple[float, float, float] |
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+def _tx_rx(a: float, alpha: float) -> NDArray[np.float64]:
+    """``Tx(a) Rx(alpha)`` (4, 4)."""
+    c, s = math.cos(alpha), math.sin(alpha)
+    return np.array([[1.0, 0.0, 0.0, a], [0.0, c, -s, 0.0], [0.0, s, c, 0.0],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def _split(T: NDArray[np.float64]) -> tuple[tuple[float, float, float],
+                                             tuple[float, float, float]]:
+    """(xyz m, rpy rad) of a transform."""
+    xyz = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+    return xyz, matrix_to_rpy(T[:3, :3])
+
+
 def _parse(data: dict[str, Any], src: str) -> RobotDescription:
     unknown = set(data) - _TOP_KEYS
     if unknown:
         raise ConfigError(f"unknown key (allowed: {', '.join(sorted(_TOP_KEYS))})",
                           source=src, key=sorted(unknown)[0])
+    convention = data.get("convention", "standard")
+    if convention not in ("standard", "modified"):
+        raise ConfigError(f"must be \"standard\" or \"modified\", got {convention!r}",
+                          source=src, key="convention")
     name = data.get("name")
     if not isinstance(name, str) or not name.strip():
         raise ConfigError("required non-empty string", source=src, key="name")
@@ -266,10 +390,24 @@ def _parse(data: dict[str, Any], src: str) -> RobotDescription:
     manufacturer = data.get("manufacturer", "")
     if not isinstance(manufacturer, str):
         raise ConfigError("must be a string", source=src, key="manufacturer")
+    fixed = {}
+    for part in ("base", "flange"):
+        xyz = _vec3(data, f"{part}_xyz_mm", src) or _ZERO3
+        rpy = _vec3(data, f"{part}_rpy_deg", src) or _ZERO3
+        fixed[part] = (tuple(v * 1e-3 for v in xyz), tuple(math.radians(v) for v in rpy))
+    if convention == "modified":
+        # Craig: Rx(al0) Tx(a0) [Rz Tz Tx(a1) Rx(al1)] ... [Rz Tz]: regroup into standard DH
+        T_base = transform(*fixed["base"]) @ _tx_rx(joints[0].a, joints[0].alpha)  # type: ignore[arg-type]
+        if not np.allclose(T_base, np.eye(4), rtol=0.0, atol=0.0):
+            fixed["base"] = _split(T_base)
+        nxt = [(j.a, j.alpha) for j in joints[1:]] + [(0.0, 0.0)]
+        joints = [replace(j, a=a, alpha=al) for j, (a, al) in zip(joints, nxt, strict=True)]
     return RobotDescription(
         name=name.strip(), joints=tuple(joints), manufacturer=manufacturer,
         tool=(tool[0] * 1e-3, tool[1] * 1e-3, tool[2] * 1e-3), gravity=gravity,
         source=str(data.get("source", src)),
+        base_xyz=fixed["base"][0], base_rpy=fixed["base"][1],  # type: ignore[arg-type]
+        flange_xyz=fixed["flange"][0], flange_rpy=fixed["flange"][1],  # type: ignore[arg-type]
     )
 
 
@@ -287,7 +425,9 @@ _ALIASES = {
 
 
 def load_robot(spec: str | Path) -> RobotDescription:
-    """Load a robot by built-in name (see :func:`builtin_robots`) or from a TOML file path.
+    """Load a robot by built-in name (see :func:`builtin_robots`), a TOML or a URDF file path.
+
+    A path ending in ``.urdf`` is imported with :func:`robocal.kinematics.load_urdf`.
 
     Raises
     ------
@@ -295,6 +435,10 @@ def load_robot(spec: str | Path) -> RobotDescription:
         When the name is unknown, the file is missing or unreadable, or a key is invalid.
     """
     text_spec = str(spec)
+    if text_spec.lower().endswith(".urdf"):
+        from robocal.kinematics._urdf import load_urdf
+
+        return load_urdf(text_spec)
     key = _ALIASES.get(text_spec.lower(), text_spec.lower())
     if not text_spec.endswith(".toml") and key in builtin_robots():
         res = resources.files("robocal.data") / "robots" / f"{key}.toml"
@@ -306,3 +450,32 @@ def load_robot(spec: str | Path) -> RobotDescription:
             f"no such file, and not a built-in robot (built-in: {', '.join(builtin_robots())})",
             source=text_spec)
     return _parse(read_toml(path), text_spec)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v + 0.0)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ConfigError(f"cannot write {v!r} to TOML")
+
+
+def robot_to_toml(robot: RobotDescription, *, header: str = "") -> str:
+    """The description as robot TOML text (the layout of :meth:`RobotDescription.to_dict`).
+
+    Floats are written with ``repr`` so that reading the text back gives the same numbers.
+    """
+    d = robot.to_dict()
+    lines = [f"# {h}" for h in header.splitlines()]
+    for k, v in d.items():
+        if k != "joints" and v != "":
+            lines.append(f"{k} = {_toml_value(v)}")
+    for j in d["joints"]:
+        lines += ["", "[[joints]]"] + [f"{k} = {_toml_value(v)}" for k, v in j.items()]
+    return "\n".join(lines) + "\n"
