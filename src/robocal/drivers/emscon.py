@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections import deque
 from collections.abc import Mapping
 from typing import Any, ClassVar, Literal, NoReturn
 
@@ -199,8 +200,9 @@ class EmsconOptions(DriverOptions):
         Statuses meaning "no lock / beam broken" (no documented code exists). [10.1]
     unstable_statuses
         Statuses meaning "target not stable".
-    fail_on_not_ready_event
-        Event 25 (MeasStatus_NotReady) during a measurement fails it as a broken beam
+    fail_on_not_ready_event, not_ready_grace_s
+        Event 25 (MeasStatus_NotReady) during a measurement fails it as a broken beam when
+        the server has not failed the command itself within ``not_ready_grace_s`` seconds
         (some servers may send only the event, some only a type-1 error). [10.1], [10.4]
     wait_event_after_initialize
         Event to wait for after ``Initialize`` succeeded (e.g. 151), up to
@@ -260,6 +262,7 @@ class EmsconOptions(DriverOptions):
     beam_broken_statuses: tuple[int, ...] = (10004, 10009, 10014, 37)
     unstable_statuses: tuple[int, ...] = (10013,)
     fail_on_not_ready_event: bool = True
+    not_ready_grace_s: float = Field(default=0.2, ge=0.0, le=10.0)
     wait_event_after_initialize: int | None = None
     reacquire: Literal["wait", "find", "go_find", "birdbath", "none"] = "go_find"
     reacquire_attempts: int = Field(default=2, ge=0, le=20)
@@ -280,12 +283,17 @@ class EmsconOptions(DriverOptions):
         return v
 
 
+class _Done(Exception):
+    """The pending command has its outcome (internal control flow)."""
+
+
 class _Result:
     """Outcome of one command exchange."""
 
-    __slots__ = ("reply", "result")
+    __slots__ = ("not_ready_at", "reply", "result")
 
     def __init__(self) -> None:
+        self.not_ready_at: float | None = None
         self.reply: emscon.Reply | None = None
         self.result: emscon.SingleMeasResult | emscon.SingleMeasResult2 | None = None
 
@@ -330,6 +338,8 @@ class EmsconTracker(DriverBase):
         self.meas_mode = self.options.meas_mode
         self._transport: Transport | None = None
         self._framer = emscon.PacketFramer()
+        # Packets read but not yet handled when an exchange ended early (same batch).
+        self._backlog: deque[emscon.Packet] = deque()
         self._lock = asyncio.Lock()
         self._meas_time_sent: int | None = None
         self._last_vals: tuple[float, float, float] | None = None
@@ -344,6 +354,7 @@ class EmsconTracker(DriverBase):
         o = self.options
         transport = open_transport(f"tcp://{o.host}:{o.port}")
         self._framer.reset()
+        self._backlog.clear()
         await transport.open(timeout=max(0.05, deadline - time.monotonic()))
         self._transport = transport
         self._meas_time_sent = None
@@ -461,6 +472,10 @@ class EmsconTracker(DriverBase):
         transport = self._transport
         if transport is None:
             raise TransportError("not connected")
+        if self._backlog:
+            backlog = list(self._backlog)
+            self._backlog.clear()
+            return backlog
         while True:
             try:
                 frames = list(self._framer.frames())
@@ -534,53 +549,78 @@ class EmsconTracker(DriverBase):
         out = _Result()
         await transport.write(emscon.command(cmd, **params))
         deadline = time.monotonic() + timeout
-        o = self.options
         while True:
-            for p in await self._read_packets(deadline):
-                if isinstance(p, emscon.Reply):
-                    if p.command != cmd or out.reply is not None:
-                        self.log.warning("stale reply dropped", command=p.command, expected=cmd)
-                        continue
-                    self._check_failed_size(p)
-                    if measurement and out.result is None and o.result_order == "result_first":
-                        raise UnexpectedReply("StartMeasurement reply before its result")
-                    out.reply = p
-                elif isinstance(p, emscon.SingleMeasResult | emscon.SingleMeasResult2):
-                    if not measurement or out.result is not None:
-                        self.log.warning("stale measurement result dropped")
-                        continue
-                    if out.reply is None and o.result_order == "reply_first":
-                        raise UnexpectedReply("result before the StartMeasurement reply")
-                    out.result = p
-                elif isinstance(p, emscon.ErrorResponse) and p.command == cmd:
-                    # The pending command failed (the MS reading of a type-1 packet).
-                    out.reply = emscon.Reply(cmd, p.status)
-                    return out
-                else:
-                    self._on_async(p)
-                    if (
-                        measurement
-                        and o.fail_on_not_ready_event
-                        and isinstance(p, emscon.StatusChange)
-                        and p.event == Event.MEAS_STATUS_NOT_READY
-                        and out.result is None
-                    ):
-                        raise _EventBeamLost(
-                            "event 25 (MeasStatus_NotReady) during the measurement",
-                            status=int(Event.MEAS_STATUS_NOT_READY),
-                            command=cmd,
-                        )
+            until = deadline
+            if out.not_ready_at is not None:
+                until = min(deadline, out.not_ready_at + self.options.not_ready_grace_s)
+            try:
+                batch = deque(await self._read_packets(until))
+            except TransportTimeout:
+                if out.not_ready_at is None or time.monotonic() >= deadline:
+                    raise
+                raise _EventBeamLost(
+                    "event 25 (MeasStatus_NotReady) during the measurement, no result",
+                    status=int(Event.MEAS_STATUS_NOT_READY),
+                    command=cmd,
+                ) from None
+            try:
+                self._handle_batch(batch, cmd, out, measurement)
+            except _Done:
+                return out
+            finally:
+                self._backlog.extendleft(reversed(batch))
             if out.reply is not None and (
                 not measurement or out.reply.status != 0 or out.result is not None
             ):
                 return out
 
+    def _handle_batch(
+        self, batch: deque[emscon.Packet], cmd: int, out: _Result, measurement: bool
+    ) -> None:
+        """Consume packets from ``batch`` into ``out``; raise _Done when the command ended."""
+        o = self.options
+        while batch:
+            p = batch.popleft()
+            if isinstance(p, emscon.Reply):
+                if p.command != cmd or out.reply is not None:
+                    self.log.warning("stale reply dropped", command=p.command, expected=cmd)
+                    continue
+                self._check_failed_size(p)
+                if measurement and out.result is None and o.result_order == "result_first":
+                    raise UnexpectedReply("StartMeasurement reply before its result")
+                out.reply = p
+            elif isinstance(p, emscon.SingleMeasResult | emscon.SingleMeasResult2):
+                if not measurement or out.result is not None:
+                    self.log.warning("stale measurement result dropped")
+                    continue
+                if out.reply is None and o.result_order == "reply_first":
+                    raise UnexpectedReply("result before the StartMeasurement reply")
+                out.result = p
+            elif isinstance(p, emscon.ErrorResponse) and p.command == cmd:
+                # The pending command failed (the MS reading of a type-1 packet).
+                out.reply = emscon.Reply(cmd, p.status)
+                raise _Done
+            else:
+                self._on_async(p)
+                if (
+                    measurement
+                    and o.fail_on_not_ready_event
+                    and isinstance(p, emscon.StatusChange)
+                    and p.event == Event.MEAS_STATUS_NOT_READY
+                    and out.result is None
+                    and out.not_ready_at is None
+                ):
+                    # Give the server not_ready_grace_s to fail the command itself.
+                    out.not_ready_at = time.monotonic()
+            if out.reply is not None and (
+                not measurement or out.reply.status != 0 or out.result is not None
+            ):
+                raise _Done
+
     def _check_failed_size(self, p: emscon.Reply) -> None:
         if p.status == 0 or self.options.failed_reply_size == "any":
             return
-        # A failed Reply keeps no data; its size is only visible in the framer's history.
-        last = self._framer.recent[-1] if self._framer.recent else b""
-        size = int.from_bytes(last[:4], "little") if len(last) >= 4 else 0
+        size = 16 + len(p.raw)
         basic = size == 16
         if basic != (self.options.failed_reply_size == "basic"):
             self.log.warning("failed reply of unexpected size", command=p.command, size=size)

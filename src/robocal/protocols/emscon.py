@@ -463,8 +463,8 @@ class Reply:
     """Server to client, type 0: the echoed ``command``, its ``status`` and reply data.
 
     ``data`` is empty when ``status`` is not 0 (a failed reply carries no valid fields, full
-    size or not) and for commands this codec has no layout for (then ``raw`` keeps the bytes
-    after offset 16).
+    size or not) and for commands this codec has no layout for; ``raw`` then keeps the bytes
+    after offset 16.
     """
 
     command: int
@@ -730,8 +730,9 @@ def _decode_type0(frame: bytes, body: bytes, direction: Direction) -> Packet:
     (status,) = struct.unpack_from("<i", body, 4)
     data = body[8:]
     if status != 0:
-        # Only the first 16 bytes of a failed reply are meaningful, whatever its size.
-        return Reply(cmd, status)
+        # Only the first 16 bytes of a failed reply are meaningful, whatever its size;
+        # the rest is kept raw (so its size stays visible) but never decoded.
+        return Reply(cmd, status, {}, bytes(data))
     if spec is None:
         return Reply(cmd, status, {}, bytes(data))
     if len(data) != spec.reply.size:
