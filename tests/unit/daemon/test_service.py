@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from robocal.daemon._plan import parse_plan, plan_from_poses
 from robocal.daemon.service import CalibrationService
 from robocal.errors import (
     ApprovalRequired,
@@ -18,7 +19,6 @@ from robocal.errors import (
     InvalidTransition,
     VerificationMismatch,
 )
-from robocal.daemon._plan import parse_plan, plan_from_poses
 from robocal.kinematics import load_robot
 from tests.unit.daemon.conftest import ROBOT, random_plan
 
@@ -286,10 +286,10 @@ async def test_a_table_that_does_not_improve_on_nominal_is_refused_unless_forced
     cid = st["id"]
     st = await svc.wait(cid, ["fitted"], timeout=60)
     await svc.approve(cid, actor="a")
-    table, desc = svc.build_push_table(cid)
+    _, desc = svc.build_push_table(cid)
     # on this robot neither kind gets below half the nominal residual
     assert desc["predicted_residual_mm"] >= 0.5 * desc["nominal_residual_mm"]
-    with pytest.raises(CompensationError, match="push refused.*not below 50%"):
+    with pytest.raises(CompensationError, match=r"push refused.*not below 50%"):
         await svc.push(cid, actor="a")
     robot = await svc.hub.robot()
     assert await robot.read_compensation() is None
