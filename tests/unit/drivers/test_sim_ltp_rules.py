@@ -180,3 +180,34 @@ async def test_stop_aborts_a_running_meas_which_answers_first(world):
     finally:
         writer.close()
         await sim.stop()
+
+
+def _doc_examples() -> list[list[str]]:
+    """The code blocks of section 9 of docs/protocols/ltp1.md, as lists of lines."""
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[3] / "docs" / "protocols" / "ltp1.md"
+    section = doc.read_text().split("## 9. Examples", 1)[1].split("## 10.", 1)[0]
+    return [block.strip().splitlines() for block in section.split("```")[1::2]]
+
+
+async def test_documented_examples_hold_against_the_simulator(world):
+    """The description's session and malformed-line examples, replayed: same tags, same
+    OK/ERR and codes, same reply keys (values depend on the device)."""
+    blocks = _doc_examples()
+    picked = ("11 ", "12 ", "13 ", "!!", "* EVT FAULT")
+    malformed = [ln for ln in blocks[1] if ln[2:].startswith(picked)]
+    for lines in (blocks[0], malformed):
+        replies = [ln[2:] for ln in lines if ln.startswith("< ") and "EVT BEAM" not in ln]
+        sent = [ln[2:] for ln in lines if ln.startswith("> ")]
+        assert len(sent) == len(replies) > 2
+        async with client(world) as (_, c):
+            for request, want in zip(sent, replies, strict=True):
+                await c.send(request)
+                got = await c.line()
+                while got.startswith("* EVT BEAM"):
+                    got = await c.line()
+                head = 2 if want.split(" ")[1] == "OK" else 3
+                assert got.split(" ")[:head] == want.split(" ")[:head], (request, got)
+                if head == 2:
+                    assert set(values(got)) == set(values(want)), (request, got)
