@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import FanucSimOptions, FaultConfig, LtpSimOptions, SimCell
+from robocal.errors import ConnectFailed
 from tests.unit.daemon.conftest import ROBOT, random_plan
 
 
@@ -46,7 +49,7 @@ async def test_alarms_fault_the_campaign_and_the_operator_resumes(tmp_path):
             await asyncio.sleep(0.05)
 
 
-async def test_unreachable_devices_fault_on_resume_not_at_start(tmp_path):
+async def test_unreachable_devices_refuse_a_start_and_the_daemon_serves_on(tmp_path):
     cfg = parse_config({
         "data_dir": str(tmp_path / "state"), "robot_description": ROBOT,
         "robot": {"kind": "fanuc_rmi", "options": {"host": "127.0.0.1", "connect_port": 9,
@@ -60,8 +63,9 @@ async def test_unreachable_devices_fault_on_resume_not_at_start(tmp_path):
     await svc.start()  # logs the failure, serves anyway
     try:
         assert svc.health()["drivers"]["last_error"]
-        st = await svc.create(random_plan(5), actor="t")
-        st = await svc.wait(st["id"], ["faulted"], timeout=30)
-        assert st["state"] == "faulted" and "ConnectFailed" in st["reason"]
+        # pre-flight: nothing is created for a cell whose devices do not answer
+        with pytest.raises(ConnectFailed, match=r"the robot \(fanuc_rmi\) does not answer"):
+            await svc.create(random_plan(5), actor="t")
+        assert svc.list() == [] and svc.health()["status"] == "ok"
     finally:
         await svc.stop()
