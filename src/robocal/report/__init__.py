@@ -49,6 +49,10 @@ def __getattr__(name: str) -> Any:
         from robocal.report import _write
 
         return getattr(_write, name)
+    if name == "add_compensation_section":
+        from robocal.report import _compensation
+
+        return _compensation.add_compensation_section
     raise AttributeError(f"module 'robocal.report' has no attribute {name!r}")
 
 __all__ = [

@@ -1,0 +1,130 @@
+"""The report's Compensation section: what was pushed, predicted, and measured after the push.
+
+The daemon adds it once the verification run of a push is measured
+(:func:`add_compensation_section`): the campaign's ``report.html`` gets (or has replaced) a
+``<section id="compensation">`` and ``report.json`` a ``compensation`` list. Each push shows
+its kind and purpose, checksum, time, who pushed it, the predicted residual against the
+nominal one and the model's accuracy, and the measured before/after of its verification run
+with a per-target plot.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from robocal._core.files import atomic_write_text
+from robocal.report._figures import _RC, Plot, _new, _render, _style
+from robocal.report._html import _fig, _table, esc, nice_date
+
+__all__ = ["add_compensation_section", "compensation_html"]
+
+_SECTION = re.compile(r'<section id="compensation">.*?</section>', re.DOTALL)
+
+
+def _plot(entry: Mapping[str, Any]) -> Plot | None:
+    """Per-target error (mm) measured before and after the push, one pair of bars each."""
+    v = entry.get("verification") or {}
+    rows = v.get("per_target") or []
+    if not rows:
+        return None
+    import matplotlib
+
+    with matplotlib.rc_context(_RC):
+        fig = _new(7.0, 2.6)
+        ax = fig.add_subplot(1, 1, 1)
+        x = list(range(len(rows)))
+        ax.bar([i - 0.2 for i in x], [r["before_mm"] for r in rows], width=0.4,
+               label="before (program targets)", color="#9e9e9e")
+        ax.bar([i + 0.2 for i in x], [r["after_mm"] for r in rows], width=0.4,
+               label="after (pushed values)", color="#1f77b4")
+        ax.set_yscale("log")
+        ax.set_xticks(x, [str(r["index"]) for r in rows])
+        ax.set_xlabel("target (row of the pushed table)")
+        ax.set_ylabel("position error, mm")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.32), ncol=2, frameon=False)
+        _style(fig)
+        return _render(f"compensation-{entry.get('key', '')}", fig,
+                       "position error of each verified target before and after the push")
+
+
+def _mm(v: Any, digits: int = 4) -> str:
+    """A length already in mm (``–`` when missing)."""
+    return f"{float(v):.{digits}f}" if isinstance(v, int | float) else "–"
+
+
+def _rms(block: Mapping[str, Any] | None) -> float | None:
+    if not block:
+        return None
+    v = block.get("rms_mm")
+    return float(v) if isinstance(v, int | float) else None
+
+
+def compensation_html(entries: Sequence[Mapping[str, Any]]) -> str:
+    """The ``<section id="compensation">`` for the campaign's push journal ``entries``."""
+    out = ['<section id="compensation"><h2>Compensation</h2>']
+    pushes = [e for e in entries if e.get("action") == "push"]
+    if not pushes:
+        out.append("<p>Nothing from this campaign was pushed to the controller.</p></section>")
+        return "".join(out)
+    rows = []
+    for e in pushes:
+        v = e.get("verification") or {}
+        rows.append([
+            esc(e.get("kind")), esc(str(e.get("checksum", ""))[:16]), esc(nice_date(e["at"])),
+            esc(e.get("actor")), esc(e.get("state")),
+            _mm(e.get("predicted_residual_mm")), _mm(e.get("nominal_residual_mm")),
+            _mm(e.get("model_accuracy_mm")), _mm(_rms(v.get("before"))),
+            _mm(_rms(v.get("after"))),
+            esc((v.get("after") or {}).get("n", v.get("state", "-")))])
+    out.append(_table(["kind", "checksum", "time", "by", "state", "predicted mm",
+                       "nominal mm", "model mm", "measured before mm", "measured after mm",
+                       "targets"], rows, raw=True))
+    out.append("<p>Predicted: the model's residual with the table applied, against the "
+               "nominal (uncompensated) residual on the same targets. Measured: the daemon "
+               "moved the robot to a subset of the pushed targets, first as programmed "
+               "(before) then to the pushed values (after), and measured each with the "
+               "tracker; errors are distances to where the error-free robot would be.</p>")
+    for e in pushes:
+        if e.get("purpose"):
+            out.append(f"<p><b>{esc(e.get('kind'))}</b>: {esc(e['purpose'])}.</p>")
+        for w in e.get("warnings") or []:
+            out.append(f'<p class="warn">{esc(w)}</p>')
+        if e.get("forced"):
+            out.append(f'<p class="warn">Pushed by force: {esc(e.get("refusal"))}</p>')
+        v = e.get("verification") or {}
+        if v.get("state") in ("skipped", "failed"):
+            out.append(f"<p>Not measured after the push: {esc(v.get('reason'))}</p>")
+        out.append(_fig(_plot(e), f"Verification of push {esc(str(e.get('key', ''))[:12])}: "
+                                  "error of each measured target before and after"))
+    out.append("</section>")
+    return "".join(out)
+
+
+def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str, Any]]
+                             ) -> None:
+    """Add (or replace) the Compensation section of ``out_dir``'s report files.
+
+    Missing report files are left missing (a campaign fitted with ``report = false``).
+    """
+    out_dir = Path(out_dir)
+    data = [dict(e) for e in entries]
+    jpath = out_dir / "report.json"
+    if jpath.exists():
+        doc = json.loads(jpath.read_text(encoding="utf-8"))
+        doc["compensation"] = data
+        atomic_write_text(jpath, json.dumps(doc, indent=1, default=str))
+    hpath = out_dir / "report.html"
+    if hpath.exists():
+        page = hpath.read_text(encoding="utf-8")
+        section = compensation_html(data)
+        if _SECTION.search(page):
+            page = _SECTION.sub(lambda _m: section, page, count=1)
+        elif "</main>" in page:
+            page = page.replace("</main>", section + "</main>", 1)
+        else:
+            page = page.replace("</body>", section + "</body>", 1)
+        atomic_write_text(hpath, page)

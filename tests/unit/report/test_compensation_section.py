@@ -1,0 +1,54 @@
+"""The report's Compensation section, added after a push has been measured again."""
+
+from __future__ import annotations
+
+import json
+
+from robocal.report import add_compensation_section
+
+
+def _entry(after_rms: float) -> dict:
+    return {
+        "key": "k" * 32, "action": "push", "state": "completed", "actor": "alice",
+        "at": "2026-11-23T21:00:00.000+00:00", "checksum": "ab" * 32, "kind": "targets",
+        "purpose": "compensated program targets (the whole model, per target)",
+        "predicted_residual_mm": 0.00002, "nominal_residual_mm": 1.0412,
+        "model_accuracy_mm": 0.0128, "forced": False, "refusal": None, "warnings": [],
+        "verification": {
+            "state": "done", "before": {"n": 3, "rms_mm": 1.05},
+            "after": {"n": 3, "rms_mm": after_rms},
+            "per_target": [{"index": i, "before_mm": 1.0 + i / 10, "after_mm": after_rms}
+                           for i in range(3)]},
+    }
+
+
+def test_section_is_added_once_and_replaced_with_the_measured_numbers(tmp_path):
+    (tmp_path / "report.html").write_text(
+        "<html><body><main><section id=\"verdict\">v</section></main><footer>f</footer>"
+        "</body></html>")
+    (tmp_path / "report.json").write_text(json.dumps({"format": "x", "verdict": "ok"}))
+    add_compensation_section(tmp_path, [_entry(0.0123)])
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('<section id="compensation">') == 1
+    assert page.index('id="compensation"') < page.index("</main>")
+    assert "0.0123" in page and "1.0500" in page and "1.0412" in page and "alice" in page
+    assert "data:image/png;base64," in page  # the before/after plot
+    add_compensation_section(tmp_path, [_entry(0.0111)])
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('<section id="compensation">') == 1
+    assert "0.0111" in page and "0.0123" not in page
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["verdict"] == "ok"
+    assert doc["compensation"][0]["verification"]["after"]["rms_mm"] == 0.0111
+
+
+def test_forced_push_and_missing_measurement_are_stated(tmp_path):
+    (tmp_path / "report.html").write_text("<html><body><main></main></body></html>")
+    e = _entry(0.5)
+    e.update(kind="frames", forced=True, refusal="frames table predicts 1.07 mm",
+             verification={"state": "skipped", "reason": "a frames table changes the frames"})
+    add_compensation_section(tmp_path, [e])
+    page = (tmp_path / "report.html").read_text()
+    assert "Pushed by force: frames table predicts 1.07 mm" in page
+    assert "Not measured after the push: a frames table changes the frames" in page
+    assert not (tmp_path / "report.json").exists()
