@@ -108,7 +108,11 @@ class EmsconSimOptions(BaseModel):
         at once.
     sample_period_s
         Simulated sampling period: a measurement of ``lMeasTime`` averages
-        ``lMeasTime / sample_period_s`` samples of the world's noise (at most 20000).
+        ``lMeasTime / sample_period_s`` samples of the world's noise (at most 20000); the
+        result carries the noise model's full covariance of that mean.
+    max_world_samples
+        Samples actually drawn from the virtual robot per measurement (see
+        :meth:`EmsconTrackerSimulator.measurement`).
     initialize_s, motion_s
         Durations of ``Initialize`` and of ``GoPosition``/``FindReflector``/``GoBirdBath``.
     initialized
@@ -206,6 +210,7 @@ class EmsconSimOptions(BaseModel):
     serial: int = 390123
     version: tuple[int, int, int] = (3, 8, 7)
     reflectors: tuple[SimReflector, ...] = _DEFAULT_REFLECTORS
+    max_world_samples: int = Field(default=32, ge=1, le=20_000)
     not_implemented: tuple[int, ...] = ()
     faults: EmsconFaults = EmsconFaults()
 
@@ -385,7 +390,7 @@ class _Session:
         while not self.closed and sim.state.settings["send_reflector_position_data"]:
             await asyncio.sleep(sim.options.position_stream_period_s)
             if sim.state.locked and (self.pending is None or self.pending.done()):
-                v = sim.values(sim.world.measure(1))
+                v = sim.values(*sim.measurement(1))
                 await self.send(emscon.encode(emscon.ReflectorPosResult(0, *v[:3])))
 
     def close(self) -> None:
@@ -465,11 +470,32 @@ class EmsconTrackerSimulator:
         return self._temp_out(t), p * self._press(), h
 
     # --- measurement values --------------------------------------------------------------------
-    def values(self, m: Any) -> tuple[float, ...]:
+    def measurement(self, n: int, *, glitch: bool = False) -> tuple[Any, Any]:
+        """Mean (3,) and its covariance (3, 3) of ``n`` simulated samples, metres, tracker frame.
+
+        At most ``max_world_samples`` samples go through the virtual robot (each is a forward
+        kinematics evaluation); their mean's deviation from the truth is scaled to the
+        spread of ``n`` samples, which has the same distribution for zero-mean noise.
+        """
+        world = self.world
+        m_n = min(n, self.options.max_world_samples)
+        m = world.measure(m_n)
+        truth = world.true_reflector_position()
+        mean = truth + (np.asarray(m.mean_m) - truth) * math.sqrt(m_n / n)
+        noise = getattr(getattr(world.cell, "noise", None), "covariances", None)
+        if noise is not None:
+            cov = np.asarray(noise(truth[None, :]), dtype=float)[0] / n
+        else:
+            cov = np.diag(np.square(m.sigma_m)) / n
+        if glitch:
+            mean = np.asarray(world.cell.outlier(mean[None, :], world.rng), dtype=float)[0]
+        return mean, cov
+
+    def values(self, mean_m: Any, cov_m2: Any) -> tuple[float, ...]:
         """(val1..3, std1..3, covar12, covar13, covar23) in the session's CS type and units."""
         k, a = self._len(), self._ang()
-        x, y, z = m.mean_m
-        cov = np.diag(np.square(m.std_m))
+        x, y, z = (float(v) for v in mean_m)
+        cov = np.asarray(cov_m2, dtype=float)
         cs = self.state.coord_sys
         if cs in (emscon.CoordSys.SCC, emscon.CoordSys.SCW):
             ccw = self.options.scc_hz_counterclockwise
@@ -494,11 +520,11 @@ class EmsconTrackerSimulator:
         std = np.sqrt(np.diag(c))
         return (*vals, *map(float, std), float(c[0, 1]), float(c[0, 2]), float(c[1, 2]))
 
-    def result_bytes(self, status: int, m: Any | None) -> bytes:
-        """A type-2 or type-9 result packet (zero values when ``m`` is None)."""
+    def result_bytes(self, status: int, m: tuple[Any, Any] | None) -> bytes:
+        """A type-2 or type-9 result packet of ``m`` = (mean, cov); zeros when None."""
         st = self.state
         o = self.options
-        vals = self.values(m) if m is not None else (0.0,) * 9
+        vals = self.values(*m) if m is not None else (0.0,) * 9
         t, p, h = self._env_out()
         nine = o.result_type == "always_9" or (
             o.result_type == "by_statistic_mode" and st.statistic_mode[0] == 1)
@@ -758,7 +784,7 @@ class EmsconTrackerSimulator:
             return
         await self._sleep(duration)
         n = max(1, min(20_000, round(duration / o.sample_period_s)))
-        m = self.world.measure(n, glitch=self.faults.fire("glitch"))
+        m = self.measurement(n, glitch=self.faults.fire("glitch"))
         await s.send(self.result_bytes(0, m))
         if not first:
             await s.reply(cmd)
