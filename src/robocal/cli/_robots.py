@@ -12,17 +12,52 @@ from typing import Any
 def register(sub: Any) -> None:
     """Add the ``robots`` subcommand."""
     p = sub.add_parser("robots", help="list built-in robots, or show/validate one",
-                       description="List built-in robot descriptions, or show one (by name or "
-                                   "TOML file) after validation.")
-    p.add_argument("robot", nargs="?", help="built-in name or path to a robot TOML file")
+                       description="List built-in robot descriptions, or show one (by name, "
+                                   "TOML or URDF file) after validation; --from-urdf writes "
+                                   "the robot TOML of a URDF's serial chain.")
+    p.add_argument("robot", nargs="?",
+                   help="built-in name or path to a robot TOML or URDF file")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--from-urdf", metavar="FILE",
+                   help="import the serial chain of a URDF file (standard DH) and write it "
+                        "as robot TOML")
+    p.add_argument("--tip", metavar="LINK",
+                   help="with --from-urdf: link ending the chain (default tool0, flange or "
+                        "the deepest leaf)")
+    p.add_argument("--out", metavar="FILE",
+                   help="with --from-urdf: write the TOML here (default: standard output)")
     p.set_defaults(handler=run)
+
+
+def _from_urdf(args: argparse.Namespace) -> int:
+    from robocal._core.files import atomic_write_text
+    from robocal.errors import ConfigError
+    from robocal.kinematics import load_urdf, robot_to_toml
+
+    if args.robot:
+        raise ConfigError("give either a robot or --from-urdf FILE, not both")
+    r = load_urdf(args.from_urdf, tip=args.tip)
+    text = robot_to_toml(r, header=f"Imported by robocal from {args.from_urdf} (standard DH; "
+                                   "lengths mm, angles deg).\nSet tool_mm to the reflector "
+                                   "offset from the flange.")
+    if args.out:
+        atomic_write_text(args.out, text)
+        sys.stderr.write(f"wrote {args.out}: {r.name}, {r.dof} joints\n")
+    else:
+        sys.stdout.write(text)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Print the list or one description."""
     from robocal.kinematics import builtin_robots, load_robot
 
+    if args.from_urdf:
+        return _from_urdf(args)
+    if args.tip or args.out:
+        from robocal.errors import ConfigError
+
+        raise ConfigError("--tip and --out go with --from-urdf")
     if not args.robot:
         names = builtin_robots()
         if args.json:

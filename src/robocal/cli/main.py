@@ -23,6 +23,7 @@ COMMANDS: dict[str, str] = {
     "demo": "run a whole calibration campaign against simulators",
     "fit": "fit an error model to tracker measurements",
     "predict": "predict reflector positions with a calibrated model",
+    "export": "export a calibrated model (URDF with a side table)",
     "compensate": "corrected joint commands for program targets",
     "table": "build, check or compare compensation tables",
     "plan": "choose, check and order measurement poses; write PLAN.json",

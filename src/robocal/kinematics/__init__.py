@@ -21,19 +21,19 @@ from robocal.kinematics._spec import (
     ParameterLayout,
     Term,
 )
-from robocal.kinematics._urdf import (
-    calibrated_to_urdf,
-    constant_part,
-    load_urdf,
-    robot_to_urdf,
-    urdf_to_robot,
-)
 from robocal.kinematics._transforms import (
     euler_xyz_to_matrix,
     matrix_to_euler_xyz,
     matrix_to_wpr,
     rigid_fit,
     wpr_to_matrix,
+)
+from robocal.kinematics._urdf import (
+    calibrated_to_urdf,
+    constant_part,
+    load_urdf,
+    robot_to_urdf,
+    urdf_to_robot,
 )
 
 __all__ = [

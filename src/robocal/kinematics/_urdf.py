@@ -281,7 +281,7 @@ def _frames_to_dh(z: list[Array], p: list[Array], T_tip: Array
         return T
 
     T_n = frame(n)
-    return frame(0), dh, np.linalg.solve(T_n, T_tip)
+    return frame(0), dh, np.asarray(np.linalg.solve(T_n, T_tip), dtype=float)
 
 
 def urdf_to_robot(text: str, *, source: str = "<urdf>", tip: str | None = None,
@@ -396,7 +396,7 @@ def _esc(s: str) -> str:
 
 
 def robot_to_urdf(robot: RobotDescription, *, joint_errors: Array | None = None,
-                  tool: Sequence[float] | None = None, T_tracker_base: Array | None = None,
+                  tool: Sequence[float] | Array | None = None, T_tracker_base: Array | None = None,
                   comment: str = "") -> str:
     """URDF text of the robot's chain with constant joint errors folded into joint origins.
 

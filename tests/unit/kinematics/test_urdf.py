@@ -136,7 +136,7 @@ def test_calibrated_export_matches_the_constant_part(name: str, tmp_path: Path) 
 def test_fixture_ur_description_imports_like_the_builtin() -> None:
     imported = load_robot(FIXTURE)        # load_robot takes URDF paths
     assert imported.dof == 6
-    assert [j.name for j in imported.joints][0] == "shoulder_pan_joint"
+    assert imported.joints[0].name == "shoulder_pan_joint"
     builtin = load_robot("ur10")
     q = _q(builtin, 50, 5)
     R_b, o_b = _flange(builtin, q)
