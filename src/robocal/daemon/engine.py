@@ -87,8 +87,9 @@ async def halt_motion(hub: DriverHub, store: Store, *, campaign: str | None, act
     t0 = time.monotonic()
     outcome, detail = await hub.stop_motion(f"{trigger}: {reason}")
     seconds = round(time.monotonic() - t0, 4)
-    _log.warning("motion stop", campaign=campaign, trigger=trigger, reason=reason,
-                 outcome=outcome, detail=detail, stop_s=seconds)
+    emit = _log.info if outcome == "not-connected" else _log.warning
+    emit("motion stop", campaign=campaign, trigger=trigger, reason=reason, outcome=outcome,
+         detail=detail, stop_s=seconds)
     if outcome != "not-connected" or audit_idle:
         try:
             store.audit(actor=actor, action="motion.stop", campaign=campaign,
