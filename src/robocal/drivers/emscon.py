@@ -70,6 +70,7 @@ _UNITS = {
 }
 _WMS = {"off": 0, "read_only": 1, "calculate": 2}
 _TPS_INITIALIZED = 5
+_RESULT_TYPES = (emscon.DataType.SINGLE_MEAS_RESULT, emscon.DataType.SINGLE_MEAS_RESULT2)
 
 
 # --- typed errors ------------------------------------------------------------------------------
@@ -287,6 +288,17 @@ class _Done(Exception):
     """The pending command has its outcome (internal control flow)."""
 
 
+class _Bad:
+    """A frame that could not be decoded, kept so the pending command can fail on it."""
+
+    __slots__ = ("command", "error", "type")
+
+    def __init__(self, frame: bytes, error: Exception) -> None:
+        self.type = int.from_bytes(frame[4:8], "little", signed=True)
+        self.command = int.from_bytes(frame[8:12], "little", signed=True)
+        self.error = error
+
+
 class _Result:
     """Outcome of one command exchange."""
 
@@ -339,7 +351,7 @@ class EmsconTracker(DriverBase):
         self._transport: Transport | None = None
         self._framer = emscon.PacketFramer()
         # Packets read but not yet handled when an exchange ended early (same batch).
-        self._backlog: deque[emscon.Packet] = deque()
+        self._backlog: deque[emscon.Packet | _Bad] = deque()
         self._lock = asyncio.Lock()
         self._meas_time_sent: int | None = None
         self._last_vals: tuple[float, float, float] | None = None
@@ -467,7 +479,7 @@ class EmsconTracker(DriverBase):
             await self._setup(deadline, initialise=False)
 
     # --- packet exchange -----------------------------------------------------------------------
-    async def _read_packets(self, deadline: float) -> list[emscon.Packet]:
+    async def _read_packets(self, deadline: float) -> list[emscon.Packet | _Bad]:
         """Read until at least one frame is complete; return the decoded packets."""
         transport = self._transport
         if transport is None:
@@ -491,13 +503,14 @@ class EmsconTracker(DriverBase):
                     "no complete packet in time", last_frames=self._framer.recent
                 )
             self._framer.feed(await transport.read(65536, timeout=remaining))
-        packets: list[emscon.Packet] = []
+        packets: list[emscon.Packet | _Bad] = []
         for frame in frames:
             try:
                 packets.append(emscon.decode(frame, direction="from_server"))
             except (UnexpectedReply, FramingError) as err:
                 self.bad_packets += 1
-                self.log.warning("undecodable packet skipped", error=str(err)[:120])
+                self.log.warning("undecodable packet", error=str(err)[:120])
+                packets.append(_Bad(frame, err))
         return packets
 
     async def _drain(self, seconds: float) -> None:
@@ -512,8 +525,10 @@ class EmsconTracker(DriverBase):
                 if not self._on_async(p):
                     self.log.debug("stale packet dropped", packet=type(p).__name__)
 
-    def _on_async(self, p: emscon.Packet) -> bool:
+    def _on_async(self, p: emscon.Packet | _Bad) -> bool:
         """Handle a packet that is not an answer to the pending command; True if consumed."""
+        if isinstance(p, _Bad):
+            return True
         if isinstance(p, emscon.StatusChange):
             self.events.append(p.event)
             self._events_total += 1
@@ -575,12 +590,18 @@ class EmsconTracker(DriverBase):
                 return out
 
     def _handle_batch(
-        self, batch: deque[emscon.Packet], cmd: int, out: _Result, measurement: bool
+        self, batch: deque[emscon.Packet | _Bad], cmd: int, out: _Result, measurement: bool
     ) -> None:
         """Consume packets from ``batch`` into ``out``; raise _Done when the command ended."""
         o = self.options
         while batch:
             p = batch.popleft()
+            if isinstance(p, _Bad) and (
+                (p.type == emscon.DataType.COMMAND and p.command == cmd)
+                or (measurement and p.type in _RESULT_TYPES)
+            ):
+                # The answer to the pending command is malformed: fail now, not at the timeout.
+                raise UnexpectedReply(str(p.error)) from p.error
             if isinstance(p, emscon.Reply):
                 if p.command != cmd or out.reply is not None:
                     self.log.warning("stale reply dropped", command=p.command, expected=cmd)
@@ -773,6 +794,8 @@ class EmsconTracker(DriverBase):
         total: int | None = None
         while total is None or len(found) < total:
             for p in await self._read_packets(deadline):
+                if isinstance(p, _Bad) and p.command == Cmd.GET_REFLECTORS:
+                    raise UnexpectedReply(str(p.error)) from p.error
                 if isinstance(p, emscon.Reply) and p.command == Cmd.GET_REFLECTORS:
                     if p.status != 0:
                         self._raise(Cmd.GET_REFLECTORS, p.status)

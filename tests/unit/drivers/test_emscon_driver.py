@@ -30,7 +30,7 @@ from robocal.drivers.emscon import (
 from robocal.drivers.sim import SimWorld
 from robocal.drivers.sim.emscon import EmsconFaults, EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.faults import FaultConfig
-from robocal.errors import BeamLost, ConfigError, DriverTimeout, Unstable
+from robocal.errors import BeamLost, ConfigError, DriverTimeout, UnexpectedReply, Unstable
 from robocal.protocols import emscon
 from robocal.protocols.emscon import Cmd
 
@@ -491,3 +491,46 @@ async def test_measure_before_connect_and_bad_samples(world):
     async with running(world) as sim, driver(sim) as tracker:
         with pytest.raises(ConfigError, match="samples"):
             await tracker.measure(samples=0, timeout=1.0)
+
+
+async def test_malformed_answers_fail_at_once_not_at_the_timeout():
+    """A hand-written server: a GetSystemStatus reply 4 bytes short, then a short result."""
+    script: dict[int, bytes] = {}
+
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        framer = emscon.PacketFramer()
+        with contextlib.suppress(ConnectionError):
+            while data := await reader.read(4096):
+                framer.feed(data)
+                for frame in framer.frames():
+                    cmd = emscon.decode(frame, direction="from_client").command
+                    writer.write(script.get(cmd, emscon.reply(cmd)))
+        writer.close()
+
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    ok_status = emscon.reply(Cmd.GET_SYSTEM_STATUS, 0, **dict.fromkeys(
+        emscon.SPECS[Cmd.GET_SYSTEM_STATUS].reply.names, 5))
+    try:
+        script[Cmd.GET_SYSTEM_STATUS] = struct.pack("<i", 52) + ok_status[4:52]
+        tracker = EmsconTracker({"host": "127.0.0.1", "port": port, "request_timeout_s": 5.0,
+                                 "verify_units": False, "reconnect": False})
+        t0 = asyncio.get_running_loop().time()
+        with pytest.raises(UnexpectedReply, match="GetSystemStatus must be 56 bytes"):
+            await tracker.connect(timeout=5.0)
+        assert asyncio.get_running_loop().time() - t0 < 2.0
+        script[Cmd.GET_SYSTEM_STATUS] = ok_status
+        script[Cmd.GET_SYSTEM_SETTINGS] = emscon.reply(Cmd.GET_SYSTEM_SETTINGS, 0, **dict.fromkeys(
+            emscon.SPECS[Cmd.GET_SYSTEM_SETTINGS].reply.names, 0))
+        script[Cmd.START_MEASUREMENT] = emscon.reply(Cmd.START_MEASUREMENT) + struct.pack(
+            "<iii", 12, 2, 0)
+        async with contextlib.AsyncExitStack() as stack:
+            await tracker.connect(timeout=5.0)
+            stack.push_async_callback(tracker.close)
+            t0 = asyncio.get_running_loop().time()
+            with pytest.raises(UnexpectedReply, match="SingleMeasResult must be 156 bytes"):
+                await tracker.measure(samples=1, timeout=5.0)
+            assert asyncio.get_running_loop().time() - t0 < 2.0
+    finally:
+        server.close()
+        await server.wait_closed()
