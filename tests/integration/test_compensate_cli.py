@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -127,12 +128,48 @@ def test_table_kinds(files: dict[str, Path], capsys: pytest.CaptureFixture[str],
     if kind == "targets":
         argv += ["--targets", str(files["targets"])]
     assert main(argv) == 0
-    assert f"wrote {kind} table" in capsys.readouterr().out
+    text = capsys.readouterr().out
     table = CompensationTable.read(out)
+    assert f"wrote {out}: {kind} table" in text and table.checksum[:16] in text
+    nominal = table.stats["nominal_residual_mm"]
+    assert (f"predicted residual {table.predicted_residual_mm:.4f} mm; nominal "
+            f"{nominal:.4f} mm") in text
+    if kind == "frames":
+        assert "base/tool alignment, not compensation" in text
+        assert "warning: a frames table aligns base and tool only" in text
     assert table.kind == kind and table.robot == "FANUC LR Mate 200i"
     assert len(table.valid_range_deg) == 6
     assert main(["table", "--check", str(out), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["kind"] == kind
+    s = json.loads(capsys.readouterr().out)
+    assert s["kind"] == kind and s["nominal_residual_mm"] == pytest.approx(nominal, abs=1e-6)
+
+
+def test_vendor_export_states_what_zero_offsets_carry(files: dict[str, Path],
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    from robocal.kinematics import CalibratedModel
+
+    cal = CalibratedModel.load(files["model"])
+    out = files["dir"] / "vendor.json"
+    assert main(["table", "--model", str(files["model"]), "--kind", "vendor", "--out",
+                 str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "zero offsets alone predict" in text
+    doc = json.loads(out.read_text())
+    names = list(cal.model.names)
+    for j in doc["joints"]:
+        ez = f"j{j['joint']}.ez.const"
+        want = math.degrees(float(cal.params[names.index(ez)])) if ez in names else 0.0
+        assert j["delta_theta_deg"] == pytest.approx(want, abs=1e-6)
+    # zero offsets without the other constant terms may even do harm: then it says so
+    worse = doc["predicted_residual_zero_offsets_only_mm"] >= doc["nominal_residual_mm"]
+    assert bool(doc["warnings"]) == worse
+    assert ("warning: zero offsets alone" in text) == worse
+    conf = files["dir"] / "calibration.conf"
+    assert main(["table", "--model", str(files["model"]), "--kind", "vendor",
+                 "--vendor-style", "ur", "--out", str(conf)]) == 0
+    text = conf.read_text()
+    assert "[mounting]" in text and text.count("delta_") == 4
 
 
 def test_table_errors_and_diff(files: dict[str, Path], capsys: pytest.CaptureFixture[str]

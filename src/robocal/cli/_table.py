@@ -1,7 +1,14 @@
 """``robocal table``: build, check or compare compensation tables.
 
     robocal table --model MODEL.json --kind targets|joint|frames --out FILE [--targets T.csv]
+    robocal table --model MODEL.json --kind vendor --out FILE [--vendor-style generic|ur]
     robocal table --check TABLE.json
+
+Every table is printed with its kind and purpose, checksum, predicted residual and the
+nominal residual it is compared with: only ``targets`` compensates the whole model; ``frames``
+is base/tool alignment, not compensation; ``joint`` states its bound next to the model's
+accuracy and warns when it is far worse. ``vendor`` writes the constant errors as per-joint
+zero offsets and DH deltas (see ``docs/compensation-tables.md`` for what they cannot carry).
     robocal table --diff A.json B.json
 """
 
@@ -19,11 +26,18 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "table", help="build, check or compare compensation tables",
         description="Build a sealed compensation table from a calibrated model: 'targets' "
-                    "(corrected joints for TARGETS.csv), 'joint' (per-joint correction grids) "
-                    "or 'frames' (user and tool frames). --check verifies a table file's "
-                    "checksum; --diff compares two tables.")
+                    "(corrected joints for TARGETS.csv: the only kind that compensates the "
+                    "whole model), 'joint' (per-joint correction grids) or 'frames' (user and "
+                    "tool frames: base/tool alignment, not compensation); 'vendor' exports "
+                    "the constant errors as zero offsets and DH deltas for the controller's "
+                    "own calibration. --check verifies a table file's checksum; --diff "
+                    "compares two tables.")
     p.add_argument("--model", metavar="MODEL.json", help="calibrated model")
-    p.add_argument("--kind", choices=("targets", "joint", "frames"), help="table kind")
+    p.add_argument("--kind", choices=("targets", "joint", "frames", "vendor"),
+                   help="table kind (vendor: zero offsets and DH deltas, not a table)")
+    p.add_argument("--vendor-style", choices=("generic", "ur"), default="generic",
+                   help="vendor: JSON with zero offsets and DH deltas (generic), or the DH "
+                        "deltas as [mounting] arrays like a UR calibration.conf (ur)")
     p.add_argument("--out", metavar="FILE", help="output table (JSON)")
     p.add_argument("--targets", metavar="TARGETS.csv", help="program targets (kind targets)")
     p.add_argument("--interp-tol-deg", type=float, default=1e-4,
@@ -44,11 +58,31 @@ def register(sub: Any) -> None:
 
 
 def _summary(table: Any) -> dict[str, Any]:
+    from robocal.compensation import describe_table
+
     size = {"targets": len(table.targets or []), "joint": len(table.joints or []),
             "frames": 2}[table.kind]
-    return {"kind": table.kind, "model_id": table.model_id, "robot": table.robot,
-            "entries": size, "predicted_residual_mm": table.predicted_residual_mm,
+    d = describe_table(table)
+    return {"kind": table.kind, "purpose": d["purpose"], "model_id": table.model_id,
+            "robot": table.robot, "entries": size,
+            "predicted_residual_mm": table.predicted_residual_mm,
+            "nominal_residual_mm": d["nominal_residual_mm"],
+            "model_accuracy_mm": d["model_accuracy_mm"], "warnings": d["warnings"],
             "checksum": table.checksum, "stats": table.stats}
+
+
+def _say(s: dict[str, Any], head: str) -> None:
+    """Kind and purpose, checksum, predicted vs nominal residual, model accuracy, warnings."""
+    nominal = s["nominal_residual_mm"]
+    model = s["model_accuracy_mm"]
+    sys.stdout.write(
+        f"{head}: {s['kind']} table ({s['purpose']}), {s['entries']} entries, model "
+        f"{s['model_id']}, checksum {s['checksum'][:16]}\n"
+        f"  predicted residual {s['predicted_residual_mm']:.4f} mm; nominal "
+        + ("unknown" if nominal is None else f"{nominal:.4f} mm")
+        + ("" if model is None else f"; model accuracy (held-out) {model:.4f} mm") + "\n")
+    for w in s["warnings"]:
+        sys.stdout.write(f"  warning: {w}\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,9 +101,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             sys.stdout.write(json.dumps(s) + "\n")
         else:
-            sys.stdout.write(f"{args.check}: checksum ok; {s['kind']} table, {s['entries']} "
-                             f"entries, model {s['model_id']}, robot {s['robot']}, predicted "
-                             f"residual {s['predicted_residual_mm']:.4f} mm\n")
+            _say(s, f"{args.check}: checksum ok")
         return 0
     if args.diff:
         a, b = (CompensationTable.read(f) for f in args.diff)
@@ -86,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, value in (("--model", args.model), ("--kind", args.kind), ("--out", args.out)):
         if not value:
             raise ConfigError(f"{flag} is required to build a table")
+    if args.kind == "vendor":
+        return _vendor(args)
     if args.kind == "targets" and not args.targets:
         raise ConfigError("--kind targets needs --targets TARGETS.csv")
     if args.kind != "targets" and args.targets:
@@ -110,9 +144,36 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         sys.stdout.write(json.dumps(s) + "\n")
     else:
-        sys.stdout.write(f"wrote {args.kind} table {out} ({s['entries']} entries, model "
-                         f"{s['model_id']}, predicted residual "
-                         f"{s['predicted_residual_mm']:.4f} mm, checksum "
-                         f"{table.checksum[:12]}...)\n")
+        _say(s, f"wrote {out}")
     ok = table.kind != "targets" or all(r.status == "ok" for r in table.targets or [])
     return 0 if ok else 1
+
+
+def _vendor(args: argparse.Namespace) -> int:
+    """Write the zero offsets / DH deltas of the model's constant errors."""
+    from robocal.compensation._vendor import write_vendor_export
+    from robocal.errors import ConfigError
+    from robocal.kinematics import CalibratedModel
+
+    if args.targets:
+        raise ConfigError("--targets is only used with --kind targets, not vendor")
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        raise ConfigError("not a writable file path", source=args.out)
+    cal = CalibratedModel.load(args.model)
+    try:
+        doc = write_vendor_export(cal, out, style=args.vendor_style)
+    except OSError as err:
+        raise ConfigError(f"cannot write: {err}", source=str(out)) from err
+    if args.json:
+        sys.stdout.write(json.dumps(doc) + "\n")
+        return 0
+    offs = ", ".join(f"J{j['joint']} {j['zero_offset_deg']:+.4f}" for j in doc["joints"])
+    sys.stdout.write(
+        f"wrote {out} ({args.vendor_style}): zero offsets (deg) {offs}; DH deltas per joint\n"
+        f"  zero offsets alone predict {doc['predicted_residual_zero_offsets_only_mm']:.4f} mm "
+        f"against {doc['nominal_residual_mm']:.4f} mm nominal; not carried: "
+        + "; ".join(doc["not_carried"]) + "\n")
+    for w in doc["warnings"]:
+        sys.stdout.write(f"  warning: {w}\n")
+    return 0
