@@ -534,3 +534,30 @@ async def test_malformed_answers_fail_at_once_not_at_the_timeout():
     finally:
         server.close()
         await server.wait_closed()
+
+
+async def test_contract_suite_repeatedly_with_ten_percent_faults():
+    """The whole tracker contract, 10 times over, with the contract test's 10 % fault mix."""
+    from robocal.drivers import contracts
+    from robocal.drivers.sim import SimCell
+
+    world = SimWorld.create(seed=6)
+    world.move([0.2] * world.dof)
+    sigma = max(world.measure(1).sigma_m)
+    rates = EmsconFaults(busy_rate=0.05, split_rate=0.1, merge_rate=0.1,
+                         unknown_type_rate=0.1, error_packet_rate=0.05)
+    cell = SimCell(world=world, fanuc=False, modbus=False, ltp=False,
+                   emscon=EmsconSimOptions(time_scale=0.0, faults=rates),
+                   faults=FaultConfig(beam_break_rate=0.05, seed=9))
+    async with cell:
+        options = {**cell.emscon_options(), "abort_drain_s": 0.02, "busy_backoff_s": 0.001}
+        tut = contracts.TrackerUnderTest(
+            "emscon", make=lambda: load_tracker("emscon", options),
+            true_position=world.true_reflector_position, position_tol_m=10 * sigma)
+        for _ in range(10):
+            await contracts.check_tracker(tut)
+        sim = cell.emscon_sim
+        assert sim is not None
+        fired = {**sim.faults.counts, **sim.emscon_faults.counts}
+    assert fired.get("beam_break", 0) >= 1 and fired.get("busy", 0) >= 3, fired
+    assert min(fired.get(k, 0) for k in ("split", "merge", "unknown_type")) >= 5, fired
