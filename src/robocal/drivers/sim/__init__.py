@@ -324,7 +324,7 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|all [options]``; return the exit code."""
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|all|relay [options]``."""
     args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if not structlog.is_configured():
         # stdout carries the ports JSON; keep log lines off it.
