@@ -286,6 +286,9 @@ class _Progress:
         return text
 
 
+_MAX_RECONNECTS = 100
+
+
 def _clock(seconds: float) -> str:
     s = round(seconds)
     if s >= 3600:
@@ -348,6 +351,8 @@ def watch(args: argparse.Namespace) -> int:
     measure-only run measured), 1 when it faulted or was aborted (the reason is printed), 3
     when it is paused.
     """
+    from robocal.daemon.client import DaemonUnavailable
+
     c = client(args)
     # Only events after this point belong to the run being watched: older ones (a fault before
     # a resume, say) are history and must not end the watch.
@@ -363,8 +368,10 @@ def watch(args: argparse.Namespace) -> int:
     else:
         sys.stdout.write(("\r" if tty else "") + prog.line() + ("" if tty else "\n"))
     sys.stdout.flush()
-    if _following(prog.state, measure_only):
+    reconnects = 0
+    while _following(prog.state, measure_only):
         for ev in c.events(campaign=args.id, after=after):
+            after = max(after, int(ev.get("seq", after)))
             prog.update(ev)
             if args.json:
                 sys.stdout.write(json.dumps(ev, default=str) + "\n")
@@ -374,6 +381,19 @@ def watch(args: argparse.Namespace) -> int:
             sys.stdout.flush()
             if ev.get("kind") == "state" and not _following(prog.state, measure_only):
                 break
+        else:
+            # The stream ended with the campaign still under way (a proxy, a daemon restart):
+            # look again and follow on from the last event seen.
+            reconnects += 1
+            if reconnects > _MAX_RECONNECTS:
+                raise DaemonUnavailable("the daemon's event stream keeps ending; "
+                                        f"see robocal campaign status {args.id}")
+            time.sleep(0.5)
+            now = c.request("GET", f"/campaigns/{args.id}")
+            prog.state = str(now["state"])
+            last = int(c.request("GET", f"/events/poll?after={2**62}&timeout=0")["last_seq"])
+            if last < after:  # the daemon restarted: its sequence numbers did too
+                after = 0
     final = c.request("GET", f"/campaigns/{args.id}")
     code = _exit_code(str(final["state"]), measure_only)
     if args.json:

@@ -78,6 +78,10 @@ class _Guard(asyncio.Protocol):
         self.timer: asyncio.TimerHandle | None = None
         self.head = bytearray()
         self.body_left: int | None = 0  # bytes of the current body still to come; None: unknown
+        # Between requests no deadline runs: the response may stream for minutes (SSE,
+        # long-poll) and idle keep-alive is aiohttp's to close. The next request's first byte
+        # starts its header deadline.
+        self.between = False
 
     # -- admission ----------------------------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -130,9 +134,16 @@ class _Guard(asyncio.Protocol):
             self.gate.timed_out += 1
             self.transport.abort()
 
+    def _request_done(self) -> None:
+        self._disarm()
+        self.between = True
+
     def _track(self, data: bytes) -> None:
         """Follow request boundaries well enough to re-arm the deadline for the next one."""
         while data:
+            if self.between:  # the first byte of the next request
+                self.between = False
+                self._arm()
             if self.timer is None:  # inside a body
                 if self.body_left is None:
                     return  # chunked: the app's body deadline and keep-alive bound it
@@ -140,7 +151,7 @@ class _Guard(asyncio.Protocol):
                 self.body_left -= used
                 data = data[used:]
                 if self.body_left == 0:
-                    self._arm()
+                    self._request_done()
                 continue
             self.head += data
             end = self.head.find(_END)
@@ -156,7 +167,7 @@ class _Guard(asyncio.Protocol):
             data = bytes(self.head[end + len(_END):])
             self.head = bytearray()
             if self.body_left == 0:
-                self._arm()
+                self._request_done()
 
     def data_received(self, data: bytes) -> None:
         if self.transport is None:

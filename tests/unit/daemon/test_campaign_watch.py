@@ -101,3 +101,31 @@ def test_clock(seconds, text):
     from robocal.cli._campaign import _clock
 
     assert _clock(seconds) == text
+
+
+async def test_watch_follows_on_when_the_event_stream_ends(make_config, tmp_path, capsys,
+                                                           monkeypatch):
+    """A stream cut mid-campaign (proxy, restart) is reopened after the last event seen."""
+    from robocal.daemon.client import DaemonClient
+
+    real = DaemonClient.events
+    calls: list[int] = []
+
+    def flaky(self, *, campaign=None, after=0, timeout=3600.0):
+        calls.append(after)
+        for n, ev in enumerate(real(self, campaign=campaign, after=after, timeout=timeout)):
+            yield ev
+            if len(calls) < 3 and n >= 2:
+                return  # the stream ends early, twice
+
+    monkeypatch.setattr(DaemonClient, "events", flaky)
+    svc, api, sock = await _served(
+        make_config, tmp_path, robot={"options": {"move_time_s": 0.01}})
+    try:
+        st = await svc.create(random_plan(40, seed=6), actor="test")
+        rc, out = await _watch(sock, st["id"], capsys=capsys)
+        assert rc == 0 and svc.status(st["id"])["state"] == "fitted", out
+        assert len(calls) >= 2 and calls[1] > calls[0]   # reopened after the last event seen
+    finally:
+        await api.stop()
+        await svc.stop()

@@ -72,6 +72,25 @@ async def test_partial_headers_are_cut_off(api):
     w.close()
 
 
+async def test_a_long_response_is_not_cut_by_the_next_header_deadline(api):
+    """An event stream outlives the header deadline (0.3 s here): campaign watch needs it."""
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(f"GET /events?after=0 HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
+            "Accept: text/event-stream\r\n\r\n".encode())
+    await w.drain()
+    async with asyncio.timeout(5):
+        assert b" 200 " in await r.readline()
+    assert not await _closed_by_peer(r, 1.0)   # > 3 header deadlines, stream still open
+    w.close()
+    # and a slow next request on a kept-alive connection is still cut off
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health") == 200
+    w.write(b"GET /health HTTP/1.1\r\n")  # started, never finished
+    await w.drain()
+    assert await _closed_by_peer(r, 3.0)
+    w.close()
+
+
 async def test_keep_alive_requests_each_get_the_full_deadline(api):
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     for _ in range(3):  # spread over more than one header deadline, on one connection
