@@ -1,4 +1,5 @@
-"""``robocal compensation list|rollback``: the compensation tables pushed by the daemon."""
+"""``robocal compensation list|rollback``: the compensation tables pushed by the daemon, each
+with its predicted and nominal residual and the measured before/after of its verification run."""
 
 from __future__ import annotations
 
@@ -32,17 +33,40 @@ def register(sub: Any) -> None:
     au.set_defaults(handler=audit)
 
 
+def _mm(v: Any) -> str:
+    return f"{v:.4f}" if isinstance(v, int | float) else "-"
+
+
 def _print_state(out: dict[str, Any]) -> None:
     active = out.get("active")
     if active:
         sys.stdout.write(f"active: table {active['table_id']} ({active['kind']}, "
                          f"{active['checksum'][:16]}, from {active['campaign'] or 'controller'})"
                          "\n")
+        if active.get("purpose"):
+            sys.stdout.write(f"  {active['purpose']}\n")
+        for w in active.get("warnings") or []:
+            sys.stdout.write(f"  warning: {w}\n")
     else:
         sys.stdout.write("active: none pushed by robocal\n")
-    for h in out.get("history", []):
-        sys.stdout.write(f"  {h['at']}  {h['action']:8s} table {h['table_id']:<4d} "
-                         f"{h['kind']:8s} {h['checksum'][:16]}  {h['actor']}\n")
+    history = out.get("history", [])
+    if history:
+        sys.stdout.write(f"  {'at':29s} {'action':8s} {'table':5s} {'kind':8s} "
+                         f"{'checksum':16s} {'predicted':>9s} {'nominal':>9s} "
+                         f"{'meas.before':>11s} {'meas.after':>10s}  by\n")
+    for h in history:
+        v = h.get("verification") or {}
+        before = (v.get("before") or {}).get("rms_mm")
+        after = (v.get("after") or {}).get("rms_mm")
+        forced = "  (forced)" if h.get("forced") else ""
+        sys.stdout.write(f"  {h['at']:29s} {h['action']:8s} {h['table_id']:<5d} "
+                         f"{h['kind']:8s} {h['checksum'][:16]:16s} "
+                         f"{_mm(h.get('predicted_residual_mm')):>9s} "
+                         f"{_mm(h.get('nominal_residual_mm')):>9s} {_mm(before):>11s} "
+                         f"{_mm(after):>10s}  {h['actor']}{forced}\n")
+    if history:
+        sys.stdout.write("  mm RMS; measured: the pushed targets re-measured with the tracker "
+                         "after the push or rollback\n")
 
 
 def list_(args: argparse.Namespace) -> int:
