@@ -28,7 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import Annotated, Any, Final, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,13 +44,21 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+# Physical bounds of a table's numbers (a loaded table is refused beyond them): joint
+# values within ten turns, corrections within one, frames within 100 m of the tracker.
+JointDeg = Annotated[float, Field(ge=-3600.0, le=3600.0)]
+CorrectionDeg = Annotated[float, Field(ge=-360.0, le=360.0)]
+FrameMm = Annotated[float, Field(ge=-1e5, le=1e5)]
+FrameDeg = Annotated[float, Field(ge=-360.0, le=360.0)]
+
+
 class TargetRow(_Model):
     """One corrected program target: command ``q_deg`` reaches the target under the model."""
 
-    index: int
-    q_deg: list[float]
+    index: int = Field(ge=0)
+    q_deg: list[JointDeg]
     status: Literal["ok", "not-converged", "out-of-limits", "unreachable"]
-    model_residual_mm: float
+    model_residual_mm: float = Field(ge=0.0, le=1e5)
 
 
 class JointCorrection(_Model):
@@ -63,8 +71,8 @@ class JointCorrection(_Model):
     """
 
     joint: int = Field(ge=1)
-    q_deg: list[float]
-    dq_deg: list[float]
+    q_deg: list[JointDeg]
+    dq_deg: list[CorrectionDeg]
     interpolation_error_bound_deg: float = Field(ge=0.0)
     source_joint: int | None = Field(default=None, ge=1)
 
@@ -91,12 +99,12 @@ class JointCorrection(_Model):
 class Frame(_Model):
     """A frame as ``x, y, z`` (mm) and ``w, p, r`` (deg), R = Rz(r) Ry(p) Rx(w)."""
 
-    x: float
-    y: float
-    z: float
-    w: float
-    p: float
-    r: float
+    x: FrameMm
+    y: FrameMm
+    z: FrameMm
+    w: FrameDeg
+    p: FrameDeg
+    r: FrameDeg
 
 
 class FramesPayload(_Model):
@@ -119,7 +127,7 @@ class CompensationTable(_Model):
     model_id: str
     robot: str
     units: dict[str, str] = Field(default_factory=lambda: {"length": "mm", "angle": "deg"})
-    valid_range_deg: list[tuple[float, float]]
+    valid_range_deg: list[tuple[JointDeg, JointDeg]]
     predicted_residual_mm: float = Field(ge=0.0)
     created: str = ""
     targets: list[TargetRow] | None = None

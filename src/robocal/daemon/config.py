@@ -117,6 +117,9 @@ class LimitsConfig(_Model):
     max_frame_translation_mm, max_frame_rotation_deg
         Largest change of the tool frame (vs. the robot description) and of the base frame
         (vs. the table currently on the controller) a ``frames`` table may contain.
+    max_base_distance_mm
+        Farthest the tracker may be from the robot base in a ``frames`` table: bounds the
+        first push, which has no earlier table to be compared with.
     """
 
     joint_margin_deg: float = Field(default=1.0, ge=0.0, le=90.0)
@@ -126,6 +129,7 @@ class LimitsConfig(_Model):
     max_joint_correction_deg: float = Field(default=2.0, gt=0.0)
     max_frame_translation_mm: float = Field(default=10.0, gt=0.0)
     max_frame_rotation_deg: float = Field(default=1.0, gt=0.0)
+    max_base_distance_mm: float = Field(default=50_000.0, gt=0.0)
 
 
 class MeasurementConfig(_Model):

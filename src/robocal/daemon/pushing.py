@@ -111,7 +111,8 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
 
     ``joint`` tables: every ``dq_deg``; ``targets``: every row's change from its seed
     (``seeds_q_deg``), and no row may be anything but ``ok``; ``frames``: the tool against the
-    robot description's tool offset, the base against the previous frames table, if any.
+    robot description's tool offset, the base against the previous frames table, if any, and
+    always within ``max_base_distance_mm`` of the tracker (so a first push is bounded too).
 
     Raises
     ------
@@ -151,6 +152,11 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
             if dt > max_t or dr > max_r:
                 problems.append(f"tool frame changes by {dt:.3f} mm / {dr:.4f} deg "
                                 f"(limits {max_t} mm / {max_r} deg)")
+            b = table.frames.base
+            reach = math.sqrt(b.x * b.x + b.y * b.y + b.z * b.z)
+            if not reach <= limits.max_base_distance_mm:
+                problems.append(f"base frame {reach:.1f} mm from the tracker (limit "
+                                f"{limits.max_base_distance_mm} mm)")
             if previous is not None and previous.kind == "frames" and previous.frames:
                 dt, dr = _frame_change(previous.frames.base, table.frames.base)
                 if dt > max_t or dr > max_r:

@@ -77,11 +77,20 @@ class CalibratedModel:
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
     def compute_id(self) -> str:
-        """Short content hash of structure and parameters."""
+        """Short content hash of structure and parameters.
+
+        Hashes the values as MODEL.json stores them and reads them back (SI -> file units
+        -> SI), so the id of a loaded file can be recomputed bit for bit and an edited file
+        is recognised.
+        """
+        scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
+        params = (self.params * scale) / scale
+        T = self.model.T_ref.copy()
+        T[:3, 3] = (T[:3, 3] * 1e3) * 1e-3
         h = hashlib.sha256()
         h.update(json.dumps(self.model.spec.to_dict(), sort_keys=True).encode())
-        h.update(np.round(self.model.T_ref, 12).tobytes())
-        h.update(np.round(self.params, 12).tobytes())
+        h.update(np.round(T, 12).tobytes())
+        h.update(np.round(params, 12).tobytes())
         return h.hexdigest()[:16]
 
     def inside_coverage(self, q: Array) -> NDArray[np.bool_]:
@@ -146,8 +155,25 @@ class CalibratedModel:
         atomic_write_text(path, json.dumps(self.to_dict(), indent=1, default=json_default))
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], *, source: str = "<model>") -> CalibratedModel:
-        """Inverse of :meth:`to_dict`; raise :class:`ConfigError` naming the bad key."""
+    def from_dict(cls, d: dict[str, Any], *, source: str = "<model>",
+                  verify: bool = True) -> CalibratedModel:
+        """Inverse of :meth:`to_dict`; raise :class:`ConfigError` naming the bad key.
+
+        With ``verify`` (the default) the content must match its ``model_id`` (an edited
+        file is refused) and every number must be finite and physically plausible
+        (:data:`BOUNDS`); any malformed part gives one :class:`ConfigError`.
+        """
+        try:
+            return cls._from_dict(d, source=source, verify=verify)
+        except ConfigError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError,
+                RecursionError) as err:
+            raise ConfigError(f"malformed model file: {type(err).__name__}: {err}",
+                              source=source) from err
+
+    @classmethod
+    def _from_dict(cls, d: dict[str, Any], *, source: str, verify: bool) -> CalibratedModel:
         if not isinstance(d, dict):
             raise ConfigError("model file must hold a JSON object", source=source)
         if d.get("format") != MODEL_FORMAT:
@@ -157,14 +183,28 @@ class CalibratedModel:
             if key not in d:
                 raise ConfigError("required key is missing", source=source, key=key)
         robot = RobotDescription.from_dict(d["robot"], source=f"{source}#robot")
-        spec = ErrorModelSpec.from_dict(d["error_model"])
+        try:
+            spec = ErrorModelSpec.from_dict(d["error_model"])
+        except ConfigError as err:
+            raise ConfigError(str(err), source=source, key="error_model") from err
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            raise ConfigError(f"malformed error model: {type(err).__name__}: {err}",
+                              source=source, key="error_model") from err
         try:
             T = np.array(d["T_tracker_base_ref_mm"], dtype=float).reshape(4, 4)
         except (TypeError, ValueError) as err:
             raise ConfigError(f"not a 4x4 matrix: {err}", source=source,
                               key="T_tracker_base_ref_mm") from err
+        if verify:
+            _check_transform(T, source)
         T[:3, 3] *= 1e-3
         model = KinematicModel(robot, spec, T)
+        if not isinstance(d["parameters"], list):
+            raise ConfigError("must be a list of parameter entries", source=source,
+                              key="parameters")
+        if verify and not d.get("model_id"):
+            raise ConfigError("required key is missing (the content hash)", source=source,
+                              key="model_id")
         byname = {}
         for i, p in enumerate(d["parameters"]):
             try:
@@ -184,34 +224,96 @@ class CalibratedModel:
             x[k] = v / f
         if not np.all(np.isfinite(x)):
             raise ConfigError("parameters must be finite", source=source, key="parameters")
+        if verify:
+            for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
+                f, fu = _TO_FILE[unit]
+                if abs(x[k] * f) > BOUNDS[fu]:
+                    raise ConfigError(f"{x[k] * f:.6g} {fu} is not a plausible value (|v| <= "
+                                      f"{BOUNDS[fu]:g} {fu})", source=source,
+                                      key=f"parameters.{name}")
         cov = None
         if d.get("covariance") is not None:
             scale = np.array([_TO_FILE[u][0] for u in model.layout.units])
             cov = _decode_covariance(d["covariance"], model.size, source) / np.outer(scale, scale)
+            if not np.all(np.isfinite(cov)):
+                raise ConfigError("covariance must be finite", source=source, key="covariance")
         cover = None
         if d.get("coverage_deg") is not None:
-            cover = np.radians(np.array(d["coverage_deg"], dtype=float))
+            cover = np.radians(_coverage(d["coverage_deg"], robot.dof, source))
         fb = None
         if d.get("fallback"):
-            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback")
-        return cls(model=model, params=x, covariance=cov, coverage=cover, fallback=fb,
-                   model_id=str(d.get("model_id", "")), kind=str(d.get("kind", "custom")),
-                   metrics=dict(d.get("metrics") or {}), fit=dict(d.get("fit") or {}),
-                   data=dict(d.get("data") or {}), created=str(d.get("created", "")))
+            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback", verify=verify)
+        for key in ("metrics", "fit", "data"):
+            if not isinstance(d.get(key) or {}, dict):
+                raise ConfigError("must be a JSON object", source=source, key=key)
+        out = cls(model=model, params=x, covariance=cov, coverage=cover, fallback=fb,
+                  model_id=str(d.get("model_id", "")), kind=str(d.get("kind", "custom")),
+                  metrics=dict(d.get("metrics") or {}), fit=dict(d.get("fit") or {}),
+                  data=dict(d.get("data") or {}), created=str(d.get("created", "")))
+        if verify:
+            content = out.compute_id()
+            if out.model_id != content:
+                raise ConfigError(
+                    f"the content does not match its model_id {out.model_id!r} (it hashes to "
+                    f"{content!r}): the file was edited or damaged after it was written; "
+                    "refit or restore the original", source=source, key="model_id")
+        return out
 
     @classmethod
-    def load(cls, path: str | Path) -> CalibratedModel:
+    def load(cls, path: str | Path, *, verify: bool = True) -> CalibratedModel:
         """Read MODEL.json; raise :class:`ConfigError` naming the file and problem."""
         src = str(path)
         try:
             d = json.loads(Path(path).read_text())
         except FileNotFoundError as err:
             raise ConfigError("file not found", source=src) from err
+        except IsADirectoryError as err:
+            raise ConfigError("is a directory, not a model file", source=src) from err
         except (OSError, UnicodeDecodeError) as err:
             raise ConfigError(f"cannot read: {err}", source=src) from err
         except json.JSONDecodeError as err:
             raise ConfigError(f"not valid JSON: {err}", source=src) from err
-        return cls.from_dict(d, source=src)
+        except (RecursionError, ValueError) as err:  # nested too deeply; huge integers
+            raise ConfigError(f"not valid JSON: {type(err).__name__}", source=src) from err
+        return cls.from_dict(d, source=src, verify=verify)
+
+
+#: Largest magnitude a MODEL.json number may have, by file unit: 100 m for lengths (the
+#: tracker <- base distance included), ten turns for angles, 10 deg/(N m) for compliance.
+#: Anything larger is a damaged or hand-edited file, not a robot.
+BOUNDS: dict[str, float] = {"mm": 1e5, "deg": 3600.0, "deg/(N m)": 10.0}
+
+
+def _check_transform(T: Array, source: str) -> None:
+    """A rigid transform (mm): finite, rotation orthonormal, last row 0 0 0 1, within 100 m."""
+    key = "T_tracker_base_ref_mm"
+    if not np.all(np.isfinite(T)):
+        raise ConfigError("must be finite", source=source, key=key)
+    R = T[:3, :3]
+    if (not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9)
+            or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0):
+        raise ConfigError("not a rigid transform (rotation not orthonormal or last row not "
+                          "0 0 0 1)", source=source, key=key)
+    if float(np.linalg.norm(T[:3, 3])) > BOUNDS["mm"]:
+        raise ConfigError(f"translation beyond {BOUNDS['mm']:g} mm", source=source, key=key)
+
+
+def _coverage(value: Any, dof: int, source: str) -> Array:
+    """``coverage_deg``: (dof, 2) finite [low, high] pairs, low <= high, degrees."""
+    try:
+        c = np.array(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"not a list of [low, high] pairs: {err}", source=source,
+                          key="coverage_deg") from err
+    if c.shape != (dof, 2):
+        raise ConfigError(f"shape {c.shape}, expected ({dof}, 2)", source=source,
+                          key="coverage_deg")
+    if not np.all(np.isfinite(c)) or np.any(np.abs(c) > BOUNDS["deg"]):
+        raise ConfigError(f"values must be finite and within +-{BOUNDS['deg']:g} deg",
+                          source=source, key="coverage_deg")
+    if np.any(c[:, 0] > c[:, 1]):
+        raise ConfigError("a low end is above its high end", source=source, key="coverage_deg")
+    return c
 
 
 def _encode_covariance(C: Array) -> dict[str, Any]:

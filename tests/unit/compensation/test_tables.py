@@ -23,7 +23,8 @@ from robocal.compensation import (
 )
 from robocal.errors import CompensationError, ConfigError
 
-finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
+# within every bound a table enforces on load (angles +-360 deg, lengths +-1e5 mm)
+finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-300.0, max_value=300.0)
 small_text = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12)
 
 
