@@ -302,10 +302,12 @@ class _Bad:
 class _Result:
     """Outcome of one command exchange."""
 
-    __slots__ = ("not_ready_at", "reply", "result")
+    __slots__ = ("not_ready_at", "reply", "reply_owed", "result")
 
     def __init__(self) -> None:
         self.not_ready_at: float | None = None
+        # Failed by a type-1 packet before its reply came: the reply may still follow.
+        self.reply_owed = False
         self.reply: emscon.Reply | None = None
         self.result: emscon.SingleMeasResult | emscon.SingleMeasResult2 | None = None
 
@@ -497,11 +499,8 @@ class EmsconTracker(DriverBase):
                 raise TransportError(f"emScon framing lost: {err}") from err
             if frames:
                 break
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise TransportTimeout(
-                    "no complete packet in time", last_frames=self._framer.recent
-                )
+            # At or past the deadline this still takes bytes already received.
+            remaining = max(0.0, deadline - time.monotonic())
             self._framer.feed(await transport.read(65536, timeout=remaining))
         packets: list[emscon.Packet | _Bad] = []
         for frame in frames:
@@ -562,6 +561,7 @@ class EmsconTracker(DriverBase):
         if transport is None:
             raise TransportError("not connected")
         out = _Result()
+        await self._flush_received()
         await transport.write(emscon.command(cmd, **params))
         deadline = time.monotonic() + timeout
         while True:
@@ -588,6 +588,17 @@ class EmsconTracker(DriverBase):
                 not measurement or out.reply.status != 0 or out.result is not None
             ):
                 return out
+
+    async def _flush_received(self) -> None:
+        """Handle everything received so far: none of it can answer a command not yet sent."""
+        while True:
+            try:
+                packets = await self._read_packets(time.monotonic())
+            except TransportTimeout:
+                return
+            for p in packets:
+                if not self._on_async(p):
+                    self.log.warning("stale packet dropped", packet=type(p).__name__)
 
     def _handle_batch(
         self, batch: deque[emscon.Packet | _Bad], cmd: int, out: _Result, measurement: bool
@@ -619,6 +630,7 @@ class EmsconTracker(DriverBase):
                 out.result = p
             elif isinstance(p, emscon.ErrorResponse) and p.command == cmd:
                 # The pending command failed (the MS reading of a type-1 packet).
+                out.reply_owed = out.reply is None
                 out.reply = emscon.Reply(cmd, p.status)
                 raise _Done
             else:
@@ -683,6 +695,8 @@ class EmsconTracker(DriverBase):
                             out = await self._exchange(
                                 cmd, params or {}, wait, measurement=measurement
                             )
+                            if out.reply_owed and o.abort_drain_s > 0:
+                                await self._drain(o.abort_drain_s)
                         except TransportTimeout:
                             if not measurement and o.abort_drain_s > 0:
                                 # Its late reply would answer the next command of this ID.

@@ -561,3 +561,50 @@ async def test_contract_suite_repeatedly_with_ten_percent_faults():
         fired = {**sim.faults.counts, **sim.emscon_faults.counts}
     assert fired.get("beam_break", 0) >= 1 and fired.get("busy", 0) >= 3, fired
     assert min(fired.get(k, 0) for k in ("split", "merge", "unknown_type")) >= 5, fired
+
+
+async def test_late_reply_after_an_error_packet_does_not_answer_the_next_measurement():
+    """Type-1 error for 49 first, its failed reply 50 ms later: the retry must not take it."""
+    starts = 0
+
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        nonlocal starts
+        framer = emscon.PacketFramer()
+        with contextlib.suppress(ConnectionError):
+            while data := await reader.read(4096):
+                framer.feed(data)
+                for frame in framer.frames():
+                    cmd = emscon.decode(frame, direction="from_client").command
+                    spec = emscon.SPECS[cmd]
+                    if cmd == Cmd.START_MEASUREMENT:
+                        starts += 1
+                        if starts == 1:
+                            writer.write(emscon.encode(emscon.ErrorResponse(cmd, 10009)))
+                            await writer.drain()
+                            await asyncio.sleep(0.05)
+                            writer.write(emscon.reply(cmd, 10009))
+                        else:
+                            writer.write(emscon.reply(cmd) + emscon.encode(
+                                emscon.SingleMeasResult(val1=1000.0, val2=500.0, val3=250.0,
+                                                        std1=0.01, std2=0.01, std3=0.01)))
+                        continue
+                    data_ = dict.fromkeys(spec.reply.names, 5)
+                    if cmd == Cmd.GET_UNITS:
+                        data_ = {"length_unit": 1, "angle_unit": 0, "temperature_unit": 0,
+                                 "pressure_unit": 0, "humidity_unit": 0}
+                    writer.write(emscon.reply(cmd, 0, **data_))
+        writer.close()
+
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    tracker = EmsconTracker({"host": "127.0.0.1", "port": port, "reacquire": "none"})
+    try:
+        await tracker.connect(timeout=5.0)
+        with pytest.raises(EmsconBeamLost, match="NoStationaryResult"):
+            await tracker.measure(samples=1, timeout=2.0)
+        r = await tracker.measure(samples=1, timeout=2.0)
+        assert r.position_m == (1.0, 0.5, 0.25) and starts == 2
+    finally:
+        await tracker.close()
+        server.close()
+        await server.wait_closed()
