@@ -7,8 +7,10 @@ The golden packets are built here field by field at the offsets printed in the r
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import struct
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -350,3 +352,39 @@ def test_name_fields_are_utf16_nul_padded():
     assert emscon.decode(frame).data["version"] == "3.8 µ"
     assert math.isclose(emscon.decode(emscon.encode(emscon.NivelResult(x_tilt=1e-5))).x_tilt,
                         1e-5)
+
+
+# --- a stream recorded by the relay (simulator session, SCC, result-first, unknown types) -------
+RECORDING = Path(__file__).parent / "data" / "emscon_sim_session.jsonl"
+
+
+def _recorded(direction: str) -> tuple[bytes, int]:
+    """The recorded bytes of one direction and the number of packets the relay decoded."""
+    chunks, count = [], 0
+    for line in RECORDING.read_text().splitlines()[1:]:
+        rec = json.loads(line)
+        if rec["dir"] == direction:
+            chunks.append(bytes.fromhex(rec["hex"]))
+            count += len(rec["packets"])
+    return b"".join(chunks), count
+
+
+@pytest.mark.parametrize(("direction", "peer"), [("s2c", "from_server"), ("c2s", "from_client")])
+@settings(max_examples=100, deadline=None)
+@given(cuts=st.lists(st.integers(0, 100_000), max_size=60))
+def test_framer_on_every_split_of_the_recorded_session(direction, peer, cuts):
+    stream, count = _recorded(direction)
+    bounds = sorted({c % (len(stream) + 1) for c in cuts} | {0, len(stream)})
+    framer = emscon.PacketFramer()
+    frames: list[bytes] = []
+    for a, b in itertools.pairwise(bounds):
+        framer.feed(stream[a:b])
+        frames.extend(framer.frames())
+    assert len(frames) == count and b"".join(frames) == stream
+    packets = [emscon.decode(f, direction=peer) for f in frames]
+    assert all(emscon.encode(p) == f for p, f in zip(packets, frames, strict=True)
+               if not isinstance(p, emscon.Reply) or p.ok)
+    if direction == "s2c":
+        kinds = {type(p).__name__ for p in packets}
+        assert {"Reply", "StatusChange", "SingleMeasResult2", "ErrorResponse",
+                "UnknownPacket"} <= kinds
