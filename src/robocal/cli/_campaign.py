@@ -151,6 +151,17 @@ def _describe(s: dict[str, Any]) -> str:
     report = _report_path(s)
     if report is not None:
         lines.append(f"  report    {report}")
+    p = s.get("push") or {}
+    if p:
+        lines.append(f"  push      {p.get('kind')} {str(p.get('checksum', ''))[:12]}  model "
+                     f"{p.get('model')}  at {p.get('at', '')} by {p.get('actor', '')}"
+                     + ("  (forced)" if p.get("forced") else ""))
+        before, after = p.get("measured_before_rms_mm"), p.get("measured_after_rms_mm")
+        if isinstance(before, int | float) and isinstance(after, int | float):
+            lines.append(f"  measured  {before:.4f} mm before -> {after:.4f} mm after "
+                         f"({p.get('measured_n')} pushed targets re-measured)")
+        elif p.get("verification"):
+            lines.append(f"  measured  verification {p['verification']}")
     return "\n".join(lines) + "\n"
 
 
@@ -224,12 +235,17 @@ def _push_text(s: dict[str, Any]) -> str:
     parts = [f"model {p.get('model', s.get('selected_model'))}", f"kind {p.get('kind')}"]
     if p.get("checksum"):
         parts.append(f"checksum {str(p['checksum'])[:12]}")
-    for key, label in (("predicted_rms_mm", "predicted"), ("nominal_rms_mm", "nominal"),
+    for key, label in (("predicted_rms_mm", "solved to"),
+                       ("model_accuracy_mm", "model held-out RMS"),
+                       ("nominal_rms_mm", "uncompensated (predicted)"),
                        ("measured_before_rms_mm", "measured before"),
                        ("measured_after_rms_mm", "measured after")):
         v = p.get(key)
         if isinstance(v, int | float):
             parts.append(f"{label} {v:.4f} mm")
+    if isinstance(p.get("verification"), str) and p.get("measured_after_rms_mm") is None:
+        parts.append(f"verification {p['verification']} (robocal campaign status shows the "
+                     "measured result)")
     return "; pushed " + ", ".join(parts)
 
 
@@ -281,7 +297,7 @@ class _Progress:
         text = (f"[{'#' * filled}{'.' * (width - filled)}] {self.measured}/{self.total} "
                 f"{self.state:9s} {_clock(elapsed)} elapsed, {rate * 60:5.1f} poses/min, "
                 f"ETA {eta}, {self.retries} retries, {self.beam_losses} beam losses")
-        if self.phase and self.state in ("measured", "fitted", "faulted"):
+        if self.phase and self.state in ("measured", "faulted"):
             text += f" | {self.phase}"
         return text
 

@@ -129,3 +129,21 @@ async def test_watch_follows_on_when_the_event_stream_ends(make_config, tmp_path
     finally:
         await api.stop()
         await svc.stop()
+
+
+def test_status_and_push_lines_say_what_was_pushed_and_measured():
+    from robocal.cli._campaign import _describe, _push_text
+
+    s = {"id": "c1", "state": "pushed", "poses_measured": 5, "poses_total": 5,
+         "selected_model": "auto",
+         "push": {"kind": "targets", "checksum": "8b55f09c059280439c", "model": "auto",
+                  "at": "2026-11-23T22:26:53", "actor": "alice", "predicted_rms_mm": 3e-5,
+                  "model_accuracy_mm": 0.0109, "nominal_rms_mm": 1.2977,
+                  "verification": "done", "measured_before_rms_mm": 1.299,
+                  "measured_after_rms_mm": 0.0104, "measured_n": 10}}
+    text = _describe(s)
+    assert "push      targets 8b55f09c0592  model auto" in text
+    assert "1.2990 mm before -> 0.0104 mm after (10 pushed targets re-measured)" in text
+    line = _push_text(s)
+    assert "kind targets" in line and "model held-out RMS 0.0109 mm" in line
+    assert "measured after 0.0104 mm" in line
