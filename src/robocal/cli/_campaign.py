@@ -31,14 +31,19 @@ def add_client_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--token-file", type=Path, help="file holding the TCP bearer token "
                                                    "(or set ROBOCAL_TOKEN)")
     g.add_argument("--timeout", type=float, default=60.0, help="request timeout, seconds")
+    g.add_argument("--wait-for-daemon", type=float, default=0.0, metavar="SECONDS",
+                   help="keep trying this long while the daemon is not listening yet (a "
+                        "daemon just started)")
 
 
 def client(args: argparse.Namespace) -> Any:
     """A :class:`~robocal.daemon.client.DaemonClient` from the parsed options."""
     from robocal.daemon.client import DaemonClient
 
-    return DaemonClient.from_args(config=args.config, socket_path=args.socket, url=args.url,
-                                  token_file=args.token_file, timeout=args.timeout)
+    c = DaemonClient.from_args(config=args.config, socket_path=args.socket, url=args.url,
+                               token_file=args.token_file, timeout=args.timeout)
+    c.wait_s = max(0.0, float(getattr(args, "wait_for_daemon", 0.0) or 0.0))
+    return c
 
 
 def emit(obj: Any) -> None:

@@ -12,6 +12,7 @@ import http.client
 import json
 import os
 import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,8 @@ class DaemonClient:
         self.url = url
         self.token = token
         self.timeout = timeout
+        #: Seconds to keep trying while nothing listens yet (a daemon that is starting).
+        self.wait_s = 0.0
         try:
             self.actor = getpass.getuser()
         except (KeyError, OSError):
@@ -175,6 +178,18 @@ class DaemonClient:
             path = f"{path}?{urlencode(query)}"
         data = None if body is None else json.dumps(body).encode()
         conn = self._connection()
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            try:
+                conn.connect()
+                break
+            except OSError as err:  # not listening (yet): wait for a starting daemon if asked
+                conn.close()
+                if time.monotonic() >= deadline:
+                    raise DaemonUnavailable(f"cannot reach the daemon at {self._where()} "
+                                            f"({err}); {_START_HINT}") from err
+                time.sleep(0.2)
+                conn = self._connection()
         try:
             conn.request(method, path, body=data, headers=self._headers(data is not None))
             resp = conn.getresponse()

@@ -22,7 +22,12 @@ from robocal.identification._solver import (
     inverse_spd,
     levenberg_marquardt,
 )
-from robocal.identification._weights import TrackerSigma, whitening
+from robocal.identification._weights import (
+    TrackerSigma,
+    euler_xyz_matrices,
+    orientation_whitening,
+    whitening,
+)
 from robocal.kinematics import KinematicModel, RobotDescription
 
 Array = NDArray[np.float64]
@@ -103,6 +108,12 @@ class Engine:
         sig = data.sigma if settings.use_point_sigma else None
         self.W = whitening(data.p, settings.noise, sig)
         self.sigma_source = "per-point sx,sy,sz" if sig is not None else "tracker model"
+        # 6-DoF probe: orientation residuals weighted by their own sigmas
+        self.R_probe = self.W_rot = None
+        if data.rot is not None:
+            self.R_probe = euler_xyz_matrices(data.rot)
+            self.W_rot = orientation_whitening(
+                data.rot, data.rot_sigma if settings.use_point_sigma else None)
 
     @property
     def n(self) -> int:
@@ -112,7 +123,8 @@ class Engine:
     def problem(self, model: KinematicModel, priors: Sequence[MapPrior] = ()) -> Problem:
         """The whitened problem of ``model`` on all poses."""
         return Problem(model, self.data.q, self.data.p, self.W,
-                       penalty=penalty_for(model.names, priors), chunk=self.s.chunk)
+                       penalty=penalty_for(model.names, priors), chunk=self.s.chunk,
+                       R_probe=self.R_probe, W_rot=self.W_rot)
 
     # ------------------------------------------------------------------------------------
     def solve(self, model: KinematicModel, x0: Array, *, priors: Sequence[MapPrior] = (),
@@ -234,7 +246,9 @@ def hat_statistics(prob: Problem, x: Array, free: IntArray, Ninv: Array,
     for ch in prob.chunks(np.arange(n)):
         Jw, rw = prob.whitened_jacobian(x, ch, free)
         c = len(ch)
-        Jc = Jw.reshape(c, 3, k)
+        # position rows only (6-DoF poses add orientation rows after them)
+        Jc = Jw.reshape(c, -1, k)[:, :3]
+        rw = rw.reshape(c, -1)[:, :3]
         H = np.einsum("nik,kl,njl->nij", Jc, Ninv, Jc, optimize=True)
         sign = np.where(in_fit[ch], -1.0, 1.0)[:, None, None]
         M = eye + sign * H + 1e-9 * eye

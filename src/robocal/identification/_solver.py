@@ -34,6 +34,11 @@ class Problem:
 
     ``q`` (n, dof) rad, ``y`` (n, 3) m, ``W`` (n, 3, 3) 1/m. ``penalty`` (P, P) and
     ``target`` (P,) define the prior ``(x - target)^T penalty (x - target)`` (None: no prior).
+    ``R_probe`` (n, 3, 3): measured 6-DoF probe orientations (tracker frame) or None, with
+    whitening ``W_rot`` (n, 3, 3) 1/rad. With them every pose has 6 residuals: position, then
+    the rotation vector ``log(R_obs R_flange(x)^T)``, where ``R_obs = R_probe R_tool^T`` and
+    the flange -> probe rotation ``R_tool`` is aligned once on the model's nominal parameters
+    (the last joint's constant rotation terms absorb what remains).
     """
 
     model: KinematicModel
@@ -44,6 +49,19 @@ class Problem:
     target: Array | None = None
     chunk: int = 2048
     n_jacobians: int = field(default=0, init=False)
+    R_probe: Array | None = None
+    W_rot: Array | None = None
+    R_obs: Array | None = field(default=None, init=False)
+
+    def __post_init__(self) -> None:
+        if self.R_probe is not None:
+            _, R, _ = self.model.flange_poses(self.q, self.model.nominal_params())
+            U, _, Vt = np.linalg.svd(np.einsum("nji,njk->ik", R, self.R_probe))
+            D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+            R_tool = U @ D @ Vt        # argmin sum |R_probe - R R_tool|, a rotation
+            self.R_obs = self.R_probe @ R_tool.T
+            if self.W_rot is None:
+                raise ValueError("R_probe needs W_rot")
 
     @property
     def n(self) -> int:
@@ -55,11 +73,25 @@ class Problem:
         q = self.q if rows is None else self.q[rows]
         y = self.y if rows is None else self.y[rows]
         W = self.W if rows is None else self.W[rows]
+        if self.R_obs is not None:
+            return self._pose_residuals(x, np.arange(self.n) if rows is None else rows)
         out = np.empty((q.shape[0], 3))
         for a in range(0, q.shape[0], self.chunk):
             sl = slice(a, a + self.chunk)
             p = self.model.positions(q[sl], x)
             out[sl] = np.einsum("nij,nj->ni", W[sl], y[sl] - p)
+        return out
+
+    def _pose_residuals(self, x: Array, rows: IntArray) -> Array:
+        """Whitened position and orientation residuals (len(rows), 6)."""
+        assert self.R_obs is not None and self.W_rot is not None
+        out = np.empty((len(rows), 6))
+        for a in range(0, len(rows), self.chunk):
+            ch = rows[a:a + self.chunk]
+            p, R, _ = self.model.flange_poses(self.q[ch], x)
+            out[a:a + len(ch), :3] = np.einsum("nij,nj->ni", self.W[ch], self.y[ch] - p)
+            out[a:a + len(ch), 3:] = np.einsum("nij,nj->ni", self.W_rot[ch],
+                                               rotation_vectors(self.R_obs[ch], R))
         return out
 
     def prior_cost(self, x: Array) -> float:
@@ -82,8 +114,20 @@ class Problem:
 
     def whitened_jacobian(self, x: Array, rows: IntArray, cols: IntArray
                           ) -> tuple[Array, Array]:
-        """Whitened Jacobian (3 len(rows), len(cols)) and residual (3 len(rows),) of a chunk."""
+        """Whitened Jacobian (m len(rows), len(cols)) and residual (m len(rows),) of a chunk;
+        m = 3, or 6 with orientations (position rows first in each pose's block)."""
         self.n_jacobians += 1
+        if self.R_obs is not None:
+            assert self.W_rot is not None
+            p, R, J6 = self.model.pose_jacobian(self.q[rows], x)
+            Jw6 = np.empty((len(rows), 6, len(cols)))
+            Jw6[:, :3] = np.einsum("nij,njk->nik", self.W[rows], J6[:, :3][:, :, cols])
+            Jw6[:, 3:] = np.einsum("nij,njk->nik", self.W_rot[rows], J6[:, 3:][:, :, cols])
+            rw6 = np.empty((len(rows), 6))
+            rw6[:, :3] = np.einsum("nij,nj->ni", self.W[rows], self.y[rows] - p)
+            rw6[:, 3:] = np.einsum("nij,nj->ni", self.W_rot[rows],
+                                   rotation_vectors(self.R_obs[rows], R))
+            return Jw6.reshape(-1, len(cols)), rw6.ravel()
         p, J = self.model.jacobian(self.q[rows], x)
         W = self.W[rows]
         Jw = np.einsum("nij,njk->nik", W, J[:, :, cols]).reshape(-1, len(cols))
@@ -109,6 +153,18 @@ class Problem:
             g += Jw.T @ rw
             c += float(rw @ rw)
         return A, g, c
+
+
+def rotation_vectors(R_obs: Array, R: Array) -> Array:
+    """Rotation vectors (n, 3) rad of ``R_obs R^T`` (tracker frame), angles up to pi."""
+    M = np.einsum("nij,nkj->nik", R_obs, R)
+    v = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0],
+                        M[:, 1, 0] - M[:, 0, 1]], axis=1)
+    s = np.linalg.norm(v, axis=1)
+    c = 0.5 * (np.einsum("nii->n", M) - 1.0)
+    ang = np.arctan2(s, c)
+    scale = np.where(s > 1e-12, ang / np.where(s > 1e-12, s, 1.0), 1.0)
+    return v * scale[:, None]
 
 
 # ----------------------------------------------------------------------------------------------

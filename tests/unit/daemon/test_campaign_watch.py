@@ -147,3 +147,23 @@ def test_status_and_push_lines_say_what_was_pushed_and_measured():
     line = _push_text(s)
     assert "kind targets" in line and "model held-out RMS 0.0109 mm" in line
     assert "measured after 0.0104 mm" in line
+
+
+async def test_client_waits_for_a_daemon_that_is_starting(make_config, tmp_path):
+    """--wait-for-daemon: a script may start the daemon and talk to it at once."""
+    from robocal.daemon.client import DaemonClient, DaemonUnavailable
+
+    sock = tmp_path / "api.sock"
+    c = DaemonClient(socket_path=sock, timeout=5.0)
+    with pytest.raises(DaemonUnavailable, match="robocal daemon --config"):
+        await asyncio.to_thread(c.request, "GET", "/health")
+    c.wait_s = 20.0
+    pending = asyncio.create_task(asyncio.to_thread(c.request, "GET", "/health"))
+    await asyncio.sleep(0.05)
+    assert not pending.done()
+    svc, api, _ = await _served(make_config, tmp_path)  # the daemon comes up late
+    try:
+        assert (await asyncio.wait_for(pending, 20))["status"] == "ok"
+    finally:
+        await api.stop()
+        await svc.stop()
