@@ -2,11 +2,14 @@
 
 CSV layout (a header row; comma separated; mm and degrees)::
 
-    pose_id,q1,q2,...,qN,x,y,z[,sx,sy,sz]
+    pose_id,q1,q2,...,qN,x,y,z[,sx,sy,sz][,rx,ry,rz[,srx,sry,srz]]
 
 ``q1..qN`` are joint values (deg), ``x, y, z`` the reflector position in the tracker frame
 (mm), ``sx, sy, sz`` optional per-point standard deviations (mm), ``pose_id`` optional.
-Other columns are ignored. Inside robocal everything is SI (rad, m).
+``rx, ry, rz`` (deg, optional, 6-DoF probes): the probe orientation in the tracker frame as
+intrinsic x-y-z Euler angles, ``R = Rx(rx) Ry(ry) Rz(rz)`` (Leica T-Mac's convention);
+``srx, sry, srz`` their standard deviations (deg). Other columns are ignored. Inside robocal
+everything is SI (rad, m).
 """
 
 from __future__ import annotations
@@ -33,13 +36,17 @@ class MeasurementSet:
     """Joint values and measured reflector positions of n poses.
 
     ``q``: (n, dof) rad. ``p``: (n, 3) m, tracker frame. ``sigma``: (n, 3) m per-axis standard
-    deviations or None. ``pose_id``: n labels.
+    deviations or None. ``pose_id``: n labels. ``rot``: (n, 3) rad probe orientation
+    (intrinsic x-y-z Euler angles, ``R = Rx Ry Rz``, tracker frame) or None; ``rot_sigma``:
+    (n, 3) rad their standard deviations or None.
     """
 
     q: Array
     p: Array
     sigma: Array | None = None
     pose_id: tuple[str, ...] = field(default=())
+    rot: Array | None = None
+    rot_sigma: Array | None = None
 
     def __post_init__(self) -> None:
         q = np.atleast_2d(np.asarray(self.q, dtype=float))
@@ -53,6 +60,15 @@ class MeasurementSet:
             if s.shape != p.shape:
                 raise DataError(f"sigma has shape {s.shape}, expected {p.shape}")
             object.__setattr__(self, "sigma", s)
+        for name in ("rot", "rot_sigma"):
+            v = getattr(self, name)
+            if v is not None:
+                v = np.atleast_2d(np.asarray(v, dtype=float))
+                if v.shape != p.shape:
+                    raise DataError(f"{name} has shape {v.shape}, expected {p.shape}")
+                object.__setattr__(self, name, v)
+        if self.rot_sigma is not None and self.rot is None:
+            raise DataError("rot_sigma given without rot")
         if not self.pose_id:
             object.__setattr__(self, "pose_id", tuple(f"P{i:04d}" for i in range(len(q))))
         elif len(self.pose_id) != len(q):
@@ -75,6 +91,8 @@ class MeasurementSet:
             q=self.q[idx], p=self.p[idx],
             sigma=None if self.sigma is None else self.sigma[idx],
             pose_id=tuple(self.pose_id[i] for i in idx),
+            rot=None if self.rot is None else self.rot[idx],
+            rot_sigma=None if self.rot_sigma is None else self.rot_sigma[idx],
         )
 
     def split(self, fraction: float, seed: int = 0) -> tuple[MeasurementSet, MeasurementSet]:
@@ -90,8 +108,17 @@ class MeasurementSet:
             sig = None
         else:
             sig = np.vstack([self.sigma, other.sigma])
+        rot = rsig = None
+        if self.rot is not None and other.rot is not None:
+            rot = np.vstack([self.rot, other.rot])
+            if self.rot_sigma is not None and other.rot_sigma is not None:
+                rsig = np.vstack([self.rot_sigma, other.rot_sigma])
         return MeasurementSet(np.vstack([self.q, other.q]), np.vstack([self.p, other.p]), sig,
-                              self.pose_id + other.pose_id)
+                              self.pose_id + other.pose_id, rot=rot, rot_sigma=rsig)
+
+    def without_orientation(self) -> MeasurementSet:
+        """The same poses with positions only."""
+        return MeasurementSet(self.q, self.p, self.sigma, self.pose_id)
 
     def digest(self) -> str:
         """SHA-256 of the numerical content (joint values and points), hex."""
@@ -108,6 +135,10 @@ class MeasurementSet:
         head = ["pose_id", *(f"q{i + 1}" for i in range(self.dof)), "x", "y", "z"]
         if self.sigma is not None:
             head += ["sx", "sy", "sz"]
+        if self.rot is not None:
+            head += ["rx", "ry", "rz"]
+            if self.rot_sigma is not None:
+                head += ["srx", "sry", "srz"]
         w.writerow(head)
         qd = np.degrees(self.q)
         pm = self.p * 1e3
@@ -116,6 +147,10 @@ class MeasurementSet:
             row = [self.pose_id[i], *(f"{v:.9f}" for v in qd[i]), *(f"{v:.6f}" for v in pm[i])]
             if sm is not None:
                 row += [f"{v:.6f}" for v in sm[i]]
+            if self.rot is not None:
+                row += [f"{v:.9f}" for v in np.degrees(self.rot[i])]
+                if self.rot_sigma is not None:
+                    row += [f"{v:.9f}" for v in np.degrees(self.rot_sigma[i])]
             w.writerow(row)
         return buf.getvalue()
 
@@ -150,7 +185,33 @@ class MeasurementSet:
         if "pose_id" in header:
             k = header.index("pose_id")
             ids = tuple(r[k].strip() for r in rows)
-        return cls(q=q, p=p, sigma=sigma, pose_id=ids)
+        rot, rsig = _orientation_columns(header, rows, src)
+        return cls(q=q, p=p, sigma=sigma, pose_id=ids, rot=rot, rot_sigma=rsig)
+
+
+def _orientation_columns(header: list[str], rows: list[list[str]], src: str
+                         ) -> tuple[Array | None, Array | None]:
+    """Optional ``rx, ry, rz`` (deg) and ``srx, sry, srz`` (deg) columns, in rad."""
+    out: list[Array | None] = []
+    for cols in (("rx", "ry", "rz"), ("srx", "sry", "srz")):
+        have = [c for c in cols if c in header]
+        if not have:
+            out.append(None)
+            continue
+        if len(have) != 3:
+            missing = sorted(set(cols) - set(have))[0]
+            raise DataError(f"{', '.join(cols)} must be given together", source=src,
+                            key=missing)
+        out.append(numeric_columns(rows, header, list(cols), src) * (math.pi / 180.0))
+    rot, rsig = out
+    if rsig is not None:
+        if rot is None:
+            raise DataError("srx, sry, srz need rx, ry, rz", source=src, key="rx")
+        if np.any(rsig <= 0):
+            r = int(np.argwhere(rsig <= 0)[0, 0])
+            raise DataError(f"row {r + 2}: standard deviations must be positive",
+                            source=src, key="srx")
+    return rot, rsig
 
 
 def read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
@@ -236,10 +297,27 @@ def joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
     return present
 
 
+#: Largest plausible magnitude in a measurement or joint file, by unit: ten turns, and 100 m
+#: (beyond any tracker's range). Larger values are typos or unit mix-ups that would only
+#: surface later as overflow warnings and nonsense fits.
+_MAX_ABS = {"deg": 3600.0, "mm": 1e5}
+
+
+def _unit_of(column: str) -> str:
+    if column in ("x", "y", "z", "sx", "sy", "sz"):
+        return "mm"
+    if column in ("rx", "ry", "rz", "srx", "sry", "srz") or (
+            column[:1] == "q" and column[1:].isdigit()):
+        return "deg"
+    return ""
+
+
 def numeric_columns(rows: list[list[str]], header: list[str], cols: Sequence[str],
                     src: str) -> Array:
     """The named columns as an (n, len(cols)) float array; a bad cell is quoted as written."""
     idx = [header.index(c) for c in cols]
+    units = [_unit_of(c) for c in cols]
+    bounds = [_MAX_ABS.get(u, math.inf) for u in units]
     out = np.empty((len(rows), len(cols)))
     for r, row in enumerate(rows):
         for k, i in enumerate(idx):
@@ -252,6 +330,9 @@ def numeric_columns(rows: list[list[str]], header: list[str], cols: Sequence[str
             if not math.isfinite(v):
                 raise DataError(f"row {r + 2}: value is {cell!r} (must be finite)", source=src,
                                 key=cols[k])
+            if abs(v) > bounds[k]:
+                raise DataError(f"row {r + 2}: {cell!r} is not a plausible value (|v| <= "
+                                f"{bounds[k]:g} {units[k]})", source=src, key=cols[k])
             out[r, k] = v
     return out
 

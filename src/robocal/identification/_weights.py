@@ -84,3 +84,43 @@ def whitening(p: Array, noise: TrackerSigma, point_sigma: Array | None = None) -
     sr, st = noise.sigmas(p)
     uu = _outer_dirs(p - np.asarray(noise.position))
     return uu / sr[:, None, None] + (np.eye(3) - uu) / st[:, None, None]
+
+
+#: 1-sigma orientation noise of a 6-DoF probe when the data give none (rad): Leica quotes
+#: about 0.01 deg for the T-Mac's orientation.
+DEFAULT_ORIENTATION_SIGMA_RAD = float(np.radians(0.01))
+
+
+def euler_xyz_matrices(rot: Array) -> Array:
+    """Rotations (n, 3, 3) ``Rx(rx) Ry(ry) Rz(rz)`` of intrinsic x-y-z angles (n, 3) rad."""
+    a, b, c = (rot[:, k] for k in range(3))
+    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    R = np.empty((rot.shape[0], 3, 3))
+    R[:, 0] = np.stack([cb * cc, -cb * sc, sb], axis=1)
+    R[:, 1] = np.stack([sa * sb * cc + ca * sc, -sa * sb * sc + ca * cc, -sa * cb], axis=1)
+    R[:, 2] = np.stack([-ca * sb * cc + sa * sc, ca * sb * sc + sa * cc, ca * cb], axis=1)
+    return R
+
+
+def orientation_whitening(rot: Array, rot_sigma: Array | None,
+                          default_sigma: float = DEFAULT_ORIENTATION_SIGMA_RAD) -> Array:
+    """Whitening matrices (n, 3, 3) 1/rad of orientation residuals (rotation vectors, tracker
+    frame) for probe angles ``rot`` (n, 3) with per-angle sigmas ``rot_sigma`` (n, 3) rad.
+
+    The angle covariance maps to the rotation vector through the Euler rate matrix
+    ``E = [x, Rx y, Rx Ry z]``: ``Sigma = E diag(s^2) E^T``. Near gimbal lock E is singular;
+    eigenvalues are floored at (a tenth of the smallest angle sigma)^2 so no direction gets
+    an unbounded weight. Without sigmas: isotropic ``default_sigma``.
+    """
+    n = rot.shape[0]
+    if rot_sigma is None:
+        return np.broadcast_to(np.eye(3) / default_sigma, (n, 3, 3)).copy()
+    a, b = rot[:, 0], rot[:, 1]
+    E = np.zeros((n, 3, 3))
+    E[:, 0, 0] = 1.0
+    E[:, 1, 1], E[:, 2, 1] = np.cos(a), np.sin(a)
+    E[:, 0, 2], E[:, 1, 2], E[:, 2, 2] = np.sin(b), -np.sin(a) * np.cos(b), np.cos(a) * np.cos(b)
+    S = np.einsum("nik,nk,njk->nij", E, rot_sigma**2, E)
+    lam, V = np.linalg.eigh(S)
+    lam = np.maximum(lam, ((0.1 * rot_sigma.min(axis=1)) ** 2)[:, None])
+    return np.einsum("nik,nk,njk->nij", V, 1.0 / np.sqrt(lam), V)

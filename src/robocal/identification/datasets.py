@@ -4,7 +4,8 @@ Only the Fraunhofer IPA UR10 / Leica laser-tracker data set is supported (GitHub
 ``christianlandgraf/ipa-robot-accuracy``; see ``shared/datasets/ipa-ur10-lasertracker``).
 Its CSV files use ``;`` as separator and ``,`` as decimal mark; joint values are in rad (UR
 order and zero convention, not wrapped), measured T-Mac positions in mm in the tracker frame,
-optional tracker standard deviations in mm. Only positions are used.
+optional tracker standard deviations in mm; on request the T-Mac orientation (``rx, ry, rz``
+deg, intrinsic x-y-z as the upstream loader reads it) and its standard deviations.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ IPA_JOINT_COLUMNS = (
 )
 IPA_POINT_COLUMNS = ("measurement_x", "measurement_y", "measurement_z")
 IPA_STD_COLUMNS = ("measurement_std_x", "measurement_std_y", "measurement_std_z")
+IPA_ROT_COLUMNS = ("measurement_rx", "measurement_ry", "measurement_rz")
+IPA_ROT_STD_COLUMNS = ("measurement_std_rx", "measurement_std_ry", "measurement_std_rz")
 IPA_SERIES_FILES = {
     "A": "Series_A/measurements_grid.csv",
     "B": "Series_B/measurements_joint_configurations.csv",
@@ -45,7 +48,7 @@ def _resolve(path: str | Path) -> tuple[Path, str]:
 
 
 def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
-                  prefix: str = "R") -> MeasurementSet:
+                  prefix: str = "R", with_orientation: bool = False) -> MeasurementSet:
     """Parse the text of one IPA measurement file.
 
     Parameters
@@ -60,6 +63,9 @@ def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
         own scatter, so per-point tracker weights mostly add noise to the weighting.
     prefix
         Pose ids are ``f"{prefix}{row:05d}"`` with ``row`` the 0-based data row.
+    with_orientation
+        Also read the T-Mac orientation ``measurement_rx/ry/rz`` (deg, ``R = Rx Ry Rz``) and,
+        when present, its standard deviations ``measurement_std_rx/ry/rz`` (deg).
 
     Returns
     -------
@@ -91,11 +97,25 @@ def parse_ipa_csv(text: str, *, source: str = "<ipa>", with_sigma: bool = False,
             raise DataError(f"row {r + 2}: standard deviations must be positive", source=source,
                             key=IPA_STD_COLUMNS[int(np.argwhere(sigma[r] <= 0)[0, 0])])
     ids = tuple(f"{prefix}{i:05d}" for i in range(len(body)))
-    return MeasurementSet(q=q, p=p, sigma=sigma, pose_id=ids)
+    rot = rot_sigma = None
+    if with_orientation:
+        for col in IPA_ROT_COLUMNS:
+            if col not in header:
+                raise DataError("required column is missing", source=source, key=col)
+        rot = np.radians(numeric_columns(body, header, list(IPA_ROT_COLUMNS), source))
+        if all(c in header for c in IPA_ROT_STD_COLUMNS):
+            rot_sigma = np.radians(numeric_columns(body, header, list(IPA_ROT_STD_COLUMNS),
+                                                   source))
+            if np.any(rot_sigma <= 0):
+                r = int(np.argwhere(rot_sigma <= 0)[0, 0])
+                raise DataError(f"row {r + 2}: standard deviations must be positive",
+                                source=source, key=IPA_ROT_STD_COLUMNS[0])
+    return MeasurementSet(q=q, p=p, sigma=sigma, pose_id=ids, rot=rot, rot_sigma=rot_sigma)
 
 
 def load_ipa_series(path: str | Path, *, with_sigma: bool = False,
-                    max_poses: int | None = None, seed: int = 0) -> MeasurementSet:
+                    max_poses: int | None = None, seed: int = 0,
+                    with_orientation: bool = False) -> MeasurementSet:
     """Load one series of the IPA UR10 data set.
 
     Parameters
@@ -109,6 +129,8 @@ def load_ipa_series(path: str | Path, *, with_sigma: bool = False,
         If given, return a random subset of at most this many poses (file order kept).
     seed
         Seed of that subset.
+    with_orientation
+        See :func:`parse_ipa_csv`.
 
     Returns
     -------
@@ -122,7 +144,8 @@ def load_ipa_series(path: str | Path, *, with_sigma: bool = False,
         raise DataError("file not found", source=str(file)) from err
     except (OSError, UnicodeDecodeError) as err:
         raise DataError(f"cannot read: {err}", source=str(file)) from err
-    data = parse_ipa_csv(text, source=str(file), with_sigma=with_sigma, prefix=prefix)
+    data = parse_ipa_csv(text, source=str(file), with_sigma=with_sigma, prefix=prefix,
+                         with_orientation=with_orientation)
     if max_poses is not None and len(data) > max_poses:
         rng = np.random.default_rng(seed)
         data = data.subset(np.sort(rng.choice(len(data), size=max_poses, replace=False)))

@@ -246,6 +246,25 @@ class KinematicModel:
             J[:, :, _OFF:] = st.lin[:, :, 6 + self._cols] * B[:, None, :]
         return st.p, J
 
+    def pose_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
+        """Positions (n, 3), flange rotations (n, 3, 3) and d pose / d parameters (n, 6, P).
+
+        Rows 0-2: reflector position (m per unit parameter); rows 3-5: angular velocity of
+        the flange frame (rad per unit parameter, tracker frame).
+        """
+        q, x = self._check(q, x)
+        E, _, B = self.joint_errors(q, x)
+        st = self._chain(q, x, E)
+        n = q.shape[0]
+        J = np.zeros((n, 6, self.size))
+        J[:, :3, :6] = st.lin[:, :, :6]
+        J[:, 3:, :6] = st.ang[:, :, :6]
+        J[:, :3, 6:9] = st.R
+        if B.shape[1]:
+            J[:, :3, _OFF:] = st.lin[:, :, 6 + self._cols] * B[:, None, :]
+            J[:, 3:, _OFF:] = st.ang[:, :, 6 + self._cols] * B[:, None, :]
+        return st.p, st.R, J
+
     def joint_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
         """Positions (n, 3), flange rotations (n, 3, 3), and the 6 x dof Jacobian (n, 6, dof).
 
