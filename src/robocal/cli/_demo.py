@@ -233,10 +233,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
             "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
                                                    "stab_ms": 100}},
-            # validation poses are random, some close to the wrist singularity, where the
-            # 6-D correction turns J4/J6 by up to a degree or two
-            "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0,
-                       "max_joint_correction_deg": 3.0},
+            "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
             "measurement": {"samples": 5, "settle_s": 0.0, "backoff_s": 0.01, "retries": 8},
             "fit": {"models": list(_MODELS), "select": "auto", "executor": "process"},
             # the production targets are the validation poses; every one is re-measured

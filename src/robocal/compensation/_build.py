@@ -438,6 +438,7 @@ def targets_table(cal: CalibratedModel, targets: TargetSet, result: Compensation
         "n_targets": float(len(result)), "n_ok": float(okr.size),
         "max_model_residual_mm": float(okr.max() * 1e3) if okr.size else 0.0,
         "n_outside_coverage": float(np.sum(result.ok & ~result.in_coverage)),
+        "n_orientation_relaxed": float(np.sum(result.ok & result.orientation_relaxed)),
         # the seeds are the program's joints when the targets come from a taught program
         "nominal_residual_mm": nominal_residual_mm(cal, targets.q_seed, targets.p),
     }

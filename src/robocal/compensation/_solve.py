@@ -295,7 +295,8 @@ def _check_inputs(cal: CalibratedModel, targets_p: Array, seeds_q: Array,
 def compensate(cal: CalibratedModel, targets_p: Array, seeds_q: Array, *,
                R_targets: Array | None = None, start: str = "auto", tol_m: float = 1e-7,
                tol_rad: float = 1e-6, max_iter: int = 20, rot_weight_m: float = 0.2,
-               relax_orientation: bool = True) -> CompensationResult:
+               relax_orientation: bool = True, max_change_deg: float | None = None
+               ) -> CompensationResult:
     """Joint commands that put the model's reflector exactly on each target.
 
     Parameters
@@ -325,6 +326,11 @@ def compensate(cal: CalibratedModel, targets_p: Array, seeds_q: Array, *,
         Position-only targets whose 6-D problem fails are solved again for position alone
         (minimum-norm steps from the best 6-D iterate); see
         :attr:`CompensationResult.orientation_relaxed`.
+    max_change_deg
+        Position-only targets whose 6-D solution moves a joint farther than this from its
+        seed (near the wrist singularity holding the orientation can turn J4/J6 by tens of
+        degrees) are solved again for position alone, from the seed, with minimum-norm
+        steps; kept when that stays within the bound (flagged ``orientation_relaxed``).
 
     Returns
     -------
@@ -397,6 +403,22 @@ def compensate(cal: CalibratedModel, targets_p: Array, seeds_q: Array, *,
         conv[g] = True
         at_limit[f[~win]] = pos.at_limit[~win]
         relaxed[g] = True
+    if max_change_deg is not None and R_in is None:
+        big = np.max(np.abs(q_last - q_seed), axis=1) > math.radians(max_change_deg)
+        f = np.flatnonzero(conv & big)
+        if f.size:
+            pos = solve_pose(ev, q_seed[f], p_t[f], R_t[f], lim, tol_pos=tol_m,
+                             tol_rot=math.inf, max_iter=max_iter, rot_weight=0.0)
+            small = np.max(np.abs(pos.q - q_seed[f]), axis=1) <= math.radians(max_change_deg)
+            win = pos.converged & small
+            g = f[win]
+            q_last, pos_res, rot_res = q_last.copy(), pos_res.copy(), rot_res.copy()
+            q_last[g], pos_res[g], rot_res[g] = (pos.q[win], pos.pos_residual[win],
+                                                 pos.rot_residual[win])
+            iters = iters.copy()
+            iters[f] += pos.iterations
+            relaxed = relaxed.copy()
+            relaxed[g] = True
     status = np.full(n, "ok", dtype="<U13")
     bad = ~conv
     limited = bad & reachable & (at_limit | ~in_limits)

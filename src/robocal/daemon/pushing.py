@@ -69,11 +69,14 @@ def ideal_positions(cal: CalibratedModel, q: Array) -> Array:
 
 
 def build_campaign_table(cal: CalibratedModel, kind: str, *,
-                         targets_q: Array | None = None) -> CompensationTable:
+                         targets_q: Array | None = None,
+                         max_change_deg: float | None = None) -> CompensationTable:
     """Build a sealed table of ``kind`` from ``cal`` (:func:`robocal.compensation.build_table`).
 
     ``targets`` tables correct the program targets ``targets_q`` (n, dof) rad, i.e. the
-    positions the error-free robot would reach there (:func:`ideal_positions`).
+    positions the error-free robot would reach there (:func:`ideal_positions`); a target
+    whose 6-D correction exceeds ``max_change_deg`` (near the wrist singularity) is solved
+    for position alone (:func:`robocal.compensation.compensate`).
 
     Raises
     ------
@@ -87,7 +90,7 @@ def build_campaign_table(cal: CalibratedModel, kind: str, *,
         # the program joints are the right branch and within a fraction of a degree of the
         # answer: start there, never from a closed-form IK that may pick another branch
         table = build_table(cal, "targets", targets_p=ideal_positions(cal, q), seeds_q=q,
-                            start="seed")
+                            start="seed", max_change_deg=max_change_deg)
     elif kind in ("frames", "joint"):
         table = build_table(cal, kind)  # type: ignore[arg-type]
     else:

@@ -563,7 +563,8 @@ class CalibrationService:
         kind = self.config.compensation.kind
         q_program = self._targets_q(cid)
         table = pushing.build_campaign_table(
-            cal, kind, targets_q=q_program if kind == "targets" else None)
+            cal, kind, targets_q=q_program if kind == "targets" else None,
+            max_change_deg=self.config.limits.max_joint_correction_deg)
         desc = describe_table(table)
         desc.update(model=model, model_id=cal.model_id,
                     program_q_deg=None if q_program is None

@@ -205,3 +205,32 @@ def test_bad_inputs(paper_fit: Fit) -> None:
         compensate(cal, np.zeros((1, 3)), np.zeros((1, 6)), start="guess")
     empty = compensate(cal, np.zeros((0, 3)), np.zeros((0, 6)))
     assert len(empty) == 0 and empty.counts()["ok"] == 0
+
+
+def test_targets_near_the_wrist_singularity_keep_small_corrections(paper_fit: Fit) -> None:
+    """Holding the seed's orientation at J5 ~ 0 turns J4/J6 a long way; with
+    ``max_change_deg`` such targets are solved for position alone, with small corrections,
+    and still land on the target on the true robot."""
+    cell, cal = paper_fit
+    rng = np.random.default_rng(8)
+    q_prog, p_target = _program(cell, cal, 60, rng)
+    q_prog[:, 4] = rng.uniform(-0.002, 0.002, len(q_prog))  # wrist straight
+    nom = KinematicModel(cell.robot, ErrorModelSpec(cell.robot.dof, ()), cell.T_tracker_base)
+    x = nom.nominal_params()
+    x[6:9] = cell.truth_params[6:9]
+    p_target = nom.positions(q_prog, x)
+    full = compensate(cal, p_target, q_prog)
+    bounded = compensate(cal, p_target, q_prog, max_change_deg=3.0)
+    change = np.degrees(np.abs(full.q - q_prog).max(axis=1))
+    assert np.nanmax(change) > 10.0          # the 6-D answer swings the wrist
+    ok = bounded.ok
+    assert ok.all()
+    assert np.degrees(np.abs(bounded.q - q_prog).max()) <= 3.0
+    relaxed = bounded.orientation_relaxed
+    assert relaxed[change > 3.0].all() and relaxed.sum() < len(relaxed)
+    np.testing.assert_allclose(cal.predict(bounded.q[ok]), p_target[ok], atol=1e-7)
+    landed = cell.reflector_position(bounded.q[ok])
+    err = _rms(np.linalg.norm(landed - p_target[ok], axis=1))
+    model_err = _rms(np.linalg.norm(cal.predict(bounded.q[ok])
+                                    - cell.reflector_position(bounded.q[ok]), axis=1))
+    assert err <= 1.5 * model_err + 3e-6
