@@ -26,7 +26,7 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any, ClassVar, Literal, NoReturn
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from robocal.drivers._base import DriverBase, DriverOptions
 from robocal.drivers.api import TrackerReading
@@ -357,6 +357,7 @@ class EmsconTracker(DriverBase):
         self._lock = asyncio.Lock()
         self._meas_time_sent: int | None = None
         self._last_vals: tuple[float, float, float] | None = None
+        self._reconnecting = False
 
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:
@@ -476,9 +477,13 @@ class EmsconTracker(DriverBase):
             await transport.close()
         self.log.warning("link lost; reconnecting")
         deadline = time.monotonic() + self.options.request_timeout_s
-        with self.translate_errors(connecting=True):
-            await self._open(deadline)
-            await self._setup(deadline, initialise=False)
+        self._reconnecting = True  # no nested reconnects from the set-up's own commands
+        try:
+            with self.translate_errors(connecting=True):
+                await self._open(deadline)
+                await self._setup(deadline, initialise=False)
+        finally:
+            self._reconnecting = False
 
     # --- packet exchange -----------------------------------------------------------------------
     async def _read_packets(self, deadline: float) -> list[emscon.Packet | _Bad]:
@@ -703,7 +708,12 @@ class EmsconTracker(DriverBase):
                                 await self._drain(o.abort_drain_s)
                             raise
             except ConnectFailed:
-                if reconnected or not o.reconnect or self.state != "connected":
+                if (
+                    reconnected
+                    or self._reconnecting
+                    or not o.reconnect
+                    or self.state != "connected"
+                ):
                     raise
                 reconnected = True
                 await self._reconnect()
@@ -769,7 +779,10 @@ class EmsconTracker(DriverBase):
 
     async def set_environment(self, temp_c: float, press_hpa: float, hum_pct: float) -> None:
         """Send meteo values (°C, hPa = mbar, % RH; the session's units)."""
-        env = EmsconEnvironment(temp_c=temp_c, press_hpa=press_hpa, hum_pct=hum_pct)
+        try:
+            env = EmsconEnvironment(temp_c=temp_c, press_hpa=press_hpa, hum_pct=hum_pct)
+        except ValidationError as err:
+            raise ConfigError(str(err.errors()[0]["msg"]), source="set_environment") from err
         await self._call(
             Cmd.SET_ENVIRONMENT_PARAMS,
             {"temperature": env.temp_c, "pressure": env.press_hpa, "humidity": env.hum_pct},

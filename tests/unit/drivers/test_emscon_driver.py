@@ -30,7 +30,14 @@ from robocal.drivers.emscon import (
 from robocal.drivers.sim import SimWorld
 from robocal.drivers.sim.emscon import EmsconFaults, EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.faults import FaultConfig
-from robocal.errors import BeamLost, ConfigError, DriverTimeout, UnexpectedReply, Unstable
+from robocal.errors import (
+    BeamLost,
+    ConfigError,
+    ConnectFailed,
+    DriverTimeout,
+    UnexpectedReply,
+    Unstable,
+)
 from robocal.protocols import emscon
 from robocal.protocols.emscon import Cmd
 
@@ -247,6 +254,8 @@ async def test_meteo_out_of_range_and_units_verified(world):
                                                 "hum_pct": 40.0}):
                 pass
     async with running(world, monitor_overrides_meteo=False) as sim, driver(sim) as tracker:
+        with pytest.raises(ConfigError, match="less than or equal to 100"):
+            await tracker.set_environment(18.5, 950.0, 130.0)
         await tracker.set_environment(18.5, 950.0, 30.0)
         r = await tracker.measure(samples=1, timeout=2.0)
         assert r.weather == {"temp_c": 18.5, "press_hpa": 950.0, "hum_pct": 30.0}
@@ -432,6 +441,14 @@ async def test_garbage_packet_types_from_shared_faults(world):
         for _ in range(4):
             await tracker.measure(samples=1, timeout=1.0)
     assert sim.faults.counts["garbage"] >= 2
+
+
+async def test_a_server_that_keeps_dropping_fails_cleanly(world):
+    async with running(world, initialized=True) as sim, driver(sim) as tracker:
+        sim.faults = type(sim.faults)(FaultConfig(drop_rate=1.0))
+        with pytest.raises(ConnectFailed):
+            await tracker.measure(samples=1, timeout=1.0)
+        assert len(sim.commands) < 40  # one reconnect, no reconnect storm
 
 
 async def test_dropped_connection_is_reconnected(world):
