@@ -47,7 +47,7 @@ from robocal.identification._models import (
     weak_knots,
     weak_penalty,
 )
-from robocal.identification._solver import Problem, analyse
+from robocal.identification._solver import Problem, analyse_jacobian
 from robocal.kinematics import COMPONENTS, ErrorModelSpec, KinematicModel, Term, gravity_torques
 
 if TYPE_CHECKING:
@@ -300,7 +300,7 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
     # identifiable unpenalised columns (tiers keep low orders first)
     map_cols = set(int(c) for g in groups if g.is_map for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
-    ident, keep, _ = analyse(prob, x_c, rows, unpen, tol=opts.rank_tol)
+    ident, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
     kept = set(int(c) for c in unpen[keep])
     base_cols = np.array([i for i in range(9 + len(base_terms)) if i in kept], dtype=np.intp)
     for g in groups:

@@ -25,7 +25,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
 from robocal.errors import DataError, IdentificationError
 from robocal.identification._metrics import Accuracy, accuracy
-from robocal.identification._solver import Problem, analyse, levenberg_marquardt
+from robocal.identification._solver import Problem, analyse_jacobian, levenberg_marquardt
 from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
@@ -322,7 +322,7 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
     prob = Problem(model, qc, pc, W)
     rows = np.arange(n_convert)
     x0 = model.nominal_params()
-    _, keep, _ = analyse(prob, x0, rows, np.arange(model.size), tol=1e-6)
+    _, keep, _ = analyse_jacobian(prob, x0, rows, np.arange(model.size), tol=1e-6)
     info = levenberg_marquardt(prob, x0, np.flatnonzero(keep), rows, max_iter=200)
     conv = float(np.sqrt(np.mean(np.sum((model.positions(qc, info.x) - pc) ** 2, axis=1))))
     notes = []

@@ -18,7 +18,7 @@ from robocal.identification._solver import (
     Identifiability,
     Problem,
     SolveInfo,
-    analyse,
+    analyse_jacobian,
     inverse_spd,
     levenberg_marquardt,
 )
@@ -153,7 +153,7 @@ class Engine:
         pen_idx = np.array([i for i, nm in enumerate(names) if nm in pen], dtype=np.intp)
         active = np.ones(self.n, dtype=bool) if inliers is None else inliers.copy()
         rows = np.flatnonzero(active)
-        ident, keep, _ = analyse(prob, x0, rows, cand, tol=self.s.rank_tol)
+        ident, keep, _ = analyse_jacobian(prob, x0, rows, cand, tol=self.s.rank_tol)
         free = np.sort(np.concatenate([cand[keep], pen_idx])).astype(np.intp)
         removed = [names[i] for i in cand[~keep]]
         if len(rows) < min_poses(ident.rank, min_redundancy=self.s.min_redundancy) \

@@ -364,8 +364,8 @@ def _tsqr(prob: Problem, x: Array, rows: IntArray, cols: IntArray, scale: Array)
     return R
 
 
-def analyse(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *, tol: float = 1e-6
-            ) -> tuple[Identifiability, BoolArray, Array]:
+def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
+                     tol: float = 1e-6) -> tuple[Identifiability, BoolArray, Array]:
     """Rank analysis of the columns ``cols`` at ``x`` over poses ``rows``.
 
     Returns the report, a mask over ``cols`` of the kept (identifiable) columns, and the
@@ -489,5 +489,5 @@ def identifiability(model: KinematicModel, q: Array, x: Array, *, W: Array | Non
     else:
         idx = {nm: i for i, nm in enumerate(model.names)}
         cols = np.array([idx[nm] for nm in params], dtype=np.intp)
-    rep, _, _ = analyse(prob, x, np.arange(len(q)), cols, tol=tol)
+    rep, _, _ = analyse_jacobian(prob, x, np.arange(len(q)), cols, tol=tol)
     return rep

@@ -625,3 +625,12 @@ async def test_late_reply_after_an_error_packet_does_not_answer_the_next_measure
         await tracker.close()
         server.close()
         await server.wait_closed()
+
+
+async def test_injected_bad_sizes_are_survived_by_reconnecting(world):
+    rates = EmsconFaults(bad_size_rate=0.04)
+    async with running(world, initialized=True, faults=rates) as sim, driver(sim) as tracker:
+        for _ in range(12):
+            assert_close(await tracker.measure(samples=1, timeout=1.0), world)
+        assert sim.emscon_faults.counts["bad_size"] >= 1
+        assert names(sim).count("GetSystemStatus") == 1 + sim.emscon_faults.counts["bad_size"]
