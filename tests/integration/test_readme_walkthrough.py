@@ -1,0 +1,96 @@
+"""The README's command blocks, run verbatim: the offline walkthrough, then the daemon one.
+
+The two set-up commands are what CI runs itself (``.ci/run`` and ``test_demo``); the
+activation line is replaced by putting this interpreter's ``bin`` first on ``PATH``. Every
+other ``sh`` block under "Using it" runs exactly as written, in order, in one bash process per
+block, inside a scratch directory that holds a link to the checkout's ``deploy/``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+ACTIVATE = ". .venv/bin/activate"
+SIM_PORTS = range(17001, 17006)
+
+
+def _using_blocks() -> list[str]:
+    text = (REPO / "README.md").read_text()
+    using = text.split("## Using it", 1)[1].split("\n## ", 1)[0]
+    return [b.strip() for b in re.findall(r"```sh\n(.*?)```", using, flags=re.S)]
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:  # as the simulators bind: TIME_WAIT leftovers do not count
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _run(block: str, cwd: Path, env: dict[str, str], timeout: float
+         ) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.Popen(["bash", "-euo", "pipefail", "-c", block], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate()
+        raise AssertionError(f"README block timed out after {timeout} s:\n{block}\n{out}"
+                             ) from None
+    finally:  # nothing the block started in the background outlives it
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+    return subprocess.CompletedProcess(block, proc.returncode, out, "")
+
+
+def test_readme_blocks_are_activation_offline_and_daemon() -> None:
+    blocks = _using_blocks()
+    assert blocks[0] == ACTIVATE
+    assert len(blocks) == 3
+    assert "robocal fit" in blocks[1] and "robocal daemon" in blocks[2]
+
+
+@pytest.mark.slow
+def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
+    busy = [p for p in SIM_PORTS if not _port_free(p)]
+    if busy:
+        pytest.fail(f"the README's simulator ports {busy} are taken on this machine")
+    (tmp_path / "deploy").symlink_to(REPO / "deploy")
+    env = dict(os.environ)
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    env.pop("ROBOCAL_CONFIG", None)
+    _, offline, daemon = _using_blocks()
+
+    out = _run(offline, tmp_path, env, timeout=600)
+    assert out.returncode == 0, out.stdout[-4000:]
+    try_dir = tmp_path / "try"
+    for name in ("plan.json", "meas.csv", "meas-val.csv", "model.json", "pred.csv",
+                 "joints.csv", "targets-table.json", "report.html", "report.json"):
+        assert (try_dir / name).is_file(), name
+    assert "Calibration succeeded" in out.stdout
+
+    out = _run(daemon, tmp_path, env, timeout=900)
+    log = (tmp_path / "cell" / "daemon.log")
+    assert out.returncode == 0, out.stdout[-4000:] + (
+        log.read_text()[-3000:] if log.exists() else "")
+    text = out.stdout
+    assert re.search(r"held-out RMS: .*auto \d+\.\d+ mm", text), text[-3000:]
+    assert "approved model auto" in text and "pushed model auto, kind targets" in text
+    assert "rolled back" in text.lower() or "rollback" in text.lower(), text[-2000:]
+    for port in SIM_PORTS:  # the block's own `kill` stopped the simulators and the daemon
+        assert _port_free(port), f"port {port} still in use after the walkthrough"
