@@ -44,6 +44,11 @@ class DataError(ConfigError):
     """A measurement or joint file is unusable (missing columns, NaN, wrong joint count)."""
 
 
+class FileWriteError(ConfigError, OSError):
+    """An output file could not be written (a directory, no such folder, no permission, disk
+    full). Also an ``OSError``, so code that handles I/O failures still sees it."""
+
+
 # --- drivers ----------------------------------------------------------------------------------
 class DriverError(RobocalError):
     """A driver failed. ``kind`` names the driver."""

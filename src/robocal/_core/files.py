@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 import tempfile
@@ -11,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from robocal.errors import ConfigError
+from robocal.errors import ConfigError, FileWriteError
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -20,10 +21,16 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     The data are flushed to disk before the rename and the directory entry after it, so a
     power cut leaves the old file or the new one. On any error the temporary file is removed
     and ``path`` keeps its previous content (or stays absent). The temporary name is unique
-    (``mkstemp``), so two writers never share one.
+    (``mkstemp``), so two writers never share one. Failures (``path`` a directory, no such
+    folder, no permission, disk full) raise :class:`FileWriteError`, also an ``OSError``.
     """
     path = Path(path)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    if path.is_dir():
+        raise FileWriteError("is a directory; name a file to write", source=str(path))
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as err:
+        raise FileWriteError(f"cannot write: {err.strerror or err}", source=str(path)) from err
     tmp = Path(name)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
@@ -33,6 +40,10 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         # mkstemp creates 0600; a written file gets the permissions an ordinary one would
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise FileWriteError(f"cannot write: {err.strerror or err}", source=str(path)) from err
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

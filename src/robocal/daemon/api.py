@@ -202,6 +202,10 @@ async def _body(request: web.Request, model: type[_Request], *, required: bool) 
         data = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise web.HTTPBadRequest(reason=f"body is not valid JSON: {err}") from err
+    except RecursionError as err:
+        raise web.HTTPBadRequest(reason="body is not valid JSON: nested too deeply") from err
+    except ValueError as err:  # e.g. an integer of more than 4300 digits
+        raise web.HTTPBadRequest(reason=f"body is not valid JSON: {err}") from err
     if not isinstance(data, dict):
         raise web.HTTPBadRequest(reason="body must be a JSON object")
     try:
@@ -357,7 +361,7 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
 
 
 def make_app(service: CalibrationService, *, token: str | None = None,
-             max_body_bytes: int = 8 * 1024 * 1024,
+             max_body_bytes: int = 2 * 1024 * 1024,
              body_timeout_s: float = 60.0) -> web.Application:
     """The aiohttp application; with ``token``, every request must carry it (TCP)."""
     middlewares: list[Any] = [_errors]

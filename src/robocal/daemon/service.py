@@ -239,7 +239,8 @@ class CalibrationService:
         CampaignError
             ``start`` while another campaign is measuring.
         """
-        doc = plan if isinstance(plan, PlanDoc) else parse_plan(plan)
+        # Validation is pure computation: off the event loop, which keeps serving meanwhile.
+        doc = plan if isinstance(plan, PlanDoc) else await asyncio.to_thread(parse_plan, plan)
         self._check_plan(doc)
         if start:
             self._ensure_idle()

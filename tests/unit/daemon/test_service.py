@@ -339,3 +339,51 @@ async def test_start_refuses_when_a_device_does_not_answer(tmp_path):
         assert svc.list() == []
     finally:
         await svc.stop()
+
+
+async def test_a_push_retried_with_its_idempotency_key_never_writes_twice(service):
+    svc = await service(limits={"max_joint_correction_deg": 5.0},
+                        compensation={"verify_count": 0})
+    st = await svc.create(program_plan(36, validation=6), actor="a")
+    cid = st["id"]
+    await svc.wait(cid, ["fitted"], timeout=60)
+    await svc.approve(cid, actor="a")
+    robot = await svc.hub.robot()
+    writes = []
+    original = robot.write_compensation
+
+    async def counting(table):
+        writes.append(table.checksum)
+        await original(table)
+
+    robot.write_compensation = counting
+    st = await svc.push(cid, actor="a", key="retry-key-0001")
+    assert st["state"] == "pushed" and st["push"]["key"] == "retry-key-0001"
+    again = await svc.push(cid, actor="a", key="retry-key-0001")  # e.g. the reply was lost
+    assert again["push"] == st["push"] and len(writes) == 1
+    assert [a["action"] for a in svc.audit()].count("compensation.push") == 1
+    with pytest.raises(ApprovalRequired):  # without the key it is a new push: refused
+        await svc.push(cid, actor="a")
+    other = await svc.create(program_plan(36, seed=3, validation=6), actor="a")
+    await svc.wait(other["id"], ["fitted"], timeout=60)
+    await svc.approve(other["id"], actor="a")
+    with pytest.raises(CampaignError, match="another action"):
+        await svc.push(other["id"], actor="a", key="retry-key-0001")
+    assert len(writes) == 1
+
+
+async def test_a_push_that_fails_to_verify_puts_the_previous_values_back(service):
+    svc = await service(robot={"options": {"corrupt_readback": True}},
+                        limits={"max_joint_correction_deg": 5.0},
+                        compensation={"verify_count": 0})
+    st = await svc.create(program_plan(36, validation=6), actor="a")
+    await svc.wait(st["id"], ["fitted"], timeout=60)
+    await svc.approve(st["id"], actor="a")
+    with pytest.raises(VerificationMismatch):
+        await svc.push(st["id"], actor="a")
+    failed = svc.audit()[-1]
+    assert failed["action"] == "compensation.push-failed"
+    # the mock held nothing before: that snapshot was written back and verified
+    assert "previous values were written back and verified" in failed["detail"]["reason"]
+    entry = svc.journal.entries(campaign=st["id"])[-1]
+    assert entry.state == "abandoned" and not svc.journal.pending()
