@@ -48,8 +48,9 @@ def model_spec(robot: RobotDescription, model: str | ErrorModelSpec) -> ErrorMod
     ``"constant"``: a constant 6-DoF error per joint. ``"high-order"``: orders 0-2 Fourier
     terms of every error component, a pitch term (linear in q) on each joint's angle, and
     strain-wave ripple at 1 and 2 times the gear ratio where the robot file gives one (the
-    model of docs/paper-notes section 7). ``"auto"``: identification picks the model on
-    validation data among these, so the plan is optimised for the richest, ``high-order``.
+    structure of Ma et al., RCIM 2018; docs/adr/0002 decision 4). ``"auto"``: identification
+    picks the model on validation data among these, so the plan is optimised for the
+    richest, ``high-order``.
     An :class:`ErrorModelSpec` is used as given.
 
     Raises

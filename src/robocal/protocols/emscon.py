@@ -1,8 +1,8 @@
 """Sans-I/O codec of the Leica emScon Tracker Programming Interface (binary C-API over TCP).
 
-Facts (sizes, offsets, IDs, codes) are taken from ``docs/emscon.md`` of the shared research
-notes (itself citing the Leica TPI/SDK 3.6 and 3.8 headers and user code); see
-``docs/protocols/emscon.md`` for what this codec covers.
+Facts (sizes, offsets, IDs, codes) are those of the Leica emScon TPI/SDK 3.6 and 3.8
+headers as used by public client code; ``docs/protocols/emscon.md`` says what this codec
+covers and which points are still open.
 
 Wire layout: every packet, both directions, is a little-endian C struct packed to 4 bytes::
 

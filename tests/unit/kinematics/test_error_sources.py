@@ -67,7 +67,7 @@ def test_link_length_and_assembly_error(rng: np.random.Generator) -> None:
 
 def test_rotating_centre_offset_is_first_harmonic(rng: np.random.Generator) -> None:
     # E_RC pre-multiplied: a constant translation before the joint rotation becomes
-    # cos/sin(q) terms of the in-plane translation after it (paper-notes 2.2 identity).
+    # cos/sin(q) terms of the in-plane translation after it (a trigonometric identity).
     # The identity needs the chain angle to be the joint value: joint 1 (sign +1, uncoupled).
     off = np.array([3e-4, -2e-4, 1e-4])
     ref = _ref(pre=_at(lambda q: tr(*off), 0))

@@ -48,7 +48,7 @@ def test_observability_indices_follow_their_definitions(rng: np.random.Generator
 def test_identifiable_parameters_of_the_lr_mate(robot: RobotDescription, pool: Pool) -> None:
     q, _f = pool
     ds = DesignSpace(robot, model_spec(robot, "constant"), q[:300], np.asarray(robot.tool))
-    # docs/paper-notes section 2.3: 45 parameters, 27 identifiable from positions
+    # 45 parameters, 27 identifiable from positions (docs/adr/0002 decision 2)
     assert len(ds.names) == 45 and ds.identifiable == 27
     assert ds.min_poses == 9 and ds.recommended_poses == 27
     assert len(ds.unidentifiable) == 18

@@ -1,7 +1,8 @@
-"""emScon codec: golden bytes from the note's layout tables, round trips, and the framer.
+"""emScon codec: golden bytes from the TPI's layout tables, round trips, and the framer.
 
-The golden packets are built here field by field at the offsets printed in the research note
-(``docs/emscon.md`` sections 2-4), independently of the codec's own format strings.
+The golden packets are built here field by field at the offsets of the Leica TPI structs
+(4-byte packing, little-endian; see docs/protocols/emscon.md), independently of the codec's
+own format strings.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""FANUC RMI codec: golden packets from protocols.md 1.1, first-key rule, ErrorIDs, garbage."""
+"""FANUC RMI codec: golden packets (docs/protocols/fanuc-rmi.md), first-key rule, garbage."""
 
 from __future__ import annotations
 

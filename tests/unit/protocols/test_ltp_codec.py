@@ -1,4 +1,4 @@
-"""LTP/1 codec: golden lines from protocols.md 2.5, round trips, garbage."""
+"""LTP/1 codec: golden lines from docs/protocols/ltp1.md, round trips, garbage."""
 
 from __future__ import annotations
 
