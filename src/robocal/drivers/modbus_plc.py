@@ -1,6 +1,6 @@
 """A robot behind a PLC (or a robot's own Modbus server) over Modbus-TCP.
 
-The register map and handshake are those of protocols.md 1.5 (see
+The register map and handshake are those of docs/protocols/modbus-plc.md (see
 :mod:`robocal.protocols.modbus`): payload registers first, then ``CMD`` and ``CMD_SEQ`` in one
 FC16 write, then poll ``ACK_SEQ`` until it equals ``CMD_SEQ``; ``STATUS`` 2 is success and 3
 means ``ERROR_CODE`` says why. :meth:`ModbusPlcRobot.stop` writes ``CMD 9`` (ABORT) with the
@@ -61,7 +61,7 @@ class ModbusPlcOptions(RobotOptions):
     host, port
         Modbus-TCP server.
     register_map
-        Addresses, FLOAT32 word order and device id (defaults: protocols.md 1.5).
+        Addresses, FLOAT32 word order and device id (defaults: docs/protocols/modbus-plc.md).
     request_timeout_s
         Per Modbus request, seconds.
     poll_interval_s

@@ -1,4 +1,4 @@
-"""A PLC simulator behind a real pymodbus ``ModbusTcpServer`` (protocols.md 1.5).
+"""A PLC simulator behind a real pymodbus ``ModbusTcpServer`` (docs/protocols/modbus-plc.md).
 
 The PLC program is the ``SimDevice`` action hook: a write of ``CMD_SEQ`` + ``CMD`` starts the
 command; the PLC sets ``STATUS`` busy, runs it (a motion of the shared :class:`SimWorld`
