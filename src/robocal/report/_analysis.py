@@ -125,14 +125,39 @@ def analyse(inp: ReportInput) -> Analysis:
     selected = inp.selected_name()
     sel_entry = entries.get(selected) if selected else None
     sel_cm = sel_entry.calibrated if sel_entry else None
+    robot = _robot_of(inp, entries, sel_cm)
+    data = {k: v for k, v in (("calibration", inp.calibration),
+                              ("validation", inp.validation)) if v is not None}
+    entries, baseline_note = _with_baseline(inp, entries, sel_cm)
+    outliers = tuple(sel_entry.outliers) if sel_entry else ()
+    val_glitches = _validation_glitches(inp, sel_cm, outliers)
+    outliers = outliers + val_glitches
+    out_set = set(outliers)
+    models = _stored_baseline(_model_results(entries, data, out_set), selected)
+    ident, work = _identifiability_and_workspace(inp, sel_entry, sel_cm, out_set)
+    judged = _judged(inp, models, selected, sel_entry, ident, outliers, out_set)
+    v = verdict(judged, inp.acceptance)
+    joint_model, joints = _joint_curves(entries, selected)
+    iso = _iso(inp, entries.get(BASELINE), sel_cm)
+    return Analysis(inp, robot, models, selected, baseline_note, outliers, val_glitches,
+                    judged, v,
+                    joint_model, joints, ident, work, iso, _hashes(data, entries))
+
+
+def _robot_of(inp: ReportInput, entries: dict[str, ModelEntry],
+              sel_cm: CalibratedModel | None) -> RobotDescription | None:
+    """The robot given, else the judged model's, else the first model's."""
     robot = inp.robot or (sel_cm.robot if sel_cm is not None else None)
     if robot is None:
         robot = next((e.calibrated.robot for e in entries.values()
                       if e.calibrated is not None), None)
-    data = {k: v for k, v in (("calibration", inp.calibration),
-                              ("validation", inp.validation)) if v is not None}
+    return robot
 
-    # the baseline: given, carried by a FitResult, or fitted here on the calibration poses
+
+def _with_baseline(inp: ReportInput, entries: dict[str, ModelEntry],
+                   sel_cm: CalibratedModel | None) -> tuple[dict[str, ModelEntry], str]:
+    """Entries with the baseline first (given, carried by a FitResult, or fitted here on the
+    calibration poses) and the sentence describing it."""
     baseline_note = "nominal kinematics with only the tracker←base transform and the " \
                     "reflector offset fitted on the calibration poses"
     if BASELINE not in entries:
@@ -144,22 +169,28 @@ def analyse(inp: ReportInput) -> Analysis:
             baseline_note += " (fitted by the report: no nominal fit was given)"
         if b is not None:
             entries = {BASELINE: model_entry(BASELINE, b), **entries}
+    return entries, baseline_note
 
-    outliers = tuple(sel_entry.outliers) if sel_entry else ()
+
+def _validation_glitches(inp: ReportInput, sel_cm: CalibratedModel | None,
+                         outliers: tuple[str, ...]) -> tuple[str, ...]:
+    """Held-out poses that are gross glitches under the judged model."""
     # held-out poses are not screened by the fit: flag gross glitches (beam breaks) with a
     # scale-free robust rule on the judged model's errors (|r| > factor x median |r|)
-    val_glitches: tuple[str, ...] = ()
     factor = inp.acceptance.validation_outlier_factor
-    if inp.validation is not None and sel_cm is not None and factor > 0:
-        r = np.linalg.norm(inp.validation.p - sel_cm.predict(inp.validation.q), axis=1)
-        med = float(np.median(r))
-        if med > 0:
-            val_glitches = tuple(inp.validation.pose_id[i]
-                                 for i in np.flatnonzero(r > factor * med)
-                                 if inp.validation.pose_id[i] not in set(outliers))
-    outliers = outliers + val_glitches
-    out_set = set(outliers)
+    if inp.validation is None or sel_cm is None or factor <= 0:
+        return ()
+    r = np.linalg.norm(inp.validation.p - sel_cm.predict(inp.validation.q), axis=1)
+    med = float(np.median(r))
+    if not med > 0:
+        return ()
+    return tuple(inp.validation.pose_id[i] for i in np.flatnonzero(r > factor * med)
+                 if inp.validation.pose_id[i] not in set(outliers))
 
+
+def _model_results(entries: dict[str, ModelEntry], data: dict[str, MeasurementSet],
+                   out_set: set[str]) -> dict[str, ModelResult]:
+    """Errors of every model on every pose set, from the data or else from stored figures."""
     models: dict[str, ModelResult] = {}
     base_norms: dict[str, Array] = {}
     base_entry = entries.get(BASELINE)
@@ -185,87 +216,108 @@ def analyse(inp: ReportInput) -> Analysis:
                 if st is not None:
                     mr.sets[which] = SetResult(st, desc, source="stored", baseline_stats=bst)
         models[name] = mr
+    return models
 
-    # no data and no nominal model: show the baseline figures the judged fit stored
+
+def _stored_baseline(models: dict[str, ModelResult], selected: str | None
+                     ) -> dict[str, ModelResult]:
+    """With no data and no nominal model: the baseline figures the judged fit stored."""
     if BASELINE not in models and selected in models:
         stored_base = {w: SetResult(sr.baseline_stats, source="stored")
                        for w, sr in models[selected].sets.items()
                        if sr.source == "stored" and sr.baseline_stats is not None}
         if stored_base:
             models = {BASELINE: ModelResult(ModelEntry(BASELINE, None), stored_base), **models}
+    return models
 
-    ident = None
-    work = None
-    if sel_cm is not None:
-        q = inp.calibration.q if inp.calibration is not None else None
-        if q is not None and out_set:
-            q = q[_mask(inp.calibration, out_set)]  # type: ignore[arg-type]
-        removed = sel_entry.removed if sel_entry else ()
-        have_sv = bool(sel_entry and sel_entry.fit_info.get("singular_values"))
-        with blas_threads(1):
-            ident = identifiability(sel_cm, q, removed, svd=not have_sv)
-            if sel_entry is not None:
-                ident.use_fit(sel_entry.fit_info)
-            work = workspace(sel_cm, inp.workspace_samples, inp.seed)
 
-    # what the verdict judges
-    judged = None
-    if selected and selected in models:
-        mr = models[selected]
-        on = "validation" if "validation" in mr.sets else "calibration"
-        sr = mr.sets.get(on)
-        if sr is not None:
-            base = models.get(BASELINE)
-            bstats = (base.sets[on].stats if base is not None and on in base.sets
-                      else sr.baseline_stats)
-            cal = mr.sets.get("calibration")
-            n_out = len(outliers)
-            expected = 1.0
-            if ident is not None and cal is not None and cal.stats is not None:
-                m_coords = 3 * cal.stats.n
-                # effective parameter count (smoothness priors make it < n_free) if known
-                p_eff = float(sel_entry.fit_info.get("dof_effective") or ident.n_free
-                              if sel_entry else ident.n_free)
-                if 0 < p_eff < m_coords:
-                    expected = math.sqrt(m_coords / (m_coords - p_eff))
-            if inp.calibration is not None:
-                n_poses = len(inp.calibration)
-                n_out = int(np.sum(~_mask(inp.calibration, out_set)))
-            else:
-                n_poses = cal.stats.n + n_out if cal is not None and cal.stats else 0
-            if inp.validation is not None:
-                n_poses += len(inp.validation)
-                n_out += int(np.sum(~_mask(inp.validation, out_set)))
-            judged = Judged(selected, on, sr.stats, bstats, sr.described,
-                            None if cal is None or cal.stats is None or on == "calibration"
-                            else cal.stats.rms_m,
-                            n_outliers=n_out, n_poses=n_poses, expected_ratio=expected,
-                            status=sel_entry.status if sel_entry else "")
-    v = verdict(judged, inp.acceptance)
+def _identifiability_and_workspace(inp: ReportInput, sel_entry: ModelEntry | None,
+                                   sel_cm: CalibratedModel | None, out_set: set[str]
+                                   ) -> tuple[Identifiability | None, Workspace | None]:
+    """Identifiability at the calibration inliers and workspace coverage of the judged model."""
+    if sel_cm is None:
+        return None, None
+    q = inp.calibration.q if inp.calibration is not None else None
+    if q is not None and out_set:
+        q = q[_mask(inp.calibration, out_set)]  # type: ignore[arg-type]
+    removed = sel_entry.removed if sel_entry else ()
+    have_sv = bool(sel_entry and sel_entry.fit_info.get("singular_values"))
+    with blas_threads(1):
+        ident = identifiability(sel_cm, q, removed, svd=not have_sv)
+        if sel_entry is not None:
+            ident.use_fit(sel_entry.fit_info)
+        work = workspace(sel_cm, inp.workspace_samples, inp.seed)
+    return ident, work
 
-    # per-joint error curves: the richest of selected / high-order / auto
-    joint_model = None
-    joints: list[JointCurves] = []
+
+def _judged(inp: ReportInput, models: dict[str, ModelResult], selected: str | None,
+            sel_entry: ModelEntry | None, ident: Identifiability | None,
+            outliers: tuple[str, ...], out_set: set[str]) -> Judged | None:
+    """What the verdict judges: the selected model on validation, else on calibration."""
+    if not (selected and selected in models):
+        return None
+    mr = models[selected]
+    on = "validation" if "validation" in mr.sets else "calibration"
+    sr = mr.sets.get(on)
+    if sr is None:
+        return None
+    base = models.get(BASELINE)
+    bstats = (base.sets[on].stats if base is not None and on in base.sets
+              else sr.baseline_stats)
+    cal = mr.sets.get("calibration")
+    n_out = len(outliers)
+    expected = 1.0
+    if ident is not None and cal is not None and cal.stats is not None:
+        m_coords = 3 * cal.stats.n
+        # effective parameter count (smoothness priors make it < n_free) if known
+        p_eff = float(sel_entry.fit_info.get("dof_effective") or ident.n_free
+                      if sel_entry else ident.n_free)
+        if 0 < p_eff < m_coords:
+            expected = math.sqrt(m_coords / (m_coords - p_eff))
+    if inp.calibration is not None:
+        n_poses = len(inp.calibration)
+        n_out = int(np.sum(~_mask(inp.calibration, out_set)))
+    else:
+        n_poses = cal.stats.n + n_out if cal is not None and cal.stats else 0
+    if inp.validation is not None:
+        n_poses += len(inp.validation)
+        n_out += int(np.sum(~_mask(inp.validation, out_set)))
+    return Judged(selected, on, sr.stats, bstats, sr.described,
+                  None if cal is None or cal.stats is None or on == "calibration"
+                  else cal.stats.rms_m,
+                  n_outliers=n_out, n_poses=n_poses, expected_ratio=expected,
+                  status=sel_entry.status if sel_entry else "")
+
+
+def _joint_curves(entries: dict[str, ModelEntry], selected: str | None
+                  ) -> tuple[str | None, list[JointCurves]]:
+    """Per-joint error curves of the richest of selected / high-order / auto."""
     for cand in (selected, "high-order", "auto"):
         ce = entries.get(cand) if cand else None
         if ce is None or ce.calibrated is None:
             continue
         cm = ce.calibrated
         if any(t.family not in ("const", "gravity") for t in cm.model.spec.terms):
-            joint_model = cand
             pts = max(181, 4 * max(cm.model.spec.map_knots, default=0))
-            joints = [joint_curves(cm, j, points=pts, removed=ce.removed)
-                      for j in range(cm.robot.dof)]
-            break
+            return cand, [joint_curves(cm, j, points=pts, removed=ce.removed)
+                          for j in range(cm.robot.dof)]
+    return None, []
 
+
+def _iso(inp: ReportInput, base_entry: ModelEntry | None, sel_cm: CalibratedModel | None
+         ) -> list[IsoResult]:
+    """ISO 9283 results of the given series, or of series built from ISO measurements."""
     series = list(inp.iso)
     if not series and inp.iso_measurements is not None and sel_cm is not None:
         base_cm = base_entry.calibrated if base_entry is not None else None
         series = iso_series_from_measurements(
             inp.iso_measurements, inp.iso_purposes, command=base_cm or sel_cm,
             predicted=sel_cm if base_cm is not None else None)
-    iso = [iso9283(s) for s in series]
+    return [iso9283(s) for s in series]
 
+
+def _hashes(data: dict[str, MeasurementSet], entries: dict[str, ModelEntry]) -> dict[str, Any]:
+    """Version, data digests and model identities that make the report traceable."""
     hashes: dict[str, Any] = {"robocal": __version__}
     for which, d in data.items():
         hashes[f"{which}_sha256"] = d.digest()
@@ -274,6 +326,4 @@ def analyse(inp: ReportInput) -> Analysis:
                             "created": e.calibrated.created,
                             "data": dict(e.calibrated.data or {})}
                         for n, e in entries.items() if e.calibrated is not None}
-    return Analysis(inp, robot, models, selected, baseline_note, outliers, val_glitches,
-                    judged, v,
-                    joint_model, joints, ident, work, iso, hashes)
+    return hashes
