@@ -17,10 +17,6 @@ class RobocalError(Exception):
     """Root of every error robocal raises."""
 
 
-class RobocalWarning(UserWarning):
-    """Root of every warning robocal emits."""
-
-
 # --- input ------------------------------------------------------------------------------------
 class ConfigError(RobocalError, ValueError):
     """A configuration, description or data file is invalid.
@@ -154,10 +150,6 @@ class NotIdentifiable(IdentificationError, ValueError):
 
 class NotConverged(IdentificationError):
     """An iterative solver did not converge."""
-
-
-class NotFitted(IdentificationError, ValueError, AttributeError):
-    """A model was used before it was fitted."""
 
 
 class CompensationError(RobocalError):
