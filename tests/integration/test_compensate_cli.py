@@ -47,7 +47,8 @@ def test_compensate_writes_joints(files: dict[str, Path], capsys: pytest.Capture
     rc = main(["compensate", "--model", str(files["model"]), "--targets", str(files["targets"]),
                "--out", str(out), "--table", str(files["dir"] / "t.json")])
     assert rc == 0
-    assert "12 ok" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "12 ok" in text
     rows = _rows(out)
     assert list(rows[0]) == ["q1", "q2", "q3", "q4", "q5", "q6", "status", "model_residual_mm"]
     assert len(rows) == 12 and all(r["status"] == "ok" for r in rows)
@@ -59,6 +60,8 @@ def test_compensate_writes_joints(files: dict[str, Path], capsys: pytest.Capture
     np.testing.assert_allclose(cal.predict(q), ts.p, atol=1e-6)
     table = CompensationTable.read(files["dir"] / "t.json")
     assert table.kind == "targets" and len(table.targets or []) == 12
+    assert (f"targets table {table.checksum[:16]}" in text
+            and f"nominal residual {table.stats['nominal_residual_mm']:.4f} mm" in text)
     np.testing.assert_allclose([r.q_deg for r in table.targets or []], np.degrees(q),
                                atol=1e-8)
 

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from robocal._core.files import atomic_write_text
     from robocal.compensation import compensate, read_targets_csv
     from robocal.compensation._build import targets_table
-    from robocal.compensation._targets import joints_csv_text
+    from robocal.compensation._targets import compensated_joints_csv_text
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
 
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     targets = read_targets_csv(args.targets, dof=cal.robot.dof)
     opts = {"start": args.start, "tol_m": args.tol_um * 1e-6, "max_iter": args.max_iter}
     res = compensate(cal, targets.p, targets.q_seed, R_targets=targets.R, **opts)
-    text = joints_csv_text(res)
+    text = compensated_joints_csv_text(res)
     table = targets_table(cal, targets, res) if table_out is not None else None
     try:
         atomic_write_text(out, text)
@@ -82,13 +82,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"cannot write: {err}", source=str(out)) from err
     counts = res.counts()
     ok = res.ok
-    summary = {
+    summary: dict[str, Any] = {
         "targets": len(res), **counts,
         "max_model_residual_um": float(res.residual_m[ok].max() * 1e6) if ok.any() else None,
         "max_iterations": int(res.iterations.max()) if len(res) else 0,
         "outside_coverage": int(np.sum(ok & ~res.in_coverage)),
         "model_id": cal.model_id, "out": str(out),
     }
+    if table is not None:
+        from robocal.compensation import describe_table
+
+        d = describe_table(table)
+        summary["table"] = {k: d[k] for k in ("kind", "checksum", "predicted_residual_mm",
+                                              "nominal_residual_mm", "model_accuracy_mm",
+                                              "warnings")}
     if args.json:
         sys.stdout.write(json.dumps(summary) + "\n")
     else:
@@ -101,4 +108,9 @@ def run(args: argparse.Namespace) -> int:
             + (f"; {summary['outside_coverage']} outside the calibrated range"
                if summary["outside_coverage"] else "")
             + f"; wrote {out}\n")
+        if table is not None:
+            from robocal.compensation import summary_line
+
+            sys.stdout.write(f"wrote {table_out}: {summary_line(table)} (nominal at the seed "
+                             "joints)\n")
     return 0 if counts["ok"] == len(res) else 1
