@@ -11,7 +11,7 @@ Public API
     ``targets`` / ``joint`` / ``frames`` tables, sealed with a checksum.
 ``diff_tables(a, b)`` -> :class:`TableDiff`
     what changes between two tables.
-``read_targets_csv`` / ``write_joints_csv``
+``read_targets_csv`` / ``write_compensated_joints_csv``
     TARGETS.csv and JOINTS.csv.
 """
 
@@ -56,9 +56,9 @@ from robocal.compensation._table import (
 )
 from robocal.compensation._targets import (
     TargetSet,
-    joints_csv_text,
+    compensated_joints_csv_text,
     read_targets_csv,
-    write_joints_csv,
+    write_compensated_joints_csv,
 )
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "TargetSet",
     "build_table",
     "compensate",
+    "compensated_joints_csv_text",
     "describe_table",
     "diff_tables",
     "fit_frames",
@@ -85,7 +86,6 @@ __all__ = [
     "ik_solutions",
     "improvement_refusal",
     "joint_corrections",
-    "joints_csv_text",
     "nominal_fk",
     "nominal_ik",
     "nominal_residual_mm",
@@ -95,5 +95,5 @@ __all__ = [
     "summary_line",
     "targets_table",
     "valid_range",
-    "write_joints_csv",
+    "write_compensated_joints_csv",
 ]

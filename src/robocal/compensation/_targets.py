@@ -142,7 +142,7 @@ def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
     return TargetSet(p=p, q_seed=q, R=R, labels=labels)
 
 
-def joints_csv_text(result: CompensationResult) -> str:
+def compensated_joints_csv_text(result: CompensationResult) -> str:
     """Render a compensation result as JOINTS.csv text."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -156,8 +156,8 @@ def joints_csv_text(result: CompensationResult) -> str:
     return buf.getvalue()
 
 
-def write_joints_csv(path: str | Path, result: CompensationResult) -> None:
+def write_compensated_joints_csv(path: str | Path, result: CompensationResult) -> None:
     """Write JOINTS.csv atomically (temporary file, then rename)."""
-    atomic_write_text(path, joints_csv_text(result))
+    atomic_write_text(path, compensated_joints_csv_text(result))
 
 

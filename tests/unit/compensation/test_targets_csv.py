@@ -17,9 +17,9 @@ from hypothesis import strategies as st
 from robocal.compensation import (
     CompensationResult,
     TargetSet,
-    joints_csv_text,
+    compensated_joints_csv_text,
     read_targets_csv,
-    write_joints_csv,
+    write_compensated_joints_csv,
 )
 from robocal.errors import DataError
 from robocal.kinematics import matrix_to_wpr, wpr_to_matrix
@@ -163,12 +163,12 @@ def test_joints_csv_leaves_failed_rows_empty(tmp_path: Path) -> None:
         rotation_residual_rad=np.zeros(2), iterations=np.array([2, 20]),
         q_last=np.nan_to_num(q), q_start=np.zeros((2, 2)),
         orientation_relaxed=np.zeros(2, dtype=bool), in_coverage=np.ones(2, dtype=bool))
-    rows = list(csv.reader(io.StringIO(joints_csv_text(res))))
+    rows = list(csv.reader(io.StringIO(compensated_joints_csv_text(res))))
     assert rows[0] == ["q1", "q2", "status", "model_residual_mm"]
     assert [float(v) for v in rows[1][:2]] == pytest.approx([10.0, 20.0], abs=1e-9)
     assert rows[1][2:] == ["ok", "0.000010"]
     assert rows[2] == ["", "", "unreachable", "250.000000"]
-    write_joints_csv(tmp_path / "j.csv", res)
-    assert (tmp_path / "j.csv").read_text() == joints_csv_text(res)
+    write_compensated_joints_csv(tmp_path / "j.csv", res)
+    assert (tmp_path / "j.csv").read_text() == compensated_joints_csv_text(res)
     assert [p.name for p in tmp_path.iterdir()] == ["j.csv"]
     assert math.isclose(float(rows[1][0]), 10.0, abs_tol=1e-9)
