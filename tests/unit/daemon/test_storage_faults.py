@@ -8,8 +8,13 @@ engine, no mount needed) and the store's fault seam (an ``OperationalError`` at 
 from __future__ import annotations
 
 import asyncio
+import json
+import shutil
 import sqlite3
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
@@ -159,3 +164,25 @@ async def test_fit_that_cannot_be_saved_faults_and_resume_fits_again(svc):
     st = await svc.wait(cid, ["fitted"], timeout=60)
     assert st["state"] == "fitted" and "constant" in st["fits"]
     assert len(_measured_once(svc, cid)) == 20
+
+
+def test_a_real_full_filesystem(tmp_path):
+    """A 4 MiB tmpfs (in a private mount namespace) filled while measuring."""
+    repo = Path(__file__).resolve().parents[3]
+    if shutil.which("unshare") is None:
+        pytest.skip("unshare(1) is not installed")
+    probe = subprocess.run(["unshare", "-rm", "sh", "-c",
+                            f"mount -t tmpfs -o size=1m tmpfs {tmp_path}"],
+                           capture_output=True, timeout=30)
+    if probe.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {probe.stderr.decode().strip()}")
+    run = subprocess.run(["unshare", "-rm", sys.executable, "-m",
+                          "tests.unit.daemon._tmpfs_full"], cwd=repo, capture_output=True,
+                         text=True, timeout=300)
+    lines = [ln for ln in run.stdout.splitlines() if ln.startswith("SUMMARY ")]
+    assert run.returncode == 0 and lines, run.stderr[-3000:]
+    s = json.loads(lines[-1][len("SUMMARY "):])
+    assert DISK_FULL in s["paused_reason"] and s["health"] == "degraded"
+    assert s["state_on_disk"] == "paused"
+    assert s["final_state"] == "fitted" and s["measured"] == s["distinct"] == 30
+    assert set(s["measured_at_pause"]) <= set(range(30)) and s["integrity"] == "ok"
