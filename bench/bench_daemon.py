@@ -29,7 +29,7 @@ from robocal.daemon.config import parse_config
 from robocal.daemon.logging import configure_logging
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
-from robocal.drivers import load_robot, load_tracker
+from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
 from robocal.kinematics import load_robot as load_description
 
@@ -43,8 +43,8 @@ def _poses(n: int, seed: int = 0) -> np.ndarray:
 
 
 async def _bare(cell: SimCell, q: np.ndarray, samples: int) -> float:
-    robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
-    tracker = load_tracker("ltp", {**cell.tracker_options("tcp"), "stab_ms": 100})
+    robot = load_robot_driver("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+    tracker = load_tracker_driver("ltp", {**cell.tracker_options("tcp"), "stab_ms": 100})
     await robot.connect(timeout=10)
     await tracker.connect(timeout=10)
     try:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from robocal.drivers import load_robot, load_tracker
+from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, ModbusSimOptions, SimCell
 
 COMBOS = [
@@ -53,8 +53,8 @@ async def bench(robot_kind: str, tracker_via: str, poses: int, samples: int) -> 
             robot: Any = MockRobot(world=cell.world)
             tracker: Any = MockTracker(world=cell.world)
         else:
-            robot = load_robot(robot_kind, cell.robot_options(robot_kind))  # type: ignore[arg-type]
-            tracker = load_tracker("ltp", cell.tracker_options(tracker_via))  # type: ignore[arg-type]
+            robot = load_robot_driver(robot_kind, cell.robot_options(robot_kind))  # type: ignore[arg-type]
+            tracker = load_tracker_driver("ltp", cell.tracker_options(tracker_via))  # type: ignore[arg-type]
         await robot.connect(timeout=10)
         await tracker.connect(timeout=10)
         rng = np.random.default_rng(0)

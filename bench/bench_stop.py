@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from robocal.drivers import load_robot
+from robocal.drivers import load_robot_driver
 from robocal.drivers.mock import MockRobot
 from robocal.drivers.sim import FanucSimOptions, ModbusSimOptions, SimCell, SimWorld
 
@@ -50,7 +50,7 @@ async def _robot(kind: str, world: SimWorld) -> AsyncIterator[Any]:
         ltp=False,
     )
     async with cell:
-        robot = load_robot(kind, cell.robot_options(kind))  # type: ignore[arg-type]
+        robot = load_robot_driver(kind, cell.robot_options(kind))  # type: ignore[arg-type]
         await robot.connect(timeout=5)
         try:
             yield robot

@@ -7,7 +7,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 
 import pytest
 
-from robocal.drivers import contracts, load_robot, load_tracker
+from robocal.drivers import contracts, load_robot_driver, load_tracker_driver
 from robocal.drivers.mock import MockRobot, MockTracker
 from robocal.drivers.sim import (
     EmsconSimOptions,
@@ -61,7 +61,7 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
 
         yield contracts.RobotUnderTest(
             name,
-            make=lambda: load_robot(name, options),
+            make=lambda: load_robot_driver(name, options),
             actual_joints=lambda: world.q_actual_rad,
             messages_received=received,
             slow_moves=real_time,
@@ -86,7 +86,7 @@ async def tracker_case(name: str) -> AsyncIterator[contracts.TrackerUnderTest]:
             options = cell.emscon_options()
             yield contracts.TrackerUnderTest(
                 name,
-                make=lambda: load_tracker("emscon", options),
+                make=lambda: load_tracker_driver("emscon", options),
                 true_position=world.true_reflector_position,
                 position_tol_m=10 * sigma,
             )
@@ -102,7 +102,7 @@ async def tracker_case(name: str) -> AsyncIterator[contracts.TrackerUnderTest]:
         options = cell.tracker_options(via)  # type: ignore[arg-type]
         yield contracts.TrackerUnderTest(
             name,
-            make=lambda: load_tracker("ltp", options),
+            make=lambda: load_tracker_driver("ltp", options),
             true_position=world.true_reflector_position,
             position_tol_m=10 * sigma,
         )

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from robocal.drivers import contracts, load_robot
+from robocal.drivers import contracts, load_robot_driver
 from robocal.drivers.sim import FanucRmiSimulator, FanucSimOptions, SimWorld
 
 SWITCHES = list(itertools.product((False, True), repeat=5))
@@ -63,7 +63,7 @@ async def test_fanuc_rmi_contract_on_every_controller_variant(flags):
 
         rut = contracts.RobotUnderTest(
             f"fanuc_rmi[{variant_id(flags)}]",
-            make=lambda: load_robot("fanuc_rmi", options),
+            make=lambda: load_robot_driver("fanuc_rmi", options),
             actual_joints=lambda: world.q_actual_rad,
             messages_received=lambda: len(sim.received),
             slow_moves=real_time,

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from robocal.drivers import load_robot, load_tracker, measure_with_retry
+from robocal.drivers import load_robot_driver, load_tracker_driver, measure_with_retry
 from robocal.drivers.sim import FanucSimOptions, FaultConfig, LtpSimOptions, SimCell
 
 N_POSES = 50
@@ -30,8 +30,8 @@ async def test_campaign_with_injected_tracker_faults():
     started = time.perf_counter()
     async with cell:
         world = cell.world
-        robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
-        tracker = load_tracker("ltp", cell.tracker_options("tcp"))
+        robot = load_robot_driver("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+        tracker = load_tracker_driver("ltp", cell.tracker_options("tcp"))
         await robot.connect(timeout=10)
         await tracker.connect(timeout=10)
         try:

@@ -18,7 +18,7 @@ from tests.unit.daemon.conftest import ROBOT, random_plan
 
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
-from robocal.drivers import load_robot, load_tracker, measure_with_retry
+from robocal.drivers import load_robot_driver, load_tracker_driver, measure_with_retry
 from robocal.drivers.sim import EmsconSimOptions, FanucSimOptions, FaultConfig, SimCell
 from robocal.drivers.sim.emscon import EmsconFaults
 
@@ -40,8 +40,8 @@ async def test_fanuc_rmi_and_emscon_campaign_with_faults():
     )
     async with cell:
         world = cell.world
-        robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
-        tracker = load_tracker("emscon", {**cell.emscon_options(), "abort_drain_s": 0.02,
+        robot = load_robot_driver("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+        tracker = load_tracker_driver("emscon", {**cell.emscon_options(), "abort_drain_s": 0.02,
                                           "busy_backoff_s": 0.001})
         await robot.connect(timeout=10)
         await tracker.connect(timeout=10)

@@ -15,7 +15,7 @@ from typing import Any, Literal
 import structlog
 
 from robocal.daemon.config import AppConfig, DriverConfig
-from robocal.drivers import RobotDriver, TrackerDriver, load_robot, load_tracker
+from robocal.drivers import RobotDriver, TrackerDriver, load_robot_driver, load_tracker_driver
 from robocal.kinematics import RobotDescription
 
 __all__ = ["DriverHub"]
@@ -58,14 +58,14 @@ class DriverHub:
 
     def validate(self) -> None:
         """Build (not connect) both drivers once, so bad kinds or options fail at start-up."""
-        load_robot(self.config.robot.kind, robot_options(self.config.robot, self.description))
-        load_tracker(self.config.tracker.kind, self.config.tracker.options)
+        load_robot_driver(self.config.robot.kind, robot_options(self.config.robot, self.description))
+        load_tracker_driver(self.config.tracker.kind, self.config.tracker.options)
 
     async def robot(self) -> RobotDriver:
         """The connected robot driver (connecting it if needed)."""
         if self._robot is None:
             cfg = self.config.robot
-            drv = load_robot(cfg.kind, robot_options(cfg, self.description))
+            drv = load_robot_driver(cfg.kind, robot_options(cfg, self.description))
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._robot = drv
             _log.info("robot connected", driver=cfg.kind)
@@ -75,7 +75,7 @@ class DriverHub:
         """The connected tracker driver (connecting it if needed)."""
         if self._tracker is None:
             cfg = self.config.tracker
-            drv = load_tracker(cfg.kind, cfg.options)
+            drv = load_tracker_driver(cfg.kind, cfg.options)
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._tracker = drv
             _log.info("tracker connected", driver=cfg.kind)

@@ -15,8 +15,8 @@ from robocal.drivers._registry import (
     TRACKER_GROUP,
     available,
     driver_class,
-    load_robot,
-    load_tracker,
+    load_robot_driver,
+    load_tracker_driver,
 )
 from robocal.drivers._retry import RETRYABLE, measure_with_retry
 from robocal.drivers.api import (
@@ -55,8 +55,8 @@ __all__ = [
     "available",
     "check_joint_target",
     "driver_class",
-    "load_robot",
-    "load_tracker",
+    "load_robot_driver",
+    "load_tracker_driver",
     "measure_with_retry",
     "require",
 ]

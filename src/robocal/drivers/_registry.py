@@ -29,8 +29,8 @@ __all__ = [
     "TRACKER_GROUP",
     "available",
     "driver_class",
-    "load_robot",
-    "load_tracker",
+    "load_robot_driver",
+    "load_tracker_driver",
 ]
 
 ROBOT_GROUP = "robocal.robots"
@@ -112,7 +112,7 @@ def _load(kind: str, options: Mapping[str, Any] | None, role: Role) -> Any:
     return driver
 
 
-def load_robot(kind: str, options: Mapping[str, Any] | None = None) -> RobotDriver:
+def load_robot_driver(kind: str, options: Mapping[str, Any] | None = None) -> RobotDriver:
     """Build (not connect) the robot driver ``kind`` with validated ``options``.
 
     Raises
@@ -125,12 +125,12 @@ def load_robot(kind: str, options: Mapping[str, Any] | None = None) -> RobotDriv
     return _load(kind, options, "robot")
 
 
-def load_tracker(kind: str, options: Mapping[str, Any] | None = None) -> TrackerDriver:
+def load_tracker_driver(kind: str, options: Mapping[str, Any] | None = None) -> TrackerDriver:
     """Build (not connect) the tracker driver ``kind`` with validated ``options``.
 
     Raises
     ------
     DriverNotFound, DriverImportError, ConfigError
-        As :func:`load_robot`.
+        As :func:`load_robot_driver`.
     """
     return _load(kind, options, "tracker")

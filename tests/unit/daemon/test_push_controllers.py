@@ -12,7 +12,7 @@ import pytest
 from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
-from robocal.drivers import load_robot
+from robocal.drivers import load_robot_driver
 from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
 from tests.unit.daemon.conftest import ROBOT, base_config
 from tests.unit.daemon.test_service import program_plan
@@ -33,7 +33,7 @@ async def test_rollback_after_the_first_push_restores_the_controllers_original(t
     async with cell:
         original_pr: dict[int, dict[str, object]] = {}
         if kind == "modbus_plc":
-            plc = load_robot(kind, cell.robot_options(kind))
+            plc = load_robot_driver(kind, cell.robot_options(kind))
             await plc.connect(timeout=10)
             await plc.write_compensation(_foreign_table())
             await plc.close()

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robocal.drivers import load_tracker
+from robocal.drivers import load_tracker_driver
 from robocal.drivers.emscon import (
     EmsconBeamLost,
     EmsconBusy,
@@ -489,11 +489,11 @@ async def test_live_positions_when_streaming(world):
 def test_options_are_strict_and_documented():
     assert EmsconOptions.model_config["extra"] == "forbid"
     with pytest.raises(ConfigError, match="no_such"):
-        load_tracker("emscon", {"no_such": 1})
+        load_tracker_driver("emscon", {"no_such": 1})
     with pytest.raises(ConfigError, match="coordinate_system"):
-        load_tracker("emscon", {"coordinate_system": "CCW"})
+        load_tracker_driver("emscon", {"coordinate_system": "CCW"})
     with pytest.raises(ConfigError, match="max_meas_time_ms"):
-        load_tracker("emscon", {"min_meas_time_ms": 500, "max_meas_time_ms": 100})
+        load_tracker_driver("emscon", {"min_meas_time_ms": 500, "max_meas_time_ms": 100})
     doc = EmsconOptions.__doc__ or ""
     for name in EmsconOptions.model_fields:
         assert name in doc, f"option {name} is not documented"
@@ -569,7 +569,7 @@ async def test_contract_suite_repeatedly_with_ten_percent_faults():
     async with cell:
         options = {**cell.emscon_options(), "abort_drain_s": 0.02, "busy_backoff_s": 0.001}
         tut = contracts.TrackerUnderTest(
-            "emscon", make=lambda: load_tracker("emscon", options),
+            "emscon", make=lambda: load_tracker_driver("emscon", options),
             true_position=world.true_reflector_position, position_tol_m=10 * sigma)
         for _ in range(10):
             await contracts.check_tracker(tut)

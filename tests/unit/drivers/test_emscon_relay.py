@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from robocal.daemon.config import config_errors, load_config
-from robocal.drivers import load_tracker
+from robocal.drivers import load_tracker_driver
 from robocal.drivers.emscon import EmsconTracker
 from robocal.drivers.sim import SimWorld
 from robocal.drivers.sim.emscon import EmsconFaults, EmsconSimOptions, EmsconTrackerSimulator
@@ -199,13 +199,13 @@ async def test_deploy_config_validates_and_its_tracker_options_work(world):
     cfg = load_config(path)
     assert cfg.robot.kind == "fanuc_rmi" and cfg.tracker.kind == "emscon"
     options = dict(cfg.tracker.options)
-    tracker = load_tracker("emscon", options)
+    tracker = load_tracker_driver("emscon", options)
     assert isinstance(tracker, EmsconTracker)
     assert tracker.options.port == 700 and tracker.options.reflector == "RRR15"
     # The documented options drive the simulator end to end (only the address differs).
     sim = EmsconTrackerSimulator(world, EmsconSimOptions(time_scale=0.0))
     async with served(sim):
-        tracker = load_tracker("emscon", {**options, "host": "127.0.0.1", "port": sim.port})
+        tracker = load_tracker_driver("emscon", {**options, "host": "127.0.0.1", "port": sim.port})
         await tracker.connect(timeout=cfg.tracker.connect_timeout_s)
         try:
             r = await tracker.measure(samples=cfg.measurement.samples,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload
-from robocal.drivers import load_robot, load_tracker
+from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.mock import MockRobot, MockTracker
 from robocal.drivers.sim.world import SimWorld, forget_shared_worlds
 from robocal.errors import BeamLost, ConfigError, ConnectFailed, Unstable, VerificationMismatch
@@ -35,8 +35,8 @@ def frames_table() -> CompensationTable:
 
 
 async def test_tracker_measures_where_the_robot_is():
-    robot = load_robot("mock", {"seed": 4})
-    tracker = load_tracker("mock", {"seed": 4})
+    robot = load_robot_driver("mock", {"seed": 4})
+    tracker = load_tracker_driver("mock", {"seed": 4})
     await robot.connect(timeout=1)
     await tracker.connect(timeout=1)
     world = robot.world

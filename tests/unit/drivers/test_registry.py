@@ -6,7 +6,7 @@ from importlib.metadata import EntryPoint
 
 import pytest
 
-from robocal.drivers import _registry, available, driver_class, load_robot, load_tracker
+from robocal.drivers import _registry, available, driver_class, load_robot_driver, load_tracker_driver
 from robocal.drivers.fanuc_rmi import FanucRmiRobot
 from robocal.drivers.ltp import LtpTracker
 from robocal.drivers.mock import MockRobot, MockTracker
@@ -30,37 +30,37 @@ def test_driver_classes_resolve():
 
 
 def test_load_validates_options():
-    robot = load_robot("fanuc_rmi", {"host": "10.0.0.5", "joint_limits_deg": [[-170, 170]] * 6})
+    robot = load_robot_driver("fanuc_rmi", {"host": "10.0.0.5", "joint_limits_deg": [[-170, 170]] * 6})
     assert isinstance(robot, FanucRmiRobot)
     assert robot.options.host == "10.0.0.5" and robot.options.connect_port == 16001
-    tracker = load_tracker("ltp", {"url": "serial:///dev/ttyUSB0?baudrate=115200"})
+    tracker = load_tracker_driver("ltp", {"url": "serial:///dev/ttyUSB0?baudrate=115200"})
     assert isinstance(tracker, LtpTracker)
 
 
 def test_unknown_kind():
     with pytest.raises(DriverNotFound, match=r"no robot driver named 'kuka'.*fanuc_rmi") as info:
-        load_robot("kuka", {})
+        load_robot_driver("kuka", {})
     assert info.value.kind == "kuka"
     assert isinstance(info.value, LookupError)
     with pytest.raises(DriverNotFound):
-        load_tracker("fanuc_rmi", {})
+        load_tracker_driver("fanuc_rmi", {})
 
 
 def test_bad_options_name_kind_and_key():
     with pytest.raises(ConfigError) as info:
-        load_robot("fanuc_rmi", {"joint_limits_deg": [[-1, 1]], "hots": "x"})
+        load_robot_driver("fanuc_rmi", {"joint_limits_deg": [[-1, 1]], "hots": "x"})
     assert info.value.key == "hots" and "fanuc_rmi" in str(info.value)
     with pytest.raises(ConfigError) as info:
-        load_robot("fanuc_rmi", {"joint_limits_deg": [[1, -1]]})
+        load_robot_driver("fanuc_rmi", {"joint_limits_deg": [[1, -1]]})
     assert info.value.key == "joint_limits_deg"
     with pytest.raises(ConfigError, match="url"):
-        load_tracker("ltp", {})
+        load_tracker_driver("ltp", {})
     with pytest.raises(ConfigError, match="mapping"):
-        load_tracker("ltp", ["url"])  # type: ignore[arg-type]
+        load_tracker_driver("ltp", ["url"])  # type: ignore[arg-type]
 
 
 def test_options_are_frozen():
-    robot = load_robot("mock", {})
+    robot = load_robot_driver("mock", {})
     with pytest.raises(Exception, match="frozen"):
         robot.options.seed = 3  # type: ignore[misc]
 
@@ -75,7 +75,7 @@ def fake_eps(monkeypatch, **values):
 def test_import_failure_is_wrapped(monkeypatch):
     fake_eps(monkeypatch, broken="robocal_no_such_module:Robot")
     with pytest.raises(DriverImportError, match="robocal_no_such_module") as info:
-        load_robot("broken", {})
+        load_robot_driver("broken", {})
     assert info.value.kind == "broken"
     assert isinstance(info.value.__cause__, ModuleNotFoundError)
 
@@ -83,10 +83,10 @@ def test_import_failure_is_wrapped(monkeypatch):
 def test_object_without_options_is_refused(monkeypatch):
     fake_eps(monkeypatch, notadriver="robocal.errors:RobocalError")
     with pytest.raises(DriverImportError, match="Options"):
-        load_robot("notadriver", {})
+        load_robot_driver("notadriver", {})
 
 
 def test_class_lacking_capabilities_is_refused(monkeypatch):
     fake_eps(monkeypatch, tracker_as_robot="robocal.drivers.mock:MockTracker")
     with pytest.raises(DriverImportError, match="robot driver protocols"):
-        load_robot("tracker_as_robot", {})
+        load_robot_driver("tracker_as_robot", {})

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from robocal.drivers import load_robot, load_tracker
+from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import main
 
 
@@ -51,15 +51,15 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")
         limits = [(-90.0, 90.0)] * 6
-        robot = load_robot(
+        robot = load_robot_driver(
             "fanuc_rmi",
             {"connect_port": ports["fanuc_rmi"]["connect_port"], "joint_limits_deg": limits},
         )
-        plc = load_robot(
+        plc = load_robot_driver(
             "modbus_plc", {"port": ports["modbus_plc"]["port"], "joint_limits_deg": limits}
         )
-        tcp = load_tracker("ltp", {"url": f"tcp://127.0.0.1:{ports['ltp_tracker']['port']}"})
-        serial = load_tracker("ltp", {"url": f"serial://{pty}?baudrate=115200"})
+        tcp = load_tracker_driver("ltp", {"url": f"tcp://127.0.0.1:{ports['ltp_tracker']['port']}"})
+        serial = load_tracker_driver("ltp", {"url": f"serial://{pty}?baudrate=115200"})
         for d in (robot, plc, tcp, serial):
             await d.connect(timeout=10)
         try:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robocal.drivers import Stoppable, _registry, load_robot, require
+from robocal.drivers import Stoppable, _registry, load_robot_driver, require
 from robocal.drivers.mock import MockRobot
 from robocal.drivers.sim import (
     FanucRmiSimulator,
@@ -196,7 +196,7 @@ async def _robot(kind: str, world: SimWorld) -> AsyncIterator[tuple[Any, Any]]:
         sim = ModbusPlcSimulator(world, ModbusSimOptions(time_scale=1.0))
         await sim.start()
         options = {"port": sim.port, "poll_interval_s": 0.002}
-    robot = load_robot(kind, {"joint_limits_deg": world.joint_limits_deg, **options})
+    robot = load_robot_driver(kind, {"joint_limits_deg": world.joint_limits_deg, **options})
     try:
         await robot.connect(timeout=5)
         yield robot, sim
@@ -293,7 +293,7 @@ def test_a_robot_driver_without_stop_is_refused_by_name(monkeypatch):
 
     monkeypatch.setattr(_registry, "driver_class", lambda kind, role: NoStop)
     with pytest.raises(DriverImportError, match=r"missing: Stoppable"):
-        load_robot("no_stop", {})
+        load_robot_driver("no_stop", {})
 
 
 async def test_fanuc_stop_continues_the_sequence_ids_a_controller_keeps(world):
@@ -301,7 +301,7 @@ async def test_fanuc_stop_continues_the_sequence_ids_a_controller_keeps(world):
     carries the next ID (a restart at 1 would be dropped as stale)."""
     sim = FanucRmiSimulator(world, FanucSimOptions(time_scale=1.0, sequence_persists=True))
     await sim.start()
-    robot = load_robot(
+    robot = load_robot_driver(
         "fanuc_rmi",
         {"joint_limits_deg": world.joint_limits_deg, "connect_port": sim.connect_port},
     )

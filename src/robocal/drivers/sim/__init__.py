@@ -3,8 +3,8 @@
 In-process (tests, benchmarks)::
 
     async with SimCell(seed=1, ltp_pty=True) as cell:
-        robot = load_robot("fanuc_rmi", cell.robot_options("fanuc_rmi"))
-        tracker = load_tracker("ltp", cell.tracker_options("tcp"))
+        robot = load_robot_driver("fanuc_rmi", cell.robot_options("fanuc_rmi"))
+        tracker = load_tracker_driver("ltp", cell.tracker_options("tcp"))
 
 As a process (``robocal sim ...`` calls :func:`main`; also ``python -m robocal.drivers.sim``)::
 
@@ -186,7 +186,7 @@ class SimCell:
         return out
 
     def robot_options(self, kind: Literal["fanuc_rmi", "modbus_plc", "mock"]) -> dict[str, Any]:
-        """Options for ``load_robot(kind, ...)`` pointing at this cell's simulator."""
+        """Options for ``load_robot_driver(kind, ...)`` pointing at this cell's simulator."""
         limits = [list(lim) for lim in self.world.joint_limits_deg]
         if kind == "fanuc_rmi":
             if self.fanuc_sim is None:
@@ -209,7 +209,7 @@ class SimCell:
         return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
 
     def tracker_options(self, via: Literal["tcp", "socket", "pty"] = "tcp") -> dict[str, Any]:
-        """Options for ``load_tracker("ltp", ...)`` over TCP, pyserial ``socket://`` or the pty."""
+        """Options for ``load_tracker_driver("ltp", ...)`` over TCP, pyserial ``socket://`` or the pty."""
         sim = self.ltp_sim
         if sim is None:
             raise RuntimeError("the LTP tracker simulator is not running")
@@ -223,7 +223,7 @@ class SimCell:
         return {"url": f"{scheme}://{self.host}:{sim.port}"}
 
     def emscon_options(self) -> dict[str, Any]:
-        """Options for ``load_tracker("emscon", ...)`` pointing at the emScon simulator."""
+        """Options for ``load_tracker_driver("emscon", ...)`` pointing at the emScon simulator."""
         if self.emscon_sim is None:
             raise RuntimeError("the emScon tracker simulator is not running")
         return {"host": self.host, "port": self.emscon_sim.port}
