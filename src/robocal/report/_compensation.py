@@ -42,10 +42,11 @@ def _plot(entry: Mapping[str, Any]) -> Plot | None:
         ax.bar([i + 0.2 for i in x], [r["after_mm"] for r in rows], width=0.4,
                label="after (pushed values)", color="#1f77b4")
         ax.set_yscale("log")
-        ax.set_xticks(x, [str(r["index"]) for r in rows])
+        step = max(1, -(-len(rows) // 16))  # at most 16 labels, so they never overlap
+        ax.set_xticks(x[::step], [str(r["index"]) for r in rows][::step])
         ax.set_xlabel("target (row of the pushed table)")
         ax.set_ylabel("position error, mm")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.32), ncol=2, frameon=False)
+        ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)
         _style(fig)
         return _render(f"compensation-{entry.get('key', '')}", fig,
                        "position error of each verified target before and after the push")
