@@ -56,9 +56,12 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from robocal._core.files import atomic_write_text
-    from robocal.compensation import compensate, read_targets_csv
-    from robocal.compensation._build import targets_table
-    from robocal.compensation._targets import compensated_joints_csv_text
+    from robocal.compensation import (
+        compensate,
+        compensated_joints_csv_text,
+        read_targets_csv,
+        targets_table,
+    )
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
 

@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _vendor(args: argparse.Namespace) -> int:
     """Write the zero offsets / DH deltas of the model's constant errors."""
-    from robocal.compensation._vendor import write_vendor_export
+    from robocal.compensation import write_vendor_export
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
 

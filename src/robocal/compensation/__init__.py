@@ -60,6 +60,7 @@ from robocal.compensation._targets import (
     read_targets_csv,
     write_compensated_joints_csv,
 )
+from robocal.compensation._vendor import write_vendor_export
 
 __all__ = [
     "PURPOSE",
@@ -96,4 +97,5 @@ __all__ = [
     "targets_table",
     "valid_range",
     "write_compensated_joints_csv",
+    "write_vendor_export",
 ]

@@ -14,6 +14,7 @@ from robocal.daemon.campaign import TRANSITIONS, CampaignState, check_transition
 from robocal.daemon.config import AppConfig, config_errors, load_config, parse_config
 
 if TYPE_CHECKING:
+    from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
     from robocal.daemon.main import serve
     from robocal.daemon.service import CalibrationService
 
@@ -22,10 +23,13 @@ __all__ = [
     "AppConfig",
     "CalibrationService",
     "CampaignState",
+    "PlanDoc",
     "check_transition",
     "config_errors",
     "load_config",
     "parse_config",
+    "parse_plan",
+    "plan_from_poses",
     "serve",
 ]
 
@@ -35,6 +39,10 @@ def __getattr__(name: str) -> Any:
         from robocal.daemon.service import CalibrationService
 
         return CalibrationService
+    if name in ("PlanDoc", "parse_plan", "plan_from_poses"):
+        from robocal.daemon import _plan
+
+        return getattr(_plan, name)
     if name == "serve":
         from robocal.daemon.main import serve
 

@@ -58,7 +58,8 @@ class DriverHub:
 
     def validate(self) -> None:
         """Build (not connect) both drivers once, so bad kinds or options fail at start-up."""
-        load_robot_driver(self.config.robot.kind, robot_options(self.config.robot, self.description))
+        load_robot_driver(self.config.robot.kind,
+                          robot_options(self.config.robot, self.description))
         load_tracker_driver(self.config.tracker.kind, self.config.tracker.options)
 
     async def robot(self) -> RobotDriver:

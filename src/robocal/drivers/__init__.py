@@ -10,6 +10,7 @@ True
 """
 
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers._registry import (
     ROBOT_GROUP,
     TRACKER_GROUP,
@@ -40,6 +41,7 @@ __all__ = [
     "TRACKER_GROUP",
     "CompensationSink",
     "Connectable",
+    "ControllerSnapshot",
     "DriverBase",
     "DriverOptions",
     "JointMover",
@@ -59,4 +61,6 @@ __all__ = [
     "load_tracker_driver",
     "measure_with_retry",
     "require",
+    "snapshot_diff",
+    "table_diff",
 ]

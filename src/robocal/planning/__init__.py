@@ -5,14 +5,15 @@ which are feasible (reflector facing the tracker, unobstructed beam, no collisio
 keep-out boxes or the robot itself, within tracker range); a D-optimal selection on the
 column-scaled identification Jacobian picks the calibration poses; validation poses, CPA
 sweeps and ISO 9283 cube poses are added; the result is ordered for short joint moves and
-written as PLAN.json for the daemon.
+written as PLAN.json for the daemon. Every move of a plan is checked along its swept path
+(:class:`MotionChecker`); targets without a safe route are dropped and listed.
 
 Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
 :func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
 """
 
-from robocal.planning._campaign import draw_candidates, plan_campaign
-from robocal.planning._cell import Cell, builtin_cells, load_cell
+from robocal.planning._campaign import draw_candidates, plan_campaign, split_legs
+from robocal.planning._cell import Cell, builtin_cells, load_cell, pydantic_config_error
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
     MODELS,
@@ -31,22 +32,28 @@ from robocal.planning._geometry import (
     segment_distance,
 )
 from robocal.planning._iso import IsoCube, iso_cube, solve_ik
+from robocal.planning._motion import SAMPLE_FRACTION, MotionChecker, MoveCheck, UnsafeMove
 from robocal.planning._order import insert_via_points, move_times, order_poses
-from robocal.planning._plan import PLAN_FORMAT, Plan, PlannedPose
+from robocal.planning._plan import PLAN_FORMAT, DroppedTarget, Plan, PlannedPose
 
 __all__ = [
     "MODELS",
     "PLAN_FORMAT",
+    "SAMPLE_FRACTION",
     "CapsuleModel",
     "Cell",
     "CpaSweep",
     "DesignSpace",
+    "DroppedTarget",
     "Feasibility",
     "FeasibilityChecker",
     "IsoCube",
+    "MotionChecker",
+    "MoveCheck",
     "Observability",
     "Plan",
     "PlannedPose",
+    "UnsafeMove",
     "builtin_cells",
     "cpa_sweeps",
     "default_link_radii",
@@ -61,8 +68,10 @@ __all__ = [
     "observability_indices",
     "order_poses",
     "plan_campaign",
+    "pydantic_config_error",
     "segment_box_distance",
     "segment_distance",
     "solve_ik",
+    "split_legs",
     "working_ranges",
 ]

@@ -6,7 +6,13 @@ from importlib.metadata import EntryPoint
 
 import pytest
 
-from robocal.drivers import _registry, available, driver_class, load_robot_driver, load_tracker_driver
+from robocal.drivers import (
+    _registry,
+    available,
+    driver_class,
+    load_robot_driver,
+    load_tracker_driver,
+)
 from robocal.drivers.fanuc_rmi import FanucRmiRobot
 from robocal.drivers.ltp import LtpTracker
 from robocal.drivers.mock import MockRobot, MockTracker
@@ -30,7 +36,8 @@ def test_driver_classes_resolve():
 
 
 def test_load_validates_options():
-    robot = load_robot_driver("fanuc_rmi", {"host": "10.0.0.5", "joint_limits_deg": [[-170, 170]] * 6})
+    robot = load_robot_driver("fanuc_rmi",
+                              {"host": "10.0.0.5", "joint_limits_deg": [[-170, 170]] * 6})
     assert isinstance(robot, FanucRmiRobot)
     assert robot.options.host == "10.0.0.5" and robot.options.connect_port == 16001
     tracker = load_tracker_driver("ltp", {"url": "serial:///dev/ttyUSB0?baudrate=115200"})

@@ -209,7 +209,8 @@ class SimCell:
         return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
 
     def tracker_options(self, via: Literal["tcp", "socket", "pty"] = "tcp") -> dict[str, Any]:
-        """Options for ``load_tracker_driver("ltp", ...)`` over TCP, pyserial ``socket://`` or the pty."""
+        """Options for ``load_tracker_driver("ltp", ...)`` over TCP, pyserial ``socket://`` or
+        the pty."""
         sim = self.ltp_sim
         if sim is None:
             raise RuntimeError("the LTP tracker simulator is not running")
