@@ -259,7 +259,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
 
 async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any],
                     progress: _Progress, ideal_positions: Any, np: Any) -> dict[str, Any]:
-    from robocal.daemon._plan import parse_plan, plan_from_poses
+    from robocal.daemon import parse_plan, plan_from_poses
     from robocal.errors import RobocalError
 
     figures: dict[str, Any] = {"robot": args.robot, "scenario": args.scenario,
