@@ -312,7 +312,7 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
         comp["targets_file"] = fix(comp["targets_file"])
         out["compensation"] = comp
     rd = out.get("robot_description")
-    if isinstance(rd, str) and rd.endswith(".toml"):
+    if isinstance(rd, str) and rd.endswith((".toml", ".urdf")):
         out["robot_description"] = fix(rd)
     return out
 
