@@ -17,16 +17,18 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal.compensation import CompensationTable, Frame, build_table
+from robocal._core import read_joints_csv
+from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
 from robocal.compensation import ideal_positions as _ideal_positions
 from robocal.daemon.config import LimitsConfig
-from robocal.drivers import CompensationSink
-from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers import CompensationSink, ControllerSnapshot, snapshot_diff, table_diff
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
 
@@ -68,13 +70,39 @@ def ideal_positions(cal: CalibratedModel, q: Array) -> Array:
     return _ideal_positions(cal, q)
 
 
+@dataclass(frozen=True)
+class Program:
+    """Production targets: joints ``q`` (n, dof) rad as taught (the seeds), and for a
+    TARGETS.csv the positions ``p`` (n, 3) m in the tracker frame and optional flange
+    orientations ``R`` (n, 3, 3)."""
+
+    q: Array
+    p: Array | None = None
+    R: Array | None = None
+
+
+def read_program(path: str | Path, *, dof: int) -> Program:
+    """A JOINTS-style CSV (``q1..qN`` deg: the targets are where the error-free robot goes
+    there) or a TARGETS.csv (``x, y, z`` mm tracker frame, seeds ``q1..qN``, optional
+    ``w, p, r``); raise :class:`robocal.errors.DataError` naming file, column and row."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        head = fh.readline().lower().replace(";", ",").replace("\t", ",")
+    cols = {c.strip() for c in head.split(",")}
+    if {"x", "y", "z"} <= cols:
+        t = read_targets_csv(path, dof=dof)
+        return Program(q=t.q_seed, p=t.p, R=t.R)
+    return Program(q=read_joints_csv(path, dof=dof))
+
+
 def build_campaign_table(cal: CalibratedModel, kind: str, *,
-                         targets_q: Array | None = None,
+                         targets_q: Array | None = None, targets_p: Array | None = None,
+                         targets_R: Array | None = None,
                          max_change_deg: float | None = None) -> CompensationTable:
     """Build a sealed table of ``kind`` from ``cal`` (:func:`robocal.compensation.build_table`).
 
     ``targets`` tables correct the program targets ``targets_q`` (n, dof) rad, i.e. the
-    positions the error-free robot would reach there (:func:`ideal_positions`); a target
+    positions the error-free robot would reach there (:func:`ideal_positions`), or the
+    positions ``targets_p`` (n, 3) m (orientations ``targets_R``) seeded there; a target
     whose 6-D correction exceeds ``max_change_deg`` (near the wrist singularity) is solved
     for position alone (:func:`robocal.compensation.compensate`).
 
@@ -89,8 +117,10 @@ def build_campaign_table(cal: CalibratedModel, kind: str, *,
         q = np.atleast_2d(np.asarray(targets_q, dtype=float))
         # the program joints are the right branch and within a fraction of a degree of the
         # answer: start there, never from a closed-form IK that may pick another branch
-        table = build_table(cal, "targets", targets_p=ideal_positions(cal, q), seeds_q=q,
-                            start="seed", max_change_deg=max_change_deg)
+        p = ideal_positions(cal, q) if targets_p is None else np.atleast_2d(targets_p)
+        table = build_table(cal, "targets", targets_p=p, seeds_q=q, R_targets=targets_R,
+                            start="seed" if targets_p is None else "auto",
+                            max_change_deg=max_change_deg)
     elif kind in ("frames", "joint"):
         table = build_table(cal, kind)  # type: ignore[arg-type]
     else:

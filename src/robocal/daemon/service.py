@@ -27,7 +27,6 @@ import numpy as np
 import structlog
 
 from robocal import __version__
-from robocal._core import read_joints_csv
 from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import pushing
@@ -531,14 +530,16 @@ class CalibrationService:
             raise CompensationError(f"stored entry {table_id} is a controller snapshot")
         return entry
 
-    def _targets_q(self, cid: str) -> np.ndarray | None:
+    def _program(self, cid: str) -> pushing.Program:
+        """The production targets: ``targets_file`` (JOINTS or TARGETS.csv), else the
+        campaign's validation poses (else all measured poses)."""
         path = self.config.compensation.targets_file
         if path is not None:
-            return read_joints_csv(path, dof=self.robot.dof)
+            return pushing.read_program(path, dof=self.robot.dof)
         rows = [p for p in self.store.poses(cid) if p.purpose == "validation"]
         if not rows:
             rows = [p for p in self.store.poses(cid) if p.measure]
-        return np.radians(np.array([p.q_deg for p in rows], dtype=float))
+        return pushing.Program(np.radians(np.array([p.q_deg for p in rows], dtype=float)))
 
     def _covered_kinds(self, stack: builtins.list[int]) -> set[str]:
         kinds: set[str] = set()
@@ -562,14 +563,16 @@ class CalibrationService:
             raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
         cal = CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid}")
         kind = self.config.compensation.kind
-        q_program = self._targets_q(cid)
+        program = self._program(cid)
         table = pushing.build_campaign_table(
-            cal, kind, targets_q=q_program if kind == "targets" else None,
+            cal, kind, targets_q=program.q if kind == "targets" else None,
+            targets_p=program.p, targets_R=program.R,
             max_change_deg=self.config.limits.max_joint_correction_deg)
         desc = describe_table(table)
         desc.update(model=model, model_id=cal.model_id,
-                    program_q_deg=None if q_program is None
-                    else np.round(np.degrees(q_program), 9).tolist())
+                    program_q_deg=np.round(np.degrees(program.q), 9).tolist(),
+                    target_p_mm=None if program.p is None
+                    else np.round(program.p * 1e3, 6).tolist())
         return table, desc
 
     async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
@@ -761,6 +764,7 @@ class CalibrationService:
             detail = {"reason": reason, "restored_table_id": previous_id,
                       "rolled_back_table_id": current_id, "program_q_deg": program,
                       "model_campaign": model_campaign,
+                      "target_p_mm": pushed[-1].detail.get("target_p_mm") if pushed else None,
                       "restores": ("controller original" if isinstance(entry, ControllerSnapshot)
                                    else f"{entry.kind} table")}
             try:
@@ -874,11 +878,15 @@ class CalibrationService:
         e = self.journal.get(key)
         cal = self.fitted_model(str(v["model_campaign"]))
         q_program = np.radians(np.asarray(e.detail["program_q_deg"], dtype=float))
+        target_p = e.detail.get("target_p_mm")
         idx = [int(i) for i in v["indices"]]
         rows = {m.pose_idx: m for m in self.store.measurements(vcid)}
         p_before = np.array([rows[2 * k].p_mm for k in range(len(idx))]) * 1e-3
         p_after = np.array([rows[2 * k + 1].p_mm for k in range(len(idx))]) * 1e-3
-        p_ideal = pushing.ideal_positions(cal, q_program[idx])
+        # TARGETS.csv positions where the program gives them, else where the error-free
+        # robot would be at the program joints
+        p_ideal = (np.asarray(target_p, dtype=float)[idx] * 1e-3 if target_p
+                   else pushing.ideal_positions(cal, q_program[idx]))
         before = pushing.verification_errors(p_ideal, p_before)
         after = pushing.verification_errors(p_ideal, p_after)
         per_target = [{"index": i,
@@ -917,7 +925,8 @@ class CalibrationService:
         out = []
         for e in self.journal.entries(campaign=cid):
             row = self.store.table(e.table_id)
-            d = {k: v for k, v in e.detail.items() if k != "program_q_deg"}
+            d = {k: v for k, v in e.detail.items()
+                 if k not in ("program_q_deg", "target_p_mm")}
             out.append({"key": e.key, "action": e.action, "state": e.state, "actor": e.actor,
                         "at": e.finished_at or e.intended_at, "outcome": e.outcome,
                         "checksum": row["checksum"], "table_id": e.table_id, **d,
@@ -974,7 +983,8 @@ class CalibrationService:
             history.append(h)
         return {"active": active, "stack": stack, "history": history,
                 "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()
-                                                        if k != "program_q_deg"}}
+                                                        if k not in ("program_q_deg",
+                                                                     "target_p_mm")}}
                             for j in journal[-50:]]}
 
     def audit(self, *, limit: int = 1000) -> builtins.list[dict[str, Any]]:

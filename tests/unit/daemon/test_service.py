@@ -387,3 +387,35 @@ async def test_a_push_that_fails_to_verify_puts_the_previous_values_back(service
     assert "previous values were written back and verified" in failed["detail"]["reason"]
     entry = svc.journal.entries(campaign=st["id"])[-1]
     assert entry.state == "abandoned" and not svc.journal.pending()
+
+
+async def test_targets_csv_positions_in_the_cell_are_pushed_and_measured(service, tmp_path):
+    import numpy as np
+
+    from robocal.daemon.pushing import ideal_positions
+
+    path = tmp_path / "TARGETS.csv"
+    svc = await service(limits={"max_joint_correction_deg": 5.0},
+                        compensation={"targets_file": str(path), "verify_count": 4})
+    st = await svc.create(program_plan(36, validation=6), actor="a")
+    cid = st["id"]
+    await svc.wait(cid, ["fitted"], timeout=60)
+    cal = svc.fitted_model(cid)
+    q = np.radians([p.q_deg for p in svc.store.poses(cid) if p.purpose == "validation"])
+    # cell targets 0.3 mm beside where the taught joints would put the error-free robot
+    p_mm = ideal_positions(cal, q) * 1e3 + np.array([0.3, 0.0, 0.0])
+    lines = ["x,y,z," + ",".join(f"q{j + 1}" for j in range(6))]
+    lines += [",".join(f"{v:.6f}" for v in [*p_mm[i], *np.degrees(q[i])])
+              for i in range(len(q))]
+    path.write_text("\n".join(lines) + "\n")
+    await svc.approve(cid, actor="a")
+    st = await svc.push(cid, actor="a")
+    table = await (await svc.hub.robot()).read_compensation()
+    assert table.kind == "targets" and len(table.targets) == 6
+    np.testing.assert_allclose(cal.predict(np.radians([r.q_deg for r in table.targets])),
+                               p_mm * 1e-3, atol=1e-7)
+    v = await svc.wait_verification(st["push"]["key"], timeout=60)
+    assert v is not None and v["state"] == "done"
+    # measured against the file's positions: the program joints miss them by >= 0.3 mm
+    assert min(t["before_mm"] for t in v["per_target"]) > 0.0
+    assert v["after"]["rms_mm"] < 0.6 * v["before"]["rms_mm"]
