@@ -7,9 +7,12 @@ import tomllib
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robocal.errors import ConfigError
 from robocal.kinematics import (
+    CalibratedModel,
     ErrorModelSpec,
     KinematicModel,
     RobotDescription,
@@ -109,3 +112,39 @@ def test_bad_convention_is_one_clear_error() -> None:
     data["convention"] = "craig"
     with pytest.raises(ConfigError, match=r"convention.*standard.*modified"):
         RobotDescription.from_dict(data, source="c.toml")
+
+
+_LEN = st.floats(-800.0, 800.0)
+_ANG = st.floats(-180.0, 180.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(_LEN, _ANG, _LEN, _ANG), min_size=1, max_size=7),
+       st.integers(0, 2**31))
+def test_random_modified_tables_match_craig(rows: list[tuple[float, float, float, float]],
+                                            seed: int) -> None:
+    data = {"name": "random", "convention": "modified", "tool_mm": [5.0, -3.0, 40.0],
+            "joints": [{"a_mm": a, "alpha_deg": al, "d_mm": d, "theta_offset_deg": th,
+                        "min_deg": -180.0, "max_deg": 180.0} for a, al, d, th in rows]}
+    robot = RobotDescription.from_dict(data, source="random.toml")
+    q = np.random.default_rng(seed).uniform(-3, 3, (3, len(rows)))
+    p = _positions(robot, q)
+    for k in range(len(q)):
+        assert np.abs(p[k] - _craig_fk(data, q[k])).max() < 1e-12
+    back = RobotDescription.from_dict(robot.to_modified_dict())
+    assert np.abs(_positions(back, q) - p).max() < 1e-12
+
+
+def test_model_file_keeps_base_and_flange_transforms(tmp_path) -> None:
+    robot = RobotDescription.from_dict(tomllib.loads(CRAIG), source="craig.toml")
+    robot = RobotDescription.from_dict(dict(robot.to_dict(), flange_xyz_mm=[1.0, 2.0, 3.0],
+                                            flange_rpy_deg=[10.0, -20.0, 30.0]))
+    assert robot.has_base and robot.has_flange
+    model = KinematicModel(robot, ErrorModelSpec.constant(robot.dof))
+    x = model.nominal_params()
+    x[9:] = np.random.default_rng(0).normal(0, 1e-3, model.size - 9)
+    path = tmp_path / "model.json"
+    CalibratedModel(model=model, params=x).save(path)
+    back = CalibratedModel.load(path)
+    q = np.random.default_rng(1).uniform(-1, 1, (10, robot.dof))
+    assert np.abs(back.predict(q) - model.positions(q, x)).max() < 1e-12
