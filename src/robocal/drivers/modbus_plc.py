@@ -8,6 +8,7 @@ next ``CMD_SEQ`` without waiting for a running move, and waits for its ``ACK_SEQ
 aborted move is never acknowledged and raises MotionStopped. The client increments
 ``CLIENT_HEARTBEAT`` every ``heartbeat_period_s``; a ``PLC_HEARTBEAT`` that stops changing
 for ``heartbeat_timeout_s`` faults the driver (every later call raises until it reconnects).
+Both heartbeat times run on the driver's :class:`~robocal._core.clock.Clock`.
 
 Compensation tables (``targets``, ``joint`` grids, ``frames``) are written as one register
 block at ``register_map.table`` (header, values, ASCII metadata), applied with ``CMD 5``
@@ -29,6 +30,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, table_diff
@@ -117,6 +119,8 @@ class ModbusPlcRobot(RobotDriverBase):
     ----------
     options : ModbusPlcOptions or mapping
         Validated options (``joint_limits_deg`` and ``port`` are usually needed).
+    clock : Clock, optional
+        Time source of the heartbeat period and timeout (default: the system clock).
     """
 
     kind: ClassVar[str] = "modbus_plc"
@@ -124,12 +128,19 @@ class ModbusPlcRobot(RobotDriverBase):
     options: ModbusPlcOptions
     supported_compensation: ClassVar[frozenset[str]] = frozenset({"targets", "joint", "frames"})
 
-    def __init__(self, options: ModbusPlcOptions | Mapping[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        options: ModbusPlcOptions | Mapping[str, Any] | None = None,
+        *,
+        clock: Clock = SYSTEM_CLOCK,
+    ) -> None:
         super().__init__(options)
+        self.clock = clock
         self._client: mb.ModbusClient | None = None
         self._op_lock = asyncio.Lock()
         self._seq = 0
         self._heartbeat_task: asyncio.Task[None] | None = None
+        self._heartbeat_stop = asyncio.Event()
         self._client_hb = 0
         self._plc_hb: int | None = None
         self._plc_hb_time = 0.0
@@ -155,7 +166,8 @@ class ModbusPlcRobot(RobotDriverBase):
                 kind=self.kind,
             )
         self._seq = st.ack_seq
-        self._plc_hb, self._plc_hb_time = st.plc_heartbeat, time.monotonic()
+        self._plc_hb, self._plc_hb_time = st.plc_heartbeat, self.clock.monotonic()
+        self._heartbeat_stop = asyncio.Event()
         self._heartbeat_task = asyncio.create_task(self._heartbeat(), name="modbus-heartbeat")
 
     async def _close_impl(self) -> None:
@@ -164,11 +176,7 @@ class ModbusPlcRobot(RobotDriverBase):
             with contextlib.suppress(Exception):
                 async with asyncio.timeout(self.options.request_timeout_s * 2):
                     await self.stop()
-        if self._heartbeat_task is not None:
-            self._heartbeat_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._heartbeat_task
-            self._heartbeat_task = None
+        await self._stop_heartbeat()
         if self._client is not None:
             await self._client.close()
             self._client = None
@@ -181,8 +189,23 @@ class ModbusPlcRobot(RobotDriverBase):
         return self._client
 
     # --- heartbeats ----------------------------------------------------------------------------
+    async def _stop_heartbeat(self) -> None:
+        """End the client heartbeat (bounded: at most one request timeout and a bit)."""
+        task, self._heartbeat_task = self._heartbeat_task, None
+        if task is None:
+            return
+        # The flag ends the loop even if a cancellation is lost on the way.
+        self._heartbeat_stop.set()
+        task.cancel()
+        done, _ = await asyncio.wait({task}, timeout=self.options.request_timeout_s + 1.0)
+        if not done:
+            self.log.error("heartbeat task did not stop")
+            return
+        if not task.cancelled() and task.exception() is not None:
+            self.log.warning("heartbeat task failed", error=repr(task.exception()))
+
     def _note_plc_heartbeat(self, hb: int) -> None:
-        now = time.monotonic()
+        now = self.clock.monotonic()
         if hb != self._plc_hb:
             self._plc_hb, self._plc_hb_time = hb, now
         elif now - self._plc_hb_time > self.options.heartbeat_timeout_s and self._fault is None:
@@ -195,13 +218,16 @@ class ModbusPlcRobot(RobotDriverBase):
 
     async def _heartbeat(self) -> None:
         o, m = self.options, self.options.register_map
-        while True:
+        stop = self._heartbeat_stop
+        while not stop.is_set():
             try:
                 client = self._client
                 if client is None:
                     return
                 self._client_hb = (self._client_hb + 1) & 0xFFFF
                 await client.write_register(m.client_heartbeat, self._client_hb)
+                if stop.is_set():
+                    return
                 st = await self._read_status()
                 self._note_plc_heartbeat(st.plc_heartbeat)
             except (TransportError, ConnectFailed) as err:
@@ -210,7 +236,7 @@ class ModbusPlcRobot(RobotDriverBase):
                 return
             except Exception as err:
                 self.log.warning("heartbeat failed", error=repr(err))
-            await asyncio.sleep(o.heartbeat_period_s)
+            await self.clock.sleep(o.heartbeat_period_s)
 
     # --- handshake -----------------------------------------------------------------------------
     async def _read_status(self) -> PlcStatus:

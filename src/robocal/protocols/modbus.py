@@ -479,10 +479,17 @@ class ModbusClient:
         client = self._client
         if client is None or not client.connected:
             raise TransportError(f"{self.url}: not connected")
+        task = asyncio.current_task()
+        cancels = task.cancelling() if task is not None else 0
         async with self._lock:
             try:
                 async with asyncio.timeout(self.timeout + 1.0):
                     rr = await fn(client)
+                if task is not None and task.cancelling() > cancels:
+                    # pymodbus waits with asyncio.wait_for, which on Python 3.11 drops a
+                    # cancellation that arrives together with the reply (CPython gh-86296):
+                    # honour it here, or a cancelled caller would run on.
+                    raise asyncio.CancelledError
             except TimeoutError as err:
                 raise TransportTimeout(f"{self.url}: {what} timed out") from err
             except ModbusIOException as err:

@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from robocal._core.clock import SYSTEM_CLOCK
 from robocal.compensation import CompensationTable, Frame, FramesPayload, JointCorrection, TargetRow
 from robocal.drivers.modbus_plc import ModbusPlcRobot
 from robocal.drivers.sim import FaultConfig, ModbusPlcSimulator, ModbusSimOptions
@@ -22,11 +23,15 @@ from robocal.errors import (
     VerificationMismatch,
 )
 from robocal.protocols import modbus as mb
+from tests._clock import ManualClock
+from tests._waiting import eventually
 
 
 @contextlib.asynccontextmanager
-async def plc(world, options=None, faults=None):
-    sim = ModbusPlcSimulator(world, options or ModbusSimOptions(time_scale=0.0), faults)
+async def plc(world, options=None, faults=None, clock=None):
+    sim = ModbusPlcSimulator(
+        world, options or ModbusSimOptions(time_scale=0.0), faults, clock=clock or SYSTEM_CLOCK
+    )
     await sim.start()
     try:
         yield sim
@@ -34,7 +39,7 @@ async def plc(world, options=None, faults=None):
         await sim.stop()
 
 
-def robot_for(sim, world, **extra) -> ModbusPlcRobot:
+def robot_for(sim, world, clock=None, **extra) -> ModbusPlcRobot:
     opts = {
         "port": sim.port,
         "joint_limits_deg": world.joint_limits_deg,
@@ -42,7 +47,7 @@ def robot_for(sim, world, **extra) -> ModbusPlcRobot:
         "poll_interval_s": 0.001,
         **extra,
     }
-    return ModbusPlcRobot(opts)
+    return ModbusPlcRobot(opts, clock=clock or SYSTEM_CLOCK)
 
 
 @pytest.mark.parametrize(
@@ -125,34 +130,74 @@ async def test_alarm_and_timeout(world):
         await robot.close()
 
 
+def heartbeat_writes(sim):
+    return [w for w in sim.writes if w[1] == sim.map.client_heartbeat]
+
+
 async def test_client_heartbeat_written(world):
+    clock = ManualClock()
     async with plc(world) as sim:
-        robot = robot_for(sim, world, heartbeat_period_s=0.02, heartbeat_timeout_s=1.0)
+        robot = robot_for(sim, world, clock, heartbeat_period_s=0.02, heartbeat_timeout_s=1.0)
         await robot.connect(timeout=5)
-        await asyncio.sleep(0.15)
-        hb_writes = [w for w in sim.writes if w[1] == sim.map.client_heartbeat]
-        assert len(hb_writes) >= 3 and all(w[0] == 6 for w in hb_writes)
+        for n in range(1, 5):
+            # One write per period: the n-th, then the heartbeat sleeps until time moves on.
+            await eventually(
+                lambda n=n: clock.sleepers == 1 and len(heartbeat_writes(sim)) == n,
+                what=f"write {n}",
+            )
+            clock.advance(0.02)
+        await eventually(lambda: len(heartbeat_writes(sim)) == 5)
+        assert all(w[0] == 6 for w in heartbeat_writes(sim))
         await robot.close()
+        assert robot._heartbeat_task is None and clock.sleepers == 0
+
+
+async def test_close_ends_heartbeat_even_when_its_cancellation_is_lost(world):
+    """Python 3.11's wait_for (inside pymodbus) drops a cancel that meets the reply."""
+    async with plc(world) as sim:
+        robot = robot_for(sim, world, heartbeat_period_s=0.0005, heartbeat_timeout_s=1.0)
+        await robot.connect(timeout=5)
+        for i in range(200):
+            task = robot._heartbeat_task
+            await asyncio.sleep(0.0001 * (i % 5))
+            await robot._stop_heartbeat()
+            assert task.done()
+            robot._heartbeat_stop = asyncio.Event()
+            robot._heartbeat_task = asyncio.create_task(robot._heartbeat())
+        await robot.close()
+        assert robot._heartbeat_task is None and task.done()
 
 
 async def test_stale_plc_heartbeat_faults_driver(world):
+    clock = ManualClock()
     async with plc(world, ModbusSimOptions(time_scale=0.0, heartbeat_stalled=True)) as sim:
-        robot = robot_for(sim, world, heartbeat_period_s=0.02, heartbeat_timeout_s=0.1)
+        robot = robot_for(sim, world, clock, heartbeat_period_s=0.02, heartbeat_timeout_s=0.1)
         await robot.connect(timeout=5)
-        await asyncio.sleep(0.3)
+        await eventually(lambda: clock.sleepers == 1)
+        clock.advance(0.09)
+        await robot.read_joints()  # unchanged for less than the timeout: fine
+        clock.advance(0.02)
         with pytest.raises(OperationError, match="heartbeat"):
             await robot.read_joints()
         await robot.close()
 
 
 async def test_plc_latches_when_client_heartbeat_stops(world):
+    plc_clock, robot_clock = ManualClock(), ManualClock()
     opts = ModbusSimOptions(time_scale=0.0, plc_heartbeat_hz=50, client_heartbeat_timeout_s=0.3)
-    async with plc(world, opts) as sim:
-        robot = robot_for(sim, world, heartbeat_period_s=0.02, heartbeat_timeout_s=1.0)
+    async with plc(world, opts, clock=plc_clock) as sim:
+        robot = robot_for(
+            sim, world, robot_clock, heartbeat_period_s=0.02, heartbeat_timeout_s=1.0
+        )
         await robot.connect(timeout=5)
-        await asyncio.sleep(0.05)
-        robot._heartbeat_task.cancel()  # the client "hangs"
-        await asyncio.sleep(0.6)
+        await eventually(lambda: len(heartbeat_writes(sim)) == 1 and robot_clock.sleepers == 1)
+        plc_clock.advance(0.25)  # within the timeout
+        await eventually(lambda: plc_clock.sleepers == 1)
+        assert not sim.latched
+        await robot.read_joints()
+        await robot._stop_heartbeat()  # the client "hangs"
+        plc_clock.advance(0.1)  # 0.35 s since the last client heartbeat
+        await eventually(lambda: sim.latched)
         with pytest.raises(OperationError, match="HEARTBEAT_LOST"):
             await robot.read_joints()
         await robot.reset()

@@ -9,7 +9,8 @@ aborted move is never acknowledged, and the ABORT's ``CMD_SEQ`` becomes ``ACK_SE
 ``ACK_SEQ`` only ever moves forward). Reads of the status area are served from the PLC's
 own state. A heartbeat task
 increments ``PLC_HEARTBEAT``; if ``client_heartbeat_timeout_s`` is set the PLC latches
-``HEARTBEAT_LOST`` when the client's heartbeat stops changing, until ``RESET``.
+``HEARTBEAT_LOST`` when the client's heartbeat stops changing, until ``RESET``. Both
+heartbeat times run on the simulator's :class:`~robocal._core.clock.Clock`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import ProtocolError
@@ -63,6 +65,8 @@ class ModbusPlcSimulator:
         PLC behaviour and register map.
     faults : FaultConfig, optional
         Injected faults (``alarm_rate`` per motion, ``slow_rate``/``slow_s`` per command).
+    clock : Clock, optional
+        Time source of the PLC heartbeat and the client heartbeat timeout (default: system).
 
     Attributes
     ----------
@@ -81,8 +85,11 @@ class ModbusPlcSimulator:
         world: SimWorld,
         options: ModbusSimOptions | None = None,
         faults: FaultConfig | None = None,
+        *,
+        clock: Clock = SYSTEM_CLOCK,
     ) -> None:
         self.world = world
+        self.clock = clock
         self.options = options or ModbusSimOptions()
         self.faults = FaultInjector(faults)
         self.map = self.options.register_map
@@ -106,7 +113,7 @@ class ModbusPlcSimulator:
         self._abort_gen = 0
         self._aborted = asyncio.Event()
         self._client_hb: int | None = None
-        self._client_hb_time = time.monotonic()
+        self._client_hb_time = clock.monotonic()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._t0 = time.monotonic()
         self._server = mb.ModbusSimServer(
@@ -118,6 +125,11 @@ class ModbusPlcSimulator:
         self.host = "127.0.0.1"
         self.port = 0
         self._publish_actual()
+
+    @property
+    def latched(self) -> bool:
+        """True while ``HEARTBEAT_LOST`` is latched (until ``RESET``)."""
+        return self._latched
 
     # --- status area ---------------------------------------------------------------------------
     def _set(self, name: str, words: list[int]) -> None:
@@ -160,8 +172,9 @@ class ModbusPlcSimulator:
         status_fc = 4 if m.status_area == "input" else 3
         if fc in mb.HOLDING_FCS:
             self._hr, self._hr_start = registers, start
-        if fc in mb.WRITE_FCS:
-            values = [int(v) for v in (set_values or [])]
+        if fc in mb.WRITE_FCS and set_values is not None:
+            # (pymodbus also calls back without values when it reads a write back for its echo)
+            values = [int(v) for v in set_values]
             self.writes.append((fc, address, len(values)))
             end = address + len(values)
             if m.status_area == "holding" and address < s1 and s0 < end:
@@ -181,7 +194,7 @@ class ModbusPlcSimulator:
             hb = values[m.client_heartbeat - address]
             if hb != self._client_hb:
                 self._client_hb = hb
-                self._client_hb_time = time.monotonic()
+                self._client_hb_time = self.clock.monotonic()
         lo = min(m.cmd, m.cmd_seq)
         if address <= lo and lo + 1 < end:
 
@@ -279,7 +292,7 @@ class ModbusPlcSimulator:
             self._apply_table(seq)
         elif cmd == mb.Cmd.RESET:
             self._latched = False
-            self._client_hb_time = time.monotonic()
+            self._client_hb_time = self.clock.monotonic()
             self._finish(seq, mb.Status.DONE)
         elif cmd == mb.Cmd.IDLE:
             self._finish(seq, mb.Status.DONE)
@@ -311,12 +324,12 @@ class ModbusPlcSimulator:
         o = self.options
         period = 1.0 / o.plc_heartbeat_hz
         while True:
-            await asyncio.sleep(period)
+            await self.clock.sleep(period)
             if not o.heartbeat_stalled:
                 hb = (self._get("plc_heartbeat")[0] + 1) & 0xFFFF
                 self._set("plc_heartbeat", [hb])
             limit = o.client_heartbeat_timeout_s
-            stale = time.monotonic() - self._client_hb_time
+            stale = self.clock.monotonic() - self._client_hb_time
             if limit is not None and self._client_hb is not None and stale > limit:
                 if not self._latched:
                     _log.warning("plc sim: client heartbeat lost", stale_s=round(stale, 3))
