@@ -4,7 +4,9 @@ from __future__ import annotations
 
 #: Error models a user can ask for, and the one used when none is named: ``auto`` chooses the
 #: joint-dependent terms the data support (cross-validated), which is what a calibration
-#: engineer wants unless they say otherwise.
+#: engineer wants unless they say otherwise. The home of the list is
+#: ``robocal.identification.MODELS``; it is spelled out here because ``robocal --help`` must
+#: not import numpy (tests/unit/test_model_names.py checks that the two agree).
 MODELS = ("constant", "high-order", "auto")
 DEFAULT_MODEL = "auto"
 

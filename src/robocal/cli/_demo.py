@@ -30,9 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._defaults import MODELS as _MODELS
 from robocal.cli._defaults import VALIDATION_HELP, default_validation
-
-_MODELS = ("constant", "high-order", "auto")
 
 
 def register(sub: Any) -> None:

@@ -28,7 +28,7 @@ import os
 import stat
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -51,6 +51,8 @@ __all__ = [
     "parse_config",
 ]
 
+#: ``robocal.identification.MODELS`` as a type; spelled out because the daemon's config and
+#: client import without numpy (tests/unit/test_model_names.py checks that they agree).
 FitModel = Literal["constant", "high-order", "auto"]
 
 
@@ -166,8 +168,8 @@ class FitConfig(_Model):
     keyword arguments of :class:`robocal.identification.FitOptions` (checked at start-up).
     """
 
-    models: tuple[FitModel, ...] = ("constant", "high-order", "auto")
-    select: Literal["constant", "high-order", "auto", "best"] = "auto"
+    models: tuple[FitModel, ...] = get_args(FitModel)
+    select: Literal[FitModel, "best"] = "auto"
     cpa: bool = True
     executor: Literal["process", "thread"] = "process"
     timeout_s: float = Field(default=1800.0, gt=0.0)

@@ -30,13 +30,11 @@ from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
-from robocal.identification import min_poses
+from robocal.identification import MODELS, min_poses
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
-
-MODELS = ("constant", "high-order", "auto")
 
 #: Equations per identifiable parameter the recommended pose count aims for (3 per pose).
 REDUNDANCY = 3.0
