@@ -230,6 +230,9 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
         return SolveInfo(x, cost, cd, 0, NON_FINITE,
                          "the model gives non-finite values at the starting point", A, g)
     At = A if Pm is None else A + Pm
+    # Marquardt's column scaling: the damping mu I then weighs metres, radians and basis
+    # functions of very different size (gravity torques, unit harmonics) alike, so mu0 and the
+    # step test xtol need no per-model tuning
     scale = np.sqrt(np.clip(np.diag(At), 0.0, None))
     scale[scale <= 1e-300] = 1.0
     mu, nu = mu0, 2.0
@@ -242,6 +245,8 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
         gs = (g - prob.prior_gradient(x)[free]) / scale
         As = At / np.outer(scale, scale)
         d = _damped_solve(As, gs, mu)
+        # decrease of sum r^2 + prior predicted by the linearised model (factor 2: the cost is
+        # not halved as in scipy): |r|^2 - |r - J d|^2 = 2 d.g - d.A.d
         predicted = float(2.0 * d @ gs - d @ As @ d)
         step = float(np.linalg.norm(d))
         xs = float(np.linalg.norm(x[free] * scale))
@@ -260,6 +265,9 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
             x = x_new
             A, g, cd = prob.normal_equations(x, rows, free)
             cost = cd + prob.prior_cost(x)
+            # Nielsen's update: the better the quadratic model predicted the decrease (rho
+            # near 1), the more the damping shrinks, by at most 3x; repeated rejections grow
+            # it geometrically (nu doubles)
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             last_decrease = decrease / max(cost, 1e-300)
@@ -295,6 +303,9 @@ def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
             return d
     except np.linalg.LinAlgError:
         pass
+    # Cholesky fails only when the damped matrix is indefinite within rounding (tiny mu and
+    # nearly dependent columns): step in the well-determined eigen-directions only, never
+    # along directions that are rounding noise
     if not (np.all(np.isfinite(As)) and np.all(np.isfinite(gs))):
         return np.zeros(k)
     try:
@@ -388,6 +399,9 @@ def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
     if not np.all(np.isfinite(A)):
         raise NotIdentifiable("the measurement Jacobian is not finite at the starting point "
                               "(check units and the robot description)")
+    # rank from the R factor of J itself, not from J^T J: the normal matrix squares the
+    # singular values, so a direction at 1e-8 of the largest would sink to 1e-16, i.e. into
+    # rounding, and tol could not be resolved
     R = _tsqr(prob, x, rows, sub, norms[nz])
     try:
         _, S, Vt = np.linalg.svd(R, full_matrices=False)

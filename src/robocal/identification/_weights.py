@@ -51,6 +51,8 @@ class TrackerSigma:
 
 def _outer_dirs(v: Array) -> Array:
     norm = np.linalg.norm(v, axis=1, keepdims=True)
+    # a point at the tracker itself has no direction: uu = 0 makes its covariance isotropic
+    # (transverse sigma) instead of NaN
     u = v / np.where(norm > 0, norm, 1.0)
     return u[:, :, None] * u[:, None, :]
 

@@ -16,6 +16,9 @@ TWO_PI = 2.0 * math.pi
 
 def _legendre(s: Array, kmax: int) -> tuple[Array, Array]:
     """Legendre P_k(s) and dP_k/ds for k = 0..kmax; shapes (kmax+1, n)."""
+    # Legendre rather than powers of s: orthogonal on [-1, 1] (the joint range), so pitch and
+    # higher polynomial columns stay well conditioned against the constant and each other.
+    # Bonnet's recursion for P and P'_{k+1} = P'_{k-1} + (2k+1) P_k are stable on [-1, 1].
     P = np.empty((kmax + 1, s.size))
     dP = np.empty_like(P)
     P[0], dP[0] = 1.0, 0.0
@@ -34,6 +37,9 @@ def spline_weights(q: Array, n_knots: int) -> tuple[NDArray[np.intp], Array, Arr
     in rad. The map value is ``sum(c[idx] * w, axis=1)``.
     """
     h = TWO_PI / n_knots
+    # mod 2 pi: the errors a map models (gear, encoder and bearing errors) repeat every
+    # revolution, so q and q + 2 pi share coefficients and a joint with a +-360 deg range needs
+    # no extra knots; uniform knots keep the basis a fixed polynomial in the local t.
     u = np.mod(q, TWO_PI) / h
     i = np.floor(u)
     t = u - i
@@ -41,6 +47,8 @@ def spline_weights(q: Array, n_knots: int) -> tuple[NDArray[np.intp], Array, Arr
     idx = (i[:, None] + np.arange(-1, 3)[None, :]) % n_knots
     t2, t3 = t * t, t * t * t
     omt = 1.0 - t
+    # the four uniform cubic B-spline pieces (knot r centred at q = r h): non-negative, sum to
+    # one, C2 across knots; tests/unit/kinematics/test_spline_basis.py checks them against scipy
     w = np.stack([omt**3, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], axis=1) / 6.0
     dw = np.stack([-3 * omt**2, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], axis=1) / (6.0 * h)
     return idx, w, dw
