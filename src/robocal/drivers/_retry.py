@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import structlog
 
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.drivers.api import PointMeasurer, TrackerReading
 from robocal.errors import BeamLost, DriverTimeout, Unstable
 
@@ -28,6 +27,7 @@ async def measure_with_retry(
     backoff_factor: float = 2.0,
     max_backoff_s: float = 2.0,
     retry_on: tuple[type[Exception], ...] = RETRYABLE,
+    clock: Clock = SYSTEM_CLOCK,
 ) -> TrackerReading:
     """Measure, retrying ``retry_on`` failures up to ``attempts`` times in total.
 
@@ -42,6 +42,8 @@ async def measure_with_retry(
         Passed to ``tracker.measure`` (``timeout`` in seconds, per attempt).
     attempts : int
         Total number of attempts (at least 1).
+    clock : Clock, optional
+        Whose ``sleep`` waits out the backoff (default: the system clock).
     """
     if attempts < 1:
         raise ValueError("attempts must be at least 1")
@@ -59,6 +61,6 @@ async def measure_with_retry(
                 error=type(err).__name__,
                 delay_s=delay,
             )
-            await asyncio.sleep(delay)
+            await clock.sleep(delay)
             delay = min(delay * backoff_factor, max_backoff_s)
     raise AssertionError("unreachable")  # pragma: no cover

@@ -22,6 +22,7 @@ from robocal.errors import (
     VerificationMismatch,
 )
 from robocal.protocols import fanuc_rmi as rmi
+from tests._waiting import eventually
 
 
 @contextlib.asynccontextmanager
@@ -222,7 +223,8 @@ async def test_idle_terminate(world):
     async with rmi_sim(world, FanucSimOptions(time_scale=0.0, idle_timeout_s=0.25)) as sim:
         robot = robot_for(sim, world)
         await robot.connect(timeout=5)
-        await asyncio.sleep(0.6)
+        # the controller ends a session idle for 0.25 s with FRC_Terminate
+        await eventually(lambda: robot._lost is not None, what="FRC_Terminate received")
         with pytest.raises(ConnectFailed, match="terminated"):
             await robot.read_joints()
         await robot.close()

@@ -25,43 +25,52 @@ class Scripted:
         return outcome
 
 
+class RecordingClock:
+    """A clock whose sleeps return at once and are recorded (the backoff, in seconds)."""
+
+    def __init__(self):
+        self.now = 0.0
+        self.delays: list[float] = []
+
+    def monotonic(self):
+        return self.now
+
+    async def sleep(self, seconds):
+        self.delays.append(seconds)
+        self.now += seconds
+        await asyncio.sleep(0)
+
+
 @pytest.fixture
-def sleeps(monkeypatch):
-    delays: list[float] = []
-    real_sleep = asyncio.sleep
-
-    async def fake_sleep(d):
-        delays.append(d)
-        await real_sleep(0)
-
-    monkeypatch.setattr("robocal.drivers._retry.asyncio.sleep", fake_sleep)
-    return delays
+def clock():
+    return RecordingClock()
 
 
-async def test_retries_recoverable_failures_with_backoff(sleeps):
+async def test_retries_recoverable_failures_with_backoff(clock):
     t = Scripted([BeamLost("b"), Unstable("u"), DriverTimeout("t"), OK])
     r = await measure_with_retry(
-        t, samples=5, timeout=2.0, point_id="P1", attempts=4, backoff_s=0.1
+        t, samples=5, timeout=2.0, point_id="P1", attempts=4, backoff_s=0.1, clock=clock
     )
     assert r is OK
-    assert sleeps == [0.1, 0.2, 0.4]
+    assert clock.delays == [0.1, 0.2, 0.4]
     assert t.calls == [{"samples": 5, "timeout": 2.0, "point_id": "P1"}] * 4
 
 
-async def test_gives_up_after_attempts(sleeps):
+async def test_gives_up_after_attempts(clock):
     t = Scripted([BeamLost("1"), BeamLost("2"), BeamLost("3")])
     with pytest.raises(BeamLost, match="3"):
         await measure_with_retry(
-            t, samples=1, timeout=1.0, attempts=3, backoff_s=1.0, max_backoff_s=1.5
+            t, samples=1, timeout=1.0, attempts=3, backoff_s=1.0, max_backoff_s=1.5,
+            clock=clock,
         )
-    assert sleeps == [1.0, 1.5]
+    assert clock.delays == [1.0, 1.5]
 
 
-async def test_other_errors_are_not_retried(sleeps):
+async def test_other_errors_are_not_retried(clock):
     t = Scripted([MeasurementError("smr mismatch"), OK])
     with pytest.raises(MeasurementError):
-        await measure_with_retry(t, samples=1, timeout=1.0)
-    assert len(t.calls) == 1 and sleeps == []
+        await measure_with_retry(t, samples=1, timeout=1.0, clock=clock)
+    assert len(t.calls) == 1 and clock.delays == []
 
 
 async def test_attempts_must_be_positive():
