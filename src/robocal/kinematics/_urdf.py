@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
 from robocal.kinematics._robot import Joint, RobotDescription, matrix_to_rpy, transform
+from robocal.kinematics._spec import ParameterLayout
 
 if TYPE_CHECKING:
     from robocal.kinematics._calibrated import CalibratedModel
@@ -133,10 +134,11 @@ def _joints(root: ET.Element, source: str) -> list[_UJoint]:
                                 f"{where}.axis.xyz", source))
         lower, upper, vel = -2 * math.pi, 2 * math.pi, None
         if kind in _MOVABLE:
-            norm = float(np.linalg.norm(axis))
-            if norm < 1e-12:
+            big = float(np.abs(axis).max())
+            if big < 1e-12:
                 raise ConfigError("axis must not be zero", source=source, key=f"{where}.axis")
-            axis = axis / norm
+            axis = axis / big               # scaled first: no overflow for huge components
+            axis = axis / float(np.linalg.norm(axis))
             lim = el.find("limit")
             if kind == "revolute":
                 if lim is None:
@@ -318,7 +320,13 @@ def urdf_to_robot(text: str, *, source: str = "<urdf>", tip: str | None = None,
             z.append(T[:3, :3] @ j.axis)
             p.append(T[:3, 3].copy())
             movers.append(j)
+    if not np.all(np.isfinite(T)) or float(np.abs(T[:3, 3]).max()) > 1e6:
+        raise ConfigError("joint origins put the chain beyond 1000 km: not a robot",
+                          source=source)
     T_base, dh, T_flange = _frames_to_dh(z, p, T)
+    if not (np.all(np.isfinite(dh)) and np.all(np.isfinite(T_base))
+            and np.all(np.isfinite(T_flange))):
+        raise ConfigError("the joint axes give no finite DH parameters", source=source)
     joints = []
     for j, (theta, d, a, alpha) in zip(movers, dh, strict=True):
         lo, hi = (j.lower, j.upper) if j.kind == "revolute" else (-2 * math.pi, 2 * math.pi)
@@ -458,9 +466,9 @@ def constant_part(cal: CalibratedModel) -> tuple[Array, Array]:
     comps = ("dx", "dy", "dz", "ex", "ey", "ez")
     for k, t in enumerate(model.spec.terms):
         if t.family == "const":
-            E[t.joint, comps.index(t.component)] += x[9 + k]
+            E[t.joint, comps.index(t.component)] += x[ParameterLayout.OFFSET + k]
         else:
-            x[9 + k] = 0.0
+            x[ParameterLayout.OFFSET + k] = 0.0
     return x, E
 
 
@@ -474,7 +482,8 @@ def calibrated_to_urdf(cal: CalibratedModel) -> tuple[str, dict[str, Any]]:
     model = cal.model
     x, E = constant_part(cal)
     text = robot_to_urdf(
-        model.robot, joint_errors=E, tool=x[6:9], T_tracker_base=model.base_transform(x),
+        model.robot, joint_errors=E, tool=x[ParameterLayout.TOOL],
+        T_tracker_base=model.base_transform(x),
         comment=f"robocal calibrated model {cal.model_id} ({cal.kind}): constant part only; "
                 "joint-dependent terms are in the side table")
     sig = cal.sigma
@@ -487,8 +496,8 @@ def calibrated_to_urdf(cal: CalibratedModel) -> tuple[str, dict[str, Any]]:
                 "rad/(N m)": (180.0 / math.pi, "deg/(N m)")}[unit]
         rows.append({"name": t.name, "joint": t.joint + 1, "component": t.component,
                      "family": t.family, "index": t.index,
-                     "value": float(cal.params[9 + k] * f), "unit": u,
-                     "sigma": None if sig is None else float(sig[9 + k] * f)})
+                     "value": float(cal.params[ParameterLayout.OFFSET + k] * f), "unit": u,
+                     "sigma": None if sig is None else float(sig[ParameterLayout.OFFSET + k] * f)})
     couplings = [
         {"joint": i + 1, "coupled_to": j.coupled_to + 1, "coupling": j.coupling,
          "urdf_value": f"q{i + 1} + {j.coupling!r} * q{j.coupled_to + 1}"}

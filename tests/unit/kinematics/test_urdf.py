@@ -24,12 +24,12 @@ from robocal.kinematics import (
     builtin_robots,
     calibrated_to_urdf,
     constant_part,
+    euler_xyz_to_matrix,
     load_robot,
     robot_to_toml,
     robot_to_urdf,
     urdf_to_robot,
 )
-from robocal.kinematics._transforms import euler_xyz_to_matrix
 
 from .urdf_reference import movable_joints, urdf_fk
 
@@ -270,3 +270,42 @@ def test_random_chains_import_with_the_same_fk(joints: list[tuple], seed: int) -
         scale = 1.0 + sum(abs(j.a) + abs(j.d) for j in robot.joints)
         assert np.abs(T[:3, 3] - o[k]).max() < 1e-13 * scale
         assert np.abs(T[:3, :3] - R[k]).max() < 1e-11
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**31), st.integers(1, 6))
+def test_mutated_urdf_imports_or_gives_a_config_error(seed: int, edits: int) -> None:
+    """Random byte-level edits of a real URDF: a robot or one ConfigError, never a traceback."""
+    rng = np.random.default_rng(seed)
+    text = list(FIXTURE.read_text())
+    alphabet = [*'<>/="\' abcxyz0123456789.-e\n', "<!DOCTYPE", "&amp;", "nan", "inf"]
+    for _ in range(edits):
+        k = int(rng.integers(0, len(text)))
+        op = int(rng.integers(0, 3))
+        if op == 0:
+            del text[k]
+        elif op == 1:
+            text.insert(k, str(rng.choice(alphabet)))
+        else:
+            text[k] = str(rng.choice(alphabet))
+    try:
+        robot = urdf_to_robot("".join(text), source="fuzz.urdf")
+    except ConfigError as err:
+        assert "fuzz.urdf" in str(err)
+        return
+    assert 1 <= robot.dof <= 6
+    assert np.all(np.isfinite(robot.joint_limits))
+
+
+@pytest.mark.parametrize("xyz", ["1e308 1e308 1e308", "0 0 1e300"])
+def test_absurd_numbers_give_a_config_error_or_a_finite_robot(xyz: str) -> None:
+    text = _BODY.format(extra='<joint name="j2" type="revolute"><parent link="b"/>'
+                              f'<child link="c"/><origin xyz="{xyz}"/><axis xyz="{xyz}"/>'
+                              '<limit lower="0" upper="1"/></joint>')
+    with pytest.raises(ConfigError, match="beyond 1000 km"):
+        urdf_to_robot(text, source="big.urdf")
+    ok = _BODY.format(extra='<joint name="j2" type="revolute"><parent link="b"/>'
+                            '<child link="c"/><origin xyz="0 0 1"/>'
+                            f'<axis xyz="{xyz}"/><limit lower="0" upper="1"/></joint>')
+    robot = urdf_to_robot(ok, source="ok.urdf")
+    assert robot.dof == 2 and all(math.isfinite(j.d) for j in robot.joints)
