@@ -40,7 +40,11 @@ def test_demo_end_to_end(tmp_path):
     push = summary["push"]
     assert push["kind"] == "targets" and push["verification"] == "done"
     assert push["measured_n"] == comp["targets"]
-    assert push["measured_after_rms_mm"] <= 0.02
+    # as accurate as the approved model's held-out accuracy says (with 80 poses that is a
+    # few hundredths of a mm; the default 250-pose demo measures about 0.011 mm, ADR 0013)
+    held_out = fits["auto"]["validation"]["rms_mm"]
+    assert push["model_accuracy_mm"] == pytest.approx(held_out, abs=1e-6)
+    assert push["measured_after_rms_mm"] <= 1.5 * held_out + 0.005
     assert push["measured_before_rms_mm"] > 20 * push["measured_after_rms_mm"]
     assert push["predicted_rms_mm"] < 0.5 * push["nominal_rms_mm"]
     assert f"-> {push['measured_after_rms_mm']:.4f} mm RMS after" in text
