@@ -35,6 +35,7 @@ from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
     KinematicModel,
+    ParameterLayout,
     Term,
     evaluate_basis,
     matrix_to_wpr,
@@ -113,7 +114,7 @@ def fit_frames(cal: CalibratedModel, q_nominal: Array, p_actual: Array, iters: i
     nm = KinematicModel(robot, ErrorModelSpec(robot.dof, ()),
                         cal.model.base_transform(cal.params))
     x = nm.nominal_params()
-    x[6:9] = cal.params[6:9]
+    x[ParameterLayout.TOOL] = cal.params[ParameterLayout.TOOL]
     for _ in range(iters):
         p, J = nm.jacobian(q_nominal, x)
         r = (p_actual - p).ravel()
@@ -122,7 +123,8 @@ def fit_frames(cal: CalibratedModel, q_nominal: Array, p_actual: Array, iters: i
         if np.abs(dx).max() < 1e-12:
             break
     res = np.linalg.norm(p_actual - nm.positions(q_nominal, x), axis=1)
-    return FrameFit(T_tracker_base=nm.base_transform(x), tool=x[6:9].copy(), residual_m=res)
+    return FrameFit(T_tracker_base=nm.base_transform(x), tool=x[ParameterLayout.TOOL].copy(),
+                    residual_m=res)
 
 
 def _frame(T: Array) -> Frame:
@@ -155,7 +157,7 @@ def _ez_basis(cal: CalibratedModel, j: int, *, with_const: bool = False
     idx = [k for k, t in enumerate(spec.terms)
            if t.joint == j and t.component == "ez" and t.family != "gravity"]
     terms = [spec.terms[k] for k in idx]
-    coef = cal.params[9:][idx] if idx else np.zeros(0)
+    coef = cal.params[ParameterLayout.TERMS][idx] if idx else np.zeros(0)
     if with_const and not any(t.family == "const" for t in terms):
         terms.append(Term(j, "ez", "const"))
         coef = np.append(coef, 0.0)
@@ -272,7 +274,7 @@ def _fitted_entries(cal: CalibratedModel, samples: int, seed: int, iters: int = 
     nm = KinematicModel(robot, ErrorModelSpec(robot.dof, ()),
                         cal.model.base_transform(cal.params))
     x = nm.nominal_params()
-    x[6:9] = cal.params[6:9]
+    x[ParameterLayout.TOOL] = cal.params[ParameterLayout.TOOL]
     ev = model_evaluator(cal)
     for _ in range(iters):
         dq = dq0.copy()

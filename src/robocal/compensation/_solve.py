@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from robocal.compensation._ik import has_closed_form, nominal_ik
 from robocal.errors import ConfigError
-from robocal.kinematics import CalibratedModel, KinematicModel
+from robocal.kinematics import CalibratedModel, KinematicModel, ParameterLayout
 
 Array = NDArray[np.float64]
 Evaluator = Callable[[Array, bool], tuple[Array, Array, Array | None]]
@@ -356,12 +356,12 @@ def compensate(cal: CalibratedModel, targets_p: Array, seeds_q: Array, *,
     # certainly out of reach: farther from the base than all links and the tool together
     T_tb = cal.model.base_transform(cal.params)
     reach = sum(abs(j.a) + abs(j.d) for j in robot.joints) + float(np.linalg.norm(
-        cal.params[6:9])) + 0.05
+        cal.params[ParameterLayout.TOOL])) + 0.05
     reachable = np.linalg.norm(p_t - T_tb[:3, 3], axis=1) <= reach   # ... and, with the
     in_limits = np.ones(n, dtype=bool)      # closed form: some branch reaches, within limits
     use_ik = start == "nominal" or (start == "auto" and has_closed_form(robot))
     if use_ik:
-        tool = cal.params[6:9]
+        tool = cal.params[ParameterLayout.TOOL]
         Rb = T_tb[:3, :3].T
         R_bf = Rb @ R_t
         o_bf = (p_t - R_t @ tool - T_tb[:3, 3]) @ Rb.T

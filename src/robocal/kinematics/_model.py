@@ -126,7 +126,7 @@ class KinematicModel:
     def nominal_params(self) -> Array:
         """Parameter vector of the nominal robot: zero errors, the robot file's tool offset."""
         x = np.zeros(self.size)
-        x[6:9] = self.robot.tool
+        x[ParameterLayout.TOOL] = self.robot.tool
         return x
 
     def with_spec(self, spec: ErrorModelSpec) -> KinematicModel:
@@ -179,7 +179,8 @@ class KinematicModel:
         lin_cols: list[Array] = []
         ang_cols: list[Array] = []
         pivots: list[Array] = []
-        R, o = _apply_error(R0, o0, np.broadcast_to(x[:6], (n, 6)), lin_cols, ang_cols, pivots)
+        R, o = _apply_error(R0, o0, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)), lin_cols,
+                            ang_cols, pivots)
         R, o = _fixed(R, o, self._T_base)
         jaxes = []
         jorig = []
@@ -193,7 +194,7 @@ class KinematicModel:
             o = o + d * R[:, :, 2] + a * R[:, :, 0]
             _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
         R, o = _fixed(R, o, self._T_flange)
-        p = o + R @ x[6:9]
+        p = o + R @ x[ParameterLayout.TOOL]
         lin = np.stack(lin_cols, axis=2)
         ang = np.stack(ang_cols, axis=2)
         for k, piv in enumerate(pivots):
@@ -221,7 +222,7 @@ class KinematicModel:
         theta = q @ self._C.T + self._theta_off
         R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
         o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
-        R, o = _apply_error_fast(R, o, np.broadcast_to(x[:6], (n, 6)))
+        R, o = _apply_error_fast(R, o, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)))
         R, o = _fixed(R, o, self._T_base)
         for i in range(dof):
             _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
@@ -230,7 +231,7 @@ class KinematicModel:
             o = o + d * R[:, :, 2] + a * R[:, :, 0]
             _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
         R, o = _fixed(R, o, self._T_flange)
-        p = o + R @ x[6:9]
+        p = o + R @ x[ParameterLayout.TOOL]
         return p, R, o
 
     def jacobian(self, q: Array, x: Array) -> tuple[Array, Array]:
@@ -304,7 +305,7 @@ class KinematicModel:
         """Fold the base correction of ``x`` into the reference; return (model, params)."""
         m = KinematicModel(self.robot, self.spec, self.base_transform(x))
         x2 = x.copy()
-        x2[:6] = 0.0
+        x2[ParameterLayout.BASE] = 0.0
         return m, x2
 
 

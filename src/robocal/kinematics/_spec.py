@@ -253,3 +253,9 @@ class ParameterLayout:
     N_BASE = 6
     N_TOOL = 3
     OFFSET = 9
+    #: Parts of the parameter vector: the tracker <- base correction (tx, ty, tz m, rx, ry,
+    #: rz rad), the tool (reflector) offset in the flange frame (m), the joint terms (term k
+    #: of the spec is at ``OFFSET + k``).
+    BASE = slice(0, N_BASE)
+    TOOL = slice(N_BASE, N_BASE + N_TOOL)
+    TERMS = slice(OFFSET, None)

@@ -31,7 +31,13 @@ from numpy.typing import NDArray
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
 from robocal.identification import MODELS, min_poses
-from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, Term
+from robocal.kinematics import (
+    ErrorModelSpec,
+    KinematicModel,
+    ParameterLayout,
+    RobotDescription,
+    Term,
+)
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
@@ -86,7 +92,7 @@ def identification_jacobian(robot: RobotDescription, spec: ErrorModelSpec, q: Ar
     """
     model = KinematicModel(robot, spec)
     x = model.nominal_params()
-    x[6:9] = tool_offset
+    x[ParameterLayout.TOOL] = tool_offset
     q = np.atleast_2d(q)
     out = np.empty((len(q), 3, model.size))
     for i in range(0, len(q), chunk):

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
-from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription
+from robocal.kinematics import ErrorModelSpec, KinematicModel, ParameterLayout, RobotDescription
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 
 Array = NDArray[np.float64]
@@ -79,7 +79,7 @@ def solve_ik(robot: RobotDescription, tool_offset: Array, p_target: Array, R_tar
     lim = robot.joint_limits if limits is None else limits
     model = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
     x = model.nominal_params()
-    x[6:9] = tool_offset
+    x[ParameterLayout.TOOL] = tool_offset
     lam2 = damping**2
     done = np.zeros(n, dtype=bool)
     best = np.full(n, np.inf)

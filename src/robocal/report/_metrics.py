@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import ConfigError
-from robocal.kinematics import CalibratedModel, ErrorModelSpec, KinematicModel
+from robocal.kinematics import CalibratedModel, ErrorModelSpec, KinematicModel, ParameterLayout
 from robocal.report._input import Acceptance, IsoPoseSeries
 
 Array = NDArray[np.float64]
@@ -297,7 +297,8 @@ def joint_curves(cm: CalibratedModel, joint: int, *, points: int = 181,
     sig = cm.sigma
     gone = set(removed)
     fixed = {k for k, t in enumerate(terms)
-             if t.name in gone or (sig is not None and sig[9 + k] == 0 and cm.params[9 + k] == 0)}
+             if t.name in gone or (sig is not None and sig[ParameterLayout.OFFSET + k] == 0
+                                   and cm.params[ParameterLayout.OFFSET + k] == 0)}
     curves = []
     for comp in ("dx", "dy", "dz", "ex", "ey", "ez"):
         cols = [k for k, t in enumerate(terms) if t.joint == joint and t.component == comp
@@ -307,7 +308,7 @@ def joint_curves(cm: CalibratedModel, joint: int, *, points: int = 181,
         # centred on its mean over the covered range: the constant part of a component is not
         # separable from the constant terms (and from neighbouring joints' errors)
         Bc = B[:, cols] - B[inside][:, cols].mean(axis=0)
-        pidx = [9 + k for k in cols]
+        pidx = [ParameterLayout.OFFSET + k for k in cols]
         value = Bc @ cm.params[pidx]
         sigma = None
         if cov is not None:

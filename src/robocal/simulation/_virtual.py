@@ -28,6 +28,7 @@ from robocal.errors import ConfigError
 from robocal.kinematics import (
     ErrorModelSpec,
     KinematicModel,
+    ParameterLayout,
     RobotDescription,
     Term,
     euler_xyz_to_matrix,
@@ -107,7 +108,7 @@ def _plant(model: KinematicModel, scenario: str, rng: np.random.Generator) -> Ar
     """Draw planted parameter values with realistic magnitudes."""
     x = model.nominal_params()
     for k, term in enumerate(model.spec.terms):
-        i = 9 + k
+        i = ParameterLayout.OFFSET + k
         trans = term.component.startswith("d")
         if term.family == "const":
             x[i] = rng.normal(0.0, 3e-4 if trans else 5e-4)
@@ -163,7 +164,7 @@ class VirtualCell:
         spec = truth_spec(rob, scenario)
         model = KinematicModel(rob, spec, T)
         x = _plant(model, scenario, rng)
-        x[6:9] = np.asarray(rob.tool) + rng.normal(0.0, 2e-3, 3)
+        x[ParameterLayout.TOOL] = np.asarray(rob.tool) + rng.normal(0.0, 2e-3, 3)
         return cls(robot=rob, scenario=scenario, truth_model=model, truth_params=x,
                    noise=noise or TrackerNoise(), joint_noise_rad=joint_noise_rad, seed=seed)
 
@@ -192,7 +193,7 @@ class VirtualCell:
         nominal = KinematicModel(self.robot, ErrorModelSpec(self.robot.dof, ()),
                                  self.T_tracker_base)
         x = nominal.nominal_params()
-        x[6:9] = self.truth_params[6:9]
+        x[ParameterLayout.TOOL] = self.truth_params[ParameterLayout.TOOL]
         return np.linalg.norm(self.reflector_position(q) - nominal.positions(q, x), axis=1)
 
     def measure(self, q_actual: Array, rng: np.random.Generator) -> tuple[Array, Array]:
