@@ -6,7 +6,8 @@ up the daemon's file descriptors. :class:`ConnectionGate` wraps the server's pro
 factory: a connection over the listener's limit, or over the per-client limit (TCP: per
 address), is reset at once, before aiohttp allocates anything for it; a connection whose
 request headers are not complete within ``header_timeout_s`` (or exceed ``max_header_bytes``)
-is reset. Refusals are counted, not logged one by one.
+is reset; the deadline never runs while a response is produced or streamed (Server-Sent
+Events, long polls). Refusals are counted, not logged one by one.
 """
 
 from __future__ import annotations
@@ -77,6 +78,7 @@ class _Guard(asyncio.Protocol):
         self.client = ""
         self.timer: asyncio.TimerHandle | None = None
         self.head = bytearray()
+        self.mode = "head"  # head: reading request headers; body: its body; idle: neither
         self.body_left: int | None = 0  # bytes of the current body still to come; None: unknown
         # Between requests no deadline runs: the response may stream for minutes (SSE,
         # long-poll) and idle keep-alive is aiohttp's to close. The next request's first byte
@@ -139,19 +141,21 @@ class _Guard(asyncio.Protocol):
         self.between = True
 
     def _track(self, data: bytes) -> None:
-        """Follow request boundaries well enough to re-arm the deadline for the next one."""
+        """Follow request boundaries: the deadline runs from a request's first byte (or the
+        connection) to the end of its headers; never while a response is being produced or
+        streamed (idle keep-alive is aiohttp's ``keepalive_timeout``)."""
         while data:
-            if self.between:  # the first byte of the next request
-                self.between = False
+            if self.mode == "idle":
+                self.mode = "head"
                 self._arm()
-            if self.timer is None:  # inside a body
+            if self.mode == "body":
                 if self.body_left is None:
                     return  # chunked: the app's body deadline and keep-alive bound it
                 used = min(self.body_left, len(data))
                 self.body_left -= used
                 data = data[used:]
                 if self.body_left == 0:
-                    self._request_done()
+                    self.mode = "idle"
                 continue
             self.head += data
             end = self.head.find(_END)
@@ -166,8 +170,7 @@ class _Guard(asyncio.Protocol):
             self.body_left = _body_length(bytes(self.head[:end]).decode("latin-1"))
             data = bytes(self.head[end + len(_END):])
             self.head = bytearray()
-            if self.body_left == 0:
-                self._request_done()
+            self.mode = "idle" if self.body_left == 0 else "body"
 
     def data_received(self, data: bytes) -> None:
         if self.transport is None:

@@ -134,7 +134,10 @@ async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
     except web.HTTPException as exc:
         if exc.status < 400:
             raise
-        return _error(exc.status, type(exc).__name__, exc.reason or exc.text or "")
+        resp = _error(exc.status, type(exc).__name__, exc.reason or exc.text or "")
+        if exc.status in (408, 413):
+            resp.force_close()  # the rest of that body is not worth waiting for
+        return resp
     except RobocalError as err:
         return _error(_status_for(err), type(err).__name__, str(err))
     except asyncio.CancelledError:
@@ -552,8 +555,9 @@ class ApiServer:
         api = self.config.api
         app = make_app(self.service, token=token, max_body_bytes=api.max_body_bytes,
                        body_timeout_s=api.body_timeout_s)
+        # lingering_time: after an error mid-body, read what is left for at most 1 s, not 10
         return web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
-                             keepalive_timeout=api.keepalive_timeout_s)
+                             keepalive_timeout=api.keepalive_timeout_s, lingering_time=1.0)
 
     def _write_endpoints(self) -> None:
         """Write ``api.json`` (socket and TCP URL) to ``data_dir`` for clients and tests."""

@@ -106,6 +106,33 @@ async def test_keep_alive_requests_each_get_the_full_deadline(api):
     w.close()
 
 
+async def test_a_stream_outlives_the_header_deadline(api):
+    """Server-Sent Events (and long polls) run far longer than the 0.3 s header deadline."""
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(b"GET /events?after=0 HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+            + TOKEN.encode() + b"\r\n\r\n")
+    await w.drain()
+    async with asyncio.timeout(5):
+        assert b" 200 " in await r.readline()
+    await asyncio.sleep(1.0)  # three header deadlines
+    api.service.events.emit("log", None, text="still here")
+    async with asyncio.timeout(5):
+        while b"still here" not in await r.readline():
+            pass
+    w.close()
+    # the long poll, likewise
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    after = api.service.events.last_seq
+    w.write(f"GET /events/poll?after={after}&timeout=5 HTTP/1.1\r\nHost: x\r\n"
+            f"Authorization: Bearer {TOKEN}\r\n\r\n".encode())
+    await w.drain()
+    await asyncio.sleep(0.8)
+    api.service.events.emit("log", None, text="polled")
+    async with asyncio.timeout(5):
+        assert b" 200 " in await r.readline()
+    w.close()
+
+
 async def test_a_slow_body_is_408(api):
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     w.write(b"POST /campaigns HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer " + TOKEN.encode()
@@ -113,7 +140,9 @@ async def test_a_slow_body_is_408(api):
     await w.drain()
     async with asyncio.timeout(5):
         assert b" 408 " in await r.readline()
+    assert await _closed_by_peer(r, 5.0)  # and the server is done with it
     w.close()
+    await w.wait_closed()
 
 
 async def test_oversized_headers_are_cut_off(api):
