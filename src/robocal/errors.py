@@ -98,6 +98,10 @@ class BeamLost(MeasurementError):
     """The tracker beam was broken or the target was not found (recoverable)."""
 
 
+class MeasurementRejected(MeasurementError):
+    """A reading failed the daemon's validation (stability or distance from the prediction)."""
+
+
 class Unstable(MeasurementError):
     """The target did not become stable within the time allowed (recoverable)."""
 
@@ -171,6 +175,10 @@ class InvalidTransition(CampaignError):
         super().__init__(f"{msg}: {reason}" if reason else msg)
 
 
+class UnknownCampaign(CampaignError, LookupError):
+    """No campaign with that id."""
+
+
 class StorageError(RobocalError):
     """The daemon's store cannot write (disk full, I/O error). Nothing stored is lost; the
     work that needed the write is paused until space is back."""
@@ -178,3 +186,31 @@ class StorageError(RobocalError):
 
 class ApprovalRequired(CampaignError, PermissionError):
     """Compensation was to be pushed without operator approval."""
+
+
+# --- daemon client ----------------------------------------------------------------------------
+class DaemonUnavailable(RobocalError, ConnectionError):
+    """The daemon could not be reached."""
+
+
+_API_STATUS_TEXT = {
+    400: "the daemon could not use the request",
+    401: "not authorised: give the daemon's token (--token-file or ROBOCAL_TOKEN)",
+    403: "not allowed",
+    404: "not found on the daemon",
+    409: "not possible in the campaign's current state",
+    413: "the request is too large",
+    422: "the daemon cannot do that with what it has",
+    500: "the daemon failed internally; see its log (journalctl -u robocal)",
+}
+
+
+class ApiError(RobocalError):
+    """The daemon answered with an error (HTTP ``status``, error ``kind`` and its message)."""
+
+    def __init__(self, status: int, kind: str, message: str) -> None:
+        self.status = status
+        self.kind = kind
+        # The operator reads the daemon's sentence; the status and type stay attributes.
+        super().__init__(message or _API_STATUS_TEXT.get(status,
+                                                         f"the daemon refused ({status})"))

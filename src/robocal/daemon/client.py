@@ -19,38 +19,13 @@ from typing import Any
 from urllib.parse import urlencode, urlsplit
 
 from robocal.daemon.config import load_config
-from robocal.errors import ConfigError, RobocalError
+from robocal.errors import ApiError, ConfigError, DaemonUnavailable
 
 __all__ = ["ApiError", "DaemonClient", "DaemonUnavailable"]
 
 
-class ApiError(RobocalError):
-    """The daemon answered with an error (``status``, ``kind`` and its message)."""
-
-    def __init__(self, status: int, kind: str, message: str) -> None:
-        self.status = status
-        self.kind = kind
-        # The operator reads the daemon's sentence; the status and type stay attributes.
-        super().__init__(message or _STATUS_TEXT.get(status, f"the daemon refused ({status})"))
-
-
-_STATUS_TEXT = {
-    400: "the daemon could not use the request",
-    401: "not authorised: give the daemon's token (--token-file or ROBOCAL_TOKEN)",
-    403: "not allowed",
-    404: "not found on the daemon",
-    409: "not possible in the campaign's current state",
-    413: "the request is too large",
-    422: "the daemon cannot do that with what it has",
-    500: "the daemon failed internally; see its log (journalctl -u robocal)",
-}
-
 _START_HINT = ("is the daemon running? start it with `robocal daemon --config FILE` "
                "(or `systemctl start robocal` on the cell PC)")
-
-
-class DaemonUnavailable(RobocalError, ConnectionError):
-    """The daemon could not be reached."""
 
 
 class _UnixConnection(http.client.HTTPConnection):

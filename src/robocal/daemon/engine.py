@@ -39,6 +39,7 @@ from robocal.errors import (
     BeamLost,
     LimitViolation,
     MeasurementError,
+    MeasurementRejected,
     MotionRejected,
     RobocalError,
     StorageError,
@@ -61,10 +62,6 @@ __all__ = [
 
 Array = NDArray[np.float64]
 _log = structlog.get_logger(__name__)
-
-
-class MeasurementRejected(MeasurementError):
-    """A reading failed validation (stability or distance from the prediction)."""
 
 
 def _raise_if_cancelling(cause: BaseException | None = None) -> None:

@@ -23,7 +23,13 @@ from typing import Any
 
 from robocal._core.files import private_file
 from robocal.daemon.campaign import CampaignState, check_transition
-from robocal.errors import CampaignError, ConfigError, InvalidTransition, StorageError
+from robocal.errors import (
+    CampaignError,
+    ConfigError,
+    InvalidTransition,
+    StorageError,
+    UnknownCampaign,
+)
 
 __all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "is_storage_fault", "now_iso"]
 
@@ -687,7 +693,3 @@ class Store:
             d["detail"] = json.loads(d["detail"])
             out.append(d)
         return out
-
-
-class UnknownCampaign(CampaignError, LookupError):
-    """No campaign with that id."""
