@@ -23,7 +23,7 @@ def test_plan_writes_a_valid_deterministic_file(tmp_path: Path,
     assert main(_args(a, "--seed", "11")) == 0
     out = capsys.readouterr().out
     assert f"wrote {a}" in out and "20 calibration" in out and "observability O1" in out
-    assert "needs >= 9 poses, 27 recommended" in out
+    assert "needs >= 11 poses, 27 recommended" in out
     assert main(_args(b, "--seed", "11", "--json")) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["by_purpose"]["calibration"] == 20 and summary["seed"] == 11
@@ -47,7 +47,7 @@ def test_cpa_and_high_order(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
 
 
 @pytest.mark.parametrize(("change", "message"), [
-    (["--count", "3"], "count 3 is below the 9 poses"),
+    (["--count", "3"], "count 3 is below the 11 poses"),
     (["--robot", "no_such_robot"], "not a built-in robot"),
     (["--validation", "-2"], "validation must not be negative"),
 ])
@@ -81,3 +81,21 @@ def test_bad_cell_names_file_and_key_and_keeps_the_old_plan(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["PLAN.json", "cell.toml"]
     assert main(_args(tmp_path / "missing" / "PLAN.json")) == 2
     assert "output directory does not exist" in capsys.readouterr().err
+
+
+def test_dropped_targets_are_listed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # the KR210 in the demo cell: some selected poses have no safe route (forearm folded
+    # over the shoulder); they are left out and said so
+    out = tmp_path / "p.json"
+    assert main(["plan", "--robot", "kuka_kr210_r3100", "--cell", "demo", "--model", "constant",
+                 "--count", "12",
+                 "--validation", "2", "--no-iso", "--candidates", "64", "--seed", "0",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    plan = Plan.load(out)
+    assert plan.dropped
+    assert f"warning: {len(plan.dropped)} target(s) dropped" in text
+    for d in plan.dropped:
+        q = ", ".join(f"{v:.2f}" for v in d.joints_deg)
+        assert f"dropped {d.purpose} target [{q}] deg: no safe route" in text
+

@@ -25,7 +25,9 @@ def register(sub: Any) -> None:
                     "feasible in the cell (reflector facing the tracker, clear line of sight, "
                     "no collision), choose the calibration poses D-optimally for the error "
                     "model, add validation poses, CPA sweeps and ISO 9283 cube poses, order "
-                    "them for short moves and write PLAN.json. Deterministic for a given seed.")
+                    "them for short moves, check every move along its swept path (detours "
+                    "where needed; targets with no safe route are dropped and listed) and "
+                    "write PLAN.json. Deterministic for a given seed.")
     p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")
     p.add_argument("--cell", required=True,
                    help="cell description TOML file, or a built-in cell name (demo)")
@@ -57,6 +59,7 @@ def _summary(plan: Any, out: Path) -> dict[str, Any]:
         "candidates": plan.candidates.model_dump(),
         "observability": o.model_dump(), "random_baseline": b.model_dump() if b else None,
         "move_time_s": plan.motion.move_time_s, "warnings": list(plan.warnings),
+        "dropped": [d.model_dump() for d in plan.dropped],
     }
 
 
@@ -105,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
       f"{m.via_points} via-points (max step {m.max_joint_step_deg:g} deg)\n")
     for msg in plan.warnings:
         w(f"  warning: {msg}\n")
+    for d in plan.dropped:
+        q = ", ".join(f"{v:.2f}" for v in d.joints_deg)
+        w(f"  dropped {d.purpose} target [{q}] deg: {d.reason}\n")
     if not math.isfinite(o.O1):  # pragma: no cover - defensive
         return 1
     return 0

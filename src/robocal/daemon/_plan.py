@@ -1,39 +1,76 @@
-"""Reading PLAN.json documents into the ordered pose list a campaign executes.
+"""Reading PLAN.json documents into the ordered pose list a campaign executes, and checking
+that every move of it is safe.
 
-The plan format belongs to :mod:`robocal.planning` (``Plan``, ``"robocal.plan/1"``), which
-validates the document. The daemon itself needs only the robot name
-and, per pose in order, the joint target (degrees) and its purpose (``calibration``,
-``validation``, ``cpa-jK``, ``iso-Pk``, ...).
+The plan format belongs to :mod:`robocal.planning` (:class:`~robocal.planning.Plan`,
+``"robocal.plan/1"``), which validates the document strictly: unknown keys, missing keys and
+wrong types are one :class:`ConfigError` naming the key. In-process verification runs use a
+bare form, ``{"format", "robot", "poses": [{"q_deg", "purpose", "measure"}]}``, validated as
+strictly (:func:`plan_from_poses` writes it).
+
+Motion safety is recomputed here (:func:`unsafe_moves`): the flags a plan carries
+(``move_clear``, margins) are not trusted, and nothing in a plan can switch the check off.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
-from pydantic import ValidationError
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal.daemon.store import PoseRow
 from robocal.errors import ConfigError
-from robocal.planning import Plan
+from robocal.kinematics import RobotDescription
+from robocal.planning import (
+    PLAN_FORMAT,
+    Cell,
+    MotionChecker,
+    Plan,
+    UnsafeMove,
+    pydantic_config_error,
+)
 
-__all__ = ["PlanDoc", "parse_plan", "plan_from_poses"]
+__all__ = ["PlanDoc", "parse_plan", "plan_from_poses", "unsafe_moves"]
 
-_Q_KEYS = ("q_deg", "joints_deg", "target_deg", "joint_targets_deg")
+_PURPOSE: Final = r"^[a-z][a-z0-9-]*$"
+
+
+class _BarePose(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
+
+    q_deg: list[float] = Field(min_length=1, description="joint target, deg")
+    purpose: str = Field(default="calibration", pattern=_PURPOSE)
+    measure: bool | None = None
+
+
+class _BarePlan(BaseModel):
+    """The in-process form: joint targets only (no cell, so no collision check)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
+
+    format: str = PLAN_FORMAT
+    robot: str | None = None
+    poses: list[_BarePose] = Field(min_length=1)
 
 
 @dataclass(frozen=True)
 class PlanDoc:
-    """A validated plan reduced to what the daemon executes."""
+    """A validated plan reduced to what the daemon executes.
+
+    ``cell`` and ``home_deg`` come from a full ``robocal.plan/1`` document (None for the bare
+    in-process form).
+    """
 
     robot: str | None
     poses: tuple[PoseRow, ...]
     document: dict[str, Any]
     digest: str
+    cell: Cell | None = None
+    home_deg: tuple[float, ...] | None = None
 
     @property
     def text(self) -> str:
@@ -41,106 +78,104 @@ class PlanDoc:
         return json.dumps(self.document, sort_keys=True, separators=(",", ":"))
 
 
-def _pose_q(p: Any, i: int, source: str) -> tuple[tuple[float, ...], str, bool]:
-    if isinstance(p, Mapping):
-        q = next((p[k] for k in _Q_KEYS if k in p), None)
-        purpose = p.get("purpose", "calibration")
-        measure = p.get("measure", purpose != "via")
-    else:
-        q = next((getattr(p, k) for k in _Q_KEYS if hasattr(p, k)), None)
-        purpose = getattr(p, "purpose", "calibration")
-        measure = getattr(p, "measure", purpose != "via")
-    if q is None:
-        raise ConfigError(f"pose has no joint target ({' / '.join(_Q_KEYS)})", source=source,
-                          key=f"poses[{i}]")
-    try:
-        qt = tuple(float(v) for v in q)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"joint target is not a list of numbers: {err}", source=source,
-                          key=f"poses[{i}]") from err
-    if not qt or not all(math.isfinite(v) for v in qt):
-        raise ConfigError("joint target must be finite numbers", source=source,
-                          key=f"poses[{i}]")
-    if not isinstance(purpose, str) or not purpose:
-        raise ConfigError("purpose must be a non-empty string", source=source,
-                          key=f"poses[{i}].purpose")
-    if not isinstance(measure, bool):
-        raise ConfigError("measure must be true or false", source=source,
-                          key=f"poses[{i}].measure")
-    return qt, purpose, measure
-
-
-def _validate_with_planning(doc: dict[str, Any], source: str) -> Plan:
-    """Validate with :class:`robocal.planning.Plan`; raise ConfigError naming the key."""
-    try:
-        return Plan.model_validate(doc)
-    except ValidationError as err:
-        first = err.errors()[0]
-        key = ".".join(str(p) for p in first["loc"]) or None
-        raise ConfigError(f"{first['msg']} ({err.error_count()} error(s))", source=source,
-                          key=key) from err
-
-
 def parse_plan(data: Mapping[str, Any] | str | bytes, *, source: str = "plan",
                strict: bool = True) -> PlanDoc:
     """Validate a PLAN.json document (mapping or JSON text) and list its poses.
 
     With ``strict`` (the default) the document must be a complete ``robocal.plan/1`` plan
-    (validated by :class:`robocal.planning.Plan`); otherwise a bare ``{"poses": [{"q_deg":
-    [...], "purpose": ...}]}`` suffices (verification runs built in-process).
+    (validated by :class:`robocal.planning.Plan`); otherwise the bare in-process form
+    ``{"poses": [{"q_deg": [...], "purpose": ..., "measure": ...}]}`` (verification runs).
 
     Raises
     ------
     ConfigError
-        If the document is not a JSON object with a non-empty ``poses`` list of joint targets;
-        the message names the source and the offending key.
+        One error naming the source and the first offending key: not a JSON object, another
+        format, a missing, unknown or invalid key, joints of differing length, nothing to
+        measure.
     """
     if isinstance(data, str | bytes):
         try:
             data = json.loads(data)
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"not valid JSON: {err}", source=source) from err
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:
+            raise ConfigError(f"not valid JSON: {err}", source=source) from None
     if not isinstance(data, Mapping):
         raise ConfigError("a plan must be a JSON object", source=source)
     doc = dict(data)
-    fmt = doc.get("format")
-    if fmt is not None and fmt != "robocal.plan/1":
-        raise ConfigError(f"unsupported plan format {fmt!r} (expected 'robocal.plan/1')",
+    fmt = doc.get("format", PLAN_FORMAT if not strict else None)
+    if fmt != PLAN_FORMAT:
+        raise ConfigError(f"unsupported plan format {fmt!r} (expected {PLAN_FORMAT!r})",
                           source=source, key="format")
-    plan = _validate_with_planning(doc, source) if strict else None
-    raw_poses: Any = getattr(plan, "poses", None) if plan is not None else doc.get("poses")
-    if not isinstance(raw_poses, Sequence) or isinstance(raw_poses, str) or not raw_poses:
+    rows: list[tuple[list[float], str, bool]]
+    cell: Cell | None = None
+    home: tuple[float, ...] | None = None
+    if strict:
+        try:
+            plan = Plan.model_validate(doc)
+        except ValidationError as err:
+            raise pydantic_config_error(err, source, Plan) from None
+        rows = [(p.joints_deg, p.purpose, p.measure) for p in plan.poses]
+        robot: str | None = plan.robot.name
+        cell = plan.cell
+        home = tuple(plan.motion.home_deg)
+    else:
+        try:
+            bare = _BarePlan.model_validate(doc)
+        except ValidationError as err:
+            raise pydantic_config_error(err, source, _BarePlan) from None
+        rows = [(p.q_deg, p.purpose, p.purpose != "via" if p.measure is None else p.measure)
+                for p in bare.poses]
+        robot = bare.robot
+    if not rows:
         raise ConfigError("a plan needs a non-empty 'poses' list", source=source, key="poses")
+    dof = len(rows[0][0])
     poses = []
-    dof = None
-    for i, p in enumerate(raw_poses):
-        q, purpose, measure = _pose_q(p, i, source)
-        if dof is None:
-            dof = len(q)
-        elif len(q) != dof:
+    for i, (q, purpose, measure) in enumerate(rows):
+        if len(q) != dof:
             raise ConfigError(f"{len(q)} joints, earlier poses have {dof}", source=source,
-                              key=f"poses[{i}]")
-        poses.append(PoseRow(i, purpose, q, measure))
+                              key=f"poses[{i + 1}]")
+        poses.append(PoseRow(i, purpose, tuple(float(v) for v in q), measure))
+    if home is not None and len(home) != dof:
+        raise ConfigError(f"home_deg has {len(home)} joints, the poses {dof}", source=source,
+                          key="motion.home_deg")
     if not any(p.measure for p in poses):
         raise ConfigError("the plan has no pose to measure", source=source, key="poses")
-    robot = getattr(plan, "robot", None) if plan is not None else doc.get("robot")
-    if isinstance(robot, Mapping):
-        robot = robot.get("name")
-    elif robot is not None and not isinstance(robot, str):
-        robot = getattr(robot, "name", None)
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     digest = hashlib.sha256(text.encode()).hexdigest()[:16]
-    return PlanDoc(robot if isinstance(robot, str) else None, tuple(poses), doc, digest)
+    return PlanDoc(robot, tuple(poses), doc, digest, cell=cell, home_deg=home)
+
+
+def unsafe_moves(plan: PlanDoc, robot: RobotDescription, cell: Cell,
+                 limits_rad: Sequence[tuple[float, float]]) -> list[UnsafeMove]:
+    """Every move of ``plan`` that is not safe for ``robot`` in ``cell``, along its swept path.
+
+    The moves are home -> pose 0 -> pose 1 -> ... (home: the plan's ``motion.home_deg``; a
+    bare plan's first pose is checked on its own). Each is sampled finely enough for the link
+    capsules and checked against ``limits_rad`` (dof pairs), the floor, the keep-out boxes
+    and self-collision (:class:`robocal.planning.MotionChecker`); the plan's own flags are
+    ignored.
+
+    Raises
+    ------
+    ConfigError
+        When the plan's joint count differs from the robot's, or the cell does not fit it.
+    """
+    q = np.radians(np.array([p.q_deg for p in plan.poses], dtype=float))
+    if q.shape[1] != robot.dof:
+        raise ConfigError(f"the plan has {q.shape[1]} joints, robot {robot.name!r} has "
+                          f"{robot.dof}", source="plan", key="poses")
+    checker = MotionChecker(robot, cell, limits=np.asarray(limits_rad, dtype=float))
+    home = None if plan.home_deg is None else np.radians(np.asarray(plan.home_deg))
+    return checker.check_sequence(q, home, [p.purpose for p in plan.poses])
 
 
 def plan_from_poses(q_deg: Sequence[Sequence[float]], *, purpose: str = "calibration",
                     robot: str | None = None, purposes: Sequence[str] | None = None
                     ) -> dict[str, Any]:
-    """A minimal plan document listing joint targets (degrees), for verification runs.
+    """A bare plan document listing joint targets (degrees), for in-process verification runs.
 
     Parse it with ``parse_plan(doc, strict=False)``.
     """
     poses = [{"q_deg": [float(v) for v in q],
               "purpose": purposes[i] if purposes is not None else purpose}
              for i, q in enumerate(q_deg)]
-    return {"format": "robocal.plan/1", "robot": robot, "poses": poses}
+    return {"format": PLAN_FORMAT, "robot": robot, "poses": poses}

@@ -20,6 +20,7 @@ import sqlite3
 import time
 import uuid
 from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import pushing
 from robocal.daemon._journal import JournalEntry, PushJournal
-from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses, unsafe_moves
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margin
@@ -56,6 +57,7 @@ from robocal.errors import (
     StorageError,
 )
 from robocal.kinematics import CalibratedModel, RobotDescription, load_robot
+from robocal.planning import load_cell
 
 __all__ = ["CalibrationService"]
 
@@ -204,6 +206,19 @@ class CalibrationService:
                 raise ConfigError(f"pose {p.idx}: {err} (joint margin "
                                   f"{self.config.limits.joint_margin_deg} deg)",
                                   source="plan", key=f"poses[{p.idx}]") from err
+        # Motion safety is recomputed for every move (swept path: floor, keep-out boxes,
+        # self-collision) in the daemon's cell, else the plan's; the plan's flags are ignored.
+        cell = load_cell(self.config.cell) if self.config.cell else plan.cell
+        if cell is None:
+            return
+        unsafe = unsafe_moves(plan, self.robot, cell, limits)
+        if unsafe:
+            _log.warning("plan refused: unsafe moves", count=len(unsafe), cell=cell.name,
+                         poses=[u.index for u in unsafe])
+            raise ConfigError(
+                f"{len(unsafe)} unsafe move(s) in cell {cell.name!r}, nothing started: "
+                + "; ".join(u.describe() for u in unsafe), source="plan",
+                key=f"poses[{unsafe[0].index}]")
 
     async def preflight(self) -> dict[str, str]:
         """Connect to the robot and the tracker before anything is stored or moved.
@@ -240,7 +255,10 @@ class CalibrationService:
         """
         # Validation is pure computation: off the event loop, which keeps serving meanwhile.
         doc = plan if isinstance(plan, PlanDoc) else await asyncio.to_thread(parse_plan, plan)
-        self._check_plan(doc)
+        # the swept-path check takes a while on long plans: off the event loop, in a thread
+        # that ends with it
+        with ThreadPoolExecutor(1, thread_name_prefix="plan-check") as pool:
+            await asyncio.get_running_loop().run_in_executor(pool, self._check_plan, doc)
         if start:
             self._ensure_idle()
             await self.preflight()

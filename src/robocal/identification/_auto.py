@@ -48,7 +48,14 @@ from robocal.identification._models import (
     weak_penalty,
 )
 from robocal.identification._solver import Problem, analyse_jacobian
-from robocal.kinematics import COMPONENTS, ErrorModelSpec, KinematicModel, Term, gravity_torques
+from robocal.kinematics import (
+    COMPONENTS,
+    ErrorModelSpec,
+    KinematicModel,
+    ParameterLayout,
+    Term,
+    gravity_torques,
+)
 
 if TYPE_CHECKING:
     from robocal.identification._fit import _Fitter
@@ -302,7 +309,8 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
     ident, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
     kept = set(int(c) for c in unpen[keep])
-    base_cols = np.array([i for i in range(9 + len(base_terms)) if i in kept], dtype=np.intp)
+    base_cols = np.array([i for i in range(ParameterLayout.OFFSET + len(base_terms)) if i in kept],
+                         dtype=np.intp)
     for g in groups:
         if not g.is_map:
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)

@@ -23,6 +23,7 @@ from robocal.kinematics import (
     CalibratedModel,
     ErrorModelSpec,
     KinematicModel,
+    ParameterLayout,
     RobotDescription,
     load_robot,
     rigid_fit,
@@ -293,7 +294,7 @@ def sanity_check(robot: RobotDescription, data: MeasurementSet, *, what: str = "
             "override the check with --no-sanity)")
     m0 = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
     x0 = m0.nominal_params()
-    x0[6:9] = robot.tool if tool is None else tool
+    x0[ParameterLayout.TOOL] = robot.tool if tool is None else tool
     src = m0.positions(q, x0)
     nominal = float(np.sqrt(np.mean(np.sum((src - src.mean(axis=0)) ** 2, axis=1))))
     measured = float(np.sqrt(np.mean(np.sum((data.p - data.p.mean(axis=0)) ** 2, axis=1))))
@@ -325,7 +326,7 @@ def _initial_base(robot: RobotDescription, data: MeasurementSet, tool: Array) ->
     """Tracker <- base by rigid registration of the nominal FK to the measurements."""
     m0 = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
     x0 = m0.nominal_params()
-    x0[6:9] = tool
+    x0[ParameterLayout.TOOL] = tool
     src = m0.positions(data.q, x0)
     if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-6) < 2:
         raise DataError("the poses do not span a plane; cannot register the robot base")
@@ -384,7 +385,7 @@ class _Fitter:
                  ) -> Solution:
         m = self.model(ErrorModelSpec(self.robot.dof, ()))
         x0 = m.nominal_params()
-        x0[6:9] = self.tool0
+        x0[ParameterLayout.TOOL] = self.tool0
         return self.engine.solve(m, x0, inliers=inliers, robust=robust,
                                  what="nominal (base + reflector) model")
 
@@ -614,7 +615,7 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     # register the previous model (its own terms, tool) to the new session
     prev0 = KinematicModel(rob, spec)
     xp = previous.params.copy()
-    xp[:6] = 0.0
+    xp[ParameterLayout.BASE] = 0.0
     T = rigid_fit(prev0.positions(data.q[const.inliers], xp), data.p[const.inliers])
     m = KinematicModel(rob, spec, T)
     x0 = xp.copy()

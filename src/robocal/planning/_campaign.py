@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 from scipy.stats import qmc
 
 from robocal import __version__
@@ -19,10 +22,12 @@ from robocal.planning._cpa import cpa_sweeps
 from robocal.planning._design import DesignSpace, Observability, model_spec
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 from robocal.planning._iso import iso_cube
-from robocal.planning._order import insert_via_points, move_times, order_poses, two_opt
+from robocal.planning._motion import MotionChecker
+from robocal.planning._order import move_times, order_poses, two_opt
 from robocal.planning._plan import (
     CandidateInfo,
     CpaInfo,
+    DroppedTarget,
     IsoInfo,
     ModelInfo,
     MotionInfo,
@@ -124,9 +129,58 @@ def _home(robot: RobotDescription, cell: Cell, ranges: Array) -> Array:
     return np.radians(np.asarray(h, dtype=float))
 
 
-def _order_measured(checker: FeasibilityChecker, q: Array, speed: Array, home: Array,
-                    rounds: int = 3) -> NDArray[np.intp]:
-    """Order poses by move time; re-run 2-opt with penalties on moves that collide."""
+def _round_deg(q: Array) -> Array:
+    """Joint values (..., dof) rad as the plan file holds them: degrees rounded to 1e-6."""
+    return np.radians(np.round(np.degrees(q), 6) + 0.0)
+
+
+def split_legs(q_from: Array, q_to: Array, max_step: float
+               ) -> tuple[Array, Array, NDArray[np.intp]]:
+    """Cut legs q_from[k] -> q_to[k] (m, dof) rad into moves of at most ``max_step`` rad per
+    joint, by evenly spaced via-points on the straight joint-space line (rounded as in the
+    file, so that what is checked is what is written).
+
+    Returns
+    -------
+    starts, ends : ndarray, shape (M, dof)
+        The moves, leg after leg, rad.
+    owner : ndarray of int, shape (M,)
+        Leg of each move.
+    """
+    q_from = np.atleast_2d(q_from)
+    q_to = np.atleast_2d(q_to)
+    d = q_to - q_from
+    k = np.maximum(1, np.ceil(np.abs(d).max(axis=1) / max_step - 1e-9)).astype(np.intp)
+    owner = np.repeat(np.arange(len(k)), k)
+    first = np.concatenate([[0], np.cumsum(k)[:-1]])
+    m = np.arange(int(k.sum())) - np.repeat(first, k) + 1       # 1 .. k within each leg
+    ends = _round_deg(q_from[owner] + d[owner] * (m / k[owner])[:, None])
+    last = m == k[owner]
+    ends[last] = q_to[owner[last]]
+    starts = np.empty_like(ends)
+    starts[1:] = ends[:-1]
+    starts[first] = q_from
+    return starts, ends, owner
+
+
+def _legs_safe(motion: MotionChecker, q_from: Array, q_to: Array, max_step: float,
+               *, explain: bool = False) -> tuple[NDArray[np.bool_], list[str]]:
+    """Whether each leg (with its via-points) is safe along its swept path, and why not
+    (reasons only with ``explain``)."""
+    starts, ends, owner = split_legs(q_from, q_to, max_step)
+    res = motion.check_moves(starts, ends, explain=explain)
+    n = len(np.atleast_2d(q_from))
+    ok = np.ones(n, dtype=bool)
+    ok[owner[~res.safe]] = False
+    why = [""] * n
+    for i in np.flatnonzero(~res.safe)[::-1]:       # keep the first failing move of a leg
+        why[int(owner[i])] = res.reasons[i]
+    return ok, why
+
+
+def _order_measured(motion: MotionChecker, q: Array, speed: Array, home: Array,
+                    max_step: float, rounds: int = 3) -> NDArray[np.intp]:
+    """Order poses by move time; re-run 2-opt with penalties on moves that are not safe."""
     order = order_poses(q, speed, start=home)
     D = move_times(q[:, None, :], q[None, :, :], speed)
     s = move_times(home[None, :], q, speed)
@@ -134,7 +188,7 @@ def _order_measured(checker: FeasibilityChecker, q: Array, speed: Array, home: A
     for _ in range(rounds):
         seq = q[order]
         starts = np.vstack([home[None, :], seq[:-1]])
-        clear = checker.path_clear(starts, seq)
+        clear, _ = _legs_safe(motion, starts, seq, max_step)
         if clear.all():
             break
         for k in np.flatnonzero(~clear):
@@ -149,37 +203,152 @@ def _order_measured(checker: FeasibilityChecker, q: Array, speed: Array, home: A
     return order
 
 
-def _detours(checker: FeasibilityChecker, seq: Array, home: Array, pool: Array, speed: Array,
-             *, tries: int = 64) -> tuple[Array, NDArray[np.bool_]]:
-    """Insert one collision-free detour pose into every move whose straight path collides.
+class _Roadmap:
+    """A lazily checked roadmap over safe poses for detours (lazy PRM).
 
-    The detour is the pool pose with the shortest total time a -> c -> b whose two moves are
-    both clear; moves without such a pose stay as they are (flagged by the caller).
+    Nodes are safe poses; each is joined to its ``k`` nearest neighbours by move time. A route
+    is the shortest path by move time whose edges are not known to be unsafe; its unchecked
+    edges are then checked in one batch, unsafe ones removed, and the search repeated. Edge
+    results are kept, so later detours reuse them.
+    """
+
+    def __init__(self, motion: MotionChecker, pool: Array, speed: Array, max_step: float,
+                 *, k: int = 8) -> None:
+        self.motion = motion
+        self.nodes = pool
+        self.speed = speed
+        self.max_step = max_step
+        self.k = min(k, max(1, len(pool) - 1))
+        n = len(pool)
+        D = move_times(pool[:, None, :], pool[None, :, :], speed) if n else np.zeros((0, 0))
+        np.fill_diagonal(D, np.inf)
+        nn = np.argsort(D, axis=1)[:, :self.k] if n > 1 else np.zeros((n, 0), dtype=np.intp)
+        rows = np.repeat(np.arange(n), nn.shape[1])
+        cols = nn.ravel()
+        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+        key = np.unique(lo * max(n, 1) + hi)
+        self.ei, self.ej = key // max(n, 1), key % max(n, 1)
+        self.ew = D[self.ei, self.ej]
+        self.state = np.zeros(len(key), dtype=np.int8)        # 0 unknown, 1 safe, -1 unsafe
+
+    def route(self, a: Array, b: Array, *, rounds: int = 5) -> list[Array] | None:
+        """Intermediate poses of a safe route a -> b (both not nodes), or None."""
+        n = len(self.nodes)
+        if n == 0:
+            return None
+        # the two ends join their k nearest nodes; their edges are checked up front
+        ends = []
+        for q in (a, b):
+            t = move_times(q, self.nodes, self.speed)
+            near = np.argsort(t)[:self.k]
+            fwd = q is a
+            ok, _ = _legs_safe(self.motion, np.broadcast_to(q, (len(near), q.size))
+                               if fwd else self.nodes[near],
+                               self.nodes[near] if fwd else np.broadcast_to(q, (len(near), q.size)),
+                               self.max_step)
+            ends.append((near[ok], t[near[ok]]))
+        (na, wa), (nb, wb) = ends
+        if not len(na) or not len(nb):
+            return None
+        A, B = n, n + 1
+        for _ in range(rounds):
+            use = self.state >= 0
+            i = np.concatenate([self.ei[use], np.full(len(na), A), nb])
+            j = np.concatenate([self.ej[use], na, np.full(len(nb), B)])
+            w = np.concatenate([self.ew[use], wa, wb]) + 1e-9
+            G = csr_matrix((w, (i, j)), shape=(n + 2, n + 2))
+            dist, pred = dijkstra(G, directed=False, indices=A, return_predecessors=True)
+            if not np.isfinite(dist[B]):
+                return None
+            path = [B]
+            while path[-1] != A:
+                path.append(int(pred[path[-1]]))
+            inner = path[::-1][1:-1]                        # node indices between a and b
+            pairs = list(itertools.pairwise(inner))
+            eidx = [self._edge(u, v) for u, v in pairs]
+            todo = [e for e in eidx if self.state[e] == 0]
+            if todo:
+                t = np.array(todo)
+                ok, _ = _legs_safe(self.motion, self.nodes[self.ei[t]], self.nodes[self.ej[t]],
+                                   self.max_step)
+                self.state[t] = np.where(ok, 1, -1)
+            if all(self.state[e] == 1 for e in eidx):
+                return [self.nodes[u] for u in inner]
+        return None
+
+    def _edge(self, u: int, v: int) -> int:
+        n = max(len(self.nodes), 1)
+        key = min(u, v) * n + max(u, v)
+        pos = np.searchsorted(self.ei * n + self.ej, key)
+        return int(pos)
+
+
+def _safe_route(motion: MotionChecker, seq: Array, purposes: list[str], home: Array,
+                pool: Array, speed: Array, max_step: float
+                ) -> tuple[Array, list[str], list[DroppedTarget]]:
+    """Route through the targets ``seq`` (n, dof) with only safe moves.
+
+    A leg whose straight path (via-points included) is not safe gets detour via-points: the
+    shortest safe route over a roadmap of the ``pool`` poses; a target that no route reaches
+    is dropped, and the next target is approached from the last one reached.
 
     Returns
     -------
-    q : ndarray, shape (m', dof)
-        The sequence with detours.
-    is_detour : ndarray of bool, shape (m',)
+    q : ndarray, shape (m, dof)
+        Targets and detour via-points in order (before the step via-points), rad.
+    purposes : list of str
+        Their purposes (``"via"`` for detours).
+    dropped : list of DroppedTarget
     """
-    starts = np.vstack([home[None, :], seq[:-1]])
-    clear = checker.path_clear(starts, seq)
+    ok, why = _legs_safe(motion, np.vstack([home[None, :], seq[:-1]]), seq, max_step,
+                         explain=True)
+    roadmap = _Roadmap(motion, pool, speed, max_step)
     rows: list[Array] = []
-    flags: list[bool] = []
-    for i in range(len(seq)):
-        if not clear[i] and len(pool):
-            a, b = starts[i], seq[i]
-            cost = move_times(a, pool, speed) + move_times(pool, b, speed)
-            cand = np.argsort(cost, kind="stable")[:tries]
-            c = pool[cand]
-            ok = (checker.path_clear(np.broadcast_to(a, c.shape), c)
-                  & checker.path_clear(c, np.broadcast_to(b, c.shape)))
-            if ok.any():
-                rows.append(c[int(np.argmax(ok))])
-                flags.append(True)
-        rows.append(seq[i])
-        flags.append(False)
-    return np.array(rows), np.array(flags, dtype=bool)
+    out_p: list[str] = []
+    dropped: list[DroppedTarget] = []
+    cur = home
+    cur_is_prev = True          # ``ok`` holds for the leg from the previous target
+    for i, b in enumerate(seq):
+        if cur_is_prev:
+            safe, reason = bool(ok[i]), why[i]
+        else:
+            o, w = _legs_safe(motion, cur[None, :], b[None, :], max_step, explain=True)
+            safe, reason = bool(o[0]), w[0]
+        if not safe:
+            # through home first (safe, and where every target was planned from), else the
+            # roadmap
+            via: list[Array] | None = None
+            if not np.array_equal(cur, home):
+                h, _ = _legs_safe(motion, np.vstack([cur, home]), np.vstack([home, b]), max_step)
+                via = [home] if h.all() else None
+            if via is None:
+                via = roadmap.route(cur, b)
+            if via is None:
+                dropped.append(DroppedTarget(
+                    purpose=purposes[i], joints_deg=[float(v) for v in np.degrees(b)],
+                    reason=f"no safe route from the previous target: {reason}"))
+                cur_is_prev = False
+                continue
+            rows += via
+            out_p += ["via"] * len(via)
+        rows.append(b)
+        out_p.append(purposes[i])
+        cur = b
+        cur_is_prev = True
+    dof = seq.shape[1]
+    return np.array(rows).reshape(-1, dof), out_p, dropped
+
+
+def _detour_pool(motion: MotionChecker, q_c: Array, seed: int, n: int = 1024) -> Array:
+    """Up to ``n`` collision-free poses for the roadmap: half from the feasible candidates,
+    the rest Sobol points that pass the motion checks (no need to face the tracker), rounded
+    as in the file."""
+    lo, hi = motion.limits[:, 0], motion.limits[:, 1]
+    sob = qmc.Sobol(d=motion.robot.dof, scramble=True, seed=np.random.default_rng([seed, 4]))
+    q = _round_deg(lo + sob.random_base2(int(math.log2(2 * n))) * (hi - lo))
+    q = q[~motion.bad(q)]
+    own = _round_deg(q_c[:n // 2])
+    return np.vstack([own, q[:n - len(own)]])
 
 
 @single_threaded
@@ -260,7 +429,12 @@ def plan_campaign(
     spec = model_spec(rob, model)
     model_name = model if isinstance(model, str) else spec.label
     checker = FeasibilityChecker(rob, the_cell)
-    home = _home(rob, the_cell, checker.ranges)
+    motion = MotionChecker(rob, the_cell, limits=checker.ranges)
+    home = _round_deg(_home(rob, the_cell, checker.ranges))
+    if motion.bad(home[None, :])[0]:
+        raise ConfigError(f"the home configuration {np.round(np.degrees(home), 3).tolist()} deg "
+                          f"is not safe: {motion.explain(home[None, :])[0]}",
+                          source=f"cell {the_cell.name!r}", key="motion.home_deg")
     warnings: list[str] = []
 
     # -- candidates and selection -------------------------------------------------------------
@@ -320,7 +494,8 @@ def plan_campaign(
     speed = np.array([j.max_speed for j in rob.joints]) * the_cell.motion.speed_fraction
     meas_idx = np.concatenate([cal, val])
     purposes_meas = ["calibration"] * len(cal) + ["validation"] * len(val)
-    order = _order_measured(checker, q_c[meas_idx], speed, home)
+    max_step = math.radians(the_cell.motion.max_joint_step_deg)
+    order = _order_measured(motion, q_c[meas_idx], speed, home, max_step)
     seq_q: list[Array] = [q_c[meas_idx[order]]]
     seq_p: list[str] = [purposes_meas[i] for i in order]
     last = seq_q[0][-1]
@@ -334,28 +509,35 @@ def plan_campaign(
     if cube is not None:
         seq_q.append(cube.q)
         seq_p += [f"iso-P{k}" for k in range(1, 6)]
-    q_seq, detour = _detours(checker, np.vstack(seq_q), home, q_c, speed)
-    it = iter(seq_p)
-    seq_p = ["via" if d else next(it) for d in detour]
-    max_step = math.radians(the_cell.motion.max_joint_step_deg)
-    q_all, is_via = insert_via_points(q_seq, max_step, start=home)
-    purposes: list[str] = []
-    it = iter(seq_p)
-    for v in is_via:
-        purposes.append("via" if v else next(it))
-
-    # the file holds degrees rounded to 1e-6 deg (17 nrad); check what is written
+    # the file holds degrees rounded to 1e-6 deg (17 nrad): plan and check what is written
+    pool = _detour_pool(motion, q_c, seed)
+    q_seq, seq_p, dropped = _safe_route(motion, _round_deg(np.vstack(seq_q)), seq_p, home,
+                                        pool, speed, max_step)
+    if not len(q_seq):
+        raise ConfigError(f"no target can be reached safely from home in cell "
+                          f"{the_cell.name!r}: {dropped[0].reason}" if dropped else
+                          "nothing to plan")
+    _, q_all, owner = split_legs(np.vstack([home[None, :], q_seq[:-1]]), q_seq, max_step)
+    is_target = np.r_[owner[1:] != owner[:-1], True]
+    purposes = [seq_p[owner[i]] if is_target[i] else "via" for i in range(len(q_all))]
     q_deg = np.round(np.degrees(q_all), 6) + 0.0
-    q_all = np.radians(q_deg)
     final = checker.check(q_all)
-    clear = checker.path_clear(np.vstack([home[None, :], q_all[:-1]]), q_all)
     bad = [i for i, p in enumerate(purposes) if p != "via" and not final.ok[i]]
     if bad:  # pragma: no cover - margins of exactly zero cut by rounding
         raise ConfigError(f"internal: planned poses {bad[:5]} fail their checks after rounding")
-    blocked = int(np.count_nonzero(~clear))
-    if blocked:
-        warnings.append(f"{blocked} move(s) could not be verified collision free along the "
-                        "joint-interpolated path (move_clear = false): teach a detour there")
+    unsafe = motion.check_sequence(q_all, home, purposes)
+    if unsafe:  # pragma: no cover - every leg was checked exactly as written
+        raise ConfigError("internal: the planned route has unsafe moves: "
+                          + "; ".join(u.describe() for u in unsafe[:3]))
+    if dropped:
+        kinds: dict[str, int] = {}
+        for d in dropped:
+            kinds[d.purpose] = kinds.get(d.purpose, 0) + 1
+        warnings.append(f"{len(dropped)} target(s) dropped, no safe route found to them ("
+                        + ", ".join(f"{v} {k}" for k, v in kinds.items())
+                        + "): see 'dropped' in the plan")
+    blocked = 0
+    clear = np.ones(len(q_all), dtype=bool)
 
     poses = []
     for i, p in enumerate(purposes):
@@ -370,7 +552,7 @@ def plan_campaign(
             range_mm=round(float(final.range[i]) * 1e3, 3),
             move_clear=bool(clear[i])))
     prev = np.vstack([home[None, :], q_all[:-1]])
-    motion = MotionInfo(
+    motion_info = MotionInfo(
         max_joint_step_deg=the_cell.motion.max_joint_step_deg,
         speed_fraction=the_cell.motion.speed_fraction,
         home_deg=[round(float(v), 6) for v in np.degrees(home)],
@@ -385,10 +567,10 @@ def plan_campaign(
         model=ModelInfo(name=model_name, label=spec.label, parameters=len(ds.names)),
         candidates=CandidateInfo(drawn=counts["drawn"], screened=counts["screened"],
                                  feasible=n_c, rejected=rejected),
-        observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion,
+        observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion_info,
         iso9283=None if cube is None else IsoInfo(
             centre_mm=[round(float(v) * 1e3, 3) for v in cube.centre],
             side_mm=round(cube.side * 1e3, 3)),
         cpa=[CpaInfo(joint=s.joint, span_deg=[round(math.degrees(v), 3) for v in s.span],
                      points=len(s.q)) for s in sweeps],
-        warnings=warnings, poses=poses)
+        warnings=warnings, dropped=dropped, poses=poses)

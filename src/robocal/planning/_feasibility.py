@@ -329,7 +329,8 @@ class FeasibilityChecker:
 
 def working_ranges(robot: RobotDescription, cell: Cell) -> Array:
     """Joint ranges (dof, 2) rad the planner may use: robot limits, intersected with the
-    cell's ``joint_ranges_deg``, shrunk by ``joint_margin_deg`` at both ends.
+    cell's ``joint_ranges_deg``, shrunk by ``joint_margin_deg`` at both ends; a range wider
+    than one revolution is cut to the revolution centred on ``motion.home_deg`` (default 0).
 
     Raises
     ------
@@ -353,4 +354,14 @@ def working_ranges(robot: RobotDescription, cell: Cell) -> Array:
         raise ConfigError(f"joint {bad[0] + 1}: empty working range after the robot limits, "
                           f"joint_ranges_deg and joint_margin_deg", source=f"cell {cell.name!r}",
                           key="robot.joint_ranges_deg")
+    # A joint turning more than one revolution reaches every pose within one revolution: plan
+    # in the revolution centred on home, so that no move winds a joint round needlessly (the
+    # UR10's +-360 deg joints otherwise give moves that sweep the arm through the floor).
+    h = cell.motion.home_deg
+    centre = (np.radians(np.asarray(h, dtype=float)) if h is not None and len(h) == robot.dof
+              else np.zeros(robot.dof))
+    wide = lim[:, 1] - lim[:, 0] > 2.0 * math.pi
+    c = np.clip(centre, lim[:, 0] + math.pi, lim[:, 1] - math.pi)
+    lim[wide, 0] = c[wide] - math.pi
+    lim[wide, 1] = c[wide] + math.pi
     return lim

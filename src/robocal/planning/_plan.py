@@ -18,6 +18,8 @@ Layout (JSON object; lengths in mm, angles in degrees, robot base frame)::
     iso9283             {centre_mm, side_mm, recommended_cycles} or null
     cpa                 [{joint, span_deg, points}]
     warnings            [str]
+    dropped             [{purpose, joints_deg, reason}]: targets left out because no safe
+                        route to them was found
     poses               ordered list, executed in this order:
         index               0, 1, 2, ...
         purpose             calibration | validation | via | cpa-jK | iso-P1 .. iso-P5
@@ -77,6 +79,14 @@ class PlannedPose(_Frozen):
     collision_margin_mm: float
     range_mm: float = Field(ge=0.0)
     move_clear: bool = True
+
+
+class DroppedTarget(_Frozen):
+    """A target the planner left out because no safe route to it was found."""
+
+    purpose: Purpose
+    joints_deg: list[float] = Field(min_length=1)
+    reason: str
 
 
 class RobotInfo(_Frozen):
@@ -172,6 +182,7 @@ class Plan(_Frozen):
     iso9283: IsoInfo | None = None
     cpa: list[CpaInfo] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
+    dropped: list[DroppedTarget] = Field(default_factory=list)
     poses: list[PlannedPose]
 
     @model_validator(mode="after")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from robocal.errors import ConfigError
+from robocal.identification import min_poses
 from robocal.kinematics import ErrorModelSpec, RobotDescription
 from robocal.planning import DesignSpace, Feasibility, model_spec, observability_indices
 from robocal.planning._design import _Blocks, _sym_sqrt_factor
@@ -50,12 +51,12 @@ def test_identifiable_parameters_of_the_lr_mate(robot: RobotDescription, pool: P
     ds = DesignSpace(robot, model_spec(robot, "constant"), q[:300], np.asarray(robot.tool))
     # 45 parameters, 27 identifiable from positions (docs/adr/0002 decision 2)
     assert len(ds.names) == 45 and ds.identifiable == 27
-    assert ds.min_poses == 9 and ds.recommended_poses == 27
+    assert ds.min_poses == min_poses(27) == 11 and ds.recommended_poses == 27
     assert len(ds.unidentifiable) == 18
     o = ds.observability(np.arange(50))
     assert o.identifiable == 27 and o.poses == 50 and math.isfinite(o.condition_number)
     ho = DesignSpace(robot, model_spec(robot, "high-order"), q[:300], np.asarray(robot.tool))
-    assert ho.identifiable > 100 and ho.min_poses == math.ceil(ho.identifiable / 3)
+    assert ho.identifiable > 100 and ho.min_poses == min_poses(ho.identifiable)
 
 
 def test_model_specs(robot: RobotDescription) -> None:

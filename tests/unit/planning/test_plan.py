@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from robocal.errors import ConfigError
+from robocal.identification import min_poses
 from robocal.kinematics import RobotDescription
 from robocal.planning import Cell, FeasibilityChecker, Plan, plan_campaign
 
@@ -38,7 +39,7 @@ def test_plan_contents(plan: Plan) -> None:
     assert [p.index for p in plan.poses] == list(range(len(plan.poses)))
     assert plan.iso9283 is not None and plan.iso9283.side_mm > 100
     o = plan.observability.calibration
-    assert o.poses == 30 and o.identifiable == 27 and o.min_poses == 9
+    assert o.poses == 30 and o.identifiable == 27 and o.min_poses == min_poses(27) == 11
     assert plan.observability.random_baseline is not None
     assert o.O1 > plan.observability.random_baseline.O1
     assert plan.candidates.feasible >= 512
@@ -130,7 +131,7 @@ def test_load_errors(tmp_path: Path) -> None:
 
 
 def test_bad_requests_are_config_errors(demo: Cell) -> None:
-    with pytest.raises(ConfigError, match="count 5 is below the 9 poses"):
+    with pytest.raises(ConfigError, match="count 5 is below the 11 poses"):
         plan_campaign("fanuc_lrmate200i", demo, count=5, candidates=256)
     with pytest.raises(ConfigError, match="count must be at least 1"):
         plan_campaign("fanuc_lrmate200i", demo, count=0)
