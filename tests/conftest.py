@@ -1,11 +1,18 @@
-"""Shared fixtures: seeded RNGs and the location of the shared datasets."""
+"""Shared fixtures: seeded RNGs, the location of the shared datasets, and leak checks."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import inspect
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+import pytest_asyncio
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -24,3 +31,61 @@ def dataset_dir() -> Path:
     if not (DATASET / "Series_C").is_dir():
         pytest.skip(f"dataset not found at {DATASET}")
     return DATASET
+
+
+#: How long leftover tasks and threads get to finish after a test before they count as leaked.
+LEAK_GRACE_S = 1.0
+
+
+def _leaked_threads(before: set[threading.Thread]) -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t not in before and not t.daemon and t.is_alive()]
+
+
+def _fail_on_leaked_threads(before: set[threading.Thread]) -> None:
+    deadline = time.monotonic() + LEAK_GRACE_S
+    while _leaked_threads(before) and time.monotonic() < deadline:
+        time.sleep(0.005)
+    left = _leaked_threads(before)
+    if left:
+        pytest.fail(f"test left non-daemon thread(s) running: {left}", pytrace=False)
+
+
+@pytest_asyncio.fixture
+async def _no_leaked_tasks_or_threads() -> AsyncIterator[None]:
+    """Fail an async test that leaves tasks pending on its loop, or threads running."""
+    threads_before = set(threading.enumerate())
+    tasks_before = asyncio.all_tasks()
+    yield
+    current = asyncio.current_task()
+
+    def pending() -> list[asyncio.Task[object]]:
+        return [t for t in asyncio.all_tasks() - tasks_before if t is not current and not t.done()]
+
+    deadline = time.monotonic() + LEAK_GRACE_S
+    while pending() and time.monotonic() < deadline:
+        await asyncio.sleep(0.005)
+    left = pending()
+    if left:
+        for t in left:
+            t.cancel()
+        await asyncio.wait(left, timeout=LEAK_GRACE_S)
+        pytest.fail(f"test left {len(left)} asyncio task(s) pending: {left}", pytrace=False)
+    # The loop's default executor (asyncio.to_thread) belongs to the loop: join its idle
+    # workers as asyncio.run would, so only threads still busy after the grace count.
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(LEAK_GRACE_S):
+            await asyncio.get_running_loop().shutdown_default_executor()
+    _fail_on_leaked_threads(threads_before)
+
+
+@pytest.fixture(autouse=True)
+def _no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a test that leaves non-daemon threads running, or (async tests) tasks pending."""
+    if inspect.iscoroutinefunction(getattr(request, "function", None)):
+        # Checked inside the test's loop, before the loop and its executor are closed.
+        request.getfixturevalue("_no_leaked_tasks_or_threads")
+        yield
+        return
+    before = set(threading.enumerate())
+    yield
+    _fail_on_leaked_threads(before)

@@ -99,10 +99,11 @@ class CalibrationService:
         """Open the store, connect the drivers (failure is logged), resume campaigns."""
         private_dir(self.config.data_dir)
         self.store.open()
-        self._storage_task = asyncio.create_task(self._storage_watch(), name="storage-watch")
         self.journal.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
+        # after the checks above, so a start refused by them leaves no task behind
+        self._storage_task = asyncio.create_task(self._storage_watch(), name="storage-watch")
         if connect:
             try:
                 await self.hub.connect()

@@ -187,13 +187,25 @@ async def test_stale_socket_is_replaced(make_config, tmp_path):
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.bind(str(path))
     s.close()  # a socket file nobody listens on: what a kill -9 leaves behind
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    with pytest.raises(ConnectionRefusedError):
+        probe.connect(str(path))
+    probe.close()
     cfg = make_config(api={"socket": str(path)})
     svc = CalibrationService(cfg)
     await svc.start(connect=False)
     api = ApiServer(svc, cfg)
     await api.start()
-    await api.stop()
-    await svc.stop()
+    try:
+        assert api.socket_path == path and stat.S_ISSOCK(os.stat(path).st_mode)
+        conn = aiohttp.UnixConnector(path=str(path))  # refused above, served now
+        async with aiohttp.ClientSession(connector=conn) as session, \
+                session.get("http://daemon/health") as r:
+            assert r.status == 200 and (await r.json())["status"] == "ok"
+    finally:
+        await api.stop()
+        await svc.stop()
+    assert not path.exists()
 
 
 _json = st.recursive(

@@ -23,16 +23,10 @@ from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import Store
 from robocal.drivers.sim import LtpSimOptions, ModbusSimOptions, SimCell, SimWorld
 from robocal.drivers.sim.fanuc_rmi import FanucSimOptions
+from tests._waiting import eventually
 from tests.unit.daemon.conftest import ROBOT, random_plan
 
 HALT_BOUND_S = 0.2
-
-
-async def _until(cond: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        await asyncio.sleep(0.002)
 
 
 async def _halted_after(world: SimWorld, t_request: float, watch_s: float = 0.25) -> float:
@@ -98,10 +92,11 @@ async def _mock_service(make_config: Any, move_time_s: float = 0.4
 async def _mid_move(svc: CalibrationService, world: SimWorld, cid: str, *,
                     after_measured: int) -> None:
     """Wait until ``after_measured`` poses are stored and the robot is moving again."""
-    await _until(lambda: svc.store.campaign(cid).poses_measured >= after_measured
-                 and world.moving, 60, "a move in progress")
+    await eventually(lambda: svc.store.campaign(cid).poses_measured >= after_measured
+                 and world.moving, 60, what="a move in progress")
     start = world.q_actual_rad
-    await _until(lambda: np.max(np.abs(world.q_actual_rad - start)) > 1e-3, 5, "joints moving")
+    await eventually(lambda: np.max(np.abs(world.q_actual_rad - start)) > 1e-3, 5,
+                     what="joints moving")
 
 
 @pytest.mark.parametrize("kind", ["fanuc_rmi", "modbus_plc", "mock"])

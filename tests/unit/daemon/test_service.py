@@ -20,6 +20,7 @@ from robocal.errors import (
     VerificationMismatch,
 )
 from robocal.kinematics import load_robot
+from tests._waiting import eventually
 from tests.unit.daemon.conftest import ROBOT, random_plan
 
 
@@ -137,13 +138,12 @@ async def test_pause_and_resume_keep_every_measurement_once(service):
     svc = await service(robot={"options": {"move_time_s": 0.01}})
     st = await svc.create(random_plan(30), actor="a")
     cid = st["id"]
-    while svc.store.campaign(cid).poses_measured < 5:
-        await asyncio.sleep(0.01)
+    await eventually(lambda: svc.store.campaign(cid).poses_measured >= 5, 60)
     await svc.pause(cid, actor="a")
-    await asyncio.sleep(0.1)
     rec = svc.store.campaign(cid)
     assert rec.state.value == "paused" and 5 <= rec.poses_measured < 30
-    await asyncio.sleep(0.1)
+    assert svc._measure_task is not None and svc._measure_task[1].done()
+    await asyncio.sleep(0.03)  # three move times: a pose still in flight would land here
     assert svc.store.campaign(cid).poses_measured == rec.poses_measured
     await svc.resume(cid, actor="a")
     st = await svc.wait(cid, ["fitted"], timeout=60)
@@ -184,8 +184,7 @@ async def test_restart_resumes_at_the_first_unmeasured_pose(service, make_config
     svc = await service(robot={"options": {"move_time_s": 0.01}})
     st = await svc.create(random_plan(25), actor="a")
     cid = st["id"]
-    while svc.store.campaign(cid).poses_measured < 8:
-        await asyncio.sleep(0.005)
+    await eventually(lambda: svc.store.campaign(cid).poses_measured >= 8, 60)
     await svc.stop()  # as a crash would: the state stays "running"
     assert svc.store._db is None
     svc2 = await service(robot={"options": {"move_time_s": 0.001}})
@@ -196,11 +195,12 @@ async def test_restart_resumes_at_the_first_unmeasured_pose(service, make_config
 async def test_abort_stops_motion(service):
     svc = await service(robot={"options": {"move_time_s": 0.02}})
     st = await svc.create(random_plan(30), actor="a")
-    await asyncio.sleep(0.1)
+    await eventually(lambda: svc.store.campaign(st["id"]).poses_measured >= 2, 60)
     st = await svc.abort(st["id"], actor="a", reason="test")
     assert st["state"] == "aborted"
     n = st["poses_measured"]
-    await asyncio.sleep(0.1)
+    assert svc._measure_task is not None and svc._measure_task[1].done()
+    await asyncio.sleep(0.04)  # two move times: a pose still in flight would land here
     assert svc.store.campaign(st["id"]).poses_measured == n < 30
     with pytest.raises(InvalidTransition):
         await svc.resume(st["id"], actor="a")

@@ -13,7 +13,6 @@ import shutil
 import sqlite3
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -23,6 +22,7 @@ from robocal.daemon.api import make_app
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import Store, is_storage_fault
 from robocal.errors import StorageError
+from tests._waiting import eventually
 from tests.unit.daemon.conftest import random_plan
 
 DISK_FULL = "database or disk is full"
@@ -44,12 +44,6 @@ def _state_on_disk(svc: CalibrationService, cid: str) -> tuple[str, str]:
     with sqlite3.connect(svc.config.db_path) as db:
         row = db.execute("SELECT state, reason FROM campaigns WHERE id=?", (cid,)).fetchone()
     return str(row[0]), str(row[1])
-
-
-async def _until(cond: Callable[[], bool], timeout: float = 30.0) -> None:
-    async with asyncio.timeout(timeout):
-        while not cond():
-            await asyncio.sleep(0.01)
 
 
 def _measured_once(svc: CalibrationService, cid: str) -> list[int]:
@@ -84,10 +78,10 @@ def test_store_stays_usable_after_a_real_sqlite_full(tmp_path):
 async def test_real_disk_full_while_measuring_pauses_then_resume_completes(svc):
     cid = (await svc.create(random_plan(24, validation=4), actor="op"))["id"]
     async with TestClient(TestServer(make_app(svc))) as http:
-        await _until(lambda: len(svc.store.measured_indices(cid)) >= 5)
+        await eventually(lambda: len(svc.store.measured_indices(cid)) >= 5, 30)
         n = svc.store.db.execute("PRAGMA page_count").fetchone()[0]
         svc.store.db.execute(f"PRAGMA max_page_count={n}")  # the disk is full from now on
-        await _until(lambda: svc.store.campaign(cid).state == "paused")
+        await eventually(lambda: svc.store.campaign(cid).state == "paused", 30)
         st = await (await http.get(f"/campaigns/{cid}")).json()
         assert st["state"] == "paused" and DISK_FULL in st["reason"]
         kept = _measured_once(svc, cid)
@@ -97,7 +91,7 @@ async def test_real_disk_full_while_measuring_pauses_then_resume_completes(svc):
         assert (await http.get("/health")).status == 200
         # space is back: the held pause is saved by itself, then resume finishes the campaign
         svc.store.db.execute("PRAGMA max_page_count=1073741823")
-        await _until(lambda: not svc.store.pending, timeout=10)
+        await eventually(lambda: not svc.store.pending, 10)
         state, reason = _state_on_disk(svc, cid)
         assert state == "paused" and DISK_FULL in reason
         r = await http.post(f"/campaigns/{cid}/resume")
@@ -118,14 +112,15 @@ async def test_pause_during_a_storage_fault_answers_and_is_kept(svc):
 
     st = await svc.create(random_plan(30), actor="op")
     cid = st["id"]
-    await _until(lambda: len(svc.store.measured_indices(cid)) >= 3)
+    await eventually(lambda: len(svc.store.measured_indices(cid)) >= 3, 30)
     async with TestClient(TestServer(make_app(svc))) as http:
         svc.store.fault_hook = fail_for_operators  # the operator's write hits the full disk
         r = await http.post(f"/campaigns/{cid}/pause", json={"reason": "lunch"})
         body = await r.json()
         assert r.status == 200, body
         assert body["state"] == "paused" and "lunch" in body["reason"]
-        await _until(lambda: svc.health()["measuring"] is None)  # the robot is not driven
+        # the robot is not driven
+        await eventually(lambda: svc.health()["measuring"] is None, 30)
         svc.store.fault_hook = _disk_full  # now every write fails
         r = await http.post(f"/campaigns/{cid}/resume")
         body = await r.json()
@@ -135,7 +130,7 @@ async def test_pause_during_a_storage_fault_answers_and_is_kept(svc):
         assert (await (await http.get(f"/campaigns/{cid}")).json())["state"] == "paused"
         kept = _measured_once(svc, cid)
         svc.store.fault_hook = None
-        await _until(lambda: not svc.store.pending, timeout=10)
+        await eventually(lambda: not svc.store.pending, 10)
         assert _state_on_disk(svc, cid) == ("paused", "lunch")
         r = await http.post(f"/campaigns/{cid}/resume")
         assert r.status == 200
@@ -153,12 +148,12 @@ async def test_fit_that_cannot_be_saved_faults_and_resume_fits_again(svc):
     svc.store.fault_hook = fail_in_fits
     st = await svc.create(random_plan(20), actor="op")
     cid = st["id"]
-    await _until(lambda: svc.store.campaign(cid).state == "faulted")
+    await eventually(lambda: svc.store.campaign(cid).state == "faulted", 30)
     rec = svc.store.campaign(cid)
     assert "storage fault while saving the fit" in rec.reason and DISK_FULL in rec.reason
     assert _state_on_disk(svc, cid)[0] == "measured" and svc.store.fits(cid) == {}
     svc.store.fault_hook = None
-    await _until(lambda: not svc.store.pending, timeout=10)
+    await eventually(lambda: not svc.store.pending, 10)
     assert _state_on_disk(svc, cid)[0] == "faulted"
     await svc.resume(cid, actor="op")
     st = await svc.wait(cid, ["fitted"], timeout=60)

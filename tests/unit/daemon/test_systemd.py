@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import socket
 
 import pytest
 
 from robocal.daemon import systemd
+from tests._waiting import eventually
 
 
 @pytest.fixture
@@ -59,17 +61,19 @@ async def test_watchdog_pings_from_the_loop(notify_socket, monkeypatch):
     monkeypatch.setenv("WATCHDOG_USEC", "40000")  # ping every 20 ms
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
     notify_socket.setblocking(False)
+    pings: list[bytes] = []
+
+    def received() -> int:
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                pings.append(notify_socket.recv(100))
+        return len(pings)
+
     task = asyncio.create_task(systemd.watchdog())
     try:
-        await asyncio.sleep(0.15)
+        await eventually(lambda: received() >= 3)
     finally:
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
-    pings = []
-    while True:
-        try:
-            pings.append(notify_socket.recv(100))
-        except BlockingIOError:
-            break
-    assert len(pings) >= 3 and set(pings) == {b"WATCHDOG=1"}
+    assert set(pings) == {b"WATCHDOG=1"}

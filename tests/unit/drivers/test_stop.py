@@ -28,19 +28,13 @@ from robocal.drivers.sim import (
 )
 from robocal.errors import DriverImportError, MotionStopped
 from robocal.protocols import modbus as mb
+from tests._waiting import eventually
 
 HALT_BOUND_S = 0.2  # acceptance: halt within 0.2 s of the stop request
 
 
 def _max_diff(a: Sequence[float], b: Sequence[float]) -> float:
     return float(np.max(np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float))))
-
-
-async def _wait_until(cond: Any, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, "condition not met in time"
-        await asyncio.sleep(0.005)
 
 
 async def _watch_halt(world: SimWorld, t_request: float, watch_s: float = 0.3) -> float:
@@ -127,7 +121,7 @@ async def test_modbus_sim_abort_halts_the_move_and_keeps_ack_seq_monotonic(world
             await client.write_registers(m.speed, [100])
             await client.write_registers(m.cmd, [int(mb.Cmd.MOVE_JOINT), 1])
             t_move = time.monotonic()  # 20 deg at 40 deg/s: 0.5 s of motion
-            await _wait_until(lambda: math.degrees(world.q_actual_rad[0]) > 14.0)
+            await eventually(lambda: math.degrees(world.q_actual_rad[0]) > 14.0)
             _, busy, j1_live = await status()
             assert busy == mb.Status.BUSY and 12.0 < j1_live < 32.0  # live joints while moving
             t_request = time.monotonic()
@@ -161,10 +155,10 @@ async def test_modbus_sim_abort_when_idle_and_while_latched_is_done(world):
         await client.connect(timeout=5.0)
         try:
             await client.write_register(m.client_heartbeat, 7)  # then let it go stale
-            await _wait_until(lambda: sim._latched)
+            await eventually(lambda: sim.latched)
             before = world.q_actual_rad
             await client.write_registers(m.cmd, [int(mb.Cmd.ABORT), 1])
-            await _wait_until(lambda: sim.acks == [1])
+            await eventually(lambda: sim.acks == [1])
             s0, s1 = m.status_span()
             words = await client.read_input(s0, s1 - s0)
             a, _ = m.status_fields()["status"]
@@ -215,7 +209,7 @@ async def test_stop_mid_move_halts_within_bound_and_next_move_works(kind, world)
         start = world.q_actual_rad
         far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
         move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
-        await _wait_until(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        await eventually(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
         t_request = time.monotonic()
         await robot.stop()
         t_confirmed = time.monotonic() - t_request
@@ -310,7 +304,7 @@ async def test_fanuc_stop_continues_the_sequence_ids_a_controller_keeps(world):
         start = world.q_actual_rad
         far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
         move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
-        await _wait_until(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        await eventually(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
         await robot.stop()
         with pytest.raises(MotionStopped):
             await move
@@ -332,7 +326,7 @@ async def test_modbus_close_during_a_move_sends_abort(world):
         start = world.q_actual_rad
         far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
         move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
-        await _wait_until(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        await eventually(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
         move.cancel()
         with pytest.raises(asyncio.CancelledError):
             await move
