@@ -21,6 +21,7 @@ from robocal.planning._cell import Cell, builtin_cells, load_cell
 from robocal.planning._cpa import cpa_sweeps
 from robocal.planning._design import DesignSpace, Observability, model_spec
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
+from robocal.planning._geometry import link_frames
 from robocal.planning._iso import iso_cube
 from robocal.planning._motion import MotionChecker
 from robocal.planning._order import move_times, order_poses, two_opt
@@ -42,6 +43,19 @@ Array = NDArray[np.float64]
 
 #: Candidate draws stop at this many Sobol points even if fewer are feasible.
 MAX_DRAWS = 2**20
+#: CPA arcs shorter than this (deg) and circles smaller than this (mm) get a warning: the fit
+#: of a circle's centre and axis degrades quickly below them (ADR 0004).
+CPA_MIN_ARC_DEG = 90.0
+CPA_MIN_RADIUS_MM = 100.0
+
+
+def cpa_radius(robot: RobotDescription, joint: int, q: Array, reflector: Array) -> float:
+    """Radius (m) of the circle the reflector (3,) m describes about ``joint``'s axis at ``q``
+    (dof,) rad: its distance from the axis (z of frame joint-1 through that frame's origin)."""
+    O, R, _ = link_frames(robot, q[None, :])
+    z = R[0, joint - 1][:, 2]
+    v = reflector - O[0, joint - 1]
+    return float(np.linalg.norm(v - (v @ z) * z))
 
 
 @single_threaded
@@ -483,9 +497,16 @@ def plan_campaign(
             warnings.append("no CPA sweep with the reflector visible throughout was found for "
                             f"joint(s) {', '.join(map(str, missing))}")
         for s in sweeps:
-            if s.width < math.radians(30.0):
+            if s.width < math.radians(CPA_MIN_ARC_DEG):
                 warnings.append(f"CPA sweep of joint {s.joint} spans only "
-                                f"{math.degrees(s.width):.0f} deg: a poor circle fit")
+                                f"{math.degrees(s.width):.0f} deg (< {CPA_MIN_ARC_DEG:g}): the "
+                                "circle's centre and axis are poorly determined")
+            r = cpa_radius(rob, s.joint, s.q[0], s.feasibility.reflector[0])
+            if r < CPA_MIN_RADIUS_MM * 1e-3:
+                warnings.append(f"CPA circle of joint {s.joint} has a radius of only "
+                                f"{1e3 * r:.0f} mm (< {CPA_MIN_RADIUS_MM:g}): its axis "
+                                "direction is poorly determined; a longer reflector offset "
+                                "helps")
     cube = iso_cube(checker, q_c, feas_c) if iso else None
     if iso and cube is None:
         warnings.append("no feasible ISO 9283 cube was found; iso-P1..P5 left out")
@@ -572,5 +593,7 @@ def plan_campaign(
             centre_mm=[round(float(v) * 1e3, 3) for v in cube.centre],
             side_mm=round(cube.side * 1e3, 3)),
         cpa=[CpaInfo(joint=s.joint, span_deg=[round(math.degrees(v), 3) for v in s.span],
-                     points=len(s.q)) for s in sweeps],
+                     points=len(s.q), radius_mm=round(1e3 * cpa_radius(
+                         rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
+             for s in sweeps],
         warnings=warnings, dropped=dropped, poses=poses)

@@ -16,7 +16,7 @@ Layout (JSON object; lengths in mm, angles in degrees, robot base frame)::
     motion              {max_joint_step_deg, speed_fraction, home_deg, move_time_s,
                         joint_travel_deg, via_points, blocked_moves}
     iso9283             {centre_mm, side_mm, recommended_cycles} or null
-    cpa                 [{joint, span_deg, points}]
+    cpa                 [{joint, span_deg, points, radius_mm}]
     warnings            [str]
     dropped             [{purpose, joints_deg, reason}]: targets left out because no safe
                         route to them was found
@@ -163,6 +163,8 @@ class CpaInfo(_Frozen):
     joint: int = Field(ge=1)
     span_deg: list[float] = Field(min_length=2, max_length=2)
     points: int = Field(ge=1)
+    radius_mm: float | None = Field(
+        default=None, ge=0.0, description="radius of the reflector's circle about the axis")
 
 
 class Plan(_Frozen):

@@ -43,7 +43,15 @@ def test_plan_contents(plan: Plan) -> None:
     assert plan.observability.random_baseline is not None
     assert o.O1 > plan.observability.random_baseline.O1
     assert plan.candidates.feasible >= 512
-    assert plan.motion.blocked_moves == 0 and plan.warnings == []
+    assert plan.motion.blocked_moves == 0 and not plan.dropped
+    # J6 turns the reflector about the flange axis: radius = its offset from that axis
+    j6 = next(c for c in plan.cpa if c.joint == 6)
+    assert j6.radius_mm == pytest.approx(math.hypot(30.0, 20.0), abs=1e-3)
+    assert "CPA circle of joint 6 has a radius of only 36 mm (< 100)" in " ".join(plan.warnings)
+    for c in plan.cpa:
+        short = c.span_deg[1] - c.span_deg[0] < 90.0
+        assert (f"CPA sweep of joint {c.joint} spans only" in " ".join(plan.warnings)) == short
+    assert all(w.startswith("CPA ") for w in plan.warnings)
 
 
 def test_validation_is_disjoint_from_calibration(plan: Plan) -> None:
