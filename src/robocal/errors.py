@@ -114,6 +114,43 @@ class VerificationMismatch(OperationError):
         super().__init__(message, kind=kind)
 
 
+# --- emScon tracker status errors (raised by robocal.drivers.emscon) -----------------------
+class EmsconStatusError(OperationError):
+    """The tracker answered a command with a non-zero ``ES_ResultStatus``.
+
+    ``status`` is the raw code (possibly outside the published enum), ``command`` the ID.
+    """
+
+    def __init__(self, message: str, *, kind: str | None = "emscon", status: int, command: int):
+        self.status = status
+        self.command = command
+        super().__init__(message, kind=kind)
+
+
+class EmsconBusy(EmsconStatusError):
+    """``ServerBusy`` (1) persisted through every retry."""
+
+
+class EmsconNotInitialized(EmsconStatusError):
+    """``TrackerNotInitialized`` (39)."""
+
+
+class EmsconBeamLost(EmsconStatusError, BeamLost):
+    """No lock on the reflector: a status listed in ``beam_broken_statuses``, or event 25."""
+
+
+class EmsconUnstable(EmsconStatusError, Unstable):
+    """A status listed in ``unstable_statuses`` (default ``SensorNotStable``)."""
+
+
+class EmsconMeasurementError(EmsconStatusError, MeasurementError):
+    """Any other failure of ``StartMeasurement`` or of its result packet."""
+
+
+class EmsconTimeout(EmsconStatusError, DriverTimeout):
+    """``ModuleTimedOut`` (41): the tracker's own internal timeout."""
+
+
 # --- wire protocols ---------------------------------------------------------------------------
 class ProtocolError(RobocalError):
     """Bytes on the wire could not be understood. ``last_frames`` holds recent raw frames."""

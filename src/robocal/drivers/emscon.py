@@ -31,17 +31,20 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from robocal.drivers._base import DriverBase, DriverOptions
 from robocal.drivers.api import TrackerReading
 from robocal.errors import (
-    BeamLost,
     ConfigError,
     ConnectFailed,
     DriverTimeout,
+    EmsconBeamLost,
+    EmsconBusy,
+    EmsconMeasurementError,
+    EmsconNotInitialized,
+    EmsconStatusError,
+    EmsconTimeout,
+    EmsconUnstable,
     FramingError,
-    MeasurementError,
-    OperationError,
     TransportError,
     TransportTimeout,
     UnexpectedReply,
-    Unstable,
 )
 from robocal.protocols import Transport, emscon, open_transport
 from robocal.protocols.emscon import Cmd, CoordSys, Event
@@ -71,43 +74,6 @@ _UNITS = {
 _WMS = {"off": 0, "read_only": 1, "calculate": 2}
 _TPS_INITIALIZED = 5
 _RESULT_TYPES = (emscon.DataType.SINGLE_MEAS_RESULT, emscon.DataType.SINGLE_MEAS_RESULT2)
-
-
-# --- typed errors ------------------------------------------------------------------------------
-class EmsconStatusError(OperationError):
-    """The tracker answered a command with a non-zero ``ES_ResultStatus``.
-
-    ``status`` is the raw code (possibly outside the published enum), ``command`` the ID.
-    """
-
-    def __init__(self, message: str, *, kind: str | None = "emscon", status: int, command: int):
-        self.status = status
-        self.command = command
-        super().__init__(message, kind=kind)
-
-
-class EmsconBusy(EmsconStatusError):
-    """``ServerBusy`` (1) persisted through every retry."""
-
-
-class EmsconNotInitialized(EmsconStatusError):
-    """``TrackerNotInitialized`` (39)."""
-
-
-class EmsconBeamLost(EmsconStatusError, BeamLost):
-    """No lock on the reflector: a status listed in ``beam_broken_statuses``, or event 25."""
-
-
-class EmsconUnstable(EmsconStatusError, Unstable):
-    """A status listed in ``unstable_statuses`` (default ``SensorNotStable``)."""
-
-
-class EmsconMeasurementError(EmsconStatusError, MeasurementError):
-    """Any other failure of ``StartMeasurement`` or of its result packet."""
-
-
-class EmsconTimeout(EmsconStatusError, DriverTimeout):
-    """``ModuleTimedOut`` (41): the tracker's own internal timeout."""
 
 
 class _EventBeamLost(EmsconBeamLost):
