@@ -165,12 +165,14 @@ def _tokens(text: str, *, strict: bool) -> list[str]:
     character. ``strict`` refuses leading, trailing and doubled spaces (the grammar's single
     SP); the driver's side is lenient about them.
     """
-    if strict and (text.startswith(" ") or text.endswith(" ") or "  " in text):
+    if strict and (text.startswith(" ") or text.endswith(" ")):
         raise FramingError("tokens must be separated by single spaces")
     tokens: list[str] = []
     i, n = 0, len(text)
     while i < n:
-        if text[i] == " ":
+        if text[i] == " ":  # between tokens (spaces inside quotes are consumed below)
+            if strict and i + 1 < n and text[i + 1] == " ":
+                raise FramingError("tokens must be separated by single spaces")
             i += 1
             continue
         j = i

@@ -210,3 +210,11 @@ def test_err_round_trip(tag, code, msg):
 @given(st.from_regex(r"[A-Z][A-Z_]{0,6}", fullmatch=True), pairs)
 def test_event_round_trip(name, values_):
     assert ltp.parse_message(ltp.format_event(name, values_)) == ltp.Event(name, values_)
+
+
+def test_spaces_inside_quotes_are_not_separators():
+    req = ltp.Request("0", "A", {"A": "  "})
+    assert ltp.format_request(req) == '0 A A="  "'
+    assert ltp.parse_request('0 A A="  "') == req
+    with pytest.raises(FramingError, match="single spaces"):
+        ltp.parse_request('0 A  A="  "')
