@@ -53,7 +53,7 @@ def test_model_file_alone(campaign: Campaign, tmp_path: Path,
                           capsys: pytest.CaptureFixture[str]) -> None:
     m = _save(campaign, tmp_path)
     rc = main(["report", str(m["constant"]), "--out", str(tmp_path / "r.html"), "--json"])
-    assert rc == 0
+    assert rc == 1  # the page is written, and a failed verdict fails the command
     got = json.loads(capsys.readouterr().out)
     assert got["html"].endswith("r.html") and got["json"].endswith("r.json")
     # no stored metrics and no data: nothing to judge, and the page says so
