@@ -35,17 +35,30 @@ import socket
 import sqlite3
 import struct
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import structlog
 from aiohttp import web
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from robocal import __version__
 from robocal._core.files import atomic_write_text
 from robocal.daemon._gate import ConnectionGate, GatedTCPSite, GatedUnixSite
 from robocal.daemon.config import AppConfig, config_warnings
+from robocal.daemon.schemas import (
+    AuditEntry,
+    CampaignStatus,
+    CampaignSummary,
+    CompensationState,
+    ErrorBody,
+    Event,
+    EventPoll,
+    Health,
+    Measurement,
+)
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import UnknownCampaign, is_storage_fault
 from robocal.errors import (
@@ -59,7 +72,7 @@ from robocal.errors import (
     StorageError,
 )
 
-__all__ = ["ApiServer", "make_app", "openapi_spec"]
+__all__ = ["ROUTES", "ApiServer", "Route", "make_app", "openapi_spec"]
 
 _log = structlog.get_logger(__name__)
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -232,9 +245,25 @@ def _int_query(request: web.Request, name: str, default: int, lo: int, hi: int) 
     return v
 
 
+@cache
+def _adapter(shape: Any) -> TypeAdapter[Any]:
+    return TypeAdapter(shape)
+
+
+def _reply(shape: Any, data: Any, *, status: int = 200) -> web.Response:
+    """``data`` validated against and serialised through the response model ``shape``.
+
+    A service answer that no longer matches its model is a bug: a ValidationError here
+    becomes a logged 500, and the tests that call the route fail.
+    """
+    adapter = _adapter(shape)
+    body = adapter.dump_python(adapter.validate_python(data), mode="json")
+    return web.json_response(body, status=status)
+
+
 # --- handlers ---------------------------------------------------------------------------------
 async def health(request: web.Request) -> web.Response:
-    return web.json_response(request.app[_SERVICE].health())
+    return _reply(Health, request.app[_SERVICE].health())
 
 
 async def openapi(request: web.Request) -> web.Response:
@@ -242,7 +271,7 @@ async def openapi(request: web.Request) -> web.Response:
 
 
 async def list_campaigns(request: web.Request) -> web.Response:
-    return web.json_response(request.app[_SERVICE].list())
+    return _reply(list[CampaignSummary], request.app[_SERVICE].list())
 
 
 async def create_campaign(request: web.Request) -> web.Response:
@@ -250,16 +279,16 @@ async def create_campaign(request: web.Request) -> web.Response:
     status = await request.app[_SERVICE].create(
         body.plan, actor=_actor(request), name=body.name, start=body.start,
         measure_only=body.measure_only)
-    return web.json_response(status, status=201)
+    return _reply(CampaignStatus, status, status=201)
 
 
 async def get_campaign(request: web.Request) -> web.Response:
-    return web.json_response(request.app[_SERVICE].status(request.match_info["cid"]))
+    return _reply(CampaignStatus, request.app[_SERVICE].status(request.match_info["cid"]))
 
 
 async def get_measurements(request: web.Request) -> web.Response:
     rows = request.app[_SERVICE].measurements(request.match_info["cid"])
-    return web.json_response([r.to_json() for r in rows])
+    return _reply(list[Measurement], [r.to_json() for r in rows])
 
 
 async def campaign_action(request: web.Request) -> web.Response:
@@ -282,22 +311,22 @@ async def campaign_action(request: web.Request) -> web.Response:
     else:
         out = await svc.push(cid, actor=actor, force=body.force, key=body.key,
                              reason=body.reason)
-    return web.json_response(out)
+    return _reply(CampaignStatus, out)
 
 
 async def compensation(request: web.Request) -> web.Response:
-    return web.json_response(request.app[_SERVICE].compensation())
+    return _reply(CompensationState, request.app[_SERVICE].compensation())
 
 
 async def rollback(request: web.Request) -> web.Response:
     body = await _body(request, RollbackRequest, required=False)
-    return web.json_response(await request.app[_SERVICE].rollback(
+    return _reply(CompensationState, await request.app[_SERVICE].rollback(
         actor=_actor(request), reason=body.reason, key=body.key))
 
 
 async def audit(request: web.Request) -> web.Response:
     limit = _int_query(request, "limit", 1000, 1, 100_000)
-    return web.json_response(request.app[_SERVICE].audit(limit=limit))
+    return _reply(list[AuditEntry], request.app[_SERVICE].audit(limit=limit))
 
 
 async def events_poll(request: web.Request) -> web.Response:
@@ -319,7 +348,7 @@ async def events_poll(request: web.Request) -> web.Response:
                                                   ev["campaign"] == campaign):
                             events = [ev]
                             break
-    return web.json_response({"events": events, "last_seq": svc.events.last_seq})
+    return _reply(EventPoll, {"events": events, "last_seq": svc.events.last_seq})
 
 
 async def events_sse(request: web.Request) -> web.StreamResponse:
@@ -363,8 +392,56 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
     return resp
 
 
+@dataclass(frozen=True)
+class Route:
+    """One route: what aiohttp serves and what ``openapi.json`` says about it.
+
+    ``response`` is the model (or type) of the JSON answer, None for a non-JSON one;
+    ``query`` lists ``(name, JSON type)`` of the query parameters.
+    """
+
+    method: str
+    path: str
+    handler: Handler
+    summary: str
+    response: Any = None
+    status: int = 200
+    body: type[_Request] | None = None
+    body_required: bool = False
+    query: tuple[tuple[str, str], ...] = ()
+
+
+#: Every route of the API; ``{action}`` is one of ``_ACTIONS`` (documented one path each).
+ROUTES: tuple[Route, ...] = (
+    Route("GET", "/health", health, "daemon status", Health),
+    Route("GET", "/openapi.json", openapi, "this description", dict[str, Any]),
+    Route("GET", "/campaigns", list_campaigns, "list campaigns, oldest first",
+          list[CampaignSummary]),
+    Route("POST", "/campaigns", create_campaign, "create (and start) a campaign from a plan",
+          CampaignStatus, status=201, body=CreateCampaignRequest, body_required=True),
+    Route("GET", "/campaigns/{cid}", get_campaign,
+          "campaign status: state, poses, fits, transitions, pushes", CampaignStatus),
+    Route("GET", "/campaigns/{cid}/measurements", get_measurements,
+          "stored measurements (mm, deg)", list[Measurement]),
+    Route("POST", "/campaigns/{cid}/{action}", campaign_action, "{action} the campaign",
+          CampaignStatus, body=ActionRequest),
+    Route("GET", "/events", events_sse,
+          "progress events as Server-Sent Events (id BOOT-SEQ, event kind, data an Event)",
+          query=(("campaign", "string"), ("after", "integer"))),
+    Route("GET", "/events/poll", events_poll, "long-poll for events after a sequence number",
+          EventPoll, query=(("after", "integer"), ("timeout", "integer"),
+                            ("campaign", "string"))),
+    Route("GET", "/compensation", compensation, "active compensation table and push history",
+          CompensationState),
+    Route("POST", "/compensation/rollback", rollback, "restore the previous table (verified)",
+          CompensationState, body=RollbackRequest),
+    Route("GET", "/audit", audit, "append-only audit log", list[AuditEntry],
+          query=(("limit", "integer"),)),
+)
+
+
 def make_app(service: CalibrationService, *, token: str | None = None,
-             max_body_bytes: int = 2 * 1024 * 1024,
+             max_body_bytes: int = 512 * 1024,
              body_timeout_s: float = 60.0) -> web.Application:
     """The aiohttp application; with ``token``, every request must carry it (TCP)."""
     middlewares: list[Any] = [_errors]
@@ -374,89 +451,73 @@ def make_app(service: CalibrationService, *, token: str | None = None,
     app[_SERVICE] = service
     app[_TOKEN_AUTH] = token is not None
     app[_BODY_TIMEOUT] = body_timeout_s
-    r = app.router
-    r.add_get("/health", health)
-    r.add_get("/openapi.json", openapi)
-    r.add_get("/campaigns", list_campaigns)
-    r.add_post("/campaigns", create_campaign)
-    r.add_get("/campaigns/{cid}", get_campaign)
-    r.add_get("/campaigns/{cid}/measurements", get_measurements)
-    r.add_post("/campaigns/{cid}/{action}", campaign_action)
-    r.add_get("/events", events_sse)
-    r.add_get("/events/poll", events_poll)
-    r.add_get("/compensation", compensation)
-    r.add_post("/compensation/rollback", rollback)
-    r.add_get("/audit", audit)
+    for route in ROUTES:
+        app.router.add_route(route.method, route.path, route.handler)
     return app
 
 
-def _schema(model: type[BaseModel]) -> dict[str, Any]:
-    return model.model_json_schema(ref_template="#/components/schemas/{model}")
+_REF = "#/components/schemas/{model}"
+
+
+def _schema(shape: Any, mode: Literal["validation", "serialization"],
+            components: dict[str, Any]) -> dict[str, Any]:
+    """The JSON schema of ``shape``: its ``$defs`` moved into ``components`` and, for a
+    model, a ``$ref`` to it."""
+    schema = dict(_adapter(shape).json_schema(ref_template=_REF, mode=mode))
+    defs = schema.pop("$defs", {})
+    if isinstance(shape, type) and issubclass(shape, BaseModel):
+        defs[shape.__name__] = schema
+        schema = {"$ref": _REF.format(model=shape.__name__)}
+    for name, d in defs.items():
+        if components.setdefault(name, d) != d:
+            raise RuntimeError(f"two different schemas are named {name!r}")
+    return schema
+
+
+def _operation(route: Route, path: str, components: dict[str, Any]) -> dict[str, Any]:
+    summary = route.summary.replace("{action}", path.rsplit("/", 1)[-1])
+    err = {"description": "error", "content": {"application/json": {
+        "schema": {"$ref": _REF.format(model=ErrorBody.__name__)}}}}
+    if route.response is None:
+        ok: dict[str, Any] = {"description": "event stream", "content": {
+            "text/event-stream": {"schema": {"type": "string"}}}}
+    else:
+        ok = {"description": "OK", "content": {"application/json": {
+            "schema": _schema(route.response, "serialization", components)}}}
+    op: dict[str, Any] = {"summary": summary,
+                          "responses": {str(route.status): ok, "4XX": err, "5XX": err}}
+    params = [{"name": name, "in": "path", "required": True, "schema": {"type": "string"}}
+              for name in re.findall(r"{(\w+)}", path)]
+    params += [{"name": name, "in": "query", "required": False, "schema": {"type": kind}}
+               for name, kind in route.query]
+    if params:
+        op["parameters"] = params
+    if route.body is not None:
+        op["requestBody"] = {"required": route.body_required, "content": {
+            "application/json": {"schema": _schema(route.body, "validation", components)}}}
+    return op
 
 
 def openapi_spec() -> dict[str, Any]:
-    """The OpenAPI 3.1 description of the API."""
-    err = {"description": "error", "content": {"application/json": {
-        "schema": {"$ref": "#/components/schemas/Error"}}}}
-    ok = {"description": "OK", "content": {"application/json": {"schema": {"type": "object"}}}}
-    cid = {"name": "cid", "in": "path", "required": True, "schema": {"type": "string"}}
-
-    def op(summary: str, *, body: str | None = None, params: list[Any] | None = None,
-           created: bool = False) -> dict[str, Any]:
-        o: dict[str, Any] = {"summary": summary,
-                             "responses": {"201" if created else "200": ok, "4XX": err}}
-        if params:
-            o["parameters"] = params
-        if body:
-            o["requestBody"] = {"required": body == "CreateCampaignRequest", "content": {
-                "application/json": {"schema": {"$ref": f"#/components/schemas/{body}"}}}}
-        return o
-
-    paths: dict[str, Any] = {
-        "/health": {"get": op("daemon status")},
-        "/openapi.json": {"get": op("this description")},
-        "/campaigns": {"get": op("list campaigns"),
-                       "post": op("create (and start) a campaign from a plan",
-                                  body="CreateCampaignRequest", created=True)},
-        "/campaigns/{cid}": {"get": op("campaign status: state, poses_total, poses_measured, "
-                                       "fits, transitions", params=[cid])},
-        "/campaigns/{cid}/measurements": {"get": op("stored measurements (mm, deg)",
-                                                    params=[cid])},
-        "/events": {"get": {"summary": "progress events as Server-Sent Events",
-                            "parameters": [
-                                {"name": "campaign", "in": "query", "schema": {"type": "string"}},
-                                {"name": "after", "in": "query", "schema": {"type": "integer"}}],
-                            "responses": {"200": {"description": "event stream", "content": {
-                                "text/event-stream": {"schema": {"type": "string"}}}},
-                                "4XX": err}}},
-        "/events/poll": {"get": op("long-poll for events after a sequence number", params=[
-            {"name": "after", "in": "query", "schema": {"type": "integer"}},
-            {"name": "timeout", "in": "query", "schema": {"type": "integer"}},
-            {"name": "campaign", "in": "query", "schema": {"type": "string"}}])},
-        "/compensation": {"get": op("active compensation table and push history")},
-        "/compensation/rollback": {"post": op("restore the previous table (verified)",
-                                              body="RollbackRequest")},
-        "/audit": {"get": op("append-only audit log", params=[
-            {"name": "limit", "in": "query", "schema": {"type": "integer"}}])},
-    }
-    for action in _ACTIONS:
-        paths[f"/campaigns/{{cid}}/{action}"] = {
-            "post": op(f"{action} the campaign", body="ActionRequest", params=[cid])}
-    schemas: dict[str, Any] = {
-        "Error": {"type": "object", "required": ["error"], "properties": {"error": {
-            "type": "object", "properties": {"type": {"type": "string"},
-                                             "message": {"type": "string"},
-                                             "status": {"type": "integer"}}}}},
-    }
-    for model in (CreateCampaignRequest, ActionRequest, RollbackRequest):
-        schemas[model.__name__] = _schema(model)
+    """The OpenAPI 3.1 description of the API, generated from :data:`ROUTES` and the models
+    in :mod:`robocal.daemon.schemas` (``{action}`` expands to one path per action)."""
+    components: dict[str, Any] = {}
+    _schema(ErrorBody, "serialization", components)
+    components["Event"] = _schema(Event, "serialization", components)
+    paths: dict[str, dict[str, Any]] = {}
+    for route in ROUTES:
+        expanded = ([route.path.replace("{action}", a) for a in _ACTIONS]
+                    if "{action}" in route.path else [route.path])
+        for path in expanded:
+            paths.setdefault(path, {})[route.method.lower()] = _operation(route, path,
+                                                                          components)
     return {
         "openapi": "3.1.0",
         "info": {"title": "robocal daemon API", "version": __version__,
                  "description": "Local API of the robocal calibration daemon. On TCP every "
                                 "request needs 'Authorization: Bearer <token>'."},
         "paths": paths,
-        "components": {"schemas": schemas, "securitySchemes": {
+        "components": {"schemas": dict(sorted(components.items())), "securitySchemes": {
             "bearer": {"type": "http", "scheme": "bearer"}}},
     }
 

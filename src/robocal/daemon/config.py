@@ -78,8 +78,9 @@ class ApiConfig(_Model):
     (``socket_mode``, default 0660) is the access control. TCP is off unless ``tcp_port`` is
     set, and then ``token_file`` (a file holding the bearer token) is required.
 
-    A request body may have ``max_body_bytes`` (default 2 MiB, some 5,000 plan poses; the
-    JSON of a larger one would take the event loop long to parse). Each listener admits
+    A request body may have ``max_body_bytes`` (default 512 KiB, some 1,600 plan poses, five
+    times a large campaign; parsing and storing a plan stalls the event loop for about
+    0.3 ms per pose, see docs/benchmarks.md). Each listener admits
     ``max_connections`` connections (TCP: ``max_connections_per_client``
     per address); more are reset on arrival. Request headers must arrive within
     ``header_timeout_s``, a body within ``body_timeout_s``; idle keep-alive connections close
@@ -91,7 +92,7 @@ class ApiConfig(_Model):
     tcp_host: str = "127.0.0.1"
     tcp_port: int | None = Field(default=None, ge=0, le=65535)
     token_file: Path | None = None
-    max_body_bytes: int = Field(default=2 * 1024 * 1024, ge=1024, le=64 * 1024 * 1024)
+    max_body_bytes: int = Field(default=512 * 1024, ge=1024, le=64 * 1024 * 1024)
     max_connections: int = Field(default=64, ge=1, le=4096)
     max_connections_per_client: int = Field(default=8, ge=1, le=4096)
     header_timeout_s: float = Field(default=10.0, gt=0.0, le=300.0)
