@@ -7,7 +7,8 @@ daemon run), ``time``, ``kind`` and ``campaign``; a subscriber that reconnects p
 and gets what it missed from a bounded replay buffer.
 
 Kinds: ``state`` (a transition), ``pose`` (a pose measured), ``retry`` (a reading retried),
-``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``log``.
+``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``log``; each kind's
+fields are the model in :mod:`robocal.daemon.schemas`, checked by :meth:`EventBus.emit`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ import secrets
 import time
 from collections.abc import AsyncIterator
 from typing import Any
+
+from robocal.daemon.schemas import EVENT_MODELS
 
 __all__ = ["EventBus"]
 
@@ -50,10 +53,22 @@ class EventBus:
         return self._seq
 
     def emit(self, kind: str, campaign: str | None = None, **data: Any) -> dict[str, Any]:
-        """Publish one event and return it."""
+        """Publish one event and return it.
+
+        Raises
+        ------
+        ValueError
+            If ``kind`` is unknown or ``data`` does not match the kind's model in
+            :mod:`robocal.daemon.schemas` (a missing, extra or mistyped field: a bug, which
+            the tests that emit it catch); nothing is published then.
+        """
+        model = EVENT_MODELS.get(kind)
+        if model is None:
+            raise ValueError(f"unknown event kind {kind!r} (one of {', '.join(EVENT_MODELS)})")
+        event = {"seq": self._seq + 1, "time": time.time(), "kind": kind,
+                 "campaign": campaign, **data}
+        model.model_validate(event)  # pydantic's ValidationError is a ValueError
         self._seq += 1
-        event = {"seq": self._seq, "time": time.time(), "kind": kind, "campaign": campaign,
-                 **data}
         self._buffer.append(event)
         for q in list(self._subscribers):
             if q.full():
