@@ -220,81 +220,103 @@ def _order_measured(motion: MotionChecker, q: Array, speed: Array, home: Array,
 class _Roadmap:
     """A lazily checked roadmap over safe poses for detours (lazy PRM).
 
-    Nodes are safe poses; each is joined to its ``k`` nearest neighbours by move time. A route
-    is the shortest path by move time whose edges are not known to be unsafe; its unchecked
-    edges are then checked in one batch, unsafe ones removed, and the search repeated. Edge
-    results are kept, so later detours reuse them.
+    Nodes are safe poses (the pool, home, and every target reached so far); each is joined to
+    its ``k`` nearest nodes by move time. A route is the shortest path by move time whose
+    edges are not known to be unsafe; its unchecked edges are then checked in one batch,
+    unsafe ones removed, and the search repeated. The legs the plan takes are known safe, so
+    a route can always lead back the way the robot came (moves are reversible), and edge
+    results are kept for later detours.
     """
 
-    def __init__(self, motion: MotionChecker, pool: Array, speed: Array, max_step: float,
-                 *, k: int = 8) -> None:
+    def __init__(self, motion: MotionChecker, pool: Array, home: Array, speed: Array,
+                 max_step: float, *, k: int = 8) -> None:
         self.motion = motion
-        self.nodes = pool
         self.speed = speed
         self.max_step = max_step
-        self.k = min(k, max(1, len(pool) - 1))
-        n = len(pool)
-        D = move_times(pool[:, None, :], pool[None, :, :], speed) if n else np.zeros((0, 0))
-        np.fill_diagonal(D, np.inf)
-        nn = np.argsort(D, axis=1)[:, :self.k] if n > 1 else np.zeros((n, 0), dtype=np.intp)
-        rows = np.repeat(np.arange(n), nn.shape[1])
-        cols = nn.ravel()
-        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
-        key = np.unique(lo * max(n, 1) + hi)
-        self.ei, self.ej = key // max(n, 1), key % max(n, 1)
-        self.ew = D[self.ei, self.ej]
-        self.state = np.zeros(len(key), dtype=np.int8)        # 0 unknown, 1 safe, -1 unsafe
-
-    def route(self, a: Array, b: Array, *, rounds: int = 5) -> list[Array] | None:
-        """Intermediate poses of a safe route a -> b (both not nodes), or None."""
+        self.k = k
+        self.nodes = np.vstack([pool, home[None, :]])
+        self.home = len(pool)
+        self._key: dict[tuple[int, int], int] = {}
+        self.ei: list[int] = []
+        self.ej: list[int] = []
+        self.ew: list[float] = []
+        self.state: list[int] = []                 # 0 unknown, 1 safe, -1 unsafe
         n = len(self.nodes)
-        if n == 0:
+        if n > 1:
+            D = move_times(self.nodes[:, None, :], self.nodes[None, :, :], speed)
+            np.fill_diagonal(D, np.inf)
+            nn = np.argsort(D, axis=1)[:, :min(k, n - 1)]
+            for i, row in enumerate(nn):
+                for j in row:
+                    self._edge(i, int(j), 0)
+
+    def _edge(self, u: int, v: int, state: int) -> int:
+        key = (min(u, v), max(u, v))
+        e = self._key.get(key)
+        if e is None:
+            e = len(self.ei)
+            self._key[key] = e
+            self.ei.append(key[0])
+            self.ej.append(key[1])
+            self.ew.append(float(move_times(self.nodes[u], self.nodes[v], self.speed)))
+            self.state.append(state)
+        elif state:
+            self.state[e] = state
+        return e
+
+    def add_target(self, q: Array, came_from: int) -> int:
+        """Add a reached target (dof,) rad, joined safely to ``came_from`` and (unchecked)
+        to its nearest nodes; return its node index."""
+        t = move_times(q, self.nodes, self.speed)
+        self.nodes = np.vstack([self.nodes, q[None, :]])
+        idx = len(self.nodes) - 1
+        for j in np.argsort(t)[:self.k]:
+            self._edge(idx, int(j), 0)
+        self._edge(came_from, idx, 1)
+        return idx
+
+    def mark_safe(self, path: list[int]) -> None:
+        """Record the consecutive legs of a node path as safe."""
+        for u, v in itertools.pairwise(path):
+            self._edge(u, v, 1)
+
+    def route(self, a: int, b: Array, *, rounds: int = 5) -> list[int] | None:
+        """Node indices of a safe route from node ``a`` to pose ``b`` (exclusive), or None."""
+        n = len(self.nodes)
+        t = move_times(b, self.nodes, self.speed)
+        near = np.union1d(np.argsort(t)[:self.k], [self.home])
+        near = near[near != a]
+        ok, _ = _legs_safe(self.motion, self.nodes[near],
+                           np.broadcast_to(b, (len(near), b.size)), self.max_step)
+        nb = near[ok]
+        if not len(nb):
             return None
-        # the two ends join their k nearest nodes; their edges are checked up front
-        ends = []
-        for q in (a, b):
-            t = move_times(q, self.nodes, self.speed)
-            near = np.argsort(t)[:self.k]
-            fwd = q is a
-            ok, _ = _legs_safe(self.motion, np.broadcast_to(q, (len(near), q.size))
-                               if fwd else self.nodes[near],
-                               self.nodes[near] if fwd else np.broadcast_to(q, (len(near), q.size)),
-                               self.max_step)
-            ends.append((near[ok], t[near[ok]]))
-        (na, wa), (nb, wb) = ends
-        if not len(na) or not len(nb):
-            return None
-        A, B = n, n + 1
+        goal = n
         for _ in range(rounds):
-            use = self.state >= 0
-            i = np.concatenate([self.ei[use], np.full(len(na), A), nb])
-            j = np.concatenate([self.ej[use], na, np.full(len(nb), B)])
-            w = np.concatenate([self.ew[use], wa, wb]) + 1e-9
-            G = csr_matrix((w, (i, j)), shape=(n + 2, n + 2))
-            dist, pred = dijkstra(G, directed=False, indices=A, return_predecessors=True)
-            if not np.isfinite(dist[B]):
+            st = np.array(self.state, dtype=np.int8)
+            use = st >= 0
+            i = np.concatenate([np.array(self.ei)[use], nb])
+            j = np.concatenate([np.array(self.ej)[use], np.full(len(nb), goal)])
+            w = np.concatenate([np.array(self.ew)[use], t[nb]]) + 1e-9
+            G = csr_matrix((w, (i, j)), shape=(n + 1, n + 1))
+            dist, pred = dijkstra(G, directed=False, indices=a, return_predecessors=True)
+            if not np.isfinite(dist[goal]):
                 return None
-            path = [B]
-            while path[-1] != A:
+            path = [goal]
+            while path[-1] != a:
                 path.append(int(pred[path[-1]]))
-            inner = path[::-1][1:-1]                        # node indices between a and b
-            pairs = list(itertools.pairwise(inner))
-            eidx = [self._edge(u, v) for u, v in pairs]
+            nodes = path[::-1][:-1]                          # a, ..., last node before b
+            eidx = [self._key[(min(u, v), max(u, v))] for u, v in itertools.pairwise(nodes)]
             todo = [e for e in eidx if self.state[e] == 0]
             if todo:
-                t = np.array(todo)
-                ok, _ = _legs_safe(self.motion, self.nodes[self.ei[t]], self.nodes[self.ej[t]],
-                                   self.max_step)
-                self.state[t] = np.where(ok, 1, -1)
+                todo_a = np.array(todo)
+                ok_e, _ = _legs_safe(self.motion, self.nodes[np.array(self.ei)[todo_a]],
+                                     self.nodes[np.array(self.ej)[todo_a]], self.max_step)
+                for e, good in zip(todo, ok_e, strict=True):
+                    self.state[e] = 1 if good else -1
             if all(self.state[e] == 1 for e in eidx):
-                return [self.nodes[u] for u in inner]
+                return nodes[1:]
         return None
-
-    def _edge(self, u: int, v: int) -> int:
-        n = max(len(self.nodes), 1)
-        key = min(u, v) * n + max(u, v)
-        pos = np.searchsorted(self.ei * n + self.ej, key)
-        return int(pos)
 
 
 def _safe_route(motion: MotionChecker, seq: Array, purposes: list[str], home: Array,
@@ -303,8 +325,9 @@ def _safe_route(motion: MotionChecker, seq: Array, purposes: list[str], home: Ar
     """Route through the targets ``seq`` (n, dof) with only safe moves.
 
     A leg whose straight path (via-points included) is not safe gets detour via-points: the
-    shortest safe route over a roadmap of the ``pool`` poses; a target that no route reaches
-    is dropped, and the next target is approached from the last one reached.
+    shortest safe route over a roadmap of the ``pool`` poses, home and the targets reached so
+    far; a target that no route reaches is dropped, and the next target is approached from
+    the last one reached.
 
     Returns
     -------
@@ -316,38 +339,34 @@ def _safe_route(motion: MotionChecker, seq: Array, purposes: list[str], home: Ar
     """
     ok, why = _legs_safe(motion, np.vstack([home[None, :], seq[:-1]]), seq, max_step,
                          explain=True)
-    roadmap = _Roadmap(motion, pool, speed, max_step)
+    roadmap = _Roadmap(motion, pool, home, speed, max_step)
     rows: list[Array] = []
     out_p: list[str] = []
     dropped: list[DroppedTarget] = []
-    cur = home
+    cur = roadmap.home
     cur_is_prev = True          # ``ok`` holds for the leg from the previous target
     for i, b in enumerate(seq):
         if cur_is_prev:
             safe, reason = bool(ok[i]), why[i]
         else:
-            o, w = _legs_safe(motion, cur[None, :], b[None, :], max_step, explain=True)
+            o, w = _legs_safe(motion, roadmap.nodes[cur][None, :], b[None, :], max_step,
+                              explain=True)
             safe, reason = bool(o[0]), w[0]
+        via: list[int] | None = []
         if not safe:
-            # through home first (safe, and where every target was planned from), else the
-            # roadmap
-            via: list[Array] | None = None
-            if not np.array_equal(cur, home):
-                h, _ = _legs_safe(motion, np.vstack([cur, home]), np.vstack([home, b]), max_step)
-                via = [home] if h.all() else None
-            if via is None:
-                via = roadmap.route(cur, b)
+            via = roadmap.route(cur, b)
             if via is None:
                 dropped.append(DroppedTarget(
                     purpose=purposes[i], joints_deg=[float(v) for v in np.degrees(b)],
                     reason=f"no safe route from the previous target: {reason}"))
                 cur_is_prev = False
                 continue
-            rows += via
+            roadmap.mark_safe([cur, *via])
+            rows += [roadmap.nodes[v] for v in via]
             out_p += ["via"] * len(via)
         rows.append(b)
         out_p.append(purposes[i])
-        cur = b
+        cur = roadmap.add_target(b, via[-1] if via else cur)
         cur_is_prev = True
     dof = seq.shape[1]
     return np.array(rows).reshape(-1, dof), out_p, dropped
