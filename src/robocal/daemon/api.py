@@ -257,7 +257,8 @@ def _reply(shape: Any, data: Any, *, status: int = 200) -> web.Response:
     becomes a logged 500, and the tests that call the route fail.
     """
     adapter = _adapter(shape)
-    body = adapter.dump_python(adapter.validate_python(data), mode="json")
+    # exclude_unset: the keys the service gave, no more (an absent optional is not null)
+    body = adapter.dump_python(adapter.validate_python(data), mode="json", exclude_unset=True)
     return web.json_response(body, status=status)
 
 

@@ -149,6 +149,16 @@ async def test_every_documented_answer_validates_a_real_one(checker, svc, real_p
         status, st = await c.call("POST", f"/campaigns/{cid2}/{action}", doc + f"/{action}")
         assert status == 200 and st["state"] == state, (action, st)
 
+    # serialised through the models, the answers are exactly what the service returns
+    for path, doc_path, direct in (
+            (f"/campaigns/{cid}", doc, lambda: svc.status(cid)),
+            ("/compensation", "/compensation", svc.compensation),
+            ("/health", "/health", svc.health)):
+        body = (await c.call("GET", path, doc_path))[1]
+        expected = json.loads(json.dumps(direct()))
+        if path == "/health":
+            body.pop("uptime_s"), expected.pop("uptime_s")
+        assert body == expected, path
     status, camps = await c.call("GET", "/campaigns")
     assert status == 200 and {cid, cid2} <= {x["id"] for x in camps}
     status, log = await c.call("GET", "/audit", params={"limit": "500"})
