@@ -24,11 +24,15 @@ def _fail(what: str | None, pred: Callable[[], Any], timeout: float) -> Assertio
 
 
 async def eventually(
-    pred: Callable[[], Any], timeout: float = 5.0, *, what: str | None = None
+    pred: Callable[[], Any],
+    timeout: float = 5.0,
+    *,
+    what: str | None = None,
+    interval: float = POLL_S,
 ) -> Any:
     """Await until ``pred()`` is truthy (it may return an awaitable); return its value.
 
-    Raises AssertionError when ``timeout`` seconds pass first.
+    Polls every ``interval`` seconds; raises AssertionError when ``timeout`` seconds pass first.
     """
     deadline = time.monotonic() + timeout
     while True:
@@ -39,11 +43,15 @@ async def eventually(
             return value
         if time.monotonic() > deadline:
             raise _fail(what, pred, timeout)
-        await asyncio.sleep(POLL_S)
+        await asyncio.sleep(interval)
 
 
 def eventually_sync(
-    pred: Callable[[], Any], timeout: float = 5.0, *, what: str | None = None
+    pred: Callable[[], Any],
+    timeout: float = 5.0,
+    *,
+    what: str | None = None,
+    interval: float = POLL_S,
 ) -> Any:
     """Block until ``pred()`` is truthy; return its value (AssertionError after ``timeout`` s)."""
     deadline = time.monotonic() + timeout
@@ -53,4 +61,4 @@ def eventually_sync(
             return value
         if time.monotonic() > deadline:
             raise _fail(what, pred, timeout)
-        time.sleep(POLL_S)
+        time.sleep(interval)

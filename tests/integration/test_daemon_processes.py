@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from tests._waiting import eventually_sync
 
 from robocal.daemon.client import ApiError, DaemonClient, DaemonUnavailable
 
@@ -40,16 +41,15 @@ def _env() -> dict[str, str]:
 
 
 def wait_for(pred: Any, timeout: float, what: str, interval: float = 0.02) -> Any:
-    """Poll ``pred()`` until it returns something truthy; fail after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while True:
+    """Poll ``pred()`` until it returns something truthy (a daemon not answering yet counts
+    as not yet); fail after ``timeout`` seconds."""
+
+    def answered() -> Any:
         with contextlib.suppress(DaemonUnavailable, OSError, ValueError):
-            v = pred()
-            if v:
-                return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
+            return pred()
+        return None
+
+    return eventually_sync(answered, timeout, what=what, interval=interval)
 
 
 def stop_process(proc: subprocess.Popen[bytes], timeout: float = 10.0) -> None:
