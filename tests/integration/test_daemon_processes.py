@@ -213,7 +213,10 @@ def test_kill9_at_five_random_points_loses_and_duplicates_nothing(tmp_path):
                              "--plan", str(plan))
             cid = out.stdout.strip()
             total = daemon.status(cid)["poses_total"]
-            assert total == 48
+            # every measured pose of the plan (the planner may drop a target it cannot reach
+            # safely, so the count comes from the file, not from 40 + 8)
+            doc = json.loads(plan.read_text())
+            assert total == sum(1 for p in doc["poses"] if p.get("measure", True)) >= 40
             targets = sorted(rng.sample(range(2, total - 2), 4))
             kills: list[tuple[str, int]] = []
             for target in [*targets, total]:
