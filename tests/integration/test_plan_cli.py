@@ -84,12 +84,13 @@ def test_bad_cell_names_file_and_key_and_keeps_the_old_plan(
 
 
 def test_dropped_targets_are_listed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    # the KR210 in the demo cell: some selected poses have no safe route (forearm folded
+    # the KR210 in the demo cell: some CPA sweep points have no safe route (forearm folded
     # over the shoulder); they are left out and said so
     out = tmp_path / "p.json"
     assert main(["plan", "--robot", "kuka_kr210_r3100", "--cell", "demo", "--model", "constant",
                  "--count", "12",
-                 "--validation", "2", "--no-iso", "--candidates", "64", "--seed", "0",
+                 "--validation", "2", "--no-iso", "--cpa", "--cpa-points", "4",
+                 "--candidates", "64", "--seed", "0",
                  "--out", str(out)]) == 0
     text = capsys.readouterr().out
     plan = Plan.load(out)

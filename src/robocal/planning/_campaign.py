@@ -281,7 +281,10 @@ class _Roadmap:
             self._edge(u, v, 1)
 
     def route(self, a: int, b: Array, *, rounds: int = 5) -> list[int] | None:
-        """Node indices of a safe route from node ``a`` to pose ``b`` (exclusive), or None."""
+        """Node indices of a safe route from node ``a`` to pose ``b`` (exclusive), or None.
+
+        Up to ``rounds`` lazy searches for a short route, then one over known-safe edges.
+        """
         n = len(self.nodes)
         t = move_times(b, self.nodes, self.speed)
         near = np.union1d(np.argsort(t)[:self.k], [self.home])
@@ -292,9 +295,11 @@ class _Roadmap:
         if not len(nb):
             return None
         goal = n
-        for _ in range(rounds):
+        for r in range(rounds + 1):
             st = np.array(self.state, dtype=np.int8)
-            use = st >= 0
+            # the last round uses known-safe edges only: the way back along the legs taken
+            # (to home, say) always exists, so a target reachable from home is reached
+            use = st >= 0 if r < rounds else st == 1
             i = np.concatenate([np.array(self.ei)[use], nb])
             j = np.concatenate([np.array(self.ej)[use], np.full(len(nb), goal)])
             w = np.concatenate([np.array(self.ew)[use], t[nb]]) + 1e-9
@@ -497,11 +502,41 @@ def plan_campaign(
     if count < ds.recommended_poses:
         warnings.append(f"{count} calibration poses are fewer than the {ds.recommended_poses} "
                         f"recommended for {ds.identifiable} identifiable parameters")
-    cal = ds.select(count, exchange_passes=exchange_passes)
+    # Measured poses must be reachable: a pose whose straight move from home is not safe
+    # (under the capsule model, e.g. the KR210's forearm folded over its shoulder) may lie in
+    # a pocket no route reaches. Only the chosen poses are checked (checking every candidate
+    # costs tens of seconds); unreachable ones are excluded and the choice repeated.
+    max_step = math.radians(the_cell.motion.max_joint_step_deg)
+    allowed = np.ones(n_c, dtype=bool)
+    checked = np.zeros(n_c, dtype=bool)
+
+    def reachable(idx: NDArray[np.intp]) -> NDArray[np.intp]:
+        new = idx[~checked[idx]]
+        if len(new):
+            ok, _ = _legs_safe(motion, np.broadcast_to(home, (len(new), rob.dof)), q_c[new],
+                               max_step)
+            checked[new] = True
+            allowed[new[~ok]] = False
+        return idx[~allowed[idx]]
+
+    for _ in range(12):
+        cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
+        if not len(reachable(cal)) or allowed.sum() < count + validation + count:
+            break
     rest = np.setdiff1d(np.arange(n_c), cal)
     rng_val = np.random.default_rng([seed, 1])
-    val = np.sort(rng_val.choice(rest, size=validation, replace=False)) if validation else (
-        np.zeros(0, dtype=np.intp))
+    val = np.zeros(0, dtype=np.intp)
+    for _ in range(4):
+        pool_v = np.setdiff1d(rest[allowed[rest]], val)
+        need = validation - len(val)
+        if need <= 0 or len(pool_v) < need:
+            break
+        val = np.sort(np.concatenate([val, rng_val.choice(pool_v, size=need, replace=False)]))
+        reachable(val)
+        val = val[allowed[val]]
+    if len(val) < validation:
+        warnings.append(f"only {len(val)} of {validation} validation poses could be chosen "
+                        "among candidates reachable from home")
     baseline = np.random.default_rng([seed, 2]).choice(n_c, size=count, replace=False)
     obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
                                random_baseline=_obs_info(ds.observability(baseline)))
@@ -534,7 +569,6 @@ def plan_campaign(
     speed = np.array([j.max_speed for j in rob.joints]) * the_cell.motion.speed_fraction
     meas_idx = np.concatenate([cal, val])
     purposes_meas = ["calibration"] * len(cal) + ["validation"] * len(val)
-    max_step = math.radians(the_cell.motion.max_joint_step_deg)
     order = _order_measured(motion, q_c[meas_idx], speed, home, max_step)
     seq_q: list[Array] = [q_c[meas_idx[order]]]
     seq_p: list[str] = [purposes_meas[i] for i in order]
