@@ -40,8 +40,7 @@ from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import CampaignRecord, MeasurementRow, Store
-from robocal.drivers import check_joint_target
-from robocal.drivers._compensation import ControllerSnapshot
+from robocal.drivers import ControllerSnapshot, check_joint_target
 from robocal.errors import (
     ApprovalRequired,
     CampaignError,
