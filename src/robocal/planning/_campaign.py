@@ -519,7 +519,7 @@ def plan_campaign(
             allowed[new[~ok]] = False
         return idx[~allowed[idx]]
 
-    for _ in range(12):
+    for _ in range(30):
         cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
