@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal.errors import IdentificationError
 from robocal.identification._engine import Solution
 from robocal.identification._linalg import block_diag, cho_solve, cholesky, spd_solve
 from robocal.identification._models import (
@@ -84,9 +85,14 @@ class Group:
     lam_unit: float = 1.0         # absolute lambda per unit relative lambda
 
     @property
+    def is_ripple(self) -> bool:
+        """A fine ripple harmonic (left out of the superset's rank analysis)."""
+        return ":ripple" in self.key
+
+    @property
     def phase(self) -> int:
-        """Selection phase: 1 physical terms, 2 harmonics, 3 maps."""
-        if self.is_map:
+        """Selection phase: 1 physical terms, 2 low harmonics, 3 maps and fine ripple."""
+        if self.is_map or ":ripple" in self.key:
             return 3
         return 2 if ":fourier" in self.key else 1
 
@@ -100,6 +106,13 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
         for k in range(1, opts.auto_max_order + 1):
             terms = [Term(j, c, fam, k) for c in COMPONENTS for fam in ("cos", "sin")]
             groups.append(Group(f"j{j + 1}:fourier{k}", terms, joint=j))
+        for k in opts.auto_ripple_orders:
+            if k > opts.auto_max_order:
+                # fine periodic joint-angle error (gear and encoder ripple, many cycles per
+                # revolution) on the rotation about the axis: two columns, cheap to test
+                groups.append(Group(f"j{j + 1}:ripple{k}", [Term(j, "ez", "cos", int(k)),
+                                                            Term(j, "ez", "sin", int(k))],
+                                    joint=j))
         groups.append(Group(f"j{j + 1}:pitch", [Term(j, "ez", "poly", 1)], joint=j))
         if jt.gear_ratio and opts.auto_strain_wave:
             for m in opts.strain_wave:
@@ -281,10 +294,58 @@ def _inv_spd(A: Array) -> Array:
 
 
 def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, Any]]]:
-    """Choose and fit the ``auto`` model; return the solution and the selection log."""
+    """Choose and fit the ``auto`` model; return the solution and the selection log.
+
+    Gross errors of a few mm hide in the heavy-tailed residuals of the constant model (a few
+    robust sigmas there), but stand out against a joint-dependent model. So the poses the
+    selection works on are screened by a robust ``high-order`` fit first, and if the final
+    ``auto`` model still rejects poses the selection used, the selection is run once more
+    without them: a glitch must never steer which terms are chosen.
+    """
+    inl = const.inliers
+    note: dict[str, Any] = {"action": "screen", "by": "constant", "excluded": int((~inl).sum())}
+    if f.opts.detect_outliers:
+        try:
+            ho = f.high_order(const)
+        except IdentificationError:
+            pass
+        else:
+            inl = ho.inliers
+            note = {"action": "screen", "by": "high-order", "excluded": int((~inl).sum())}
+    sol, log = _select(f, const, inl)
+    if f.opts.detect_outliers and np.any(inl & ~sol.inliers):
+        note = {"action": "screen", "by": "auto (second selection)",
+                "excluded": int((~sol.inliers).sum())}
+        sol, log = _select(f, const, sol.inliers)
+    return sol, [note, *log]
+
+
+def _required_gain(groups: Sequence[Group], min_improvement: float, m_obs: int
+                   ) -> dict[str, float]:
+    """Relative CV gain each group needs to be added.
+
+    ``min_improvement`` for most groups. The ripple harmonics are a large family of small
+    groups (one per joint and order), and the best of many useless ones lowers the CV score
+    by chance; each needs a gain its chance maximum is unlikely to reach: ``4 g ln N /
+    m_obs`` for g columns, N ripple candidates and m_obs coordinates (twice the expected
+    maximum of N chi-square gains, in units of the score per coordinate: the score is not
+    yet at the noise floor when ripple is tried, and real ripple gains far more).
+    """
+    n_ripple = sum(1 for g in groups if ":ripple" in g.key)
+    out = {}
+    for g in groups:
+        req = min_improvement
+        if ":ripple" in g.key and n_ripple > 1:
+            req = max(req, len(g.cols) * 4.0 * math.log(n_ripple) / max(m_obs, 1))
+        out[g.key] = req
+    return out
+
+
+def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
+            ) -> tuple[Solution, list[dict[str, Any]]]:
+    """Selection and final solve on the poses ``inl`` (outliers re-tested in the final solve)."""
     t0 = time.perf_counter()
     opts = f.opts
-    inl = const.inliers
     rows = np.flatnonzero(inl)
     q = f.data.q[rows]
     groups = candidate_groups(f, q)
@@ -305,14 +366,17 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
         g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
     prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
     # identifiable unpenalised columns (tiers keep low orders first)
-    map_cols = set(int(c) for g in groups if g.is_map for c in g.cols)
+    # maps and ripple stay out of the rank analysis: hundreds of ripple columns would make
+    # the superset rank deficient on a few hundred poses and push out the physical terms;
+    # a weak ridge keeps each of them well posed in the CV instead
+    map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
     ident, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
     kept = set(int(c) for c in unpen[keep])
     base_cols = np.array([i for i in range(ParameterLayout.OFFSET + len(base_terms)) if i in kept],
                          dtype=np.intp)
     for g in groups:
-        if not g.is_map:
+        if not (g.is_map or g.is_ripple):
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
     groups = [g for g in groups if len(g.cols)]
     # per-fold normal matrices of the whitened superset Jacobian at x_c
@@ -357,6 +421,11 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
         P = lam_rel * g.lam_unit * g.D2 + np.diag(g.ridge)
         return P if g.tie is None else P + g.tie
 
+    def fixed_pen(g: Group) -> Array:
+        if not g.is_ripple:
+            return np.zeros((len(g.cols), len(g.cols)))
+        return np.diag(1.0 / (ridge_sigma**2 * s[g.cols] ** 2))
+
     # ------------------------------------------------------------------ forward selection
     chosen: dict[str, float | None] = {}   # group key -> relative lambda (maps) or None
     by_key = {g.key: g for g in groups}
@@ -368,11 +437,12 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
             g = by_key[key]
             cols.append(g.cols)
             blocks.append(map_pen(g, lam) if g.is_map and lam is not None
-                          else np.zeros((len(g.cols), len(g.cols))))
+                          else fixed_pen(g))
         return np.concatenate(cols).astype(np.intp), block_diag(*blocks)
 
     score = cv.score(base_cols, np.zeros((len(base_cols), len(base_cols))))
     m_obs = 3 * len(rows)
+    required = _required_gain(groups, opts.auto_min_improvement, m_obs)
     log: list[dict[str, Any]] = [{"step": 0, "action": "start", "group": "constant",
                                   "cv_rms_whitened": math.sqrt(score / m_obs)}]
     step = 0
@@ -399,7 +469,7 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
                     options.append((g.cols, [map_pen(g, lam) for lam in lams]))
                     labels.append((g.key, lams))
                 else:
-                    options.append((g.cols, [np.zeros((len(g.cols), len(g.cols)))]))
+                    options.append((g.cols, [fixed_pen(g)]))
                     labels.append((g.key, [None]))
             if not options:
                 break
@@ -409,10 +479,12 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
                     lam_i = lams_i[int(np.argmin(row))]
                     assert lam_i is not None  # a map's options are all numbers
                     best_lam[key_i] = float(lam_i)
-            flat = [(sc_, i, j) for i, row in enumerate(all_scores) for j, sc_ in enumerate(row)]
-            best_score, bi, bj = min(flat)
-            if not best_score < score * (1.0 - opts.auto_min_improvement):
+            # a candidate must lower the CV score by its own threshold (see _required_gain)
+            flat = [(sc_, i, j) for i, row in enumerate(all_scores) for j, sc_ in enumerate(row)
+                    if sc_ < score * (1.0 - required[labels[i][0]])]
+            if not flat:
                 break
+            best_score, bi, bj = min(flat)
             step += 1
             key, lam = labels[bi][0], labels[bi][1][bj]
             chosen[key] = lam

@@ -63,8 +63,10 @@ class FitOptions(EngineSettings):
         ``strain_wave`` multiples of the gear ratio.
     ``auto``
         ``cv_folds``; ``cv_group_tol_deg`` (poses this close in every joint share a fold);
-        ``auto_max_order``; ``auto_maps`` and ``map_spacing_deg`` (knot spacing of
-        joint-angle maps); ``map_lambdas`` (relative smoothness weights tried by CV);
+        ``auto_max_order``; ``auto_ripple_orders`` (harmonics cos/sin(k q) of the rotation
+        about each joint axis tried one at a time: fine gear/encoder ripple); ``auto_maps``
+        and ``map_spacing_deg`` (knot spacing of joint-angle maps); ``map_lambdas``
+        (relative smoothness weights tried by CV);
         ``map_ridge_deg`` (prior sigma of map values); knots with fewer than
         ``map_min_points`` poses in their support are tied to their neighbours (prior sigma
         ``map_tie_deg`` per knot step) and shrunk to zero (prior sigma ``map_weak_deg``), so
@@ -91,6 +93,7 @@ class FitOptions(EngineSettings):
     cv_folds: int = 5
     cv_group_tol_deg: float = 0.5
     auto_max_order: int = 3
+    auto_ripple_orders: tuple[int, ...] = tuple(range(4, 41))
     auto_maps: bool = True
     map_spacing_deg: float = 1.25
     map_lambdas: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3, 1e4)

@@ -96,16 +96,17 @@ def test_auto_finds_fine_grained_joint_angle_errors(fine_map):
     d, auto = fine_map
     const = fit(d.cell.robot, d.train, "constant", validation=d.val)
     assert auto.validation.rms_m <= 0.35 * const.validation.rms_m
-    maps = [p for p in auto.calibrated.fit["map_priors"]]
-    assert len(maps) >= 4
-    # each fitted map follows the planted fine-grained error (3, 5, 17, 34 cycles/rev) over
+    cal, tm = auto.calibrated, d.cell.truth_model
+    # joints whose rotation got fine joint-dependent terms (maps or ripple harmonics)
+    fine = sorted({t.joint for t in cal.model.spec.terms if t.component == "ez"
+                   and (t.family == "map" or (t.family in ("cos", "sin") and t.index > 3))})
+    assert len(fine) >= 4
+    # each fitted error follows the planted fine-grained error (3, 5, 17, 34 cycles/rev) over
     # the joint range the data cover
     from robocal.kinematics import evaluate_basis
 
-    cal, tm = auto.calibrated, d.cell.truth_model
     corr = []
-    for mp in maps:
-        j = mp["joint"] - 1
+    for j in fine:
         q = np.zeros((720, 6))
         q[:, j] = np.linspace(d.train.q[:, j].min(), d.train.q[:, j].max(), 720)
         B, _ = evaluate_basis(cal.model.spec, cal.robot, q)
@@ -150,3 +151,28 @@ def test_refit_with_frozen_maps_transfers_to_a_new_session(fine_map):
                                   auto.calibrated.params[m_idx])
     assert frozen.calibrated.kind == "refit:auto"
     assert frozen.calibrated.fit["frozen_from"] == auto.calibrated.model_id
+
+
+def test_auto_resolves_fine_ripple_like_a_fit_that_knows_the_structure(fine_map):
+    """Fine joint-angle ripple (17 and 34 cycles/rev, like the UR10's): auto within 10 %."""
+    d, auto = fine_map
+    ref = _truth_fit(d)
+    assert auto.validation.rms_m <= 1.10 * ref.validation.rms_m
+    ripple = {t.index for t in auto.calibrated.model.spec.terms
+              if t.family in ("cos", "sin") and t.index > 3}
+    assert {17, 34} <= ripple
+
+
+def test_glitches_of_a_few_mm_are_screened_and_auto_does_not_suffer():
+    """10 % beam-break glitches of 1-5 mm: all caught, and auto is as good as high-order."""
+    d = make_data("fanuc_lrmate200i", "strain-wave", seed=21, outlier_fraction=0.10)
+    assert len(d.planted) == 25
+    ref = _truth_fit(d, clean_only=True)
+    results = {m: fit(d.cell.robot, d.train, m, validation=d.val)
+               for m in ("high-order", "auto")}
+    for res in results.values():
+        assert sorted(res.outliers) == sorted(d.planted)
+    assert results["auto"].validation.rms_m <= 1.10 * results["high-order"].validation.rms_m
+    assert results["auto"].validation.rms_m <= 1.10 * ref.validation.rms_m
+    screen = results["auto"].selection[0]
+    assert screen["action"] == "screen" and screen["excluded"] == 25
