@@ -52,5 +52,11 @@ def test_demo_end_to_end(tmp_path):
     for key in ("report_html", "report_json"):
         assert key in files and (tmp_path / files[key]).exists()
     assert (out / "PLAN.json").exists() and (out / "state" / "robocal.sqlite3").exists()
+    # ISO 9283: the plan cycles P1..P5 30 times, so the report states AP and RP per pose
+    report = json.loads((tmp_path / files["report_json"]).read_text())
+    rows = report["iso9283"]
+    assert [r["pose"] for r in rows] == [f"P{k}" for k in range(1, 6)], rows
+    for row in rows:
+        assert row["n"] == 30 and row["RP_mm"] is not None and row["RP_mm"] > 0, row
     assert wall < 120
     assert "Traceback" not in proc.stderr, proc.stderr[-2000:]

@@ -29,7 +29,7 @@ def test_plan_writes_a_valid_deterministic_file(tmp_path: Path,
     assert summary["by_purpose"]["calibration"] == 20 and summary["seed"] == 11
     assert a.read_bytes() == b.read_bytes()
     plan = Plan.load(a)
-    assert plan.seed == 11 and plan.count("validation") == 5 and plan.count("iso") == 5
+    assert plan.seed == 11 and plan.count("validation") == 5 and plan.count("iso") == 5 * 30
     assert plan.model.name == "constant" and plan.robot.name == "fanuc_lrmate200i"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]
 

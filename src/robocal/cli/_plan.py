@@ -41,6 +41,8 @@ def register(sub: Any) -> None:
     p.add_argument("--cpa-points", type=int, default=12, metavar="K",
                    help="points per CPA sweep (default 12)")
     p.add_argument("--no-iso", action="store_true", help="leave out the ISO 9283 cube poses")
+    p.add_argument("--iso-cycles", type=int, default=30, metavar="N",
+                   help="cycles through the ISO 9283 poses P1..P5 (the standard asks for 30)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--candidates", type=int, default=4096,
                    help="feasible candidates to choose from (default 4096)")
@@ -77,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
     validation = default_validation(args.count) if args.validation is None else args.validation
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
                          validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
-                         iso=not args.no_iso, seed=args.seed, candidates=args.candidates)
+                         iso=not args.no_iso, iso_cycles=args.iso_cycles, seed=args.seed,
+                         candidates=args.candidates)
     plan.save(out)
     s = _summary(plan, out)
     if args.json:

@@ -22,7 +22,7 @@ from robocal.planning._cpa import cpa_sweeps
 from robocal.planning._design import DesignSpace, Observability, model_spec
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 from robocal.planning._geometry import link_frames
-from robocal.planning._iso import iso_cube
+from robocal.planning._iso import ISO_CYCLES, iso_cube
 from robocal.planning._motion import MotionChecker
 from robocal.planning._order import move_times, order_poses, two_opt
 from robocal.planning._plan import (
@@ -400,6 +400,7 @@ def plan_campaign(
     cpa: bool = False,
     cpa_points: int = 12,
     iso: bool = True,
+    iso_cycles: int = ISO_CYCLES,
     seed: int = 0,
     candidates: int = 4096,
     max_draws: int = MAX_DRAWS,
@@ -424,6 +425,9 @@ def plan_campaign(
         Add single-joint circle-point-analysis sweeps, ``cpa_points`` per joint.
     iso
         Add the ISO 9283 test-cube poses P1..P5 (a warning if no cube fits).
+    iso_cycles
+        Times the robot visits P1..P5 in that order; ISO 9283 asks for 30 cycles, from which
+        the report computes pose accuracy (AP) and repeatability (RP).
     seed
         Seeds the Sobol scrambling, the validation sample and the CPA jitter; the plan is a
         deterministic function of its inputs and this seed.
@@ -444,6 +448,8 @@ def plan_campaign(
         On bad input: unknown robot, cell or model; counts out of range; too few feasible
         candidates; fewer poses than the model needs.
     """
+    if not 1 <= iso_cycles <= 1000:
+        raise ConfigError(f"iso_cycles must be 1..1000, got {iso_cycles}")
     if isinstance(robot, RobotDescription):
         robot_name, rob = robot.name, robot
     else:
@@ -581,8 +587,8 @@ def plan_campaign(
         seq_p += [f"cpa-j{s.joint}"] * len(qs)
         last = qs[-1]
     if cube is not None:
-        seq_q.append(cube.q)
-        seq_p += [f"iso-P{k}" for k in range(1, 6)]
+        seq_q.append(np.tile(cube.q, (iso_cycles, 1)))
+        seq_p += [f"iso-P{k}" for k in range(1, 6)] * iso_cycles
     # the file holds degrees rounded to 1e-6 deg (17 nrad): plan and check what is written
     pool = _detour_pool(motion, q_c, seed)
     q_seq, seq_p, dropped = _safe_route(motion, _round_deg(np.vstack(seq_q)), seq_p, home,
@@ -644,7 +650,7 @@ def plan_campaign(
         observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion_info,
         iso9283=None if cube is None else IsoInfo(
             centre_mm=[round(float(v) * 1e3, 3) for v in cube.centre],
-            side_mm=round(cube.side * 1e3, 3)),
+            side_mm=round(cube.side * 1e3, 3), cycles=iso_cycles),
         cpa=[CpaInfo(joint=s.joint, span_deg=[round(math.degrees(v), 3) for v in s.span],
                      points=len(s.q), radius_mm=round(1e3 * cpa_radius(
                          rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))

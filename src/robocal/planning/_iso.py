@@ -30,6 +30,9 @@ Array = NDArray[np.float64]
 #: Corners (in units of half the side) that P2..P5 approach, in that order.
 ISO_CORNERS = np.array([[-1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 1.0]])
 
+#: Cycles of P1..P5 that ISO 9283 asks for to state pose accuracy and repeatability.
+ISO_CYCLES = 30
+
 
 def _rotvec(R: Array) -> Array:
     """Rotation vectors (n, 3) of rotation matrices R (n, 3, 3) (angle < pi)."""

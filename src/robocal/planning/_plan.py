@@ -15,7 +15,7 @@ Layout (JSON object; lengths in mm, angles in degrees, robot base frame)::
     unidentifiable      parameter names removed as redundant before the selection
     motion              {max_joint_step_deg, speed_fraction, home_deg, move_time_s,
                         joint_travel_deg, via_points, blocked_moves}
-    iso9283             {centre_mm, side_mm, recommended_cycles} or null
+    iso9283             {centre_mm, side_mm, recommended_cycles, cycles} or null
     cpa                 [{joint, span_deg, points, radius_mm}]
     warnings            [str]
     dropped             [{purpose, joints_deg, reason}]: targets left out because no safe
@@ -155,6 +155,8 @@ class IsoInfo(_Frozen):
     centre_mm: list[float] = Field(min_length=3, max_length=3)
     side_mm: float = Field(gt=0.0)
     recommended_cycles: int = Field(default=30, ge=1)
+    #: Cycles of P1..P5 in the plan (1 in plans written before cycles were planned).
+    cycles: int = Field(default=1, ge=1)
 
 
 class CpaInfo(_Frozen):
@@ -200,8 +202,11 @@ class Plan(_Frozen):
                 raise ValueError(f"poses[{i + 1}]: via-points are not measured, all other "
                                  "poses are")
         iso = [p.purpose for p in self.poses if p.purpose.startswith("iso-")]
-        if len(iso) != len(set(iso)):
-            raise ValueError("an ISO 9283 pose appears twice")
+        cycles = self.iso9283.cycles if self.iso9283 is not None else 1
+        counts = {name: iso.count(name) for name in set(iso)}
+        if any(n != cycles for n in counts.values()):
+            raise ValueError(f"each ISO 9283 pose must appear once per cycle ({cycles} "
+                             f"cycles): found {dict(sorted(counts.items()))}")
         return self
 
     # -- views -----------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from .helpers import cell_with
 @pytest.fixture(scope="module")
 def plan() -> Plan:
     return plan_campaign("fanuc_lrmate200i", "demo", count=30, validation=10, cpa=True,
-                         cpa_points=5, seed=3, candidates=512)
+                         cpa_points=5, seed=3, candidates=512, iso_cycles=3)
 
 
 def test_plan_contents(plan: Plan) -> None:
@@ -32,9 +32,11 @@ def test_plan_contents(plan: Plan) -> None:
     assert plan.robot.name == "fanuc_lrmate200i" and plan.cell.name == "demo"
     assert plan.cell_source == "builtin:demo" and plan.model.name == "constant"
     assert plan.count("calibration") == 30 and plan.count("validation") == 10
-    assert plan.count("cpa") == 30 and plan.count("iso") == 5
+    assert plan.count("cpa") == 30 and plan.count("iso") == 15
+    # ISO 9283: P1..P5 in order, once per cycle
     assert [p.purpose for p in plan.poses if p.purpose.startswith("iso")] == [
-        f"iso-P{k}" for k in range(1, 6)]
+        f"iso-P{k}" for k in range(1, 6)] * 3
+    assert plan.iso9283 is not None and plan.iso9283.cycles == 3
     assert [c.joint for c in plan.cpa] == [1, 2, 3, 4, 5, 6]
     assert [p.index for p in plan.poses] == list(range(len(plan.poses)))
     assert plan.iso9283 is not None and plan.iso9283.side_mm > 100
@@ -86,7 +88,7 @@ def test_every_planned_pose_passes_the_checks(robot: RobotDescription, plan: Pla
 
 def test_plans_are_deterministic(plan: Plan, tmp_path: Path) -> None:
     again = plan_campaign("fanuc_lrmate200i", "demo", count=30, validation=10, cpa=True,
-                          cpa_points=5, seed=3, candidates=512)
+                          cpa_points=5, seed=3, candidates=512, iso_cycles=3)
     assert again.to_json() == plan.to_json()
     other = plan_campaign("fanuc_lrmate200i", "demo", count=30, seed=4, candidates=512, iso=False)
     assert other.joint_targets("calibration").tolist() != plan.joint_targets(
