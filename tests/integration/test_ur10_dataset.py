@@ -77,8 +77,10 @@ def test_series_b_auto_detects_the_gross_outliers(series):
 
 @pytest.fixture(scope="module")
 def source_a(series):
-    # the physically structured auto model (maps + gravity + pitch, no harmonics) transfers
-    return fit("ur10", series["A"], "auto", options=FitOptions(auto_max_order=0))
+    # the physically structured auto model (maps + gravity + pitch, no harmonics and no fine
+    # ripple terms, which belong to one session) transfers
+    return fit("ur10", series["A"], "auto",
+               options=FitOptions(auto_max_order=0, auto_ripple_orders=()))
 
 
 @pytest.mark.parametrize("target", ["D", "B"])
