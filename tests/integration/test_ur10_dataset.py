@@ -93,10 +93,11 @@ def test_cross_session_maps_with_refitted_constants(series, source_a, target):
     assert frozen.calibrated.fit["frozen_from"] == source_a.calibrated.model_id
 
 
-@pytest.mark.parametrize("seed", [8, 10])
+@pytest.mark.parametrize("seed", [8])
 def test_series_b_auto_holds_on_splits_that_used_to_fail(dataset_dir, seed):
-    # these random 50/50 splits gave 0.14-0.17 mm before maps bridged thin data (issue 14);
-    # the 20-split spread is in docs/benchmarks.md (bench/bench_fit.py --splits 20)
+    # this random 50/50 split gave 0.17 mm (seed 10: 0.14 mm) before maps bridged thin data
+    # (issue 14); the 20-split spread is in docs/benchmarks.md (bench/bench_fit.py --splits
+    # 20), which keeps the suite from fitting every split
     full = load_ipa_series(ipa_series_path(dataset_dir, "B"))
     train, val = full.split(0.5, seed=seed)
     auto = fit("ur10", train, "auto", validation=val)
