@@ -626,6 +626,10 @@ class CalibrationService:
                     return self.status(cid)
                 raise CompensationError(f"push {key} was abandoned: {done.outcome}")
         rec = self.store.campaign(cid)
+        if rec.state == S.PUSHED:
+            raise CampaignError(f"campaign {cid} was already pushed; robocal compensation "
+                                "list shows it (a new push needs a new campaign; rollback "
+                                "restores the previous table)")
         if rec.state != S.APPROVED:
             raise ApprovalRequired(f"campaign {cid} is {rec.state.value}; compensation is "
                                    "pushed only after an operator approves the fit")

@@ -89,6 +89,10 @@ async def test_campaign_runs_fits_and_pushes_after_approval(service):
     assert ("campaign.approve", "bob") in actions and ("compensation.push", "bob") in actions
     states = [t["to_state"] for t in svc.store.transitions(cid)]
     assert states == ["created", "running", "measured", "fitted", "approved", "pushed"]
+    # a second push says what happened, not that approval is missing
+    with pytest.raises(CampaignError, match="already pushed") as info:
+        await svc.push(cid, actor="bob")
+    assert not isinstance(info.value, ApprovalRequired)
 
 
 async def test_rollback_restores_the_previous_table_then_the_original_and_remeasures(service):
