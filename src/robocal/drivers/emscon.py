@@ -47,7 +47,7 @@ from robocal.errors import (
     UnexpectedReply,
 )
 from robocal.protocols import Transport, emscon, open_transport
-from robocal.protocols.emscon import Cmd, CoordSys, Event
+from robocal.protocols.emscon import Cmd, CoordSys, Event, Status
 
 __all__ = [
     "EmsconBeamLost",
@@ -328,8 +328,24 @@ class EmsconTracker(DriverBase):
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
-        await self._open(deadline)
-        await self._setup(deadline, initialise=True)
+        delay = 0.02
+        while True:
+            await self._open(deadline)
+            try:
+                await self._setup(deadline, initialise=True)
+                return
+            except EmsconStatusError as err:
+                # The server still holds a session that was just closed (ours, a moment ago,
+                # or a client that went away): it refuses a second one until it notices.
+                # Wait for it within the connect timeout instead of failing at once.
+                if err.status != int(Status.MULTI_CONNECTIONS_NOT_ALLOWED) \
+                        or time.monotonic() + delay >= deadline:
+                    raise
+            transport, self._transport = self._transport, None
+            if transport is not None:
+                await transport.close()
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, 0.5)
 
     async def _open(self, deadline: float) -> None:
         o = self.options

@@ -366,7 +366,7 @@ async def test_a_push_retried_with_its_idempotency_key_never_writes_twice(servic
     again = await svc.push(cid, actor="a", key="retry-key-0001")  # e.g. the reply was lost
     assert again["push"] == st["push"] and len(writes) == 1
     assert [a["action"] for a in svc.audit()].count("compensation.push") == 1
-    with pytest.raises(ApprovalRequired):  # without the key it is a new push: refused
+    with pytest.raises(CampaignError, match="already pushed"):  # no key: a new push, refused
         await svc.push(cid, actor="a")
     other = await svc.create(program_plan(36, seed=3, validation=6), actor="a")
     await svc.wait(other["id"], ["fitted"], timeout=60)

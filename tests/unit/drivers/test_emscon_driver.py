@@ -272,6 +272,23 @@ async def test_second_client_is_told_off(world):
                 pass
 
 
+async def test_a_client_waits_for_the_previous_session_to_end(world):
+    """The server still holds a session that is going away: connect waits (bounded)."""
+    async with running(world) as sim:
+        first = EmsconTracker({"host": "127.0.0.1", "port": sim.port, "request_timeout_s": 2.0})
+        await first.connect(timeout=5.0)
+        second = EmsconTracker({"host": "127.0.0.1", "port": sim.port,
+                                "request_timeout_s": 2.0})
+        pending = asyncio.create_task(second.connect(timeout=5.0))
+        await asyncio.sleep(0.05)
+        assert not pending.done()          # refused with 10011 and retrying
+        await first.close()
+        await asyncio.wait_for(pending, 5.0)
+        reading = await second.measure(samples=2, timeout=5.0)
+        assert_close(reading, world)
+        await second.close()
+
+
 async def test_unknown_reflector_is_a_config_error(world):
     async with running(world) as sim:
         with pytest.raises(ConfigError, match="1:RRR15, 2:RRR05, 3:BRR15"):
