@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import IdentificationError
 from robocal.identification._engine import Solution
-from robocal.identification._linalg import block_diag, cho_solve, cholesky, spd_solve
+from robocal.identification._linalg import block_diag, cholesky, spd_solve
 from robocal.identification._models import (
     MapPrior,
     knot_counts,
@@ -131,6 +131,20 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
     return groups
 
 
+@dataclass
+class _FoldBase:
+    """Factorised base model of one CV fold: what adding any candidate group needs.
+
+    ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns,
+    ``X = Ainv @ Gtr[base, :]`` (k, P) and ``Y = Gf[base, base] @ X`` (k, P) for every
+    superset column, so a candidate group only indexes columns of X and Y.
+    """
+
+    Ainv: Array
+    X: Array
+    Y: Array
+
+
 class _CV:
     """K-fold CV of linearised sub-models from per-fold normal matrices (column-scaled)."""
 
@@ -140,40 +154,56 @@ class _CV:
         self.b = b_f.sum(axis=0)
         self.K = G_f.shape[0]
         self.evaluations = 0
-        self._cache: tuple[IntArray, Array, list[Array]] | None = None
+        self._cache: tuple[IntArray, Array, list[_FoldBase]] | None = None
+        self._inv_cache: tuple[IntArray, Array, list[Array]] | None = None
 
-    def fold_inverses(self, base_cols: IntArray, base_pen: Array) -> list[Array]:
-        """Inverse training normal matrix of each fold for the base model.
+    def fold_bases(self, base_cols: IntArray, base_pen: Array) -> list[_FoldBase]:
+        """Factorised base model of each fold (see ``_FoldBase``).
 
-        When the base extends the previously used one by a block of columns, the inverses
-        are updated with the block (Schur-complement) formula, O(k^2 g) instead of O(k^3).
+        Forward selection extends the base by one group at a time; then the previous
+        factorisation is updated with the block (Schur-complement) formulas, O(k g P) for g
+        new columns, instead of being recomputed, O(k^2 P). With joint-angle maps the base
+        reaches several hundred columns, and the recomputation dominated ``auto``.
         """
         c = self._cache
         if c is not None:
-            old_cols, old_pen, invs = c
+            old_cols, old_pen, bases = c
             k0 = len(old_cols)
             if (len(base_cols) >= k0 and np.array_equal(base_cols[:k0], old_cols)
                     and np.array_equal(base_pen[:k0, :k0], old_pen)
                     and not np.any(base_pen[:k0, k0:])):
                 if len(base_cols) == k0:
-                    return invs
+                    return bases
                 g = base_cols[k0:]
                 gpen = base_pen[k0:, k0:]
-                ixbg, ixgg = np.ix_(old_cols, g), np.ix_(g, g)
-                new = []
-                for f, Ainv in enumerate(invs):
-                    B = self.G[ixbg] - self.G_f[f][ixbg]
-                    X = Ainv @ B
-                    Sinv = _inv_spd(self.G[ixgg] - self.G_f[f][ixgg] + gpen - B.T @ X)
-                    XS = X @ Sinv
-                    new.append(np.block([[Ainv + XS @ X.T, -XS], [-XS.T, Sinv]]))
+                new = [self._extend(f, old_cols, fb, g, gpen) for f, fb in enumerate(bases)]
                 self._cache = (base_cols.copy(), base_pen.copy(), new)
                 return new
         ixb = np.ix_(base_cols, base_cols)
         Gb = self.G[ixb] + base_pen
-        invs = [_inv_spd(Gb - self.G_f[f][ixb]) for f in range(self.K)]
-        self._cache = (base_cols.copy(), base_pen.copy(), invs)
-        return invs
+        bases = []
+        for f in range(self.K):
+            Ainv = _inv_spd(Gb - self.G_f[f][ixb])
+            X = Ainv @ (self.G[base_cols] - self.G_f[f][base_cols])
+            bases.append(_FoldBase(Ainv, X, self.G_f[f][ixb] @ X))
+        self._cache = (base_cols.copy(), base_pen.copy(), bases)
+        return bases
+
+    def _extend(self, f: int, b: IntArray, fb: _FoldBase, g: IntArray, gpen: Array
+                ) -> _FoldBase:
+        """``fb`` for base columns ``b`` extended by columns ``g`` with prior block ``gpen``."""
+        Gtr_g = self.G[g] - self.G_f[f][g]                  # (g, P) training rows of g
+        Gf = self.G_f[f]
+        Xg = fb.X[:, g]                                     # Ainv @ Gtr[b, g]
+        Sinv = _inv_spd(Gtr_g[:, g] + gpen - Gtr_g[:, b] @ Xg)
+        R = Sinv @ (Gtr_g[:, b] @ fb.X - Gtr_g)             # (g, P)
+        X_top = fb.X + Xg @ R
+        XS = Xg @ Sinv
+        Ainv = np.block([[fb.Ainv + XS @ Xg.T, -XS], [-XS.T, Sinv]])
+        Gf_bg = Gf[np.ix_(b, g)]
+        Y_top = fb.Y + fb.Y[:, g] @ R - Gf_bg @ R
+        Y_bot = Gf_bg.T @ X_top - Gf[np.ix_(g, g)] @ R
+        return _FoldBase(Ainv, np.vstack([X_top, -R]), np.vstack([Y_top, Y_bot]))
 
     def score(self, cols: IntArray, pen: Array) -> float:
         """CV sum of squares (whitened) of the model with columns ``cols`` and prior ``pen``."""
@@ -192,46 +222,114 @@ class _CV:
             total += float(self.c_f[f] - 2.0 * d @ bf + d @ Gf @ d)
         return total
 
+    def fold_inverses(self, cols: IntArray, pen: Array) -> list[Array]:
+        """Inverse training normal matrix (plus prior) of each fold for columns ``cols``."""
+        for c in (self._cache, self._inv_cache):
+            if c is not None and np.array_equal(c[0], cols) and np.array_equal(c[1], pen):
+                return [fb.Ainv if isinstance(fb, _FoldBase) else fb for fb in c[2]]
+        ix = np.ix_(cols, cols)
+        Gc = self.G[ix] + pen
+        invs = [_inv_spd(Gc - self.G_f[f][ix]) for f in range(self.K)]
+        self._inv_cache = (cols.copy(), pen.copy(), invs)
+        return invs
+
+    def adopt_variant(self, cols: IntArray, pen: Array, new_cols: IntArray, new_pen: Array,
+                      drop: IntArray | None = None,
+                      repen: tuple[IntArray, Array] | None = None) -> None:
+        """Keep the fold inverses of a variant chosen from ``scores_varied`` (low-rank update)."""
+        new = []
+        for P in self.fold_inverses(cols, pen):
+            if drop is not None:
+                r = np.setdiff1d(np.arange(len(cols)), drop)
+                Ppr = P[np.ix_(drop, r)]
+                new.append(P[np.ix_(r, r)] - Ppr.T @ _solve_small(P[np.ix_(drop, drop)], Ppr))
+            elif repen is not None:
+                p, dpen = repen
+                new.append(P - P[:, p] @ dpen @ _solve_small(
+                    np.eye(len(p)) + P[np.ix_(p, p)] @ dpen, P[p, :]))
+        self._inv_cache = (new_cols.copy(), new_pen.copy(), new)
+
+    def scores_varied(self, cols: IntArray, pen: Array, drops: Sequence[IntArray],
+                      repens: Sequence[tuple[IntArray, Array]]) -> tuple[list[float], list[float]]:
+        """CV scores of variants of the model (``cols``, ``pen``) without refitting it.
+
+        ``drops``: positions (into ``cols``) of a block removed from the model; ``repens``:
+        positions of a block and the change of its prior. Both are low-rank changes of the
+        fold inverses (block downdate; Woodbury), O(k^2 g) per fold instead of O(k^3): the
+        backward pass and the smoothness refinement try dozens of variants of a model with
+        several hundred columns.
+        """
+        self.evaluations += len(drops) + len(repens)
+        s_drop = np.zeros(len(drops))
+        s_pen = np.zeros(len(repens))
+        ix = np.ix_(cols, cols)
+        for f, P in enumerate(self.fold_inverses(cols, pen)):
+            btr = self.b[cols] - self.b_f[f][cols]
+            bf = self.b_f[f][cols]
+            Gf = self.G_f[f][ix]
+            d = P @ btr
+            for i, p in enumerate(drops):
+                # the reduced solution embedded in full coordinates (zero on the block):
+                # matrix-vector products only, no copy of the (k, k) sub-matrices
+                z = btr.copy()
+                z[p] = 0.0
+                Pz = P @ z
+                d_r = Pz - P[:, p] @ _solve_small(P[np.ix_(p, p)], Pz[p])
+                d_r[p] = 0.0
+                s_drop[i] += float(self.c_f[f] - 2.0 * d_r @ bf + d_r @ Gf @ d_r)
+            for i, (p, dpen) in enumerate(repens):
+                corr = dpen @ _solve_small(np.eye(len(p)) + P[np.ix_(p, p)] @ dpen, d[p])
+                d_v = d - P[:, p] @ corr
+                s_pen[i] += float(self.c_f[f] - 2.0 * d_v @ bf + d_v @ Gf @ d_v)
+        return list(s_drop), list(s_pen)
+
     def scores_added(self, base_cols: IntArray, base_pen: Array,
                      options: list[tuple[IntArray, list[Array]]]) -> list[list[float]]:
         """CV scores of ``base + group`` for many groups, each with several priors.
 
-        Uses Schur complements on the factorised base model of each fold, so a group of g
-        columns costs O(k^2 g) per fold for k base columns, and each extra prior O(g^3).
+        Schur complements on the factorised base of each fold (``fold_bases``): a group of g
+        columns then costs O(k g^2) per fold for k base columns, and each prior O(g^3).
+        Groups of equal size are evaluated together as stacked arrays (the ripple family
+        alone is a few hundred two-column groups).
         """
         self.evaluations += sum(len(p) for _, p in options)
         out = [np.zeros(len(p)) for _, p in options]
-        ixb = np.ix_(base_cols, base_cols)
-        invs = self.fold_inverses(base_cols, base_pen)
-        for f in range(self.K):
+        by_size: dict[int, list[int]] = {}
+        for i, (gcols, _) in enumerate(options):
+            by_size.setdefault(len(gcols), []).append(i)
+        bases = self.fold_bases(base_cols, base_pen)
+        for f, fb in enumerate(bases):
             Gf = self.G_f[f]
-            Ainv = invs[f]
-            btr = self.b[base_cols] - self.b_f[f][base_cols]
-            dA = Ainv @ btr
+            Gtr_b = self.G[base_cols] - Gf[base_cols]        # (k, P)
+            btr_all = self.b - self.b_f[f]
+            btr = btr_all[base_cols]
+            dA = fb.Ainv @ btr
             bf_b = self.b_f[f][base_cols]
-            Gf_bb = Gf[ixb]
-            GdA = Gf_bb @ dA
+            GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
             const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
-            for i, (gcols, pens) in enumerate(options):
-                ixbg = np.ix_(base_cols, gcols)
-                ixgg = np.ix_(gcols, gcols)
-                Gf_bg = Gf[ixbg]
-                Gf_gg = Gf[ixgg]
-                B = self.G[ixbg] - Gf_bg
-                X = Ainv @ B
-                S0 = (self.G[ixgg] - Gf_gg) - B.T @ X
-                rhs = (self.b[gcols] - self.b_f[f][gcols]) - X.T @ btr
+            Gf_b = Gf[base_cols]
+            for idx in by_size.values():
+                C = np.stack([options[i][0] for i in idx])          # (m, g)
+                cc = (C[:, :, None], C[:, None, :])
+                X = fb.X[:, C].transpose(1, 0, 2)                   # (m, k, g)
+                Xt = X.transpose(0, 2, 1)
+                Gf_bg = Gf_b[:, C].transpose(1, 0, 2)               # (m, k, g)
+                S0 = (self.G[cc] - Gf[cc]) - Gtr_b[:, C].transpose(1, 2, 0) @ X
+                rhs = btr_all[C] - Xt @ btr
                 # held-out SSE as a quadratic in dg (db = dA - X dg)
-                Y = Gf_bb @ X
-                Q = X.T @ Y - X.T @ Gf_bg - Gf_bg.T @ X + Gf_gg
-                lin = X.T @ bf_b - self.b_f[f][gcols] - X.T @ GdA + Gf_bg.T @ dA
-                for j, pen in enumerate(pens):
-                    M = S0 + pen
-                    try:
-                        dg = spd_solve(M, rhs)
-                    except np.linalg.LinAlgError:
-                        dg = np.linalg.lstsq(M, rhs, rcond=1e-12)[0]
-                    out[i][j] += const_part + float(2.0 * lin @ dg + dg @ Q @ dg)
+                XtGbg = Xt @ Gf_bg
+                Q = Xt @ fb.Y[:, C].transpose(1, 0, 2) - XtGbg - XtGbg.transpose(0, 2, 1) + Gf[cc]
+                lin = Xt @ (bf_b - GdA) - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
+                opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
+                M = S0[opt_of] + np.stack([p for i in idx for p in options[i][1]])
+                dg = _spd_solve_stack(M, rhs[opt_of])
+                vals = const_part + np.sum(dg * (2.0 * lin[opt_of]
+                                                 + (Q[opt_of] @ dg[..., None])[..., 0]), axis=1)
+                e = 0
+                for i in idx:
+                    n_p = len(options[i][1])
+                    out[i] += vals[e:e + n_p]
+                    e += n_p
         return [list(o) for o in out]
 
 
@@ -285,9 +383,36 @@ def close_pairs(q: Array, tol: float) -> IntArray:
     return np.concatenate(out).astype(np.intp) if out else np.zeros((0, 2), dtype=np.intp)
 
 
+def _spd_solve_stack(M: Array, r: Array) -> Array:
+    """Solve stacked SPD systems ``M[e] x[e] = r[e]``, M (E, g, g), r (E, g); singular ones by
+    least squares."""
+    try:
+        np.linalg.cholesky(M)   # raises unless every matrix of the stack is positive definite
+        if not np.all(np.isfinite(M)):
+            raise np.linalg.LinAlgError("matrix is not finite")
+        return np.asarray(np.linalg.solve(M, r[..., None])[..., 0], dtype=np.float64)
+    except np.linalg.LinAlgError:
+        out = np.empty_like(r)
+        for e in range(len(M)):
+            try:
+                out[e] = spd_solve(M[e], r[e])
+            except np.linalg.LinAlgError:
+                out[e] = np.linalg.lstsq(M[e], r[e], rcond=1e-12)[0]
+        return out
+
+
+def _solve_small(A: Array, b: Array) -> Array:
+    """``A^-1 b`` for a small square ``A``; least squares when it is singular."""
+    try:
+        return np.asarray(np.linalg.solve(A, b), dtype=np.float64)
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(A, b, rcond=1e-12)[0], dtype=np.float64)
+
+
 def _inv_spd(A: Array) -> Array:
     try:
-        return cho_solve(cholesky(A), np.eye(len(A)))
+        cholesky(A)   # proves definiteness; one LU inverse is cheaper than two solves with L
+        return np.asarray(np.linalg.inv(A), dtype=np.float64)
     except np.linalg.LinAlgError:
         # numpy stub types pinv() of any float input as floating[Any]; float64 in gives float64
         return np.linalg.pinv(A, rcond=1e-12, hermitian=True)  # type: ignore[return-value]
@@ -493,32 +618,46 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
                         "gain_percent": float(100.0 * (1.0 - best_score / score))})
             score = best_score
     # ------------------------------------------------------------------ refine map lambdas
+    def block_of(sel: dict[str, float | None], key: str) -> IntArray:
+        """Positions of group ``key``'s columns in ``assemble(sel)``."""
+        start = len(base_cols)
+        for k in sel:
+            if k == key:
+                return np.arange(start, start + len(by_key[k].cols))
+            start += len(by_key[k].cols)
+        raise KeyError(key)
+
     for key in [k for k in chosen if by_key[k].is_map]:
         lam0 = chosen[key]
         assert lam0 is not None
-        lam_best, best_score = lam0, score
-        for fac in (1 / 3, 3.0):
-            trial = dict(chosen)
-            trial[key] = lam0 * fac
-            sc_ = cv.score(*assemble(trial))
-            if sc_ < best_score:
-                lam_best, best_score = lam0 * fac, sc_
-        if lam_best != lam0:
-            chosen[key] = lam_best
-            score = best_score
-            log.append({"step": step, "action": "refine", "group": key, "lambda_rel": lam_best,
-                        "cv_rms_whitened": math.sqrt(score / m_obs)})
+        g = by_key[key]
+        facs = (1 / 3, 3.0)
+        p = block_of(chosen, key)
+        cur = map_pen(g, lam0)
+        _, trials = cv.scores_varied(*assemble(chosen), (),
+                                     [(p, map_pen(g, lam0 * fac) - cur) for fac in facs])
+        i_best = int(np.argmin(trials))
+        if trials[i_best] < score:
+            before = assemble(chosen)
+            chosen[key] = lam0 * facs[i_best]
+            cv.adopt_variant(*before, *assemble(chosen),
+                             repen=(p, map_pen(g, lam0 * facs[i_best]) - cur))
+            score = trials[i_best]
+            log.append({"step": step, "action": "refine", "group": key,
+                        "lambda_rel": chosen[key], "cv_rms_whitened": math.sqrt(score / m_obs)})
     # ------------------------------------------------------------------ backward pass
     changed = True
     while changed and chosen:
         changed = False
-        for key in list(chosen):
-            if any(by_key[k].requires == key for k in chosen):
-                continue
-            trial = {k: v for k, v in chosen.items() if k != key}
-            sc_ = cv.score(*assemble(trial))
+        droppable = [k for k in chosen if not any(by_key[o].requires == k for o in chosen)]
+        dropped, _ = cv.scores_varied(*assemble(chosen), [block_of(chosen, k) for k in droppable],
+                                      ())
+        for key, sc_ in zip(droppable, dropped, strict=True):
             if sc_ <= score:
+                before = assemble(chosen)
+                p = block_of(chosen, key)
                 del chosen[key]
+                cv.adopt_variant(*before, *assemble(chosen), drop=p)
                 score = sc_
                 log.append({"step": step, "action": "drop", "group": key,
                             "cv_rms_whitened": math.sqrt(score / m_obs)})
