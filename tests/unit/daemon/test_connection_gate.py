@@ -1,5 +1,5 @@
 """The API's admission control over real sockets on 127.0.0.1: header deadline, connection
-limits per listener and per client, body deadline; and the rate-limited logs."""
+limits per listener and per client, body deadline (the rate-limited logs: test_logging.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import json
 import pytest
 
 from robocal.daemon.api import ApiServer
-from robocal.daemon.logging import RateLimiter
 from robocal.daemon.service import CalibrationService
 
 TOKEN = "gate-token-0123456789abcdef"
@@ -180,11 +179,3 @@ async def test_connection_limits_and_the_unix_socket_is_separate(api):
     async with asyncio.timeout(5):
         while not await admitted():
             await asyncio.sleep(0.02)
-
-
-def test_rate_limiter_counts_what_it_drops():
-    lim = RateLimiter(burst=3, window_s=10.0)
-    got = [lim.allow("k", now=float(i) * 0.01) for i in range(10)]
-    assert got == [0, 0, 0, None, None, None, None, None, None, None]
-    assert lim.allow("other", now=0.5) == 0
-    assert lim.allow("k", now=11.0) == 7  # next window reports the 7 dropped
