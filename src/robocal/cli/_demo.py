@@ -185,14 +185,11 @@ async def _demo(args: argparse.Namespace) -> int:
     args.out = out
     with (out / "daemon.log").open("w") as log_file:
         # The daemon's JSON log goes to a file; the console shows progress and results.
-        configure_logging("info", "json")
-        import structlog
-
-        structlog.configure(logger_factory=structlog.WriteLoggerFactory(file=log_file))
+        configure_logging("info", "json", stream=log_file)
         try:
             figures = await _run(args, t_start)
         finally:
-            structlog.configure(logger_factory=structlog.WriteLoggerFactory(file=sys.stderr))
+            configure_logging("info", "json", stream=sys.stderr)
     (out / "summary.json").write_text(json.dumps(figures, indent=1, default=str))
     _print_summary(figures)
     return 0 if figures.get("state") in ("pushed", "fitted", "approved") else 1

@@ -7,7 +7,8 @@ factory: a connection over the listener's limit, or over the per-client limit (T
 address), is reset at once, before aiohttp allocates anything for it; a connection whose
 request headers are not complete within ``header_timeout_s`` (or exceed ``max_header_bytes``)
 is reset; the deadline never runs while a response is produced or streamed (Server-Sent
-Events, long polls). Refusals are counted, not logged one by one.
+Events, long polls). Refusals are counted, not logged one by one. Deadlines run on the gate's
+:class:`~robocal._core.clock.Clock` (tests advance a manual one).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from collections.abc import Callable
 from typing import Any
 
 from aiohttp import web, web_runner
+
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 
 __all__ = ["ConnectionGate", "GatedTCPSite", "GatedUnixSite"]
 
@@ -38,15 +41,21 @@ class ConnectionGate:
         request headers.
     max_header_bytes : int
         Size of the request line and headers at most.
+    clock : Clock, optional
+        Time source of the header deadline (default: the system clock).
     """
 
     def __init__(self, *, max_connections: int, max_per_client: int | None,
-                 header_timeout_s: float, max_header_bytes: int = 32 * 1024) -> None:
+                 header_timeout_s: float, max_header_bytes: int = 32 * 1024,
+                 clock: Clock = SYSTEM_CLOCK) -> None:
         self.max_connections = max_connections
         self.max_per_client = max_per_client
         self.header_timeout_s = header_timeout_s
         self.max_header_bytes = max_header_bytes
+        self.clock = clock
         self.open = 0
+        #: Connections whose header deadline is running (a request's headers still to come).
+        self.awaiting_headers = 0
         self.per_client: Counter[str] = Counter()
         self.refused = 0
         self.timed_out = 0
@@ -76,7 +85,7 @@ class _Guard(asyncio.Protocol):
         self.inner: Any = None
         self.transport: asyncio.Transport | None = None
         self.client = ""
-        self.timer: asyncio.TimerHandle | None = None
+        self.timer: asyncio.Task[None] | None = None
         self.head = bytearray()
         self.mode = "head"  # head: reading request headers; body: its body; idle: neither
         self.body_left: int | None = 0  # bytes of the current body still to come; None: unknown
@@ -122,16 +131,26 @@ class _Guard(asyncio.Protocol):
     def _arm(self) -> None:
         self._disarm()
         self.head = bytearray()
-        loop = asyncio.get_running_loop()
-        self.timer = loop.call_later(self.gate.header_timeout_s, self._expire)
+        due = self.gate.clock.monotonic() + self.gate.header_timeout_s
+        self.timer = asyncio.get_running_loop().create_task(self._deadline(due))
+        self.gate.awaiting_headers += 1
 
     def _disarm(self) -> None:
         if self.timer is not None:
             self.timer.cancel()
             self.timer = None
+            self.gate.awaiting_headers -= 1
+
+    async def _deadline(self, due: float) -> None:
+        """Reset the connection at ``due`` (gate clock) unless disarmed (cancelled) first."""
+        clock = self.gate.clock
+        await clock.sleep(due - clock.monotonic())
+        self.timer = None  # done: _expire must not cancel this task
+        self.gate.awaiting_headers -= 1
+        self._expire()
 
     def _expire(self) -> None:
-        self.timer = None
+        self._disarm()
         if self.transport is not None:
             self.gate.timed_out += 1
             self.transport.abort()

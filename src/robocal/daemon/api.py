@@ -45,6 +45,7 @@ from aiohttp import web
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from robocal import __version__
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal._core.files import atomic_write_text
 from robocal.daemon._gate import ConnectionGate, GatedTCPSite, GatedUnixSite
 from robocal.daemon.config import AppConfig, config_warnings
@@ -545,11 +546,15 @@ class ApiServer:
         What the API exposes.
     config : AppConfig
         ``api`` section: socket path and mode, TCP host/port and token file.
+    clock : Clock, optional
+        Time source of the listeners' header deadlines (default: the system clock).
     """
 
-    def __init__(self, service: CalibrationService, config: AppConfig) -> None:
+    def __init__(self, service: CalibrationService, config: AppConfig, *,
+                 clock: Clock = SYSTEM_CLOCK) -> None:
         self.service = service
         self.config = config
+        self.clock = clock
         self._runners: list[web.AppRunner] = []
         self.socket_path: Path | None = None
         self.tcp_port: int | None = None
@@ -577,7 +582,7 @@ class ApiServer:
                 self.tcp_gate = ConnectionGate(
                     max_connections=api.max_connections,
                     max_per_client=api.max_connections_per_client,
-                    header_timeout_s=api.header_timeout_s)
+                    header_timeout_s=api.header_timeout_s, clock=self.clock)
                 site = GatedTCPSite(runner, api.tcp_host, api.tcp_port, gate=self.tcp_gate)
                 await site.start()
                 self.tcp_port = site.port
@@ -601,7 +606,8 @@ class ApiServer:
         self._runners.append(runner)
         # Local clients share one budget, separate from TCP's (a TCP flood cannot use it up).
         self.unix_gate = ConnectionGate(max_connections=api.max_connections, max_per_client=None,
-                                        header_timeout_s=api.header_timeout_s)
+                                        header_timeout_s=api.header_timeout_s,
+                                        clock=self.clock)
         site = GatedUnixSite(runner, str(path), gate=self.unix_gate)
         # Create the socket with no more permission than asked, then set the mode exactly.
         old = os.umask(0o777 & ~mode)

@@ -1,5 +1,5 @@
 """The API's admission control over real sockets on 127.0.0.1: header deadline, connection
-limits per listener and per client, body deadline; and the rate-limited logs."""
+limits per listener and per client, body deadline (the rate-limited logs: test_logging.py)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,21 @@ import json
 import pytest
 
 from robocal.daemon.api import ApiServer
-from robocal.daemon.logging import RateLimiter
 from robocal.daemon.service import CalibrationService
+from tests._clock import ManualClock
+from tests._waiting import eventually
 
 TOKEN = "gate-token-0123456789abcdef"
 
 
 @pytest.fixture
-async def api(make_config, tmp_path):
+def clock() -> ManualClock:
+    """The gates' clock: header deadlines pass only when a test advances it."""
+    return ManualClock()
+
+
+@pytest.fixture
+async def api(make_config, tmp_path, clock):
     tok = tmp_path / "token"
     tok.write_text(TOKEN)
     tok.chmod(0o600)
@@ -27,7 +34,7 @@ async def api(make_config, tmp_path):
                            "max_connections_per_client": 4})
     svc = CalibrationService(cfg)
     await svc.start()
-    server = ApiServer(svc, cfg)
+    server = ApiServer(svc, cfg, clock=clock)
     await server.start()
     yield server
     await server.stop()
@@ -48,11 +55,25 @@ async def _closed_by_peer(reader: asyncio.StreamReader, timeout: float) -> bool:
     return True
 
 
-async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str,
-               token: str = TOKEN) -> int:
-    writer.write(f"GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
-                 "\r\n".encode())
-    await writer.drain()
+async def _still_open(reader: asyncio.StreamReader) -> bool:
+    """The connection is not closed within a moment (20 ms; the fake clock stands still)."""
+    return not await _closed_by_peer(reader, 0.02)
+
+
+async def _advance(clock: ManualClock, seconds: float) -> None:
+    """Advance the gates' clock and let the deadlines that came due run."""
+    clock.advance(seconds)
+    for _ in range(5):
+        await asyncio.sleep(0)
+
+
+def _head(path: str, token: str = TOKEN) -> bytes:
+    return (f"GET {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+            "\r\n").encode()
+
+
+async def _status(reader: asyncio.StreamReader) -> int:
+    """Read one response; its status code."""
     async with asyncio.timeout(5):
         status = int((await reader.readline()).split()[1])
         length = 0
@@ -63,39 +84,74 @@ async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path:
     return status
 
 
-async def test_partial_headers_are_cut_off(api):
+async def _get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str,
+               token: str = TOKEN) -> int:
+    writer.write(_head(path, token))
+    await writer.drain()
+    return await _status(reader)
+
+
+async def test_partial_headers_are_cut_off_at_the_deadline(api, clock):
+    gate = api.tcp_gate
+    assert gate is not None and gate.clock is clock
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    await eventually(lambda: gate.awaiting_headers == 1)  # runs from the connection
     w.write(b"GET /health HTTP/1.1\r\nHost: x\r\n")  # never finished
     await w.drain()
+    await _advance(clock, 0.29)
+    assert await _still_open(r) and gate.timed_out == 0
+    await _advance(clock, 0.02)
     assert await _closed_by_peer(r, 3.0)
-    assert api.tcp_gate is not None and api.tcp_gate.timed_out == 1
+    assert gate.timed_out == 1 and gate.awaiting_headers == 0
     w.close()
 
 
-async def test_a_long_response_is_not_cut_by_the_next_header_deadline(api):
+async def test_a_long_response_is_not_cut_by_the_next_header_deadline(api, clock):
     """An event stream outlives the header deadline (0.3 s here): campaign watch needs it."""
+    gate = api.tcp_gate
+    assert gate is not None
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     w.write(f"GET /events?after=0 HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
             "Accept: text/event-stream\r\n\r\n".encode())
     await w.drain()
     async with asyncio.timeout(5):
         assert b" 200 " in await r.readline()
-    assert not await _closed_by_peer(r, 1.0)   # > 3 header deadlines, stream still open
+    await _advance(clock, 1.0)  # > 3 header deadlines
+    assert await _still_open(r)  # stream still open
+    assert gate.timed_out == 0 and gate.awaiting_headers == 0
     w.close()
+    # the stream's handler notices its client gone at the next event (else the server's
+    # shutdown waits 2 s for it)
+    await eventually(lambda: gate.open == 0)
+    api.service.events.emit("log", None, text="nobody listens")
     # and a slow next request on a kept-alive connection is still cut off
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     assert await _get(r, w, "/health") == 200
     w.write(b"GET /health HTTP/1.1\r\n")  # started, never finished
     await w.drain()
+    await eventually(lambda: gate.awaiting_headers == 1)
+    await _advance(clock, 0.31)
     assert await _closed_by_peer(r, 3.0)
+    assert gate.timed_out == 1
     w.close()
 
 
-async def test_keep_alive_requests_each_get_the_full_deadline(api):
+async def test_keep_alive_requests_each_get_the_full_deadline(api, clock):
+    gate = api.tcp_gate
+    assert gate is not None
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
-    for _ in range(3):  # spread over more than one header deadline, on one connection
-        assert await _get(r, w, "/health") == 200
-        await asyncio.sleep(0.2)
+    head = _head("/health")
+    for _ in range(3):  # 1.2 s on one connection, four header deadlines
+        w.write(head[:12])  # each request arrives slowly, within its own deadline
+        await w.drain()
+        await eventually(lambda: gate.awaiting_headers == 1)
+        await _advance(clock, 0.2)
+        w.write(head[12:])
+        await w.drain()
+        assert await _status(r) == 200
+        assert gate.awaiting_headers == 0
+        await _advance(clock, 0.2)  # between requests no deadline runs
+    assert gate.timed_out == 0
     body = json.dumps({"reason": "x"}).encode()
     w.write(b"POST /campaigns/nope/pause HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
             + TOKEN.encode() + b"\r\nContent-Type: application/json\r\nContent-Length: "
@@ -106,15 +162,17 @@ async def test_keep_alive_requests_each_get_the_full_deadline(api):
     w.close()
 
 
-async def test_a_stream_outlives_the_header_deadline(api):
+async def test_a_stream_outlives_the_header_deadline(api, clock):
     """Server-Sent Events (and long polls) run far longer than the 0.3 s header deadline."""
+    gate = api.tcp_gate
+    assert gate is not None
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     w.write(b"GET /events?after=0 HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
             + TOKEN.encode() + b"\r\n\r\n")
     await w.drain()
     async with asyncio.timeout(5):
         assert b" 200 " in await r.readline()
-    await asyncio.sleep(1.0)  # three header deadlines
+    await _advance(clock, 1.0)  # three header deadlines
     api.service.events.emit("log", None, text="still here")
     async with asyncio.timeout(5):
         while b"still here" not in await r.readline():
@@ -122,14 +180,17 @@ async def test_a_stream_outlives_the_header_deadline(api):
     w.close()
     # the long poll, likewise
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    await eventually(lambda: gate.awaiting_headers == 1)  # the poll's connection is in
     after = api.service.events.last_seq
     w.write(f"GET /events/poll?after={after}&timeout=5 HTTP/1.1\r\nHost: x\r\n"
             f"Authorization: Bearer {TOKEN}\r\n\r\n".encode())
     await w.drain()
-    await asyncio.sleep(0.8)
+    await eventually(lambda: gate.awaiting_headers == 0)  # and its headers are
+    await _advance(clock, 0.8)
     api.service.events.emit("log", None, text="polled")
     async with asyncio.timeout(5):
         assert b" 200 " in await r.readline()
+    assert gate.timed_out == 0
     w.close()
 
 
@@ -180,11 +241,3 @@ async def test_connection_limits_and_the_unix_socket_is_separate(api):
     async with asyncio.timeout(5):
         while not await admitted():
             await asyncio.sleep(0.02)
-
-
-def test_rate_limiter_counts_what_it_drops():
-    lim = RateLimiter(burst=3, window_s=10.0)
-    got = [lim.allow("k", now=float(i) * 0.01) for i in range(10)]
-    assert got == [0, 0, 0, None, None, None, None, None, None, None]
-    assert lim.allow("other", now=0.5) == 0
-    assert lim.allow("k", now=11.0) == 7  # next window reports the 7 dropped
