@@ -466,15 +466,25 @@ def _required_gain(groups: Sequence[Group], min_improvement: float, m_obs: int
     return out
 
 
-def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
-            ) -> tuple[Solution, list[dict[str, Any]]]:
-    """Selection and final solve on the poses ``inl`` (outliers re-tested in the final solve)."""
-    t0 = time.perf_counter()
+@dataclass
+class _Superset:
+    """The superset model linearised at the constant solution, and its CV machinery."""
+
+    groups: list[Group]
+    base_terms: list[Term]
+    base_cols: IntArray
+    cv: _CV
+    scale: Array            # column scale of the per-fold normal matrices (P,)
+    ridge_sigma: float
+    tie_sigma: float
+    weak_sigma: float
+
+
+def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
+    """Candidate groups, their identifiable columns and the per-fold normal matrices."""
     opts = f.opts
-    rows = np.flatnonzero(inl)
     q = f.data.q[rows]
     groups = candidate_groups(f, q)
-    # superset model
     base_terms = list(const.model.spec.terms)
     terms = list(base_terms)
     knots = [0] * f.robot.dof
@@ -485,18 +495,17 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     spec = ErrorModelSpec(f.robot.dof, tuple(terms), tuple(knots), label="auto:superset")
     msup = KinematicModel(f.robot, spec, const.model.T_ref)
     x_c = const.model.transfer(const.x, msup)
-    names = msup.names
-    idx = {n: i for i, n in enumerate(names)}
+    idx = {n: i for i, n in enumerate(msup.names)}
     for g in groups:
         g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
     prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
-    # identifiable unpenalised columns (tiers keep low orders first)
-    # maps and ripple stay out of the rank analysis: hundreds of ripple columns would make
-    # the superset rank deficient on a few hundred poses and push out the physical terms;
-    # a weak ridge keeps each of them well posed in the CV instead
+    # identifiable unpenalised columns (tiers keep low orders first); maps and ripple stay
+    # out of the rank analysis: hundreds of ripple columns would make the superset rank
+    # deficient on a few hundred poses and push out the physical terms; a weak ridge keeps
+    # each of them well posed in the CV instead
     map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
-    ident, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
+    _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
     kept = set(int(c) for c in unpen[keep])
     base_cols = np.array([i for i in range(ParameterLayout.OFFSET + len(base_terms)) if i in kept],
                          dtype=np.intp)
@@ -504,15 +513,34 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
         if not (g.is_map or g.is_ripple):
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
     groups = [g for g in groups if len(g.cols)]
-    # per-fold normal matrices of the whitened superset Jacobian at x_c
-    fold_of = cv_folds(q, opts.cv_folds, opts.seed, math.radians(opts.cv_group_tol_deg))
-    all_cols = np.arange(msup.size)
-    P = msup.size
+    cv, s = _fold_normals(f, prob, x_c, rows, msup.size)
+    sup = _Superset(groups, base_terms, base_cols, cv, s, math.radians(opts.map_ridge_deg),
+                    math.radians(opts.map_tie_deg), math.radians(opts.map_weak_deg))
+    for g in groups:
+        if g.is_map:
+            sc = s[g.cols]
+            D = second_difference(g.knots, g.n_knots)
+            g.D2 = D.T @ D / np.outer(sc, sc)
+            g.ridge = 1.0 / (sup.ridge_sigma**2 * sc**2)
+            if g.weak:
+                g.tie = weak_penalty(g.knots, g.n_knots, g.weak, sup.tie_sigma,
+                                     sup.weak_sigma) / np.outer(sc, sc)
+            g.lam_unit = float(np.mean(sc**2))
+    return sup
+
+
+def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int
+                  ) -> tuple[_CV, Array]:
+    """Per-fold normal matrices of the whitened superset Jacobian at ``x_c``, column-scaled
+    (scaled so that the Schur complements compare columns of metres and radians)."""
+    opts = f.opts
+    fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
+                       math.radians(opts.cv_group_tol_deg))
     G_f = np.zeros((opts.cv_folds, P, P))
     b_f = np.zeros((opts.cv_folds, P))
     c_f = np.zeros(opts.cv_folds)
     for ch in prob.chunks(np.arange(len(rows))):
-        Jw, rw = prob.whitened_jacobian(x_c, rows[ch], all_cols)
+        Jw, rw = prob.whitened_jacobian(x_c, rows[ch], np.arange(P))
         fo = np.repeat(fold_of[ch], 3)
         for k in range(opts.cv_folds):
             sel = fo == k
@@ -525,162 +553,193 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     s[s <= 1e-300] = 1.0
     G_f /= np.outer(s, s)[None]
     b_f /= s[None]
-    cv = _CV(G_f, b_f, c_f)
-    ridge_sigma = math.radians(opts.map_ridge_deg)
-    tie_sigma = math.radians(opts.map_tie_deg)
-    weak_sigma = math.radians(opts.map_weak_deg)
-    for g in groups:
-        if g.is_map:
-            sc = s[g.cols]
-            D = second_difference(g.knots, g.n_knots)
-            DtD = D.T @ D
-            g.D2 = DtD / np.outer(sc, sc)
-            g.ridge = 1.0 / (ridge_sigma**2 * sc**2)
-            if g.weak:
-                g.tie = weak_penalty(g.knots, g.n_knots, g.weak, tie_sigma,
-                                     weak_sigma) / np.outer(sc, sc)
-            g.lam_unit = float(np.mean(sc**2))
+    return _CV(G_f, b_f, c_f), s
 
-    def map_pen(g: Group, lam_rel: float) -> Array:
+
+class _Selection:
+    """Greedy forward selection, smoothness refinement and backward pass over the groups.
+
+    ``chosen`` maps a group key to its relative smoothness weight (maps) or None, in the
+    order the groups were added (the order of their columns in :meth:`assemble`).
+    """
+
+    def __init__(self, sup: _Superset, min_improvement: float, map_lambdas: Sequence[float],
+                 m_obs: int) -> None:
+        self.sup = sup
+        self.cv = sup.cv
+        self.by_key = {g.key: g for g in sup.groups}
+        self.map_lambdas = tuple(map_lambdas)
+        self.m_obs = m_obs
+        self.required = _required_gain(sup.groups, min_improvement, m_obs)
+        self.chosen: dict[str, float | None] = {}
+        k0 = len(sup.base_cols)
+        self.score = self.cv.score(sup.base_cols, np.zeros((k0, k0)))
+        self.step = 0
+        self.log: list[dict[str, Any]] = [{"step": 0, "action": "start", "group": "constant",
+                                           "cv_rms_whitened": self.rms(self.score)}]
+
+    def rms(self, score: float) -> float:
+        """Whitened CV RMS per coordinate of a CV sum of squares."""
+        return math.sqrt(score / self.m_obs)
+
+    def map_pen(self, g: Group, lam_rel: float) -> Array:
+        """Prior block of a map at relative smoothness ``lam_rel`` (scaled coordinates)."""
         assert g.D2 is not None and g.ridge is not None
         P = lam_rel * g.lam_unit * g.D2 + np.diag(g.ridge)
         return P if g.tie is None else P + g.tie
 
-    def fixed_pen(g: Group) -> Array:
+    def fixed_pen(self, g: Group) -> Array:
+        """Prior block of a parametric group: none, or a weak ridge for a ripple harmonic."""
         if not g.is_ripple:
             return np.zeros((len(g.cols), len(g.cols)))
-        return np.diag(1.0 / (ridge_sigma**2 * s[g.cols] ** 2))
+        return np.diag(1.0 / (self.sup.ridge_sigma**2 * self.sup.scale[g.cols] ** 2))
 
-    # ------------------------------------------------------------------ forward selection
-    chosen: dict[str, float | None] = {}   # group key -> relative lambda (maps) or None
-    by_key = {g.key: g for g in groups}
-
-    def assemble(sel: dict[str, float | None]) -> tuple[IntArray, Array]:
-        cols = [base_cols]
-        blocks: list[Array] = [np.zeros((len(base_cols), len(base_cols)))]
+    def assemble(self, sel: dict[str, float | None]) -> tuple[IntArray, Array]:
+        """Columns and block-diagonal prior of the model with groups ``sel``."""
+        base = self.sup.base_cols
+        cols = [base]
+        blocks: list[Array] = [np.zeros((len(base), len(base)))]
         for key, lam in sel.items():
-            g = by_key[key]
+            g = self.by_key[key]
             cols.append(g.cols)
-            blocks.append(map_pen(g, lam) if g.is_map and lam is not None
-                          else fixed_pen(g))
+            blocks.append(self.map_pen(g, lam) if g.is_map and lam is not None
+                          else self.fixed_pen(g))
         return np.concatenate(cols).astype(np.intp), block_diag(*blocks)
 
-    score = cv.score(base_cols, np.zeros((len(base_cols), len(base_cols))))
-    m_obs = 3 * len(rows)
-    required = _required_gain(groups, opts.auto_min_improvement, m_obs)
-    log: list[dict[str, Any]] = [{"step": 0, "action": "start", "group": "constant",
-                                  "cv_rms_whitened": math.sqrt(score / m_obs)}]
-    step = 0
-    best_lam: dict[str, float] = {}
-    # phase 1: physically modelled single terms (gravity torsion, pitch, strain-wave ripple);
-    # phase 2: harmonics; phase 3: maps, which then only describe what the parametric terms
-    # cannot (fine-grained joint-angle errors). Earlier phases stay open in later ones.
-    for phase in (1, 2, 3):
-        while True:
-            cur_cols, cur_pen = assemble(chosen)
-            options: list[tuple[IntArray, list[Array]]] = []
-            labels: list[tuple[str, Sequence[float | None]]] = []
-            for g in groups:
-                if g.phase > phase or g.key in chosen:
-                    continue
-                if g.requires is not None and g.requires not in chosen:
-                    continue
-                if g.is_map:
-                    # after a map's first evaluation only the neighbourhood of its best
-                    # smoothness so far is re-tried (the optimum moves little)
-                    lams = list(opts.map_lambdas)
-                    if g.key in best_lam:
-                        lams = [v for v in lams if best_lam[g.key] / 11 < v < best_lam[g.key] * 11]
-                    options.append((g.cols, [map_pen(g, lam) for lam in lams]))
-                    labels.append((g.key, lams))
-                else:
-                    options.append((g.cols, [fixed_pen(g)]))
-                    labels.append((g.key, [None]))
-            if not options:
-                break
-            all_scores = cv.scores_added(cur_cols, cur_pen, options)
-            for (key_i, lams_i), row in zip(labels, all_scores, strict=True):
-                if lams_i[0] is not None:
-                    lam_i = lams_i[int(np.argmin(row))]
-                    assert lam_i is not None  # a map's options are all numbers
-                    best_lam[key_i] = float(lam_i)
-            # a candidate must lower the CV score by its own threshold (see _required_gain)
-            flat = [(sc_, i, j) for i, row in enumerate(all_scores) for j, sc_ in enumerate(row)
-                    if sc_ < score * (1.0 - required[labels[i][0]])]
-            if not flat:
-                break
-            best_score, bi, bj = min(flat)
-            step += 1
-            key, lam = labels[bi][0], labels[bi][1][bj]
-            chosen[key] = lam
-            log.append({"step": step, "action": "add", "group": key, "lambda_rel": lam,
-                        "cv_rms_whitened": float(math.sqrt(best_score / m_obs)),
-                        "gain_percent": float(100.0 * (1.0 - best_score / score))})
-            score = best_score
-    # ------------------------------------------------------------------ refine map lambdas
-    def block_of(sel: dict[str, float | None], key: str) -> IntArray:
+    def block_of(self, sel: dict[str, float | None], key: str) -> IntArray:
         """Positions of group ``key``'s columns in ``assemble(sel)``."""
-        start = len(base_cols)
+        start = len(self.sup.base_cols)
         for k in sel:
             if k == key:
-                return np.arange(start, start + len(by_key[k].cols))
-            start += len(by_key[k].cols)
+                return np.arange(start, start + len(self.by_key[k].cols))
+            start += len(self.by_key[k].cols)
         raise KeyError(key)
 
-    for key in [k for k in chosen if by_key[k].is_map]:
-        lam0 = chosen[key]
-        assert lam0 is not None
-        g = by_key[key]
-        facs = (1 / 3, 3.0)
-        p = block_of(chosen, key)
-        cur = map_pen(g, lam0)
-        _, trials = cv.scores_varied(*assemble(chosen), (),
-                                     [(p, map_pen(g, lam0 * fac) - cur) for fac in facs])
-        i_best = int(np.argmin(trials))
-        if trials[i_best] < score:
-            before = assemble(chosen)
-            chosen[key] = lam0 * facs[i_best]
-            cv.adopt_variant(*before, *assemble(chosen),
-                             repen=(p, map_pen(g, lam0 * facs[i_best]) - cur))
-            score = trials[i_best]
-            log.append({"step": step, "action": "refine", "group": key,
-                        "lambda_rel": chosen[key], "cv_rms_whitened": math.sqrt(score / m_obs)})
-    # ------------------------------------------------------------------ backward pass
-    changed = True
-    while changed and chosen:
-        changed = False
-        droppable = [k for k in chosen if not any(by_key[o].requires == k for o in chosen)]
-        dropped, _ = cv.scores_varied(*assemble(chosen), [block_of(chosen, k) for k in droppable],
-                                      ())
-        for key, sc_ in zip(droppable, dropped, strict=True):
-            if sc_ <= score:
-                before = assemble(chosen)
-                p = block_of(chosen, key)
-                del chosen[key]
-                cv.adopt_variant(*before, *assemble(chosen), drop=p)
-                score = sc_
-                log.append({"step": step, "action": "drop", "group": key,
-                            "cv_rms_whitened": math.sqrt(score / m_obs)})
-                changed = True
-                break
-    # ------------------------------------------------------------------ final model
-    final_terms = list(base_terms)
+    def forward(self) -> None:
+        """Add groups while one lowers the CV score by its required gain, in three phases.
+
+        Phase 1: physically modelled single terms (gravity torsion, pitch, strain-wave
+        ripple); phase 2: harmonics; phase 3: maps and fine ripple, which then only describe
+        what the parametric terms cannot. Earlier phases stay open in later ones.
+        """
+        best_lam: dict[str, float] = {}
+        for phase in (1, 2, 3):
+            while True:
+                options: list[tuple[IntArray, list[Array]]] = []
+                labels: list[tuple[str, Sequence[float | None]]] = []
+                for g in self.sup.groups:
+                    if g.phase > phase or g.key in self.chosen:
+                        continue
+                    if g.requires is not None and g.requires not in self.chosen:
+                        continue
+                    if g.is_map:
+                        # after a map's first evaluation only the neighbourhood of its best
+                        # smoothness so far is re-tried (the optimum moves little)
+                        lams = list(self.map_lambdas)
+                        if g.key in best_lam:
+                            b = best_lam[g.key]
+                            lams = [v for v in lams if b / 11 < v < b * 11]
+                        options.append((g.cols, [self.map_pen(g, lam) for lam in lams]))
+                        labels.append((g.key, lams))
+                    else:
+                        options.append((g.cols, [self.fixed_pen(g)]))
+                        labels.append((g.key, [None]))
+                if not options:
+                    break
+                all_scores = self.cv.scores_added(*self.assemble(self.chosen), options)
+                for (key_i, lams_i), row in zip(labels, all_scores, strict=True):
+                    if lams_i[0] is not None:
+                        lam_i = lams_i[int(np.argmin(row))]
+                        assert lam_i is not None  # a map's options are all numbers
+                        best_lam[key_i] = float(lam_i)
+                # a candidate must lower the score by its own threshold (see _required_gain)
+                flat = [(sc_, i, j) for i, row in enumerate(all_scores)
+                        for j, sc_ in enumerate(row)
+                        if sc_ < self.score * (1.0 - self.required[labels[i][0]])]
+                if not flat:
+                    break
+                best_score, bi, bj = min(flat)
+                self.step += 1
+                key, lam = labels[bi][0], labels[bi][1][bj]
+                self.chosen[key] = lam
+                self.log.append({"step": self.step, "action": "add", "group": key,
+                                 "lambda_rel": lam, "cv_rms_whitened": self.rms(best_score),
+                                 "gain_percent": float(100.0 * (1.0 - best_score / self.score))})
+                self.score = best_score
+
+    def refine(self) -> None:
+        """Try each chosen map's smoothness x1/3 and x3 (one Woodbury update per fold each)."""
+        for key in [k for k in self.chosen if self.by_key[k].is_map]:
+            lam0 = self.chosen[key]
+            assert lam0 is not None
+            g = self.by_key[key]
+            facs = (1 / 3, 3.0)
+            p = self.block_of(self.chosen, key)
+            cur = self.map_pen(g, lam0)
+            before = self.assemble(self.chosen)
+            _, trials = self.cv.scores_varied(
+                *before, (), [(p, self.map_pen(g, lam0 * fac) - cur) for fac in facs])
+            i_best = int(np.argmin(trials))
+            if trials[i_best] < self.score:
+                self.chosen[key] = lam0 * facs[i_best]
+                self.cv.adopt_variant(*before, *self.assemble(self.chosen),
+                                      repen=(p, self.map_pen(g, lam0 * facs[i_best]) - cur))
+                self.score = trials[i_best]
+                self.log.append({"step": self.step, "action": "refine", "group": key,
+                                 "lambda_rel": self.chosen[key],
+                                 "cv_rms_whitened": self.rms(self.score)})
+
+    def backward(self) -> None:
+        """Drop groups, first in order of addition, whose removal does not worsen the score."""
+        changed = True
+        while changed and self.chosen:
+            changed = False
+            droppable = [k for k in self.chosen
+                         if not any(self.by_key[o].requires == k for o in self.chosen)]
+            before = self.assemble(self.chosen)
+            dropped, _ = self.cv.scores_varied(
+                *before, [self.block_of(self.chosen, k) for k in droppable], ())
+            for key, sc_ in zip(droppable, dropped, strict=True):
+                if sc_ <= self.score:
+                    p = self.block_of(self.chosen, key)
+                    del self.chosen[key]
+                    self.cv.adopt_variant(*before, *self.assemble(self.chosen), drop=p)
+                    self.score = sc_
+                    self.log.append({"step": self.step, "action": "drop", "group": key,
+                                     "cv_rms_whitened": self.rms(self.score)})
+                    changed = True
+                    break
+
+
+def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
+            ) -> tuple[Solution, list[dict[str, Any]]]:
+    """Selection and final solve on the poses ``inl`` (outliers re-tested in the final solve)."""
+    t0 = time.perf_counter()
+    rows = np.flatnonzero(inl)
+    sup = _superset(f, const, rows)
+    sel = _Selection(sup, f.opts.auto_min_improvement, f.opts.map_lambdas, 3 * len(rows))
+    sel.forward()
+    sel.refine()
+    sel.backward()
+    # final model, solved nonlinearly from the constant solution
+    final_terms = list(sup.base_terms)
     final_knots = [0] * f.robot.dof
     priors: list[MapPrior] = []
-    for key, lam in chosen.items():
-        g = by_key[key]
+    for key, lam in sel.chosen.items():
+        g = sel.by_key[key]
         final_terms += g.terms
         if g.is_map:
             assert lam is not None
             final_knots[g.joint] = g.n_knots
-            priors.append(MapPrior(g.joint, g.n_knots, g.knots, lam * g.lam_unit, ridge_sigma,
-                                   weak=g.weak, tie_sigma=tie_sigma, weak_sigma=weak_sigma))
-    spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots),
-                            label="auto:" + ",".join(chosen) if chosen else "auto:constant")
+            priors.append(MapPrior(g.joint, g.n_knots, g.knots, lam * g.lam_unit,
+                                   sup.ridge_sigma, weak=g.weak, tie_sigma=sup.tie_sigma,
+                                   weak_sigma=sup.weak_sigma))
+    label = "auto:" + ",".join(sel.chosen) if sel.chosen else "auto:constant"
+    spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots), label=label)
     mf = KinematicModel(f.robot, spec_f, const.model.T_ref)
     x0 = const.model.transfer(const.x, mf)
     sol = f.engine.solve(mf, x0, priors=priors, inliers=inl, what="auto model")
-    log.append({"action": "final", "groups": list(chosen), "cv_evaluations": cv.evaluations,
-                "selection_s": time.perf_counter() - t0})
-    del ident
-    return sol, log
+    sel.log.append({"action": "final", "groups": list(sel.chosen),
+                    "cv_evaluations": sel.cv.evaluations,
+                    "selection_s": time.perf_counter() - t0})
+    return sol, sel.log
