@@ -78,19 +78,6 @@ class FanucSimOptions(BaseModel):
 
 
 _ZERO_FRAME = {"X": 0.0, "Y": 0.0, "Z": 0.0, "W": 0.0, "P": 0.0, "R": 0.0}
-_ZERO_CONFIG = {
-    "UToolNumber": 0,
-    "UFrameNumber": 0,
-    "Front": 1,
-    "Up": 1,
-    "Left": 0,
-    "Flip": 0,
-    "Turn4": 0,
-    "Turn5": 0,
-    "Turn6": 0,
-}
-
-
 _NO_LEADING_ZERO = re.compile(rb"(?<=[:,\[])( ?)(-?)0\.(?=[0-9])")
 
 
@@ -685,7 +672,7 @@ class FanucRmiSimulator:
         if n is None:
             return req.err(4)
         stored = self.position_registers.get(
-            n, {"Configuration": dict(_ZERO_CONFIG), "Position": dict(_ZERO_FRAME)}
+            n, {"Configuration": rmi.Configuration().fields(), "Position": dict(_ZERO_FRAME)}
         )
         return req.ok(RegisterNumber=n, **stored)
 
