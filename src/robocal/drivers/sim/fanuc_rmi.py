@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Literal
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal.drivers.sim._server import SimServer, port_of
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError, UnexpectedReply
@@ -324,7 +325,7 @@ _CommandHandler = Callable[["FanucRmiSimulator", _Request], dict[str, Any]]
 _InstructionHandler = Callable[["FanucRmiSimulator", int, _Request], Awaitable[int | None]]
 
 
-class FanucRmiSimulator:
+class FanucRmiSimulator(SimServer):
     """Simulated R-30iB Plus controller with the RMI option, serving on loopback.
 
     Parameters
@@ -356,6 +357,7 @@ class FanucRmiSimulator:
         options: FanucSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
+        super().__init__()
         self.world = world
         self.options = options or FanucSimOptions()
         self.faults = FaultInjector(faults)
@@ -373,15 +375,11 @@ class FanucRmiSimulator:
         self.next_sequence_id = self.options.initial_sequence_id
         self.dropped_stale = 0
         self.alarm_active = self.options.alarm_at_connect
-        self.host = "127.0.0.1"
         self.connect_port = 0
         self.main_port = 0
-        self._servers: list[asyncio.Server] = []
         self._session: _Session | None = None
-        self._session_task: asyncio.Task[None] | None = None
         self._handshake_pending = False
         self._main_server: asyncio.Server | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._t0 = time.monotonic()
         self._reset_state()
 
@@ -407,50 +405,28 @@ class FanucRmiSimulator:
         self, host: str = "127.0.0.1", connect_port: int = 0, main_port: int = 0
     ) -> tuple[int, int]:
         """Listen on both ports (0 picks free ones); return ``(connect_port, main_port)``."""
-        self.host = host
-        main = await asyncio.start_server(self._on_main, host, main_port)
-        self.main_port = main.sockets[0].getsockname()[1]
+        main = await self._listen(self._on_main, host, main_port)
+        self.main_port = port_of(main)
         if self.options.session_port_delay_s > 0:
             # Not listening until a while after each FRC_Connect (see _listen_late).
-            main.close()
+            self._forget(main)
             await main.wait_closed()
         else:
-            self._servers.append(main)
             self._main_server = main
-        conn = await asyncio.start_server(self._on_connect, host, connect_port)
-        self._servers.append(conn)
-        self.connect_port = conn.sockets[0].getsockname()[1]
+        self.connect_port = port_of(await self._listen(self._on_connect, host, connect_port))
         _log.info("rmi sim listening", connect_port=self.connect_port, main_port=self.main_port)
         return self.connect_port, self.main_port
 
     async def stop(self) -> None:
         """Close the listeners and any session; idempotent."""
-        for server in self._servers:
-            server.close()
+        self._close_listeners()
         if self._session is not None:
             self._session.closed = True
             self._session.writer.close()
-        tasks = [t for t in (self._session_task, *self._tasks) if t is not None]
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        for server in self._servers:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await server.wait_closed()
-        self._servers.clear()
-
-    def _track(self, coro: Any) -> None:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        await self._stop_serving()
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
+        """Answer one FRC_Connect; then the controller closes the connection (``_listen``)."""
         try:
             framer = LineFramer(max_length=rmi.MAX_LINE)
             async with asyncio.timeout(10.0):
@@ -488,43 +464,28 @@ class FanucRmiSimulator:
             await writer.drain()
         except (TimeoutError, ConnectionError):
             pass
-        finally:
-            # The controller closes the connect-port connection itself after replying.
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
 
     async def _listen_late(self) -> None:
         """Start listening on the session port ``session_port_delay_s`` after FRC_Connect."""
         await asyncio.sleep(self.options.session_port_delay_s)
         if self._main_server is None:
-            server = await asyncio.start_server(self._on_main, self.host, self.main_port)
-            self._main_server = server
-            self._servers.append(server)
+            self._main_server = await self._listen(self._on_main, self.host, self.main_port)
 
     async def _stop_listening_late(self) -> None:
         """After a session, the next FRC_Connect again finds the session port closed."""
         server, self._main_server = self._main_server, None
         if server is not None and self.options.session_port_delay_s > 0:
-            server.close()
-            if server in self._servers:
-                self._servers.remove(server)
+            self._forget(server)
 
     async def _on_main(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if not self._handshake_pending or (self._session is not None and not self._session.closed):
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()
-            return
+            return  # refused: _listen closes the connection
         self._handshake_pending = False
         await self._stop_listening_late()
         self._reset_state()
         self.sessions += 1
         session = _Session(self, reader, writer)
         self._session = session
-        self._session_task = asyncio.current_task()
         try:
             await session.run()
         finally:
