@@ -30,6 +30,7 @@ from tests.integration.test_daemon_processes import (
 )
 
 from robocal.daemon.client import ApiError, DaemonUnavailable
+from robocal.protocols import fanuc_rmi as rmi
 
 PR_BASE = 11
 
@@ -84,8 +85,7 @@ class SimThread:
         sim = self.cell.fanuc_sim
         assert sim is not None
         sim.position_registers[n] = {
-            "Configuration": {"UToolNumber": 0, "UFrameNumber": 0, "Front": 1, "Up": 1,
-                              "Left": 0, "Flip": 0, "Turn4": 0, "Turn5": 0, "Turn6": 0},
+            "Configuration": rmi.Configuration().fields(),
             "Position": dict(zip("XYZWPR", [*q_deg, *([0.0] * (6 - len(q_deg)))],
                                  strict=True))}
 

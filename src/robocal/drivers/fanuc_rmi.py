@@ -617,17 +617,7 @@ class FanucRmiRobot(RobotDriverBase):
     async def _write_targets(self, table: CompensationTable) -> None:
         rows = self._pr_rows(table)  # every row checked before anything is written
         o = self.options
-        config = {
-            "UToolNumber": o.utool_number,
-            "UFrameNumber": 0,
-            "Front": 1,
-            "Up": 1,
-            "Left": 0,
-            "Flip": 0,
-            "Turn4": 0,
-            "Turn5": 0,
-            "Turn6": 0,
-        }
+        config = rmi.Configuration(utool_number=o.utool_number).fields()
         for r in rows:
             q = [*r.q_deg, *([0.0] * (6 - len(r.q_deg)))]
             for n, xyz in zip(self._pr_numbers(r.index), (q[:3], q[3:6]), strict=True):

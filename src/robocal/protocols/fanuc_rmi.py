@@ -40,6 +40,7 @@ __all__ = [
     "MAX_LINE",
     "MAX_SEQUENCE_ID",
     "RMIT_BASE",
+    "Configuration",
     "Packet",
     "decode",
     "describe_error",
@@ -386,3 +387,37 @@ def parse_frame(body: Mapping[str, Any], key: str = "Frame") -> tuple[float, ...
             raise UnexpectedReply(f"{key}.{k} missing or not a number: {v!r}"[:200])
         out.append(float(v))
     return tuple(out)
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """The ``Configuration`` object of a Cartesian position (a position register's).
+
+    The tool and user frame numbers, the arm configuration flags (``Front``, ``Up``, ``Left``,
+    ``Flip``: 1 or 0) and the turn numbers of joints 4 to 6. The defaults are what a controller
+    reports for a register never written: front, up, no left, no flip, no turns, frames 0.
+    """
+
+    utool_number: int = 0
+    uframe_number: int = 0
+    front: int = 1
+    up: int = 1
+    left: int = 0
+    flip: int = 0
+    turn4: int = 0
+    turn5: int = 0
+    turn6: int = 0
+
+    def fields(self) -> dict[str, int]:
+        """Return the wire object, keys in the order controllers write them."""
+        return {
+            "UToolNumber": self.utool_number,
+            "UFrameNumber": self.uframe_number,
+            "Front": self.front,
+            "Up": self.up,
+            "Left": self.left,
+            "Flip": self.flip,
+            "Turn4": self.turn4,
+            "Turn5": self.turn5,
+            "Turn6": self.turn6,
+        }

@@ -328,8 +328,8 @@ async def test_verification_mismatch(world, monkeypatch):
         await robot.connect(timeout=5)
         real = sim._frame_cmd
 
-        def lossy(body, ok, err, key, store, bad, count):
-            reply = real(body, ok, err, key, store, bad, count)
+        def lossy(req, key, store, bad, count):
+            reply = real(req, key, store, bad, count)
             if key == "ToolNumber" and "Frame" in reply:
                 reply["Frame"] = {**reply["Frame"], "Z": reply["Frame"]["Z"] + 0.5}
             return reply

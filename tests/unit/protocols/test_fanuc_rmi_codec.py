@@ -64,6 +64,18 @@ def test_frames():
         rmi.parse_frame({"Frame": {**f, "Z": True}})
 
 
+def test_position_configuration_wire_object():
+    packet = {"Command": "FRC_WritePositionRegister", "RegisterNumber": 11,
+              "Configuration": rmi.Configuration(utool_number=3).fields()}
+    assert rmi.encode(packet) == (
+        b'{"Command":"FRC_WritePositionRegister","RegisterNumber":11,"Configuration":'
+        b'{"UToolNumber":3,"UFrameNumber":0,"Front":1,"Up":1,"Left":0,"Flip":0,'
+        b'"Turn4":0,"Turn5":0,"Turn6":0}}'
+    )
+    assert rmi.Configuration(flip=1, turn6=-1).fields()["Flip"] == 1
+    assert rmi.Configuration(flip=1, turn6=-1).fields()["Turn6"] == -1
+
+
 @pytest.mark.parametrize(
     "line",
     [

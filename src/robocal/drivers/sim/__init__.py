@@ -18,10 +18,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
-import json
-import os
-import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,6 +25,7 @@ from typing import Any, Literal
 
 import structlog
 
+from robocal.drivers.sim._server import publish_ports, until_signalled
 from robocal.drivers.sim.emscon import EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
@@ -303,24 +300,9 @@ async def _serve(args: argparse.Namespace) -> int:
         host=args.host,
         ports=_fixed_ports(which, args.port),
     )
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    try:
-        async with cell:
-            blob = json.dumps(cell.ports, sort_keys=True)
-            if args.ports_file is not None:
-                tmp = args.ports_file.with_name(args.ports_file.name + ".tmp")
-                tmp.write_text(blob + "\n")
-                os.replace(tmp, args.ports_file)
-            sys.stdout.write(blob + "\n")
-            sys.stdout.flush()
-            await stop.wait()
-    finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            with contextlib.suppress(Exception):
-                loop.remove_signal_handler(sig)
+    async with until_signalled() as stop, cell:
+        publish_ports(cell.ports, args.ports_file)
+        await stop.wait()
     return 0
 
 

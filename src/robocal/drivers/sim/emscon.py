@@ -26,6 +26,7 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal.drivers.sim._server import SessionServer, port_of
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, UnexpectedReply
@@ -302,6 +303,11 @@ class _Session:
     async def event(self, code: int) -> None:
         await self.send(emscon.encode(emscon.StatusChange(int(code))))
 
+    async def open(self) -> None:
+        """Announce the server (event 999) if so configured, unless this client is refused."""
+        if self.sim.options.announce_on_connect and not self.refused:
+            await self.event(Event.SERVER_STARTED)
+
     async def reply(self, cmd: int, status: int = 0, **data: Any) -> None:
         """Send the reply to ``cmd`` (with the injected pre-reply faults and delays)."""
         sim = self.sim
@@ -406,7 +412,7 @@ class _Session:
                     await task
 
 
-class EmsconTrackerSimulator:
+class EmsconTrackerSimulator(SessionServer["_Session"]):
     """Simulated emScon server on TCP.
 
     Parameters
@@ -430,6 +436,7 @@ class EmsconTrackerSimulator:
 
     def __init__(self, world: SimWorld, options: EmsconSimOptions | None = None,
                  faults: FaultConfig | None = None) -> None:
+        super().__init__()
         self.world = world
         self.options = options or EmsconSimOptions()
         self.faults = FaultInjector(faults)
@@ -441,12 +448,8 @@ class EmsconTrackerSimulator:
         self.exit_received = False
         #: Tests: break the beam at the next StartMeasurement ("start" or "during").
         self.next_beam_break: Literal["start", "during"] | None = None
-        self.host = "127.0.0.1"
         self.port = 0
-        self._server: asyncio.Server | None = None
         self._session: _Session | None = None
-        self._sessions: set[_Session] = set()
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._relock: asyncio.TimerHandle | None = None
 
     # --- units ---------------------------------------------------------------------------------
@@ -808,75 +811,38 @@ class EmsconTrackerSimulator:
         if o.relock_after_s is not None:
             self._beam_broken(s, announce=False)
 
-    def _track(self, coro: Any) -> None:
-        task = asyncio.ensure_future(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
     # --- TCP -----------------------------------------------------------------------------------
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Serve on ``host:port`` (0 picks a free port); return the bound port."""
-        self.host = host
-        self._server = await asyncio.start_server(self._on_client, host, port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self.port = port_of(await self._listen(self._on_client, host, port))
         _log.info("emscon sim listening", port=self.port)
         return self.port
 
     async def _on_client(self, reader: asyncio.StreamReader,
                          writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
         busy = self._session is not None and not self._session.closed
+        if busy and self.options.second_client == "refuse":
+            return
         session = _Session(self, writer, refused=busy)
+        if not busy:
+            self._session = session
         try:
-            if busy and self.options.second_client == "refuse":
-                return
-            if not busy:
-                self._session = session
-            self._sessions.add(session)
-            if self.options.announce_on_connect and not busy:
-                await session.event(Event.SERVER_STARTED)
-            while not session.closed:
-                data = await reader.read(65536)
-                if not data:
-                    break
-                await session.feed(data)
-        except (ConnectionError, asyncio.CancelledError):
-            pass
+            await self._serve_session(reader, session, 65536)
         finally:
-            await session.stop()
-            self._sessions.discard(session)
             if self._session is session:
                 self._session = None
                 if not self.options.keep_state_across_connections:
                     self.state = _State(self.options)
-            writer.close()
-            with contextlib.suppress(Exception, asyncio.CancelledError):
-                await writer.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
 
     async def stop(self) -> None:
         """Stop serving; idempotent."""
-        if self._server is not None:
-            self._server.close()
+        self._close_listeners()
         if self._relock is not None:
             self._relock.cancel()
         for session in list(self._sessions):
             session.close()
             await session.stop()
-        tasks = list(self._tasks)
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await self._server.wait_closed()
-            self._server = None
+        await self._stop_serving()
 
 
 class _RateInjector:

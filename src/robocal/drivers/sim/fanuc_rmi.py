@@ -18,12 +18,14 @@ import contextlib
 import math
 import re
 import time
-from collections.abc import Mapping
-from typing import Any, Literal
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal.drivers.sim._server import SimServer, port_of
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError, UnexpectedReply
@@ -77,19 +79,6 @@ class FanucSimOptions(BaseModel):
 
 
 _ZERO_FRAME = {"X": 0.0, "Y": 0.0, "Z": 0.0, "W": 0.0, "P": 0.0, "R": 0.0}
-_ZERO_CONFIG = {
-    "UToolNumber": 0,
-    "UFrameNumber": 0,
-    "Front": 1,
-    "Up": 1,
-    "Left": 0,
-    "Flip": 0,
-    "Turn4": 0,
-    "Turn5": 0,
-    "Turn6": 0,
-}
-
-
 _NO_LEADING_ZERO = re.compile(rb"(?<=[:,\[])( ?)(-?)0\.(?=[0-9])")
 
 
@@ -302,7 +291,41 @@ class _Session:
         return not aborted.is_set()
 
 
-class FanucRmiSimulator:
+@dataclass(frozen=True)
+class _Request:
+    """A command or instruction being handled, with the session it came on."""
+
+    packet: rmi.Packet
+    session: _Session
+
+    @property
+    def name(self) -> str:
+        """The packet's name (``FRC_...``)."""
+        return self.packet.name
+
+    @property
+    def body(self) -> Mapping[str, Any]:
+        """Every field of the packet."""
+        return self.packet.body
+
+    def ok(self, **fields: Any) -> dict[str, Any]:
+        """A successful command reply carrying ``fields``."""
+        return {"Command": self.name, "ErrorID": 0, **fields}
+
+    def fail(self, error_id: int) -> dict[str, Any]:
+        """A failed command reply with this ErrorID."""
+        return {"Command": self.name, "ErrorID": error_id}
+
+    def err(self, n: int) -> dict[str, Any]:
+        """A command reply failing with alarm RMIT-``n``."""
+        return self.fail(rmi.rmit(n))
+
+
+_CommandHandler = Callable[["FanucRmiSimulator", _Request], dict[str, Any]]
+_InstructionHandler = Callable[["FanucRmiSimulator", int, _Request], Awaitable[int | None]]
+
+
+class FanucRmiSimulator(SimServer):
     """Simulated R-30iB Plus controller with the RMI option, serving on loopback.
 
     Parameters
@@ -334,6 +357,7 @@ class FanucRmiSimulator:
         options: FanucSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
+        super().__init__()
         self.world = world
         self.options = options or FanucSimOptions()
         self.faults = FaultInjector(faults)
@@ -351,15 +375,11 @@ class FanucRmiSimulator:
         self.next_sequence_id = self.options.initial_sequence_id
         self.dropped_stale = 0
         self.alarm_active = self.options.alarm_at_connect
-        self.host = "127.0.0.1"
         self.connect_port = 0
         self.main_port = 0
-        self._servers: list[asyncio.Server] = []
         self._session: _Session | None = None
-        self._session_task: asyncio.Task[None] | None = None
         self._handshake_pending = False
         self._main_server: asyncio.Server | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._t0 = time.monotonic()
         self._reset_state()
 
@@ -385,50 +405,28 @@ class FanucRmiSimulator:
         self, host: str = "127.0.0.1", connect_port: int = 0, main_port: int = 0
     ) -> tuple[int, int]:
         """Listen on both ports (0 picks free ones); return ``(connect_port, main_port)``."""
-        self.host = host
-        main = await asyncio.start_server(self._on_main, host, main_port)
-        self.main_port = main.sockets[0].getsockname()[1]
+        main = await self._listen(self._on_main, host, main_port)
+        self.main_port = port_of(main)
         if self.options.session_port_delay_s > 0:
             # Not listening until a while after each FRC_Connect (see _listen_late).
-            main.close()
+            self._forget(main)
             await main.wait_closed()
         else:
-            self._servers.append(main)
             self._main_server = main
-        conn = await asyncio.start_server(self._on_connect, host, connect_port)
-        self._servers.append(conn)
-        self.connect_port = conn.sockets[0].getsockname()[1]
+        self.connect_port = port_of(await self._listen(self._on_connect, host, connect_port))
         _log.info("rmi sim listening", connect_port=self.connect_port, main_port=self.main_port)
         return self.connect_port, self.main_port
 
     async def stop(self) -> None:
         """Close the listeners and any session; idempotent."""
-        for server in self._servers:
-            server.close()
+        self._close_listeners()
         if self._session is not None:
             self._session.closed = True
             self._session.writer.close()
-        tasks = [t for t in (self._session_task, *self._tasks) if t is not None]
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        for server in self._servers:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await server.wait_closed()
-        self._servers.clear()
-
-    def _track(self, coro: Any) -> None:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        await self._stop_serving()
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
+        """Answer one FRC_Connect; then the controller closes the connection (``_listen``)."""
         try:
             framer = LineFramer(max_length=rmi.MAX_LINE)
             async with asyncio.timeout(10.0):
@@ -466,43 +464,28 @@ class FanucRmiSimulator:
             await writer.drain()
         except (TimeoutError, ConnectionError):
             pass
-        finally:
-            # The controller closes the connect-port connection itself after replying.
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
 
     async def _listen_late(self) -> None:
         """Start listening on the session port ``session_port_delay_s`` after FRC_Connect."""
         await asyncio.sleep(self.options.session_port_delay_s)
         if self._main_server is None:
-            server = await asyncio.start_server(self._on_main, self.host, self.main_port)
-            self._main_server = server
-            self._servers.append(server)
+            self._main_server = await self._listen(self._on_main, self.host, self.main_port)
 
     async def _stop_listening_late(self) -> None:
         """After a session, the next FRC_Connect again finds the session port closed."""
         server, self._main_server = self._main_server, None
         if server is not None and self.options.session_port_delay_s > 0:
-            server.close()
-            if server in self._servers:
-                self._servers.remove(server)
+            self._forget(server)
 
     async def _on_main(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if not self._handshake_pending or (self._session is not None and not self._session.closed):
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()
-            return
+            return  # refused: _listen closes the connection
         self._handshake_pending = False
         await self._stop_listening_late()
         self._reset_state()
         self.sessions += 1
         session = _Session(self, reader, writer)
         self._session = session
-        self._session_task = asyncio.current_task()
         try:
             await session.run()
         finally:
@@ -515,141 +498,187 @@ class FanucRmiSimulator:
         return int((time.monotonic() - self._t0) * 1000) & 0x7FFFFFFF
 
     def command(self, packet: rmi.Packet, session: _Session) -> dict[str, Any]:
-        """Return the reply to one command packet."""
-        name, body = packet.name, packet.body
-        ok: dict[str, Any] = {"Command": name, "ErrorID": 0}
+        """Return the reply to one command packet (the handler in ``_COMMANDS``)."""
+        req = _Request(packet, session)
+        handler = self._COMMANDS.get(packet.name)
+        if handler is None:
+            return req.err(13)
+        return handler(self, req)
 
-        def err(n: int) -> dict[str, Any]:
-            return {"Command": name, "ErrorID": rmi.rmit(n)}
+    def _get_status(self, req: _Request) -> dict[str, Any]:
+        """FRC_GetStatus: servo, pendant, RMI and program state."""
+        return req.ok(
+            ServoReady=int(self.options.servo_ready and not self.alarm_active),
+            TPMode=int(self.options.tp_enabled),
+            RMIMotionStatus=int(self.initialized),
+            ProgramStatus=0 if self.initialized and not self.hold else 1,
+            SingleStepMode=0,
+            NumberUTool=self.options.n_utools,
+            NumberUFrame=self.options.n_uframes,
+            NextSequenceID=self.next_sequence_id,
+            Override=self.override,
+        )
 
-        if name == "FRC_GetStatus":
-            return {
-                **ok,
-                "ServoReady": int(self.options.servo_ready and not self.alarm_active),
-                "TPMode": int(self.options.tp_enabled),
-                "RMIMotionStatus": int(self.initialized),
-                "ProgramStatus": 0 if self.initialized and not self.hold else 1,
-                "SingleStepMode": 0,
-                "NumberUTool": self.options.n_utools,
-                "NumberUFrame": self.options.n_uframes,
-                "NextSequenceID": self.next_sequence_id,
-                "Override": self.override,
-            }
-        if name == "FRC_Initialize":
-            if self.options.tp_enabled:
-                return err(8)
-            if not self.options.servo_ready or self.alarm_active:
-                return err(7)
-            if self.options.rmi_move_selected:
-                return {"Command": name, "ErrorID": 7015}
-            if self.initialized:
-                return err(15)
-            self.initialized = True
-            self.hold = False
-            if not self.options.sequence_persists:
-                self.next_sequence_id = 1
-            return {**ok, "GroupMask": int(body.get("GroupMask", 1) or 1)}
-        if name == "FRC_Abort":
-            if not self.initialized:
-                return err(9)
-            self.initialized = False
-            session.abort()
-            q_deg = [round(math.degrees(v), 4) for v in self.world.q_actual_rad]
-            _log.info("rmi sim: abort", q_deg=q_deg)
-            return ok
-        if name == "FRC_Reset":
-            self.hold = False
-            self.alarm_active = False
-            self.last_alarm = ""
-            return ok
-        if name == "FRC_Pause":
-            session.paused.clear()
-            return ok
-        if name == "FRC_Continue":
-            session.paused.set()
-            return ok
-        if name == "FRC_ReadError":
-            return {**ok, "Count": 1, "ErrorData": self.last_alarm or ""}
-        if name == "FRC_SetOverRide":
-            value = body.get("Value")
-            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 100:
-                return err(5)
-            self.override = value
-            return ok
-        if name == "FRC_ReadJointAngles":
-            q = [math.degrees(v) for v in self.world.q_actual_rad]
-            angles = {f"J{i + 1}": (q[i] if i < len(q) else 0.0) for i in range(9)}
-            return {**ok, "TimeTag": self._time_tag(), self.options.joint_key: angles}
-        if name == "FRC_GetUFrameUTool":
-            return {**ok, "UFrameNumber": self.active_uframe, "UToolNumber": self.active_utool}
-        if name == "FRC_SetUFrameUTool":
-            uf, ut = body.get("UFrameNumber"), body.get("UToolNumber")
-            if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
-                return err(3)
-            if not isinstance(ut, int) or not 1 <= ut <= self.options.n_utools:
-                return err(2)
-            self.active_uframe, self.active_utool = uf, ut
-            return ok
-        if name in ("FRC_ReadUFrameData", "FRC_WriteUFrameData"):
-            return self._frame_cmd(
-                body, ok, err, "FrameNumber", self.uframes, 3, self.options.n_uframes
-            )
-        if name in ("FRC_ReadUToolData", "FRC_WriteUToolData"):
-            return self._frame_cmd(
-                body, ok, err, "ToolNumber", self.utools, 2, self.options.n_utools
-            )
-        if name in ("FRC_ReadPositionRegister", "FRC_WritePositionRegister"):
-            n = body.get("RegisterNumber")
-            if isinstance(n, bool) or not isinstance(n, int):
-                return err(4)
-            if not 1 <= n <= self.options.n_position_registers:
-                return err(4)
-            if name == "FRC_WritePositionRegister":
-                try:
-                    pos = rmi.parse_frame(body, "Position")
-                except ProtocolError:
-                    return err(23)
-                config = body.get("Configuration")
-                if not isinstance(config, Mapping):
-                    return err(23)
-                uf = config.get("UFrameNumber")
-                if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
-                    return err(3)
-                # UToolNumber is stored as given: whether a controller accepts 0 is not
-                # documented, and the driver sends only configured tools (1..10).
-                # A Cartesian PR holds an orientation: the controller keeps W/P/R in their
-                # canonical ranges, so angles beyond them do not read back as written.
-                position = dict(zip("XYZWPR", (*pos[:3], *normalise_wpr(*pos[3:])), strict=True))
-                self.position_registers[n] = {"Configuration": dict(config), "Position": position}
-                return {**ok, "RegisterNumber": n}
-            stored = self.position_registers.get(
-                n, {"Configuration": dict(_ZERO_CONFIG), "Position": dict(_ZERO_FRAME)}
-            )
-            return {**ok, "RegisterNumber": n, **stored}
-        return err(13)
+    def _initialize(self, req: _Request) -> dict[str, Any]:
+        """FRC_Initialize: start RMI (refused with the pendant on, servo off or RMI running)."""
+        if self.options.tp_enabled:
+            return req.err(8)
+        if not self.options.servo_ready or self.alarm_active:
+            return req.err(7)
+        if self.options.rmi_move_selected:
+            return req.fail(7015)  # MEMO-015: RMI_MOVE is selected on the pendant
+        if self.initialized:
+            return req.err(15)
+        self.initialized = True
+        self.hold = False
+        if not self.options.sequence_persists:
+            self.next_sequence_id = 1
+        return req.ok(GroupMask=int(req.body.get("GroupMask", 1) or 1))
+
+    def _abort(self, req: _Request) -> dict[str, Any]:
+        """FRC_Abort: halt at once, drop every instruction unanswered, stop RMI."""
+        if not self.initialized:
+            return req.err(9)
+        self.initialized = False
+        req.session.abort()
+        q_deg = [round(math.degrees(v), 4) for v in self.world.q_actual_rad]
+        _log.info("rmi sim: abort", q_deg=q_deg)
+        return req.ok()
+
+    def _reset(self, req: _Request) -> dict[str, Any]:
+        """FRC_Reset: clear HOLD and the alarm."""
+        self.hold = False
+        self.alarm_active = False
+        self.last_alarm = ""
+        return req.ok()
+
+    def _pause(self, req: _Request) -> dict[str, Any]:
+        """FRC_Pause: hold the instruction queue."""
+        req.session.paused.clear()
+        return req.ok()
+
+    def _continue(self, req: _Request) -> dict[str, Any]:
+        """FRC_Continue: release the instruction queue."""
+        req.session.paused.set()
+        return req.ok()
+
+    def _read_error(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadError: the last alarm text."""
+        return req.ok(Count=1, ErrorData=self.last_alarm or "")
+
+    def _set_override(self, req: _Request) -> dict[str, Any]:
+        """FRC_SetOverRide: speed override 1..100 %."""
+        value = req.body.get("Value")
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 100:
+            return req.err(5)
+        self.override = value
+        return req.ok()
+
+    def _read_joint_angles(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadJointAngles: where the robot is now (J1..J9, degrees)."""
+        q = [math.degrees(v) for v in self.world.q_actual_rad]
+        angles = {f"J{i + 1}": (q[i] if i < len(q) else 0.0) for i in range(9)}
+        return req.ok(TimeTag=self._time_tag(), **{self.options.joint_key: angles})
+
+    def _get_uframe_utool(self, req: _Request) -> dict[str, Any]:
+        """FRC_GetUFrameUTool: the active user frame and tool numbers."""
+        return req.ok(UFrameNumber=self.active_uframe, UToolNumber=self.active_utool)
+
+    def _set_uframe_utool(self, req: _Request) -> dict[str, Any]:
+        """FRC_SetUFrameUTool: select a user frame (0..n) and a tool (1..n)."""
+        uf, ut = req.body.get("UFrameNumber"), req.body.get("UToolNumber")
+        if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
+            return req.err(3)
+        if not isinstance(ut, int) or not 1 <= ut <= self.options.n_utools:
+            return req.err(2)
+        self.active_uframe, self.active_utool = uf, ut
+        return req.ok()
+
+    def _uframe_data(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadUFrameData and FRC_WriteUFrameData."""
+        return self._frame_cmd(req, "FrameNumber", self.uframes, 3, self.options.n_uframes)
+
+    def _utool_data(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadUToolData and FRC_WriteUToolData."""
+        return self._frame_cmd(req, "ToolNumber", self.utools, 2, self.options.n_utools)
 
     def _frame_cmd(
-        self,
-        body: Mapping[str, Any],
-        ok: dict[str, Any],
-        err: Any,
-        key: str,
-        store: dict[int, dict[str, float]],
-        bad: int,
-        count: int,
+        self, req: _Request, key: str, store: dict[int, dict[str, float]], bad: int, count: int
     ) -> dict[str, Any]:
-        n = body.get(key)
+        """Read (or write, then read) frame ``body[key]`` of ``store``; RMIT-``bad`` if the
+        number is not within 1..``count``."""
+        n = req.body.get(key)
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= count:
-            return err(bad)
-        if str(ok["Command"]).startswith("FRC_Write"):
+            return req.err(bad)
+        if req.name.startswith("FRC_Write"):
             if self.moving:
-                return err(15)
+                return req.err(15)
             try:
-                frame = rmi.parse_frame(body, "Frame")
+                frame = rmi.parse_frame(req.body, "Frame")
             except ProtocolError:
-                return err(23)
+                return req.err(23)
             store[n] = dict(zip("XYZWPR", frame, strict=True))
-        return {**ok, key: n, "Frame": dict(store.get(n, _ZERO_FRAME))}
+        return req.ok(**{key: n, "Frame": dict(store.get(n, _ZERO_FRAME))})
+
+    def _register_number(self, req: _Request) -> int | None:
+        """The command's RegisterNumber, or None when it is not a configured PR."""
+        n = req.body.get("RegisterNumber")
+        if isinstance(n, bool) or not isinstance(n, int):
+            return None
+        return n if 1 <= n <= self.options.n_position_registers else None
+
+    def _read_position_register(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadPositionRegister (zeros where nothing was written)."""
+        n = self._register_number(req)
+        if n is None:
+            return req.err(4)
+        stored = self.position_registers.get(
+            n, {"Configuration": rmi.Configuration().fields(), "Position": dict(_ZERO_FRAME)}
+        )
+        return req.ok(RegisterNumber=n, **stored)
+
+    def _write_position_register(self, req: _Request) -> dict[str, Any]:
+        """FRC_WritePositionRegister, keeping W/P/R as a controller does."""
+        n = self._register_number(req)
+        if n is None:
+            return req.err(4)
+        try:
+            pos = rmi.parse_frame(req.body, "Position")
+        except ProtocolError:
+            return req.err(23)
+        config = req.body.get("Configuration")
+        if not isinstance(config, Mapping):
+            return req.err(23)
+        uf = config.get("UFrameNumber")
+        if not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
+            return req.err(3)
+        # UToolNumber is stored as given: whether a controller accepts 0 is not
+        # documented, and the driver sends only configured tools (1..10).
+        # A Cartesian PR holds an orientation: the controller keeps W/P/R in their
+        # canonical ranges, so angles beyond them do not read back as written.
+        position = dict(zip("XYZWPR", (*pos[:3], *normalise_wpr(*pos[3:])), strict=True))
+        self.position_registers[n] = {"Configuration": dict(config), "Position": position}
+        return req.ok(RegisterNumber=n)
+
+    _COMMANDS: ClassVar[dict[str, _CommandHandler]] = {
+        "FRC_GetStatus": _get_status,
+        "FRC_Initialize": _initialize,
+        "FRC_Abort": _abort,
+        "FRC_Reset": _reset,
+        "FRC_Pause": _pause,
+        "FRC_Continue": _continue,
+        "FRC_ReadError": _read_error,
+        "FRC_SetOverRide": _set_override,
+        "FRC_ReadJointAngles": _read_joint_angles,
+        "FRC_GetUFrameUTool": _get_uframe_utool,
+        "FRC_SetUFrameUTool": _set_uframe_utool,
+        "FRC_ReadUFrameData": _uframe_data,
+        "FRC_WriteUFrameData": _uframe_data,
+        "FRC_ReadUToolData": _utool_data,
+        "FRC_WriteUToolData": _utool_data,
+        "FRC_ReadPositionRegister": _read_position_register,
+        "FRC_WritePositionRegister": _write_position_register,
+    }
 
     # --- instructions --------------------------------------------------------------------------
     def _fault(self, seq: int, text: str, session: _Session) -> None:
@@ -661,58 +690,74 @@ class FanucRmiSimulator:
     async def execute(self, seq: int, packet: rmi.Packet, session: _Session) -> int | None:
         """Run one instruction; return its reply ErrorID, None after a system fault, or
         ``_ABORTED`` when FRC_Abort cut it short (neither gets a reply)."""
-        body = packet.body
-        scale = self.options.time_scale
-        if packet.name == "FRC_JointMotionJRep":
-            dof = self.world.dof
-            try:
-                q_deg = rmi.joint_angles(body, dof)
-            except ProtocolError:
-                return rmi.rmit(23)
-            if body.get("SpeedType", "Percent") != "Percent":
-                return rmi.rmit(30)
-            speed = body.get("Speed")
-            if (
-                isinstance(speed, bool)
-                or not isinstance(speed, int | float)
-                or not 0 < speed <= 100
-            ):
-                return rmi.rmit(31)
-            if body.get("TermType", "FINE") not in ("FINE", "CNT", "CR"):
-                return rmi.rmit(32)
-            for i, (v, (lo, hi)) in enumerate(zip(q_deg, self.joint_limits_deg, strict=True)):
-                if not lo <= v <= hi:
-                    self._fault(seq, f"MOTN-017 Limit error (G:1^J{i + 1})", session)
-                    return None
-            if self.faults.fire("alarm"):
-                self._fault(seq, "SRVO-050 Collision Detect alarm (injected)", session)
+        handler = self._INSTRUCTIONS.get(packet.name)
+        if handler is None:
+            return rmi.rmit(13)
+        return await handler(self, seq, _Request(packet, session))
+
+    async def _joint_motion_jrep(self, seq: int, req: _Request) -> int | None:
+        """FRC_JointMotionJRep: a joint move that takes simulated time."""
+        body, session = req.body, req.session
+        dof = self.world.dof
+        try:
+            q_deg = rmi.joint_angles(body, dof)
+        except ProtocolError:
+            return rmi.rmit(23)
+        if body.get("SpeedType", "Percent") != "Percent":
+            return rmi.rmit(30)
+        speed = body.get("Speed")
+        if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed <= 100:
+            return rmi.rmit(31)
+        if body.get("TermType", "FINE") not in ("FINE", "CNT", "CR"):
+            return rmi.rmit(32)
+        for i, (v, (lo, hi)) in enumerate(zip(q_deg, self.joint_limits_deg, strict=True)):
+            if not lo <= v <= hi:
+                self._fault(seq, f"MOTN-017 Limit error (G:1^J{i + 1})", session)
                 return None
-            current = [math.degrees(v) for v in self.world.q_cmd_rad]
-            dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
-            rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
-            duration = max(dist / rate, self.options.min_motion_s) * scale
-            if duration <= 0:
-                self.world.move([math.radians(v) for v in q_deg])
-                return 0
-            motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
-            if not await session.run_for(duration) or not self.world.finish_motion(motion):
-                return _ABORTED
+        if self.faults.fire("alarm"):
+            self._fault(seq, "SRVO-050 Collision Detect alarm (injected)", session)
+            return None
+        current = [math.degrees(v) for v in self.world.q_cmd_rad]
+        dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
+        rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
+        duration = max(dist / rate, self.options.min_motion_s) * self.options.time_scale
+        if duration <= 0:
+            self.world.move([math.radians(v) for v in q_deg])
             return 0
-        if packet.name == "FRC_WaitTime":
-            t = body.get("Time", 0)
-            if isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
-                return rmi.rmit(21)
-            if t * scale > 0 and not await session.run_for(t * scale):
-                return _ABORTED
-            return 0
-        if packet.name in ("FRC_SetUFrame", "FRC_SetUTool"):
-            key = "FrameNumber" if packet.name == "FRC_SetUFrame" else "ToolNumber"
-            n = body.get(key)
-            if not isinstance(n, int):
-                return rmi.rmit(3 if key == "FrameNumber" else 2)
-            if key == "FrameNumber":
-                self.active_uframe = n
-            else:
-                self.active_utool = n
-            return 0
-        return rmi.rmit(13)
+        motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
+        if not await session.run_for(duration) or not self.world.finish_motion(motion):
+            return _ABORTED
+        return 0
+
+    async def _wait_time(self, seq: int, req: _Request) -> int | None:
+        """FRC_WaitTime: dwell ``Time`` seconds (scaled)."""
+        t = req.body.get("Time", 0)
+        if isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
+            return rmi.rmit(21)
+        wait = t * self.options.time_scale
+        if wait > 0 and not await req.session.run_for(wait):
+            return _ABORTED
+        return 0
+
+    async def _set_uframe(self, seq: int, req: _Request) -> int | None:
+        """FRC_SetUFrame instruction."""
+        n = req.body.get("FrameNumber")
+        if not isinstance(n, int):
+            return rmi.rmit(3)
+        self.active_uframe = n
+        return 0
+
+    async def _set_utool(self, seq: int, req: _Request) -> int | None:
+        """FRC_SetUTool instruction."""
+        n = req.body.get("ToolNumber")
+        if not isinstance(n, int):
+            return rmi.rmit(2)
+        self.active_utool = n
+        return 0
+
+    _INSTRUCTIONS: ClassVar[dict[str, _InstructionHandler]] = {
+        "FRC_JointMotionJRep": _joint_motion_jrep,
+        "FRC_WaitTime": _wait_time,
+        "FRC_SetUFrame": _set_uframe,
+        "FRC_SetUTool": _set_utool,
+    }

@@ -26,6 +26,7 @@ from typing import Any
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal.drivers.sim._server import SessionServer, port_of
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError
@@ -157,6 +158,9 @@ class _Session:
         #: Manual ``WEATHER`` override for this session (None: the station's values).
         self.weather: dict[str, float] | None = None
 
+    async def open(self) -> None:
+        """An LTP/1 bridge sends nothing before the first request."""
+
     async def send(self, line: str, *, garbage_ok: bool = True) -> None:
         if self.closed:
             return
@@ -244,7 +248,7 @@ class _Session:
                 await self.busy
 
 
-class LtpTrackerSimulator:
+class LtpTrackerSimulator(SessionServer["_Session"]):
     """Simulated tracker bridge speaking LTP/1.
 
     Parameters
@@ -268,6 +272,7 @@ class LtpTrackerSimulator:
         options: LtpSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
+        super().__init__()
         self.world = world
         self.options = options or LtpSimOptions()
         self.faults = FaultInjector(faults)
@@ -279,13 +284,9 @@ class LtpTrackerSimulator:
         self.angle_units = "deg"
         self.frame = self.options.initial_frame
         self.beam = "LOCKED"
-        self.host = "127.0.0.1"
         self.port = 0
         self.pty_path: str | None = None
-        self._server: asyncio.Server | None = None
-        self._sessions: set[_Session] = set()
         self._tcp_session: _Session | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._pty: tuple[int, int] | None = None
         self._pty_session: _Session | None = None
         self._t0 = time.monotonic()
@@ -495,67 +496,36 @@ class LtpTrackerSimulator:
             self.beam = "LOCKED"
             await session.send(ltp.format_event("BEAM", {"state": "LOCKED", "t": self._now()}))
 
-    def _track(self, coro: Any) -> None:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
     # --- TCP -----------------------------------------------------------------------------------
     async def start_tcp(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Serve LTP/1 on ``host:port`` (0 picks a free port); return the bound port."""
-        self.host = host
-        self._server = await asyncio.start_server(self._on_client, host, port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self.port = port_of(await self._listen(self._on_client, host, port))
         _log.info("ltp sim listening", port=self.port)
         return self.port
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
-
         async def write(data: bytes) -> None:
             writer.write(data)
             await writer.drain()
 
-        try:
-            if self._tcp_session is not None and not self._tcp_session.closed:
-                # One client at a time, as a real bridge.
-                line = ltp.format_event("FAULT", {"code": 14, "msg": "BUSY"})
-                with contextlib.suppress(Exception):
-                    await write(line.encode() + b"\r\n")
-                return
-
-            def close() -> None:
-                session.closed = True
-                writer.close()
-
-            session = _Session(self, write, close)
-            self._tcp_session = session
-            self._sessions.add(session)
-            try:
-                while not session.closed:
-                    data = await reader.read(4096)
-                    if not data:
-                        break
-                    await session.feed(data)
-            except ConnectionError:
-                pass
-            except asyncio.CancelledError:
-                # stop() cancels handlers; end normally, or asyncio's stream callback on
-                # Python 3.11 logs the cancelled task as an error.
-                pass
-            finally:
-                await session.stop()
-                self._sessions.discard(session)
-                if self._tcp_session is session:
-                    self._tcp_session = None
-        finally:
-            writer.close()
+        if self._tcp_session is not None and not self._tcp_session.closed:
+            # One client at a time, as a real bridge.
+            line = ltp.format_event("FAULT", {"code": 14, "msg": "BUSY"})
             with contextlib.suppress(Exception):
-                await writer.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
+                await write(line.encode() + b"\r\n")
+            return
+
+        def close() -> None:
+            session.closed = True
+            writer.close()
+
+        session = _Session(self, write, close)
+        self._tcp_session = session
+        try:
+            await self._serve_session(reader, session, 4096)
+        finally:
+            if self._tcp_session is session:
+                self._tcp_session = None
 
     # --- pty -------------------------------------------------------------------------------------
     async def start_pty(self) -> str:
@@ -617,24 +587,13 @@ class LtpTrackerSimulator:
     # --- shutdown ------------------------------------------------------------------------------
     async def stop(self) -> None:
         """Stop serving (TCP and pty); idempotent."""
-        if self._server is not None:
-            self._server.close()
+        self._close_listeners()
         for session in list(self._sessions):
             session.closed = True
             session._close()
         if self._pty_session is not None:
             await self._pty_session.stop()
-        tasks = list(self._tasks)
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await self._server.wait_closed()
-            self._server = None
+        await self._stop_serving()
         if self._pty is not None:
             master, slave = self._pty
             asyncio.get_running_loop().remove_reader(master)

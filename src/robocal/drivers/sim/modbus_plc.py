@@ -19,12 +19,12 @@ import asyncio
 import contextlib
 import math
 import time
-from typing import Any
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
+from robocal.drivers.sim._server import SimServer
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import ProtocolError
@@ -54,7 +54,7 @@ class ModbusSimOptions(BaseModel):
     joint_limits_deg: tuple[tuple[float, float], ...] | None = None
 
 
-class ModbusPlcSimulator:
+class ModbusPlcSimulator(SimServer):
     """Simulated PLC driving the world robot through the default register handshake.
 
     Parameters
@@ -88,6 +88,7 @@ class ModbusPlcSimulator:
         *,
         clock: Clock = SYSTEM_CLOCK,
     ) -> None:
+        super().__init__()
         self.world = world
         self.clock = clock
         self.options = options or ModbusSimOptions()
@@ -114,7 +115,6 @@ class ModbusPlcSimulator:
         self._aborted = asyncio.Event()
         self._client_hb: int | None = None
         self._client_hb_time = clock.monotonic()
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._t0 = time.monotonic()
         self._server = mb.ModbusSimServer(
             holding_size=m.holding_size(),
@@ -122,7 +122,6 @@ class ModbusPlcSimulator:
             action=self._action,
             device_id=m.device_id,
         )
-        self.host = "127.0.0.1"
         self.port = 0
         self._publish_actual()
 
@@ -210,11 +209,6 @@ class ModbusPlcSimulator:
                 self._set("status", [int(mb.Status.BUSY)])
                 # Run after pymodbus has stored this write in the register block.
                 self._track(self._run(cmd, seq, self._abort_gen))
-
-    def _track(self, coro: Any) -> None:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
 
     def _hr_words(self, address: int, count: int) -> list[int]:
         if self._hr is None:
@@ -349,9 +343,4 @@ class ModbusPlcSimulator:
     async def stop(self) -> None:
         """Stop the server and the PLC tasks; idempotent."""
         await self._server.stop()
-        tasks = list(self._tasks)
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
+        await self._stop_serving()

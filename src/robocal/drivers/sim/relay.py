@@ -28,8 +28,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
-import signal
 import sys
 import time
 from collections.abc import Iterable
@@ -40,6 +38,7 @@ from typing import IO, Any, Literal
 
 import structlog
 
+from robocal.drivers.sim._server import SimServer, port_of, publish_ports, until_signalled
 from robocal.errors import ConfigError, FramingError, UnexpectedReply
 from robocal.protocols import emscon
 
@@ -129,7 +128,7 @@ class _Writer:
             fh.close()
 
 
-class EmsconRelay:
+class EmsconRelay(SimServer):
     """A TCP relay that records everything between a client and the tracker.
 
     Parameters
@@ -144,37 +143,30 @@ class EmsconRelay:
 
     def __init__(self, target_host: str, target_port: int, record: Path,
                  *, connect_timeout_s: float = 10.0) -> None:
+        super().__init__()
         self.target_host = target_host
         self.target_port = target_port
         self.record = Path(record)
         self.connect_timeout_s = connect_timeout_s
-        self.host = "127.0.0.1"
         self.port = 0
         self.connections = 0
-        self._server: asyncio.Server | None = None
         self._writer: _Writer | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._streams: set[asyncio.StreamWriter] = set()
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen on ``host:port`` (0: a free port); return the bound port."""
-        self.host = host
         self._writer = _Writer(self.record, {
             "format": FORMAT,
             "target": f"{self.target_host}:{self.target_port}",
             "started": datetime.now(UTC).isoformat(),
         })
-        self._server = await asyncio.start_server(self._on_client, host, port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self.port = port_of(await self._listen(self._on_client, host, port))
         _log.info("emscon relay listening", port=self.port,
                   target=f"{self.target_host}:{self.target_port}", record=str(self.record))
         return self.port
 
     async def _on_client(self, c_reader: asyncio.StreamReader,
                          c_writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
         self.connections += 1
         conn = self.connections
         rec = self._writer
@@ -207,8 +199,6 @@ class EmsconRelay:
                 for p in pumps:
                     with contextlib.suppress(asyncio.CancelledError, Exception):
                         await p
-        except asyncio.CancelledError:
-            pass
         finally:
             if opened:
                 rec.write({"t": rec.now(), "conn": conn, "dir": "close"})
@@ -218,8 +208,6 @@ class EmsconRelay:
                     w.close()
                     with contextlib.suppress(Exception, asyncio.CancelledError):
                         await w.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
 
     async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
                     conn: int, direction: Literal["c2s", "s2c"]) -> None:
@@ -240,21 +228,10 @@ class EmsconRelay:
 
     async def stop(self) -> None:
         """Stop listening, close every connection and the recording; idempotent."""
-        if self._server is not None:
-            self._server.close()
+        self._close_listeners()
         for w in list(self._streams):
             w.close()
-        tasks = list(self._tasks)
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await self._server.wait_closed()
-            self._server = None
+        await self._stop_serving()
         if self._writer is not None:
             self._writer.close()
 
@@ -324,7 +301,7 @@ def _key(frame: bytes) -> tuple[int, int]:
     return type_, cmd
 
 
-class EmsconReplayServer:
+class EmsconReplayServer(SimServer):
     """Serve a recorded session back to a client, packet for packet.
 
     Parameters
@@ -347,22 +324,18 @@ class EmsconReplayServer:
 
     def __init__(self, records: list[Record], *, conn: int | None = None,
                  match: Literal["command", "bytes"] = "command", time_scale: float = 0.0) -> None:
+        super().__init__()
         self.packets = recorded_packets(records, conn)
         if not any(d == "c2s" for _, d, _ in self.packets):
             raise ConfigError("the recording holds no client packets to replay against")
         self.match = match
         self.time_scale = time_scale
         self.unmatched: list[bytes] = []
-        self.host = "127.0.0.1"
         self.port = 0
-        self._server: asyncio.Server | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen; return the bound port."""
-        self.host = host
-        self._server = await asyncio.start_server(self._on_client, host, port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self.port = port_of(await self._listen(self._on_client, host, port))
         return self.port
 
     def _answers(self, i: int) -> list[tuple[float, bytes]]:
@@ -375,9 +348,6 @@ class EmsconReplayServer:
 
     async def _on_client(self, reader: asyncio.StreamReader,
                          writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
         framer = emscon.PacketFramer()
         cursor = 0
         try:
@@ -392,14 +362,8 @@ class EmsconReplayServer:
                 framer.feed(data)
                 for frame in framer.frames():
                     cursor = await self._answer(frame, cursor, writer)
-        except (ConnectionError, FramingError, asyncio.CancelledError):
+        except (ConnectionError, FramingError):
             pass
-        finally:
-            writer.close()
-            with contextlib.suppress(Exception, asyncio.CancelledError):
-                await writer.wait_closed()
-            if task is not None:
-                self._tasks.discard(task)
 
     async def _answer(self, frame: bytes, cursor: int, writer: asyncio.StreamWriter) -> int:
         for i in range(cursor, len(self.packets)):
@@ -423,19 +387,7 @@ class EmsconReplayServer:
 
     async def stop(self) -> None:
         """Stop serving; idempotent."""
-        if self._server is not None:
-            self._server.close()
-        tasks = list(self._tasks)
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(2.0):
-                    await self._server.wait_closed()
-            self._server = None
+        await self._stop_serving()
 
 
 # --- command line ------------------------------------------------------------------------------
@@ -474,22 +426,10 @@ async def serve_cli(args: argparse.Namespace) -> int:
     except ConfigError as err:
         sys.stderr.write(f"robocal sim: {err}\n")
         return 2
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
     try:
-        blob = json.dumps(ports, sort_keys=True)
-        if args.ports_file is not None:
-            tmp = args.ports_file.with_name(args.ports_file.name + ".tmp")
-            tmp.write_text(blob + "\n")
-            os.replace(tmp, args.ports_file)
-        sys.stdout.write(blob + "\n")
-        sys.stdout.flush()
-        await stop.wait()
+        async with until_signalled() as stop:
+            publish_ports(ports, args.ports_file)
+            await stop.wait()
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            with contextlib.suppress(Exception):
-                loop.remove_signal_handler(sig)
         await server.stop()
     return 0
