@@ -1,7 +1,8 @@
 """``robocal plan``: plan a calibration campaign and write PLAN.json.
 
     robocal plan --robot ROBOT --cell CELL.toml --model constant|high-order|auto --count N
-                 --out PLAN.json [--validation M] [--cpa] [--cpa-points K] [--no-iso]
+                 --out PLAN.json [--design stratified|d-optimal] [--validation M] [--cpa]
+                 [--cpa-points K] [--no-iso]
                  [--seed S] [--candidates C] [--json]
 """
 
@@ -23,8 +24,8 @@ def register(sub: Any) -> None:
         "plan", help="choose, check and order measurement poses; write PLAN.json",
         description="Draw candidate poses (scrambled Sobol over the joint ranges), keep those "
                     "feasible in the cell (reflector facing the tracker, clear line of sight, "
-                    "no collision), choose the calibration poses D-optimally for the error "
-                    "model, add validation poses, CPA sweeps and ISO 9283 cube poses, order "
+                    "no collision), choose the calibration poses for the error model (by "
+                    "default one per stratum of the joint space, D-optimal within strata), add validation poses, CPA sweeps and ISO 9283 cube poses, order "
                     "them for short moves, check every move along its swept path (detours "
                     "where needed; targets with no safe route are dropped and listed) and "
                     "write PLAN.json. Deterministic for a given seed.")
@@ -34,6 +35,10 @@ def register(sub: Any) -> None:
     p.add_argument("--model", default=DEFAULT_MODEL, choices=MODELS,
                    help=f"error model the poses are optimised for (default {DEFAULT_MODEL})")
     p.add_argument("--count", required=True, type=int, help="number of calibration poses")
+    p.add_argument("--design", default="stratified", choices=("stratified", "d-optimal"),
+                   help="pose selection: stratified (default; represents the workspace, so "
+                        "that a model lacking some of the robot's errors is not biased by "
+                        "extreme poses) or d-optimal (most information for the model alone)")
     p.add_argument("--out", required=True, type=Path, metavar="PLAN.json", help="output file")
     p.add_argument("--validation", type=int, default=None, metavar="M",
                    help=VALIDATION_HELP + "; disjoint from the calibration poses")
@@ -55,7 +60,8 @@ def _summary(plan: Any, out: Path) -> dict[str, Any]:
     b = plan.observability.random_baseline
     return {
         "out": str(out), "robot": plan.robot.name, "cell": plan.cell.name, "seed": plan.seed,
-        "model": plan.model.name, "poses": len(plan.poses),
+        "model": plan.model.name, "design": plan.model.design,
+        "design_note": plan.model.design_note, "poses": len(plan.poses),
         "by_purpose": {k: plan.count(k) for k in
                        ("calibration", "validation", "cpa", "iso", "via") if plan.count(k)},
         "candidates": plan.candidates.model_dump(),
@@ -80,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
                          validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
                          iso=not args.no_iso, iso_cycles=args.iso_cycles, seed=args.seed,
-                         candidates=args.candidates)
+                         candidates=args.candidates, design=args.design)
     plan.save(out)
     s = _summary(plan, out)
     if args.json:
@@ -94,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     w(f"wrote {out}: {len(plan.poses)} poses ({parts})\n")
     w(f"  robot {plan.robot.name}, cell {plan.cell.name}, model {plan.model.name}, "
       f"seed {plan.seed}\n")
+    w(f"  design: {plan.model.design_note}\n")
     w(f"  candidates: {c.drawn} drawn, {c.screened} facing the tracker, {c.feasible} feasible\n")
     cond = "inf" if o.condition_number is None else f"{o.condition_number:.1f}"
     w(f"  parameters: {o.parameters}, identifiable {o.identifiable}; needs >= {o.min_poses} "

@@ -16,6 +16,7 @@ from robocal.planning._campaign import draw_candidates, plan_campaign, split_leg
 from robocal.planning._cell import Cell, builtin_cells, load_cell, pydantic_config_error
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
+    DESIGNS,
     MODELS,
     DesignSpace,
     Observability,
@@ -37,6 +38,7 @@ from robocal.planning._order import insert_via_points, move_times, order_poses
 from robocal.planning._plan import PLAN_FORMAT, DroppedTarget, Plan, PlannedPose
 
 __all__ = [
+    "DESIGNS",
     "MODELS",
     "PLAN_FORMAT",
     "SAMPLE_FRACTION",

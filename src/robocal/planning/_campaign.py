@@ -19,7 +19,13 @@ from robocal.identification import TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
 from robocal.planning._cell import Cell, builtin_cells, load_cell
 from robocal.planning._cpa import cpa_sweeps
-from robocal.planning._design import DesignSpace, Observability, model_spec
+from robocal.planning._design import (
+    DESIGNS,
+    DesignSpace,
+    Observability,
+    design_note,
+    model_spec,
+)
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 from robocal.planning._geometry import link_frames
 from robocal.planning._iso import ISO_CYCLES, iso_cube
@@ -405,6 +411,7 @@ def plan_campaign(
     candidates: int = 4096,
     max_draws: int = MAX_DRAWS,
     exchange_passes: int = 2,
+    design: str = "stratified",
 ) -> Plan:
     """Plan a calibration campaign for one robot in one cell.
 
@@ -415,7 +422,7 @@ def plan_campaign(
     cell
         Cell description, built-in name (``"demo"``) or TOML path.
     count
-        Calibration poses, chosen D-optimally for ``model`` from the feasible candidates.
+        Calibration poses, chosen for ``model`` from the feasible candidates (see ``design``).
     model
         ``"constant"``, ``"high-order"``, ``"auto"`` (see :func:`model_spec`) or a spec.
     validation
@@ -436,6 +443,11 @@ def plan_campaign(
         up to ``max_draws`` Sobol points).
     exchange_passes
         Fedorov exchange passes after the greedy D-optimal build-up.
+    design
+        ``"stratified"`` (default): one pose per k-means stratum of the joint space, D-optimal
+        within strata, so that the poses represent the workspace (a model that lacks some of
+        the robot's errors then fits their average, not their extremes); ``"d-optimal"``: the
+        most information for the model, no coverage (see docs/adr/0004).
 
     Returns
     -------
@@ -470,6 +482,8 @@ def plan_campaign(
         raise ConfigError(f"a CPA circle needs at least 3 points per joint, got {cpa_points}")
     if candidates < 1:
         raise ConfigError(f"candidates must be positive, got {candidates}")
+    if design not in DESIGNS:
+        raise ConfigError(f"unknown design {design!r} (choose from {', '.join(DESIGNS)})")
     spec = model_spec(rob, model)
     model_name = model if isinstance(model, str) else spec.label
     checker = FeasibilityChecker(rob, the_cell)
@@ -526,7 +540,10 @@ def plan_campaign(
         return idx[~allowed[idx]]
 
     for _ in range(30):
-        cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
+        if design == "stratified":
+            cal = ds.select_stratified(count, allowed=allowed)
+        else:
+            cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
     rest = np.setdiff1d(np.arange(n_c), cal)
@@ -644,7 +661,9 @@ def plan_campaign(
         robocal_version=__version__,
         robot=RobotInfo(name=robot_name, source=rob.source, description=rob.to_dict()),
         cell=the_cell, cell_source=cell_source, seed=seed,
-        model=ModelInfo(name=model_name, label=spec.label, parameters=len(ds.names)),
+        model=ModelInfo(name=model_name, label=spec.label, parameters=len(ds.names),
+                        design="stratified" if design == "stratified" else "d-optimal",
+                        design_note=design_note(model_name, design)),
         candidates=CandidateInfo(drawn=counts["drawn"], screened=counts["screened"],
                                  feasible=n_c, rejected=rejected),
         observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion_info,

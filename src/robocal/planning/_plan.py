@@ -98,11 +98,14 @@ class RobotInfo(_Frozen):
 
 
 class ModelInfo(_Frozen):
-    """The error model the selection optimised."""
+    """The error model the selection optimised, and how the poses were chosen."""
 
     name: str
     label: str
     parameters: int = Field(ge=0)
+    # plans written before the stratified design existed were plain D-optimal
+    design: Literal["stratified", "d-optimal"] = "d-optimal"
+    design_note: str = ""
 
 
 class CandidateInfo(_Frozen):

@@ -104,3 +104,68 @@ def test_sixty_poses_cannot_match_a_hundred_and_twenty_random_ones() -> None:
     M = J[sel].reshape(-1, L).T @ J[sel].reshape(-1, L)
     v_dopt = float(np.trace(np.linalg.solve(M, A)))
     assert lower_bound_60 <= v_dopt < L / 60
+
+
+def _design_trial(scenario: str, fit_model: str, n: int, seed: int) -> dict[str, float]:
+    """Held-out RMS (m, against the truth) of ``fit_model`` on n random / stratified poses."""
+    vc = VirtualCell.create("fanuc_lrmate200i", scenario, seed)
+    cell = cell_with(load_cell("demo"), tracker={
+        "position_mm": [float(v) for v in vc.tracker_in_base * 1e3]})
+    checker = FeasibilityChecker(vc.robot, cell)
+    q, f, _ = draw_candidates(checker, target=1024, seed=seed)
+    q_val, _, _ = draw_candidates(checker, target=400, seed=seed + 1000)
+    W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
+    ds = DesignSpace(vc.robot, model_spec(vc.robot, fit_model), q,
+                     np.asarray(checker.tool_offset), weights=W)
+    designs = {"random": np.random.default_rng(seed + 7).choice(len(q), n, replace=False),
+               "stratified": ds.select_stratified(n)}
+    out = {}
+    for name, idx in designs.items():
+        qq, p, s, _ = vc.simulate(q[idx], np.random.default_rng(seed * 31 + n))
+        res = fit(vc.robot, MeasurementSet(qq, p, s), fit_model)
+        e = np.linalg.norm(res.calibrated.predict(q_val) - vc.reflector_position(q_val), axis=1)
+        out[name] = float(np.sqrt(np.mean(e**2)))
+    return out
+
+
+@pytest.mark.slow
+def test_stratified_design_serves_high_order_fits_and_does_not_bias_constant_ones() -> None:
+    """Issue 18 on a virtual robot with joint-dependent errors (10-seed figures:
+    bench/bench_design.py, docs/benchmarks.md)."""
+    ho = [_design_trial("paper", "high-order", 100, s) for s in SEEDS]
+    ratio = np.median([t["stratified"] / t["random"] for t in ho])
+    assert ratio <= 0.85                       # measured 0.35 over 10 seeds
+    const = [_design_trial("paper", "constant", 120, s) for s in SEEDS]
+    strat = np.median([t["stratified"] for t in const])
+    rand = np.median([t["random"] for t in const])
+    assert strat <= rand * 1.01                # constant fit: bias-dominated, no worse
+
+
+
+def test_stratified_design_beats_random_on_a_robot_with_constant_errors() -> None:
+    """Without unmodelled errors the held-out error is the fit's variance: its expectation,
+    tr(A M^-1) with A the mean information of a held-out pose, decides (one simulated
+    realisation per seed varies by tens of percent; bench/bench_design.py measures 0.78x
+    random over 10 seeds)."""
+    ratios = []
+    for seed in SEEDS:
+        vc = VirtualCell.create("fanuc_lrmate200i", "constant", seed)
+        cell = cell_with(load_cell("demo"), tracker={
+            "position_mm": [float(v) for v in vc.tracker_in_base * 1e3]})
+        checker = FeasibilityChecker(vc.robot, cell)
+        q, f, _ = draw_candidates(checker, target=1024, seed=seed)
+        W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
+        ds = DesignSpace(vc.robot, model_spec(vc.robot, "constant"), q,
+                         np.asarray(checker.tool_offset), weights=W)
+        J, L = ds.J, ds.identifiable
+        A = np.einsum("nai,naj->ij", J, J) / len(J)
+
+        def variance(idx: np.ndarray) -> float:
+            Ji = J[idx].reshape(-1, L)
+            return float(np.trace(np.linalg.solve(Ji.T @ Ji, A)))
+
+        rng = np.random.default_rng(seed)
+        rand = np.median([variance(rng.choice(len(q), 60, replace=False)) for _ in range(20)])
+        ratios.append(variance(ds.select_stratified(60)) / rand)
+    print("variance ratio stratified/random", ratios)
+    assert max(ratios) < 0.9

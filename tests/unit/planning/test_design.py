@@ -145,3 +145,48 @@ def test_weights_change_the_design_but_not_its_scale(robot: RobotDescription,
     with pytest.raises(ConfigError, match="weights must be finite"):
         DesignSpace(robot, model_spec(robot, "constant"), q, np.asarray(robot.tool),
                     weights=W[:10])
+
+
+def test_stratified_selection_takes_one_pose_per_stratum_and_is_exchange_optimal(
+        rng: np.random.Generator) -> None:
+    from robocal.planning._design import _kmeans_strata
+
+    n, L, k = 120, 5, 8
+    J = rng.normal(size=(n, 3, L)) * rng.uniform(0.2, 2.0, (n, 1, 1))
+    ds = _space(J)
+    ds.q = rng.uniform(-1.0, 1.0, (n, 2))
+    sel = ds.select_stratified(k, exchange_passes=10)
+    labels, _ = _kmeans_strata(ds.q, k, 12)
+    assert len(set(sel.tolist())) == k
+    assert sorted(labels[sel].tolist()) == list(range(k))       # one pose per stratum
+    # no swap within a stratum improves the design
+    base = _logdet(J, sel, 1e-6)
+    for pos in range(k):
+        for c in np.flatnonzero(labels == labels[sel[pos]]):
+            trial = sel.copy()
+            trial[pos] = c
+            assert _logdet(J, trial, 1e-6) <= base + 1e-7
+    # better than the strata's centre poses it starts from, and than random draws per stratum
+    _, centres = _kmeans_strata(ds.q, k, 12)
+    assert base >= _logdet(J, centres, 1e-6)
+    for _ in range(10):
+        pick = [rng.choice(np.flatnonzero(labels == s)) for s in range(k)]
+        assert base >= _logdet(J, pick, 1e-6)
+
+
+def test_stratified_selection_covers_the_workspace(rng: np.random.Generator) -> None:
+    # information concentrated at one end of q: D-optimal piles up there, strata do not
+    n, L, k = 400, 4, 20
+    q = rng.uniform(0.0, 1.0, (n, 1))
+    J = rng.normal(size=(n, 3, L)) * (0.1 + 3.0 * q[:, :, None] ** 4)
+    ds = _space(J)
+    ds.q = q
+    strat = ds.select_stratified(k)
+    dopt = ds.select(k)
+    assert np.sum(q[strat, 0] < 0.5) >= k // 2 - 2                # about half in each half
+    assert np.sum(q[dopt, 0] < 0.5) <= 2
+    allowed = q[:, 0] > 0.2
+    sel = ds.select_stratified(k, allowed=allowed)
+    assert np.all(allowed[sel]) and len(set(sel.tolist())) == k
+    with pytest.raises(ConfigError, match="401 poses requested but only 400"):
+        ds.select_stratified(401)

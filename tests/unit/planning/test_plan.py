@@ -54,6 +54,28 @@ def test_plan_contents(plan: Plan) -> None:
         short = c.span_deg[1] - c.span_deg[0] < 90.0
         assert (f"CPA sweep of joint {c.joint} spans only" in " ".join(plan.warnings)) == short
     assert all(w.startswith("CPA ") for w in plan.warnings)
+    assert plan.model.design == "stratified"
+    assert plan.model.design_note.startswith("stratified, D-optimal for the constant model")
+
+
+def test_designs_differ_and_a_wrong_design_is_refused() -> None:
+    kw: dict[str, Any] = dict(count=30, validation=5, seed=3, candidates=512, iso=False)
+    d = plan_campaign("fanuc_lrmate200i", "demo", design="d-optimal", **kw)
+    s = plan_campaign("fanuc_lrmate200i", "demo", **kw)
+    assert d.model.design == "d-optimal" and "plain D-optimal" in d.model.design_note
+    assert d.joint_targets("calibration").tolist() != s.joint_targets("calibration").tolist()
+    # D-optimal maximises the information; stratification gives a little of it up
+    o_d, o_s = d.observability.calibration.O1, s.observability.calibration.O1
+    assert o_s <= o_d and o_s > 0.9 * o_d
+    with pytest.raises(ConfigError, match="unknown design 'best'"):
+        plan_campaign("fanuc_lrmate200i", "demo", design="best", **kw)
+
+
+def test_plans_written_before_designs_existed_read_as_d_optimal(plan: Plan) -> None:
+    doc = json.loads(plan.to_json())
+    del doc["model"]["design"], doc["model"]["design_note"]
+    old = Plan.from_json(json.dumps(doc))
+    assert old.model.design == "d-optimal" and old.model.design_note == ""
 
 
 def test_validation_is_disjoint_from_calibration(plan: Plan) -> None:
