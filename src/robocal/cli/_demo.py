@@ -364,8 +364,13 @@ def _print_summary(f: dict[str, Any]) -> None:
       "used for fitting)\n")
     w(f"  {'model':12s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s} {'% described':>12s}"
       f" {'fit s':>7s}\n")
-    for name in ("nominal", "cpa", *_MODELS):
+    for name in ("nominal", "cpa classical", "cpa", *_MODELS):
         s = fits.get(name)
+        if name == "cpa classical":  # classical CPA rides in the cpa fit's summary
+            det = (fits.get("cpa") or {}).get("details")
+            det = det if isinstance(det, dict) else {}
+            cls = det.get("classical") or {}
+            s = {"validation": cls.get("validation")} if det.get("polish") else None
         if not s:
             continue
         if s.get("error"):
@@ -375,15 +380,17 @@ def _print_summary(f: dict[str, Any]) -> None:
         pct = v.get("percent_described_rms")
         if name == "nominal":
             pct = 0.0
-        w(f"  {name:12s} {_fmt(v.get('rms_mm'), 4):>9s} {_fmt(v.get('mean_mm'), 4):>9s} "
+        w(f"  {name:13s}{_fmt(v.get('rms_mm'), 4):>9s} {_fmt(v.get('mean_mm'), 4):>9s} "
           f"{_fmt(v.get('max_mm'), 4):>9s} {_fmt(pct, 1, ' %'):>12s} "
           f"{_fmt(s.get('seconds'), 2):>7s}\n")
     w("  nominal = nominal kinematics with only the tracker<-base transform and the reflector\n"
       "  fitted: the honest baseline of '% described'.")
     if "cpa" in fits:
         w(" cpa = Circle Point Analysis from single-joint\n"
-          "  sweeps; its arcs are as wide as the reflector stays visible (spans in PLAN.json,\n"
-          "  'cpa'), and short arcs plus joint-dependent errors limit what it can recover.")
+          "  sweeps, polished by a constant-model ML fit on the sweep points (cpa classical:\n"
+          "  before the polish); its arcs are as wide as the reflector stays visible (spans in\n"
+          "  PLAN.json, 'cpa'), and short arcs, small radii and joint-dependent errors limit\n"
+          "  what it can recover.")
     w("\n")
     comp = f.get("compensation") or {}
     if comp:

@@ -158,13 +158,15 @@ def _cpa_sets(rows: Sequence[MeasurementRow]) -> dict[int, MeasurementSet]:
 
 
 def _call_cpa(ident: Any, robot: RobotDescription, sweeps: dict[int, MeasurementSet],
-              validation: MeasurementSet | None, baseline: CalibratedModel | None) -> Any:
-    """``identification.cpa_fit`` on the sweeps (plan purposes ``cpa-jK``, K 1-based)."""
+              validation: MeasurementSet | None, baseline: CalibratedModel | None,
+              options: Any = None) -> Any:
+    """``identification.cpa_fit`` on the sweeps (plan purposes ``cpa-jK``, K 1-based); its
+    polish uses the fit options (tracker noise, outlier test)."""
     cpa_fit = getattr(ident, "cpa_fit", None)
     if cpa_fit is None:
         raise IdentificationError("robocal.identification.cpa_fit is not available")
     return cpa_fit(robot, [(j - 1, ms) for j, ms in sweeps.items()], validation=validation,
-                   baseline=baseline)
+                   baseline=baseline, options=options)
 
 
 def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
@@ -221,7 +223,7 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         try:
             base = results.get("nominal")
             res = _call_cpa(ident, robot, sweeps, validation,
-                            base if isinstance(base, CalibratedModel) else None)
+                            base if isinstance(base, CalibratedModel) else None, opts)
             results["cpa"] = res
             fits["cpa"] = _summary("cpa", res, time.perf_counter() - t0)
         except (RobocalError, TypeError, ValueError) as err:

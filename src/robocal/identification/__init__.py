@@ -8,12 +8,21 @@ Public API::
 
 plus :func:`min_poses` (fewest poses a fit accepts; the planner uses it),
 :func:`identifiability`, :func:`refit_frozen` (re-use joint-dependent terms on a new
-session), :func:`cpa_fit` (Circle Point Analysis baseline; the internal
+session), :func:`cpa_fit` (Circle Point Analysis baseline, classical and polished; the internal
 ``_cpa.cpa_sweeps`` makes sweep joint sets for the virtual robot in tests) and
 :func:`load_ipa_series` (public UR10 data set).
 """
 
-from robocal.identification._cpa import CircleFit, CPAResult, cpa_fit, poe_positions
+from robocal.identification._cpa import (
+    CPA_MAX_NOISE_RATIO,
+    CPA_MIN_ARC_DEG,
+    CPA_MIN_RADIUS_MM,
+    CircleFit,
+    CPAPolish,
+    CPAResult,
+    cpa_fit,
+    poe_positions,
+)
 from robocal.identification._engine import min_poses
 from robocal.identification._fit import MODELS, FitOptions, FitResult, fit, refit_frozen
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
@@ -23,8 +32,12 @@ from robocal.identification.datasets import load_ipa_series
 
 __all__ = [
     "BASELINE_DESCRIPTION",
+    "CPA_MAX_NOISE_RATIO",
+    "CPA_MIN_ARC_DEG",
+    "CPA_MIN_RADIUS_MM",
     "MODELS",
     "Accuracy",
+    "CPAPolish",
     "CPAResult",
     "CircleFit",
     "FitOptions",

@@ -6,9 +6,19 @@ joint's true axis: a plane fit gives the axis direction, a circle fit in that pl
 on the axis, and the circle phase the home position of the reflector. The six axes at home
 plus the home point are a product-of-exponentials (POE) model, which is exactly the constant
 kinematic model; it is converted to robocal's constant error model by a noise-free
-least-squares fit, so the result is an ordinary :class:`CalibratedModel` (``kind="cpa"``).
+least-squares fit, so the result is an ordinary :class:`CalibratedModel`. That is classical
+CPA (``kind="cpa-classical"``, kept and reported as such).
+
+Each circle is fitted on its own, so a short arc or a small radius leaves its axis poorly
+determined, and nothing ties the six fits together. The *polish* (ADR 0021) therefore
+re-fits the constant model by robust maximum likelihood on all the sweep points at once,
+started from the classical model: the same engine and whitening as ``fit(..., "constant")``,
+only on the sweep poses. That model is the CPA result (``kind="cpa"``).
+
 CPA assumes perfect circles: joint-dependent errors show up as circle-fit residuals (reported
-per joint) and are not modelled.
+per joint against what the tracker noise alone would leave) and are not modelled. The
+diagnosis names each weak joint: arcs under :data:`CPA_MIN_ARC_DEG`, radii under
+:data:`CPA_MIN_RADIUS_MM`, circle residuals over :data:`CPA_MAX_NOISE_RATIO` times the noise.
 """
 
 from __future__ import annotations
@@ -16,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import reduce
 from typing import Any
 
 import numpy as np
@@ -23,7 +34,8 @@ from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
-from robocal.errors import DataError, IdentificationError
+from robocal.errors import DataError, IdentificationError, NotConverged, NotIdentifiable
+from robocal.identification._engine import Engine, EngineSettings
 from robocal.identification._metrics import Accuracy, accuracy
 from robocal.identification._solver import Problem, analyse_jacobian, levenberg_marquardt
 from robocal.kinematics import (
@@ -37,10 +49,24 @@ from robocal.kinematics import (
 
 Array = NDArray[np.float64]
 
+#: Most re-weighting rounds of the polish (variance components per sweep).
+POLISH_ROUNDS = 6
+#: Arcs shorter than this (deg) leave a circle's centre and axis poorly determined.
+CPA_MIN_ARC_DEG = 90.0
+#: Circles smaller than this (mm) leave the axis direction poorly determined.
+CPA_MIN_RADIUS_MM = 100.0
+#: Circle residuals above this multiple of the tracker noise reveal joint-dependent errors (at
+#: 2x, three quarters of the residual variance is not noise; pure noise stays within ~1.3x).
+CPA_MAX_NOISE_RATIO = 2.0
+
 
 @dataclass(frozen=True)
 class CircleFit:
-    """One joint's sweep: axis line and circle (metres, tracker frame)."""
+    """One joint's sweep: axis line and circle (metres, tracker frame).
+
+    ``arc``: the chain-angle range the sweep covered, rad. ``noise_m``: the RMS distance from
+    the circle that the tracker noise alone would leave (NaN when unknown).
+    """
 
     joint: int
     centre: Array          # (3,) point on the axis
@@ -50,36 +76,151 @@ class CircleFit:
     max_m: float
     home_point: Array      # (3,) circle point at the home chain angle
     n: int
+    arc: float = math.nan
+    noise_m: float = math.nan
+
+    @property
+    def noise_ratio(self) -> float:
+        """Circle residual RMS over what the tracker noise alone leaves (NaN when unknown)."""
+        return self.rms_m / self.noise_m if self.noise_m > 0 else math.nan
+
+    def issues(self) -> list[dict[str, Any]]:
+        """Why this circle limits CPA, if it does: short arc, small radius, joint-dependent
+        errors. Each item: ``joint`` (1-based), ``issue``, ``value``, ``limit``, ``unit``,
+        ``text`` (one sentence, mm/deg)."""
+        k = self.joint + 1
+        out: list[dict[str, Any]] = []
+        arc = math.degrees(self.arc)
+        if arc < CPA_MIN_ARC_DEG:
+            out.append({"joint": k, "issue": "short arc", "value": arc,
+                        "limit": CPA_MIN_ARC_DEG, "unit": "deg",
+                        "text": f"J{k}: arc of only {arc:.0f}° (< {CPA_MIN_ARC_DEG:g}°), "
+                                "so the circle's centre and axis are poorly determined"})
+        r = self.radius * 1e3
+        if r < CPA_MIN_RADIUS_MM:
+            out.append({"joint": k, "issue": "small radius", "value": r,
+                        "limit": CPA_MIN_RADIUS_MM, "unit": "mm",
+                        "text": f"J{k}: circle radius of only {r:.0f} mm "
+                                f"(< {CPA_MIN_RADIUS_MM:g} mm), so the axis direction is "
+                                "poorly determined"})
+        ratio = self.noise_ratio
+        if ratio > CPA_MAX_NOISE_RATIO:
+            out.append({"joint": k, "issue": "joint-dependent errors", "value": ratio,
+                        "limit": CPA_MAX_NOISE_RATIO, "unit": "x noise",
+                        "text": f"J{k}: circle residual {self.rms_m * 1e3:.3f} mm RMS is "
+                                f"{ratio:.1f}× the tracker noise ({self.noise_m * 1e3:.4f} mm): "
+                                "CPA cannot describe joint-dependent errors"})
+        return out
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-friendly form (mm)."""
+        """JSON-friendly form (mm, deg)."""
         return {"joint": self.joint + 1, "centre_mm": (self.centre * 1e3).tolist(),
                 "direction": self.direction.tolist(), "radius_mm": self.radius * 1e3,
                 "circle_rms_mm": self.rms_m * 1e3, "circle_max_mm": self.max_m * 1e3,
-                "n": self.n}
+                "n": self.n, "arc_deg": _finite(math.degrees(self.arc)),
+                "noise_rms_mm": _finite(self.noise_m * 1e3),
+                "noise_ratio": _finite(self.noise_ratio),
+                "issues": [i["issue"] for i in self.issues()]}
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class CPAPolish:
+    """What the polish (robust constant-model ML fit on the sweep points) did.
+
+    ``sweep_rms_classical_m`` / ``sweep_rms_m``: RMS position error (m) of the classical and
+    the polished model over the sweep points the fit kept. ``sweep_noise_factor``: per joint
+    sweep, the factor on the tracker noise the fit settled on (1: noise alone).
+    """
+
+    converged: bool
+    status: str
+    iterations: int
+    n_free: int
+    rank: int
+    condition: float
+    removed: tuple[str, ...]
+    outliers: tuple[str, ...]
+    variance_factor: float
+    sweep_rms_classical_m: float
+    sweep_rms_m: float
+    n_points: int
+    sweep_noise_factor: tuple[float, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form (mm)."""
+        return {"converged": self.converged, "status": self.status,
+                "iterations": self.iterations, "n_free": self.n_free, "rank": self.rank,
+                "condition_number": _finite(self.condition), "removed": list(self.removed),
+                "outliers": list(self.outliers),
+                "variance_factor": _finite(self.variance_factor),
+                "sweep_points": self.n_points,
+                "sweep_noise_factor": list(self.sweep_noise_factor),
+                "sweep_rms_mm": {"classical": self.sweep_rms_classical_m * 1e3,
+                                 "polished": self.sweep_rms_m * 1e3}}
 
 
 @dataclass
 class CPAResult:
-    """Outcome of :func:`cpa_fit`."""
+    """Outcome of :func:`cpa_fit`.
+
+    ``calibrated``: the CPA model (``kind="cpa"``): classical CPA polished by the
+    constant-model ML fit on the sweep points, or classical CPA itself when the polish was
+    off or failed (``polish`` None, see ``notes``). ``classical``: classical CPA
+    (``kind="cpa-classical"``). ``validation`` / ``classical_validation``: their accuracy on
+    the held-out poses.
+    """
 
     calibrated: CalibratedModel
+    classical: CalibratedModel
     circles: list[CircleFit]
     home_q: Array
     home_point: Array
     conversion_rms_m: float
     validation: Accuracy | None = None
+    classical_validation: Accuracy | None = None
+    polish: CPAPolish | None = None
     notes: list[str] = field(default_factory=list)
 
+    @property
+    def outliers(self) -> list[str]:
+        """Sweep poses the polish rejected as outliers (pose ids)."""
+        return [] if self.polish is None else list(self.polish.outliers)
+
+    @property
+    def diagnosis(self) -> list[dict[str, Any]]:
+        """Every weakness of the circle fits (see :meth:`CircleFit.issues`)."""
+        return [i for c in self.circles for i in c.issues()]
+
     def summary(self) -> dict[str, Any]:
-        """JSON-friendly summary (mm)."""
+        """JSON-friendly summary (mm): both models' held-out RMS side by side."""
+
+        def rms(a: Accuracy | None) -> float | None:
+            return None if a is None else _finite(a.rms_m * 1e3)
+
+        base = self.validation if self.validation is not None else self.classical_validation
         return {
             "model": "cpa",
+            "method": self.calibrated.fit.get("method"),
             "circles": [c.to_dict() for c in self.circles],
+            "diagnosis": self.diagnosis,
             "home_q_deg": np.degrees(self.home_q).tolist(),
             "home_point_mm": (self.home_point * 1e3).tolist(),
             "conversion_rms_mm": self.conversion_rms_m * 1e3,
             "validation": None if self.validation is None else self.validation.to_dict(),
+            "validation_rms_mm": {
+                "classical": rms(self.classical_validation),
+                "polished": None if self.polish is None else rms(self.validation),
+                "nominal": (None if base is None or base.baseline_rms_m is None
+                            else base.baseline_rms_m * 1e3)},
+            "classical": {"model_id": self.classical.model_id,
+                          "validation": (None if self.classical_validation is None
+                                         else self.classical_validation.to_dict())},
+            "polish": None if self.polish is None else {"model_id": self.calibrated.model_id,
+                                                        **self.polish.to_dict()},
             "notes": list(self.notes),
         }
 
@@ -130,8 +271,12 @@ def cpa_sweeps(robot: RobotDescription | str, *, home: Array | None = None,
     return out
 
 
-def _fit_circle(joint: int, p: Array, t: Array, t_home: float) -> CircleFit:
-    """Plane + circle fit of points ``p`` (n, 3) swept by chain angles ``t`` (n,)."""
+def _fit_circle(joint: int, p: Array, t: Array, t_home: float,
+                cov: Array | None = None) -> CircleFit:
+    """Plane + circle fit of points ``p`` (n, 3) swept by chain angles ``t`` (n,) rad.
+
+    ``cov`` (n, 3, 3) m^2: the points' covariances, for the noise level of the circle residual.
+    """
     if len(p) < 4:
         raise DataError(f"joint {joint + 1}: a CPA sweep needs at least 4 poses, got {len(p)}")
     c0 = p.mean(axis=0)
@@ -176,9 +321,35 @@ def _fit_circle(joint: int, p: Array, t: Array, t_home: float) -> CircleFit:
     a_home = phi0 + t_home
     home_point = centre2 + r * (math.cos(a_home) * e1 + math.sin(a_home) * e2) \
         + float(np.mean(off)) * n
+    noise = math.nan
+    if cov is not None:
+        # noise moves a point off the circle along the radial and the axial direction; the
+        # plane and circle fits absorb 6 of the 2n such coordinates
+        rho = np.linalg.norm(inplane, axis=1, keepdims=True)
+        ur = inplane / np.where(rho > 0, rho, 1.0)
+        var = np.einsum("ni,nij,nj->n", ur, cov, ur) + np.einsum("i,nij,j->n", n, cov, n)
+        noise = math.sqrt(float(np.mean(var)) * max(2 * len(p) - 6, 1) / (2 * len(p)))
     return CircleFit(joint=joint, centre=centre2, direction=n, radius=float(r),
                      rms_m=float(np.sqrt(np.mean(dist**2))), max_m=float(dist.max()),
-                     home_point=home_point, n=len(p))
+                     home_point=home_point, n=len(p), arc=float(np.ptp(t)), noise_m=noise)
+
+
+def _covariances(ds: MeasurementSet, settings: EngineSettings) -> Array:
+    """Point covariances (n, 3, 3) m^2 as the ML fit weights them: the per-point sigmas when
+    given (and used), else the tracker noise model."""
+    if settings.use_point_sigma and ds.sigma is not None and np.all(ds.sigma > 0):
+        return np.einsum("ni,ij->nij", ds.sigma**2, np.eye(3))
+    return settings.noise.covariances(ds.p)
+
+
+def _sweep_set(sweeps: Sequence[MeasurementSet]) -> MeasurementSet:
+    """All sweep points as one set (positions only); pose ids made unique (``Jk:``) if needed."""
+    sets = [s.without_orientation() for s in sweeps]
+    ids = [pid for s in sets for pid in s.pose_id]
+    if len(set(ids)) != len(ids):
+        sets = [replace(s, pose_id=tuple(f"J{k + 1}:{pid}" for pid in s.pose_id))
+                for k, s in enumerate(sets)]
+    return reduce(MeasurementSet.concat, sets)
 
 
 def _rotate(p: Array, c: Array, n: Array, ang: Array) -> Array:
@@ -225,9 +396,9 @@ def poe_positions(circles: Sequence[CircleFit], home_point: Array, theta_home: A
 
 def cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, MeasurementSet]], *,
             validation: MeasurementSet | None = None,
-            baseline: CalibratedModel | None = None, n_convert: int = 2000, seed: int = 0
-            ) -> CPAResult:
-    """Circle Point Analysis from single-joint sweeps.
+            baseline: CalibratedModel | None = None, n_convert: int = 2000, seed: int = 0,
+            polish: bool = True, options: EngineSettings | None = None) -> CPAResult:
+    """Circle Point Analysis from single-joint sweeps, then its polish.
 
     Parameters
     ----------
@@ -237,17 +408,24 @@ def cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measureme
         One ``(joint index (0-based), MeasurementSet)`` per joint: poses where only that
         joint's chain angle changes; each sweep may hold the other joints at its own home.
     validation
-        Poses to evaluate the CPA model on.
+        Poses to evaluate both CPA models on.
     baseline
         The nominal-with-base-and-reflector-fitted model of a fit on the same cell
         (``FitResult.baseline``), for the "% described" figures.
     n_convert
         Random configurations used to convert the POE model into the constant error model.
+    polish
+        Re-fit the constant model by robust ML on all sweep points, started from classical
+        CPA (ADR 0021). Off: ``calibrated`` is classical CPA.
+    options
+        Tracker noise model, outlier test and solver settings of the polish and of the
+        circles' noise levels (a :class:`FitOptions` will do); default ``EngineSettings()``.
 
     Returns
     -------
     CPAResult
-        ``calibrated`` is a constant-model :class:`CalibratedModel` with ``kind="cpa"``.
+        ``calibrated`` (``kind="cpa"``, polished) and ``classical``
+        (``kind="cpa-classical"``), both constant-model :class:`CalibratedModel` objects.
 
     Raises
     ------
@@ -255,12 +433,13 @@ def cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measureme
         Missing or degenerate sweeps, or poses that move more than one chain angle.
     """
     with blas_threads(1):
-        return _cpa_fit(robot, sweeps, validation, baseline, n_convert, seed)
+        return _cpa_fit(robot, sweeps, validation, baseline, n_convert, seed, polish,
+                        options or EngineSettings())
 
 
 def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, MeasurementSet]],
              validation: MeasurementSet | None, baseline: CalibratedModel | None,
-             n_convert: int, seed: int) -> CPAResult:
+             n_convert: int, seed: int, polish: bool, settings: EngineSettings) -> CPAResult:
     rob = load_robot(robot) if isinstance(robot, str) else robot
     by_joint = {int(j): ds for j, ds in sweeps}
     missing = [j + 1 for j in range(rob.dof) if j not in by_joint]
@@ -286,12 +465,10 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
     H = np.array(homes)
     th_home = np.array([np.median(np.delete(H[:, k], k)) for k in range(rob.dof)])
     circles: list[CircleFit] = []
-    raw: list[CircleFit] = []
     for j in range(rob.dof):
         ds = by_joint[j]
         th = ds.q @ C.T + off
-        cf = _fit_circle(j, ds.p, th[:, j], th_home[j])
-        raw.append(cf)
+        cf = _fit_circle(j, ds.p, th[:, j], th_home[j], _covariances(ds, settings))
         G = _chain_transform(circles, H[j], th_home, range(j))
         R, t = _invert(G)
         circles.append(replace(cf, centre=R @ cf.centre + t, direction=R @ cf.direction))
@@ -309,7 +486,58 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
     home_point = np.vstack(backs).mean(axis=0)
     circles = [replace(c, home_point=home_point) for c in circles]
     home_q = np.linalg.solve(C, th_home - off)
-    # convert POE -> constant error model by a noise-free fit over the joint ranges
+    classical, conv = _classical_model(rob, circles, home_point, th_home, home_q, n_convert,
+                                       seed)
+    notes = []
+    if conv > 1e-6:
+        notes.append(f"POE -> constant-model conversion residual {conv * 1e3:.4f} mm")
+    points = _sweep_set([by_joint[j] for j in range(rob.dof)])
+    classical.data = {"n_poses": len(points),
+                      "digest": [by_joint[j].digest() for j in range(rob.dof)]}
+    cls_val = None
+    if validation is not None:
+        cls_val = accuracy(classical, validation, baseline=baseline)
+        classical.metrics = {"validation": cls_val.to_dict()}
+    classical.model_id = classical.compute_id()
+    info: CPAPolish | None = None
+    cal = None
+    if polish:
+        try:
+            sweep_of = np.repeat(np.arange(rob.dof), [len(by_joint[j]) for j in range(rob.dof)])
+            cal, info = _polish(rob, classical, points, sweep_of, settings)
+        except (NotIdentifiable, NotConverged) as err:
+            notes.append(f"the polish failed, classical CPA is the result: {err}")
+    else:
+        notes.append("not polished: classical CPA is the result")
+    if cal is None:
+        cal = CalibratedModel(model=classical.model, params=classical.params.copy(),
+                              coverage=classical.coverage, kind="cpa")
+        cal.fit = {**classical.fit, "model": "cpa"}
+    cal.fit.update({"circles": [c.to_dict() for c in circles],
+                    "diagnosis": [i for c in circles for i in c.issues()],
+                    "home_q_deg": np.degrees(home_q).tolist(), "conversion_rms_mm": conv * 1e3,
+                    "classical": {"model": classical.to_dict(),
+                                  "validation": None if cls_val is None else cls_val.to_dict()}})
+    cal.data = dict(classical.data)
+    val = None
+    if validation is not None:
+        val = accuracy(cal, validation, baseline=baseline) if info is not None else cls_val
+        cal.metrics = {"validation": None if val is None else val.to_dict(),
+                       "classical_validation": None if cls_val is None else cls_val.to_dict()}
+    cal.model_id = cal.compute_id()
+    return CPAResult(calibrated=cal, classical=classical, circles=circles, home_q=home_q,
+                     home_point=home_point, conversion_rms_m=conv, validation=val,
+                     classical_validation=cls_val, polish=info, notes=notes)
+
+
+def _classical_model(rob: RobotDescription, circles: list[CircleFit], home_point: Array,
+                     th_home: Array, home_q: Array, n_convert: int, seed: int
+                     ) -> tuple[CalibratedModel, float]:
+    """The POE model (axes at ``th_home`` rad, reflector ``home_point`` m) as a constant-model
+    :class:`CalibratedModel` (``kind="cpa-classical"``), by a noise-free least-squares fit
+    over ``n_convert`` random configurations; also the fit's RMS residual (m)."""
+    C = rob.coupling_matrix
+    off = np.array([j.theta_offset for j in rob.joints])
     rng = np.random.default_rng(seed)
     lim = rob.joint_limits
     qc = rng.uniform(lim[:, 0], lim[:, 1], (n_convert, rob.dof))
@@ -325,22 +553,83 @@ def _cpa_fit(robot: RobotDescription | str, sweeps: Sequence[tuple[int, Measurem
     _, keep, _ = analyse_jacobian(prob, x0, rows, np.arange(model.size), tol=1e-6)
     info = levenberg_marquardt(prob, x0, np.flatnonzero(keep), rows, max_iter=200)
     conv = float(np.sqrt(np.mean(np.sum((model.positions(qc, info.x) - pc) ** 2, axis=1))))
-    notes = []
-    if conv > 1e-6:
-        notes.append(f"POE -> constant-model conversion residual {conv * 1e3:.4f} mm")
     cal = CalibratedModel(model=model, params=info.x, covariance=None,
-                          coverage=lim.copy(), kind="cpa")
-    cal.fit = {"model": "cpa", "method": "plane + circle fit per joint sweep, POE model, "
-               "converted to the constant error model",
+                          coverage=lim.copy(), kind="cpa-classical")
+    cal.fit = {"model": "cpa-classical", "method": "plane + circle fit per joint sweep, POE "
+               "model, converted to the constant error model",
                "circles": [c.to_dict() for c in circles],
+               "diagnosis": [i for c in circles for i in c.issues()],
                "home_q_deg": np.degrees(home_q).tolist(),
                "conversion_rms_mm": conv * 1e3}
-    cal.data = {"n_poses": int(sum(len(ds) for ds in by_joint.values())),
-                "digest": [by_joint[j].digest() for j in range(rob.dof)]}
-    val = None
-    if validation is not None:
-        val = accuracy(cal, validation, baseline=baseline)
-        cal.metrics = {"validation": val.to_dict()}
-    cal.model_id = cal.compute_id()
-    return CPAResult(calibrated=cal, circles=circles, home_q=home_q, home_point=home_point,
-                     conversion_rms_m=conv, validation=val, notes=notes)
+    return cal, conv
+
+
+def _polish(rob: RobotDescription, classical: CalibratedModel, points: MeasurementSet,
+            sweep_of: NDArray[np.intp], settings: EngineSettings
+            ) -> tuple[CalibratedModel, CPAPolish]:
+    """Robust constant-model ML fit on the sweep ``points``, started from ``classical``.
+
+    ``sweep_of`` (n,): the sweep (joint index) of each point. Each sweep's noise is the
+    tracker's times a factor of at least 1, its own residual RMS in units of the tracker noise
+    (variance components, re-estimated until they settle): a sweep whose points carry
+    joint-dependent errors then weighs less, instead of pulling the axes the other sweeps
+    determine towards errors a constant model cannot describe. With noise alone every factor
+    is 1 and the fit is plain ML. Raises NotIdentifiable / NotConverged like
+    :meth:`Engine.solve`.
+    """
+    engine = Engine(rob, points, settings)
+    W0 = engine.W.copy()
+    factor = np.ones(int(sweep_of.max()) + 1)
+    x = classical.params
+    for _ in range(POLISH_ROUNDS):
+        engine.W = W0 / factor[sweep_of][:, None, None]
+        sol = engine.solve(classical.model, x, what="CPA polish")
+        x = sol.x
+        r = np.einsum("nij,nj->ni", W0, points.p - classical.model.positions(points.q, x))
+        r2 = np.sum(r**2, axis=1)          # squared residual in tracker-noise units
+        new = factor.copy()
+        for k in range(len(factor)):
+            mine = (sweep_of == k) & sol.inliers
+            if mine.any():
+                new[k] = max(1.0, math.sqrt(float(np.mean(r2[mine])) / 3.0))
+        if np.all(np.abs(new / factor - 1.0) < 0.02):
+            break
+        factor = new
+    inl = sol.inliers
+
+    def rms(x: Array) -> float:
+        r = points.p[inl] - classical.model.positions(points.q[inl], x)
+        return float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
+
+    outliers = tuple(points.pose_id[i] for i in np.flatnonzero(~inl))
+    info = CPAPolish(converged=bool(sol.info.converged), status=str(sol.info.status),
+                     iterations=int(sol.info.iterations), n_free=sol.n_free,
+                     rank=int(sol.ident.rank), condition=float(sol.ident.cond),
+                     removed=tuple(sol.removed), outliers=outliers,
+                     variance_factor=float(sol.variance_factor),
+                     sweep_rms_classical_m=rms(classical.params), sweep_rms_m=rms(sol.x),
+                     n_points=len(points), sweep_noise_factor=tuple(float(f) for f in factor))
+    cal = CalibratedModel(model=classical.model, params=sol.x, covariance=sol.covariance,
+                          coverage=rob.joint_limits.copy(), kind="cpa")
+    cal.fit = {
+        "model": "cpa",
+        "method": "classical CPA (plane + circle fit per joint sweep, POE model) polished by "
+                  "a robust constant-model maximum-likelihood fit on all sweep points, each "
+                  "sweep's noise scaled by its own residuals (variance components)",
+        "solver": {"method": "levenberg-marquardt", "iterations": info.iterations,
+                   "converged": info.converged, "status": info.status,
+                   "message": sol.info.message},
+        "identifiability": {"rank": info.rank, "condition_number": _finite(info.condition),
+                            "removed": list(info.removed),
+                            "singular_values": [float(v) for v in sol.ident.singular_values],
+                            "note": "column-scaled whitened Jacobian of the sweep points"},
+        "n_params": classical.model.size, "n_free": info.n_free,
+        "dof_effective": sol.dof_effective,
+        "variance_factor": _finite(info.variance_factor),
+        "covariance": "a-posteriori: variance factor x inverse normal matrix",
+        "outliers": {"pose_ids": list(outliers),
+                     "test": "normalised (deletion) residual, chi-square 3 dof, robust scale"},
+        "polish": info.to_dict(),
+        "sigma_source": engine.sigma_source,
+    }
+    return cal, info

@@ -15,7 +15,7 @@ from scipy.stats import qmc
 from robocal import __version__
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
-from robocal.identification import TrackerSigma, whitening
+from robocal.identification import CPA_MIN_ARC_DEG, CPA_MIN_RADIUS_MM, TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
 from robocal.planning._cell import Cell, builtin_cells, load_cell
 from robocal.planning._cpa import cpa_sweeps
@@ -49,10 +49,9 @@ Array = NDArray[np.float64]
 
 #: Candidate draws stop at this many Sobol points even if fewer are feasible.
 MAX_DRAWS = 2**20
-#: CPA arcs shorter than this (deg) and circles smaller than this (mm) get a warning: the fit
-#: of a circle's centre and axis degrades quickly below them (ADR 0004).
-CPA_MIN_ARC_DEG = 90.0
-CPA_MIN_RADIUS_MM = 100.0
+# CPA arcs shorter than CPA_MIN_ARC_DEG and circles smaller than CPA_MIN_RADIUS_MM get a
+# warning: the fit of a circle's centre and axis degrades quickly below them (ADR 0004); the
+# CPA fit diagnoses its circles with the same limits (ADR 0021).
 
 
 def cpa_radius(robot: RobotDescription, joint: int, q: Array, reflector: Array) -> float:

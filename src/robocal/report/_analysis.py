@@ -13,6 +13,7 @@ from robocal import __version__
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
 from robocal.kinematics import CalibratedModel, RobotDescription
+from robocal.report._cpa import CpaComparison, compare, with_classical
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
 from robocal.report._metrics import (
     Described,
@@ -86,6 +87,7 @@ class Analysis:
     iso: list[IsoResult]
     hashes: dict[str, Any]
     iso_frame: str = "tracker"
+    cpa: CpaComparison | None = None
 
     @property
     def data(self) -> dict[str, MeasurementSet]:
@@ -121,7 +123,7 @@ def _mask(data: MeasurementSet, outliers: set[str]) -> NDArray[np.bool_]:
 
 def analyse(inp: ReportInput) -> Analysis:
     """Compute every figure of the report (see module docstring of ``robocal.report``)."""
-    entries = inp.entries()
+    entries = with_classical(inp.models, inp.entries())
     selected = inp.selected_name()
     sel_entry = entries.get(selected) if selected else None
     sel_cm = sel_entry.calibrated if sel_entry else None
@@ -141,7 +143,8 @@ def analyse(inp: ReportInput) -> Analysis:
     iso = _iso(inp, entries.get(BASELINE), sel_cm)
     return Analysis(inp, robot, models, selected, baseline_note, outliers, val_glitches,
                     judged, v,
-                    joint_model, joints, ident, work, iso, _hashes(data, entries))
+                    joint_model, joints, ident, work, iso, _hashes(data, entries),
+                    cpa=compare(models))
 
 
 def _robot_of(inp: ReportInput, entries: dict[str, ModelEntry],

@@ -28,11 +28,12 @@ if TYPE_CHECKING:
 Array = NDArray[np.float64]
 DPI = 96
 WIDE = 11.8  # inches: the page's content width at 96 dpi
-COLORS = {"nominal": "#7f7f7f", "cpa": "#9467bd", "constant": "#ff7f0e",
-          "high-order": "#1f77b4", "auto": "#2ca02c"}
+COLORS = {"nominal": "#7f7f7f", "cpa": "#9467bd", "cpa-classical": "#c5b0d5",
+          "constant": "#ff7f0e", "high-order": "#1f77b4", "auto": "#2ca02c"}
 _EXTRA = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#d62728")
 # Markers tell the models apart where colours alone do not (grey/purple, blue/green, print).
-MARKERS = {"nominal": "o", "cpa": "v", "constant": "s", "high-order": "^", "auto": "x"}
+MARKERS = {"nominal": "o", "cpa": "v", "cpa-classical": "<", "constant": "s",
+           "high-order": "^", "auto": "x"}
 _EXTRA_MARKERS = ("D", "P", "*", "h", "<")
 COMP_COLORS = {"dx": "#1f77b4", "dy": "#ff7f0e", "dz": "#2ca02c",
                "ex": "#1f77b4", "ey": "#ff7f0e", "ez": "#2ca02c"}

@@ -62,6 +62,10 @@ code{font-size:12.5px}
 .two{display:grid;grid-template-columns:minmax(0,1fr) minmax(0,1fr);gap:14px;
 align-items:start}
 .checks th,.checks td{text-align:left}
+.flag{margin:10px 0;padding:9px 14px;border-radius:6px;border-left:7px solid #d93025;
+background:#fdecea;color:#5c1a14}
+.flag.ok{border-color:#1e8e3e;background:#e6f4ea;color:#14371f}
+.flag b{font-weight:700}
 @media (max-width:900px){.first,.two{grid-template-columns:1fr}
 .cards{grid-template-columns:repeat(2,1fr)}}
 """
@@ -125,7 +129,8 @@ def _swatch(name: str, i: int = 0) -> str:
 def render(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str, Any]) -> str:
     """The whole page."""
     parts = [_head(an), "<main>", _first_screen(an, plots, summary), _toc(an),
-             _accuracy(an, plots), _joints(an, plots), _ident(an, plots), _iso(an, plots),
+             _accuracy(an, plots), _cpa(an), _joints(an, plots), _ident(an, plots),
+             _iso(an, plots),
              _workspace(an, plots), _log(an), "</main>", _footer(an), "</body></html>"]
     return "\n".join(p for p in parts if p)
 
@@ -194,9 +199,14 @@ def _first_screen(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str,
         thr.append(f"held-out RMS ≤ {acc.max_rms_mm:.3f} mm")
     if acc.max_error_mm is not None:
         thr.append(f"held-out max error ≤ {acc.max_error_mm:.3f} mm")
+    cpa_flag = ""
+    if an.cpa is not None and an.cpa.flag:
+        cpa_flag = (f'<div class="flag" data-flag="cpa-worse-than-nominal"><b>⚠ Circle Point '
+                    f"Analysis:</b> {esc(an.cpa.flag)} "
+                    '<a href="#cpa">Details</a></div>')
     left = (f'<div class="cards">{"".join(cards)}</div>'
             f'<div class="panel checks">{checks}<p class="note">Acceptance: '
-            f'{esc("; ".join(thr))}.</p></div>')
+            f'{esc("; ".join(thr))}.</p></div>{cpa_flag}')
     right = _fig(plots.get("summary"), "RMS position error per model: hatched = calibration "
                  "poses, solid = held-out validation poses. <i>nominal</i> = nominal kinematics "
                  "with only base and reflector fitted.")
@@ -218,7 +228,9 @@ def _first_screen(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str,
 
 
 def _toc(an: Analysis) -> str:
-    links = [("accuracy", "Position error"), ("joints", "Joint-dependent errors"),
+    links = [("accuracy", "Position error"),
+             *([("cpa", "Circle Point Analysis")] if an.cpa is not None else []),
+             ("joints", "Joint-dependent errors"),
              ("identifiability", "Identifiability"), ("iso", "ISO 9283"),
              ("workspace", "Predicted accuracy"), ("log", "Measurements & provenance")]
     return '<nav class="toc">' + "".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in links) \
@@ -287,6 +299,70 @@ def _accuracy(an: Analysis, plots: Mapping[str, Plot]) -> str:
         out.append('<p class="note">No measurements were given (report made from a model file '
                    "alone): histograms and per-pose plots need <code>--data</code> / "
                    "<code>--validate</code>.</p>")
+    out.append("</section>")
+    return "\n".join(out)
+
+
+def _cpa(an: Analysis) -> str:
+    """Classical and polished CPA against nominal, the flag when worse, the circle fits."""
+    c = an.cpa
+    if c is None:
+        return ""
+    out = ['<section id="cpa"><h2>Circle Point Analysis (CPA)</h2>']
+    if c.flag:
+        out.append(f'<div class="flag" data-flag="cpa-worse-than-nominal"><b>⚠</b> '
+                   f"{esc(' '.join(r.sentence() for r in c.worse))}"
+                   "<br><b>Reasons:</b> " + esc("; ".join(c.reasons())) + ".</div>")
+    better = [r for r in c.rows if r.better]
+    if better:
+        out.append(f'<div class="flag ok">✔ {esc(" ".join(r.sentence() for r in better))}'
+                   "</div>")
+    rows = [[_swatch(r.name, i), esc(r.variant), esc(r.on), str(r.n), mm(r.rms_m),
+             mm(r.nominal_rms_m), f"{r.diff_m * 1e3:+.3f}", f"{r.diff_percent:+.1f} %",
+             '<span class="st pass">better</span>' if r.better
+             else '<span class="st fail">worse</span>']
+            for i, r in enumerate(c.rows)]
+    if rows:
+        out.append(_table(["model", "CPA", "poses", "n", "RMS (mm)", "nominal RMS (mm)",
+                           "difference (mm)", "difference (% of nominal)", "against nominal"],
+                          rows, raw=True))
+    note = ("<i>Classical</i> CPA fits a plane and a circle to each joint's sweep on its own "
+            "and builds the model from the six axes. <i>Polished</i> CPA re-fits that model "
+            "(constant errors) by robust maximum likelihood on all the sweep points at once, "
+            "started from the classical one: no circle is then fitted alone, so short arcs "
+            "and small radii cost less.")
+    p = c.polish
+    if p:
+        sw = p.get("sweep_rms_mm") or {}
+        if isinstance(sw.get("classical"), int | float) and isinstance(sw.get("polished"),
+                                                                          int | float):
+            note += (f" On the {esc(p.get('sweep_points', '?'))} sweep points the RMS error "
+                     f"went from {sw['classical']:.3f} mm (classical) to "
+                     f"{sw['polished']:.3f} mm (polished)")
+            n_out = len(p.get("outliers") or ())
+            note += f", {n_out} outlier{'s' if n_out != 1 else ''} rejected." if n_out else "."
+    out.append(f'<p class="note">{note} Neither uses the calibration or validation poses; '
+               "both describe constant errors only.</p>")
+    if c.circles:
+        crow = []
+        for ci in c.circles:
+            def num(key: str, fmt: str, ci: Mapping[str, Any] = ci) -> str:
+                v = ci.get(key)
+                return format(v, fmt) if isinstance(v, int | float) else "–"
+            crow.append([f"J{esc(ci.get('joint', '?'))}", esc(ci.get("n", "–")),
+                         num("arc_deg", ".0f"), num("radius_mm", ".1f"),
+                         num("circle_rms_mm", ".4f"), num("noise_rms_mm", ".4f"),
+                         num("noise_ratio", ".1f"),
+                         esc(", ".join(str(x) for x in ci.get("issues") or ()) or "–")])
+        out.append("<h3>Circle fits</h3>")
+        out.append(_table(["joint", "points", "arc (deg)", "radius (mm)", "circle RMS (mm)",
+                           "noise (mm)", "RMS / noise", "weakness"], crow))
+        out.append('<p class="note">Per joint sweep: the chain-angle arc covered, the circle '
+                   "radius (the reflector's distance from the axis), the RMS distance of the "
+                   "points from the fitted circle, and what the tracker noise alone would "
+                   "leave. Weak: arcs under 90°, radii under 100 mm (centre and axis poorly "
+                   "determined), circle residuals above twice the noise (joint-dependent "
+                   "errors, which CPA cannot describe).</p>")
     out.append("</section>")
     return "\n".join(out)
 

@@ -27,6 +27,7 @@ Array = NDArray[np.float64]
 KNOWN_MODELS: dict[str, str] = {
     "nominal": "Nominal (base + reflector fitted)",
     "cpa": "Circle Point Analysis",
+    "cpa-classical": "Circle Point Analysis, classical (not polished)",
     "constant": "Constant error model",
     "high-order": "High-order joint-dependent model",
     "auto": "Auto-selected model",

@@ -89,6 +89,7 @@ def summary(an: Analysis) -> dict[str, Any]:
         "validation_glitches": list(an.validation_glitches),
         "joint_errors": {"model": an.joint_model, "joints": joints},
         "identifiability": None if an.ident is None else an.ident.to_dict(),
+        "cpa": None if an.cpa is None else an.cpa.to_dict(),
         "iso9283": [r.to_dict() for r in an.iso],
         "workspace": None if an.work is None else an.work.to_dict(),
         "measurement_log": log,
