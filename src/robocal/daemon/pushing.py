@@ -1,9 +1,9 @@
 """Compensation tables from an approved fit: building, safety bounds, push and rollback.
 
-A push writes the table through the robot driver's ``CompensationSink``, reads it back,
-compares content and checksum, and activates it when the driver can. Before robocal first
-writes a kind of table, the controller's own values in those slots are read
-(:func:`snapshot`) and journaled, so a rollback restores them. Tables beyond the configured
+A push writes the table through the robot driver's ``CompensationSink``, reads it back and
+compares content and checksum. Before robocal first writes a kind of table, the controller's
+own values in those slots are read (:func:`snapshot`, a driver's ``CompensationSnapshots``)
+and journaled, so a rollback restores them. Tables beyond the configured
 bounds (joint correction, frame change) are refused before anything is written, and so are
 tables whose predicted residual is not clearly below the nominal one
 (:func:`robocal.compensation.improvement_refusal`) unless forced.
@@ -28,7 +28,14 @@ from robocal._core import read_joints_csv
 from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
 from robocal.compensation import ideal_positions as _ideal_positions
 from robocal.daemon.config import LimitsConfig
-from robocal.drivers import CompensationSink, ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    ControllerSnapshot,
+    snapshot_diff,
+    table_diff,
+)
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
 
@@ -225,7 +232,7 @@ def _differences(path: str, a: Any, b: Any, *, tol: float) -> list[str]:
 
 
 async def write_and_verify(robot: object, table: CompensationTable) -> CompensationTable:
-    """Write ``table``, read it back, compare content and checksum, activate; return read-back.
+    """Write ``table``, read it back, compare content and checksum; return the read-back.
 
     Raises
     ------
@@ -246,41 +253,32 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
         raise VerificationMismatch(f"read-back differs: {details[0]}", diff=details)
     if back.compute_checksum() != back.checksum and back.checksum:
         raise VerificationMismatch("read-back table fails its own checksum")
-    activate = getattr(robot, "activate_compensation", None)
-    if callable(activate):
-        await activate(sealed)
     return back
 
 
 # --- controller snapshots and journal reconciliation -------------------------------------------
 async def snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
     """What the controller holds in ``table``'s slots, or None if the driver cannot say."""
-    fn = getattr(robot, "snapshot_compensation", None)
-    if not callable(fn):
+    if not isinstance(robot, CompensationSnapshots):
         return None
-    snap = await fn(table)
-    return snap if isinstance(snap, ControllerSnapshot) else None
+    return await robot.snapshot_compensation(table)
 
 
 async def read_like(robot: object, table: CompensationTable) -> CompensationTable | None:
     """The controller's values in ``table``'s slots, as a table (None: nothing there)."""
-    fn = getattr(robot, "read_compensation_like", None)
-    if callable(fn):
-        back = await fn(table)
-    elif isinstance(robot, CompensationSink):
-        back = await robot.read_compensation()
-    else:
-        raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
-    return back if isinstance(back, CompensationTable) else None
+    if isinstance(robot, CompensationSlots):
+        return await robot.read_compensation_like(table)
+    if isinstance(robot, CompensationSink):
+        return await robot.read_compensation()
+    raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
 
 
 async def holds(robot: object, entry: CompensationTable | ControllerSnapshot) -> bool:
     """Whether the controller holds ``entry`` (a table or a snapshot) right now."""
     if isinstance(entry, ControllerSnapshot):
-        fn = getattr(robot, "snapshot_compensation", None)
-        if not callable(fn):
+        if not isinstance(robot, CompensationSnapshots):
             return False
-        current = await fn(_template_for(entry))
+        current = await robot.snapshot_compensation(_template_for(entry))
         saved = entry.model_copy(update={"items": {k: v for k, v in entry.items.items()
                                                    if k != "template"}})
         return not snapshot_diff(saved, current)
@@ -310,11 +308,10 @@ async def restore(robot: object, entry: CompensationTable | ControllerSnapshot
     ``restore_snapshot``, which verifies the read-back)."""
     if isinstance(entry, CompensationTable):
         return await write_and_verify(robot, entry)
-    fn = getattr(robot, "restore_snapshot", None)
-    if not callable(fn):
+    if not isinstance(robot, CompensationSnapshots):
         raise CompensationError(f"{type(robot).__name__} cannot restore controller snapshots")
     items = {k: v for k, v in entry.items.items() if k != "template"}
-    await fn(entry.model_copy(update={"items": items}))
+    await robot.restore_snapshot(entry.model_copy(update={"items": items}))
     return None
 
 

@@ -22,6 +22,8 @@ from robocal.drivers._registry import (
 from robocal.drivers._retry import RETRYABLE, measure_with_retry
 from robocal.drivers.api import (
     CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
     Connectable,
     JointMover,
     JointReader,
@@ -40,6 +42,8 @@ __all__ = [
     "ROBOT_GROUP",
     "TRACKER_GROUP",
     "CompensationSink",
+    "CompensationSlots",
+    "CompensationSnapshots",
     "Connectable",
     "ControllerSnapshot",
     "DriverBase",
