@@ -108,33 +108,14 @@ class _Progress:
 
 
 def _plan(args: argparse.Namespace, validation: int) -> tuple[dict[str, Any], str]:
-    """A PLAN.json document from robocal.planning, or random poses if planning fails."""
-    from robocal.errors import RobocalError
+    """The campaign's PLAN.json document (robocal.planning; its errors end the demo)."""
+    from robocal.planning import plan_campaign
 
-    try:
-        from robocal.planning import plan_campaign
-
-        plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
-                             validation=validation, cpa=True, cpa_points=24, iso=True,
-                             seed=args.seed, candidates=1024)
-        plan.save(args.out / "PLAN.json")
-        return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
-    except (ImportError, RobocalError) as err:
-        import numpy as np
-
-        from robocal.kinematics import load_robot
-
-        robot = load_robot(args.robot)
-        rng = np.random.default_rng(args.seed)
-        lim = np.degrees(robot.joint_limits)
-        n = args.poses + validation
-        q = rng.uniform(lim[:, 0] + 5.0, lim[:, 1] - 5.0, (n, robot.dof))
-        poses = [{"q_deg": [float(v) for v in q[i]],
-                  "purpose": "calibration" if i < args.poses else "validation"}
-                 for i in range(n)]
-        doc = {"format": "robocal.plan/1", "robot": args.robot, "poses": poses}
-        (args.out / "PLAN.json").write_text(json.dumps(doc, indent=1))
-        return doc, f"random poses (planning unavailable: {err})"
+    plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
+                         validation=validation, cpa=True, cpa_points=24, iso=True,
+                         seed=args.seed, candidates=1024)
+    plan.save(args.out / "PLAN.json")
+    return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
 
 
 async def _follow(svc: Any, cid: str, progress: _Progress, label: str,
@@ -247,8 +228,8 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
     figures["wall_time_s"] = round(time.perf_counter() - t_start, 1)
     injected: dict[str, int] = {}
     for sim in (cell.fanuc_sim, cell.ltp_sim):
-        for name, n in getattr(getattr(sim, "faults", None), "counts", {}).items():
-            injected[name] = injected.get(name, 0) + int(n)
+        for name, n in (sim.faults.counts if sim is not None else {}).items():
+            injected[name] = injected.get(name, 0) + n
     figures["faults_injected"] = injected
     return figures
 
