@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from robocal.cli._defaults import DEFAULT_MODEL, MODELS, VALIDATION_HELP, default_validation
+from robocal._core.model_names import DEFAULT_MODEL, MODELS
+from robocal.cli._defaults import VALIDATION_HELP, default_validation
 
 
 def register(sub: Any) -> None:

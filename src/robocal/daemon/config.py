@@ -28,10 +28,11 @@ import os
 import stat
 import tomllib
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from robocal._core.model_names import MODELS, FitModel
 from robocal.errors import ConfigError
 
 __all__ = [
@@ -50,10 +51,6 @@ __all__ = [
     "load_config",
     "parse_config",
 ]
-
-#: ``robocal.identification.MODELS`` as a type; spelled out because the daemon's config and
-#: client import without numpy (tests/unit/test_model_names.py checks that they agree).
-FitModel = Literal["constant", "high-order", "auto"]
 
 
 class _Model(BaseModel):
@@ -169,7 +166,7 @@ class FitConfig(_Model):
     keyword arguments of :class:`robocal.identification.FitOptions` (checked at start-up).
     """
 
-    models: tuple[FitModel, ...] = get_args(FitModel)
+    models: tuple[FitModel, ...] = MODELS
     select: Literal[FitModel, "best"] = "auto"
     cpa: bool = True
     executor: Literal["process", "thread"] = "process"

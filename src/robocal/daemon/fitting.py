@@ -26,6 +26,7 @@ import structlog
 
 from robocal._core.files import atomic_write_text, json_default
 from robocal._core.measurements import MeasurementSet
+from robocal._core.model_names import CPA, NOMINAL
 from robocal.daemon.store import MeasurementRow
 from robocal.errors import ConfigError, IdentificationError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
@@ -133,7 +134,7 @@ def _fit_summary(name: str, res: FitResult, seconds: float) -> tuple[dict[str, A
 
 def _cpa_summary(res: CPAResult, seconds: float) -> tuple[dict[str, Any], str]:
     """Summary of a :class:`CPAResult` (no training accuracy, no outliers, no status)."""
-    return _summary("cpa", res.calibrated, seconds, validation=res.validation,
+    return _summary(CPA, res.calibrated, seconds, validation=res.validation,
                     details=res.summary())
 
 
@@ -195,23 +196,23 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         fits[name] = _fit_summary(name, res, time.perf_counter() - t0)
         if nominal is None:
             # every fit carries the same nominal baseline (base and reflector fitted)
-            nominal = results["nominal"] = res.baseline
-            fits["nominal"] = _summary(
-                "nominal", nominal, 0.0, train=accuracy(nominal, train),
+            nominal = results[NOMINAL] = res.baseline
+            fits[NOMINAL] = _summary(
+                NOMINAL, nominal, 0.0, train=accuracy(nominal, train),
                 validation=None if validation is None else accuracy(nominal, validation))
     sweeps = _cpa_sets(rows)
     if job.get("cpa") and sweeps:
         t0 = time.perf_counter()
         try:
             cpa = _call_cpa(robot, sweeps, validation, nominal)
-            results["cpa"] = cpa
-            fits["cpa"] = _cpa_summary(cpa, time.perf_counter() - t0)
+            results[CPA] = cpa
+            fits[CPA] = _cpa_summary(cpa, time.perf_counter() - t0)
         except (RobocalError, ValueError) as err:
-            errors["cpa"] = f"{type(err).__name__}: {err}"
+            errors[CPA] = f"{type(err).__name__}: {err}"
     best = None
     best_rms = math.inf
     for name, (summ, _) in fits.items():
-        if name in ("nominal", "cpa") or name not in job["models"]:
+        if name in (NOMINAL, CPA) or name not in job["models"]:
             continue
         v = summ.get("validation") or summ.get("train") or {}
         rms = v.get("rms_mm")

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal._core import read_joints_csv
+from robocal._core.measurements import read_joints_csv
 from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
 from robocal.compensation import ideal_positions as _ideal_positions
 from robocal.daemon.config import LimitsConfig

@@ -19,23 +19,28 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.model_names import CPA, MODELS, NOMINAL
 from robocal.errors import ConfigError
 from robocal.identification import Accuracy, CPAResult, FitResult
 from robocal.kinematics import CalibratedModel, RobotDescription
 
 Array = NDArray[np.float64]
 
-#: Display order and labels of the well-known model names.
-KNOWN_MODELS: dict[str, str] = {
-    "nominal": "Nominal (base + reflector fitted)",
-    "cpa": "Circle Point Analysis",
+_LABELS: dict[str, str] = {
     "constant": "Constant error model",
     "high-order": "High-order joint-dependent model",
     "auto": "Auto-selected model",
 }
-#: Which model is judged when ``ReportInput.selected`` is not given (first present wins).
-SELECTION_ORDER = ("auto", "high-order", "constant", "cpa")
-BASELINE = "nominal"
+#: Display order and labels of the well-known model names (robocal._core.model_names).
+KNOWN_MODELS: dict[str, str] = {
+    NOMINAL: "Nominal (base + reflector fitted)",
+    CPA: "Circle Point Analysis",
+    **{name: _LABELS[name] for name in MODELS},
+}
+#: Which model is judged when ``ReportInput.selected`` is not given (first present wins):
+#: the richest fitted model, CPA last.
+SELECTION_ORDER = (*reversed(MODELS), CPA)
+BASELINE = NOMINAL
 
 
 @dataclass(frozen=True)

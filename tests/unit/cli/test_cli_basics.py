@@ -84,7 +84,8 @@ def test_commands_share_their_defaults(tmp_path, capsys: pytest.CaptureFixture[s
     """One default model and one default validation count across simulate, plan and fit."""
     import json
 
-    from robocal.cli._defaults import DEFAULT_MODEL, default_validation
+    from robocal._core.model_names import DEFAULT_MODEL
+    from robocal.cli._defaults import default_validation
 
     meas = tmp_path / "m.csv"
     assert main(["simulate", "--scenario", "constant", "--poses", "60", "--out", str(meas)]) == 0
