@@ -19,7 +19,7 @@ from robocal.drivers._registry import (
     load_robot_driver,
     load_tracker_driver,
 )
-from robocal.drivers._retry import RETRYABLE, measure_with_retry
+from robocal.drivers._retry import RETRYABLE, measure_with_retry, with_retry
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -67,4 +67,5 @@ __all__ = [
     "require",
     "snapshot_diff",
     "table_diff",
+    "with_retry",
 ]
