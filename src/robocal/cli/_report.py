@@ -15,7 +15,10 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from robocal.report import Acceptance, ReportInput
 
 DEFAULT_CONFIG = "/etc/robocal/config.toml"
 
@@ -56,17 +59,17 @@ def _model_name(kind: str) -> str:
     return k if k in KNOWN_MODELS else "model"
 
 
-def _acceptance(args: argparse.Namespace, base: Any = None) -> Any:
+def _acceptance(args: argparse.Namespace, base: Acceptance | None = None) -> Acceptance:
     from robocal.report import Acceptance
 
-    kw = {} if base is None else {f: getattr(base, f) for f in Acceptance.__dataclass_fields__}
+    kw: dict[str, float] = {}
     if args.max_rms_mm is not None:
         kw["max_rms_mm"] = args.max_rms_mm
     if args.max_error_mm is not None:
         kw["max_error_mm"] = args.max_error_mm
     if args.min_described is not None:
         kw["min_percent_described"] = args.min_described
-    return Acceptance(**kw)
+    return dataclasses.replace(base or Acceptance(), **kw)
 
 
 def _compare(items: Sequence[str]) -> dict[str, Any]:
@@ -83,7 +86,8 @@ def _compare(items: Sequence[str]) -> dict[str, Any]:
 
 
 def input_from_model_file(path: str | Path, *, data: str | None = None,
-                          validate: str | None = None, compare: Sequence[str] = ()) -> Any:
+                          validate: str | None = None, compare: Sequence[str] = ()
+                          ) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a MODEL.json (+ optional CSV files)."""
     from robocal._core.measurements import MeasurementSet
     from robocal.kinematics import CalibratedModel
@@ -103,7 +107,7 @@ def input_from_model_file(path: str | Path, *, data: str | None = None,
                        selected=name, notes=notes)
 
 
-def input_from_campaign(cid: str, config: str | Path) -> Any:
+def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a campaign in the daemon's SQLite store.
 
     Uses the store's measurements (purpose ``calibration`` / ``validation`` / ``iso-Pk``),
@@ -182,7 +186,7 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
                          beam_losses=sum(r.beam_losses for r in rows),
                          weather=weather, tracker=str(cfg.tracker.kind),
                          controller=str(cfg.robot.kind),
-                         extra={"campaign state": str(getattr(rec.state, "value", rec.state)),
+                         extra={"campaign state": rec.state.value,
                                 "campaign name": rec.name, "created by": rec.created_by})
     robot = next((m.calibrated.robot for m in models.values()), None)
     return ReportInput(models=models, calibration=cal, validation=val, robot=robot,
