@@ -40,28 +40,17 @@ __all__ = [
 # (robocal.planning, scipy) up front would add 1.2-1.5 s to each of them (python -X
 # importtime: robocal.daemon.client 0.25 s alone, 1.5 s with service and main; _plan 1.3 s).
 def __getattr__(name: str) -> object:
-    value: object
-    if name == "CalibrationService":
+    found: dict[str, object]
+    if name in ("PlanDoc", "parse_plan", "plan_from_poses"):
+        from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+
+        found = {"PlanDoc": PlanDoc, "parse_plan": parse_plan, "plan_from_poses": plan_from_poses}
+    elif name in ("CalibrationService", "serve"):
+        from robocal.daemon.main import serve
         from robocal.daemon.service import CalibrationService
 
-        value = CalibrationService
-    elif name == "PlanDoc":
-        from robocal.daemon._plan import PlanDoc
-
-        value = PlanDoc
-    elif name == "parse_plan":
-        from robocal.daemon._plan import parse_plan
-
-        value = parse_plan
-    elif name == "plan_from_poses":
-        from robocal.daemon._plan import plan_from_poses
-
-        value = plan_from_poses
-    elif name == "serve":
-        from robocal.daemon.main import serve
-
-        value = serve
+        found = {"CalibrationService": CalibrationService, "serve": serve}
     else:
         raise AttributeError(f"module 'robocal.daemon' has no attribute {name!r}")
-    globals()[name] = value  # looked up once
-    return value
+    globals().update(found)  # each module is looked up once
+    return found[name]

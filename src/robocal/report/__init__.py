@@ -45,27 +45,19 @@ if TYPE_CHECKING:
 # would add about 0.4 s (python -X importtime: robocal.report 0.3 s, with _write 0.7 s) to
 # every import of robocal.report.
 def __getattr__(name: str) -> object:
-    value: object
-    if name == "REPORT_FORMAT":
-        from robocal.report._write import REPORT_FORMAT
+    found: dict[str, object]
+    if name in ("REPORT_FORMAT", "summary", "write_report"):
+        from robocal.report._write import REPORT_FORMAT, summary, write_report
 
-        value = REPORT_FORMAT
-    elif name == "summary":
-        from robocal.report._write import summary
-
-        value = summary
-    elif name == "write_report":
-        from robocal.report._write import write_report
-
-        value = write_report
+        found = {"REPORT_FORMAT": REPORT_FORMAT, "summary": summary, "write_report": write_report}
     elif name == "add_compensation_section":
         from robocal.report._compensation import add_compensation_section
 
-        value = add_compensation_section
+        found = {name: add_compensation_section}
     else:
         raise AttributeError(f"module 'robocal.report' has no attribute {name!r}")
-    globals()[name] = value  # looked up once
-    return value
+    globals().update(found)  # each module is looked up once
+    return found[name]
 
 
 __all__ = [
