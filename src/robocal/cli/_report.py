@@ -114,11 +114,10 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     its fitted models (MODEL.json texts and fit summaries: outliers, status) and its
     selected model.
     """
-    import numpy as np
-
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
-    from robocal.daemon.store import Store
+    from robocal.daemon.fitting import measurement_set
+    from robocal.daemon.store import MeasurementRow, Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
     from robocal.report import MeasurementLog, ReportInput, model_entry
@@ -152,17 +151,8 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
             status=str(summ.get("status", "")) or base.status,
             stored=stored or dict(cm.metrics))
 
-    def mset(sel: list[Any]) -> MeasurementSet | None:
-        if not sel:
-            return None
-        sig = None
-        if all(r.sigma_mm is not None for r in sel):
-            sig = np.array([r.sigma_mm for r in sel], dtype=float) * 1e-3
-            if np.any(sig <= 0):
-                sig = None
-        return MeasurementSet(np.radians(np.array([r.q_act_deg for r in sel], dtype=float)),
-                              np.array([r.p_mm for r in sel], dtype=float) * 1e-3, sig,
-                              tuple(f"P{r.pose_idx:04d}" for r in sel))
+    def mset(sel: list[MeasurementRow], *, commanded: bool = False) -> MeasurementSet | None:
+        return measurement_set(sel, commanded=commanded) if sel else None
 
     cal_rows = [r for r in rows if r.purpose == "calibration"]
     if not cal_rows:
@@ -172,11 +162,8 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     val = mset([r for r in rows if r.purpose == "validation"])
     selected = rec.selected_model if rec.selected_model in models else None
     iso_rows = [r for r in rows if r.purpose.lower().startswith("iso-")]
-    iso_set = None
-    if iso_rows:  # commanded joints: AP compares with where the controller meant to go
-        iso_set = MeasurementSet(np.radians(np.array([r.q_cmd_deg for r in iso_rows])),
-                                 np.array([r.p_mm for r in iso_rows]) * 1e-3,
-                                 pose_id=tuple(f"P{r.pose_idx:04d}" for r in iso_rows))
+    # commanded joints: AP compares with where the controller meant to go
+    iso_set = mset(iso_rows, commanded=True)
     weather: list[dict[str, float]] = []
     for r in rows:  # each change of the weather once, not a copy per pose
         if r.weather and (not weather or weather[-1] != dict(r.weather)):
