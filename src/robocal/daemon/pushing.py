@@ -19,7 +19,6 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -207,30 +206,6 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
         raise CompensationError(f"compensation refused: {problems[0]}{more}")
 
 
-def _differences(path: str, a: Any, b: Any, *, tol: float) -> list[str]:
-    """Readable differences between two JSON values; numbers agree within ``tol``."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out: list[str] = []
-        for k in sorted(set(a) | set(b)):
-            if k not in a or k not in b:
-                out.append(f"{path}.{k}: present on one side only")
-            else:
-                out += _differences(f"{path}.{k}", a[k], b[k], tol=tol)
-        return out
-    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
-        if len(a) != len(b):
-            return [f"{path}: length {len(a)} written, {len(b)} read back"]
-        out = []
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            out += _differences(f"{path}[{i}]", x, y, tol=tol)
-        return out
-    if (isinstance(a, int | float) and isinstance(b, int | float)
-            and not isinstance(a, bool) and not isinstance(b, bool)):
-        ok = math.isfinite(float(a)) and abs(float(a) - float(b)) <= tol
-        return [] if ok else [f"{path}: {a!r} written, {b!r} read back"]
-    return [] if a == b else [f"{path}: {a!r} written, {b!r} read back"]
-
-
 async def write_and_verify(robot: object, table: CompensationTable) -> CompensationTable:
     """Write ``table``, read it back, compare content and checksum; return the read-back.
 
@@ -248,7 +223,7 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
     back = await robot.read_compensation()
     if back is None:
         raise VerificationMismatch("the controller holds no table after writing")
-    details = _differences("table", sealed.payload_dict(), back.payload_dict(), tol=1e-3)
+    details = table_diff(sealed, back, tol=1e-3)
     if details:
         raise VerificationMismatch(f"read-back differs: {details[0]}", diff=details)
     if back.compute_checksum() != back.checksum and back.checksum:
