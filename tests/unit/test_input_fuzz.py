@@ -23,7 +23,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from robocal._core import MeasurementSet, read_joints_csv
+from robocal._core.measurements import MeasurementSet, read_joints_csv
 from robocal.compensation import CompensationTable
 from robocal.compensation._targets import read_targets_csv
 from robocal.daemon._plan import parse_plan

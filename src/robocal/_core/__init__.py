@@ -1,10 +1,7 @@
-"""Value types shared by every layer (no device I/O)."""
+"""Foundations shared by every layer (no device I/O): measurement sets and CSV files
+(:mod:`~robocal._core.measurements`), file writing and TOML reading (:mod:`~robocal._core.files`),
+clocks, BLAS threads and the error-model names (:mod:`~robocal._core.model_names`).
 
-from robocal._core.measurements import (
-    MeasurementSet,
-    read_joints_csv,
-    write_joints_csv,
-    write_points_csv,
-)
-
-__all__ = ["MeasurementSet", "read_joints_csv", "write_joints_csv", "write_points_csv"]
+The package itself imports nothing, so that light modules (the model names) stay free of
+numpy; import from the modules.
+"""

@@ -1,4 +1,7 @@
-"""Writing files so that a reader never sees half of one."""
+"""Writing files so that a reader never sees half of one; reading TOML files; JSON of numpy.
+
+numpy is imported only where a value may be a numpy one, so that the daemon's configuration
+reads its TOML file without loading numpy."""
 
 from __future__ import annotations
 
@@ -8,11 +11,12 @@ import stat
 import tempfile
 import tomllib
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from robocal.errors import ConfigError, FileWriteError
+
+if TYPE_CHECKING:
+    from importlib.resources.abc import Traversable
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -78,6 +82,8 @@ def _fsync_dir(directory: Path) -> None:
 
 def json_default(o: Any) -> Any:
     """``json.dumps(default=...)`` for numpy scalars and arrays and paths."""
+    import numpy as np
+
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.floating | np.integer):
@@ -89,16 +95,24 @@ def json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def read_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file; raise :class:`ConfigError` naming the file and the problem."""
+def read_toml(path: str | Path | Traversable) -> dict[str, Any]:
+    """Parse a TOML file or package resource (robot descriptions, cells, the daemon's
+    configuration); raise :class:`ConfigError` naming the file and the problem."""
     src = str(path)
     try:
-        with open(path, "rb") as fh:  # binary, as tomllib wants: it decodes UTF-8 itself
+        # binary, as tomllib wants: it decodes UTF-8 itself
+        with (Path(path) if isinstance(path, str) else path).open("rb") as fh:
             return tomllib.load(fh)
+    except FileNotFoundError as err:
+        raise ConfigError("file not found", source=src) from err
+    except IsADirectoryError as err:
+        raise ConfigError("is a directory, not a TOML file", source=src) from err
+    except OSError as err:
+        raise ConfigError(f"cannot read: {err}", source=src) from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"not UTF-8 text: {err}", source=src) from err
     except (tomllib.TOMLDecodeError, RecursionError) as err:
         raise ConfigError(f"not valid TOML: {err or 'nested too deeply'}", source=src) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=src) from err
 
 
 def private_dir(path: str | Path, mode: int = 0o750) -> Path:

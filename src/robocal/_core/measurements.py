@@ -215,7 +215,8 @@ def _orientation_columns(header: list[str], rows: list[list[str]], src: str
 
 
 def read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
-    """Read a CSV file into a lower-case header and data rows (see :func:`parse_table`)."""
+    """Read one of robocal's CSV files into a lower-case header and data rows (see
+    :func:`parse_table`); a column named twice is a :class:`DataError`."""
     src = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8-sig")
@@ -223,7 +224,13 @@ def read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
         raise DataError("file not found", source=src) from err
     except (OSError, UnicodeDecodeError) as err:
         raise DataError(f"cannot read: {err}", source=src) from err
-    return parse_table(text, src)
+    header, rows = parse_table(text, src)
+    seen: set[str] = set()
+    for h in header:
+        if h and h in seen:
+            raise DataError("column appears twice", source=src, key=h)
+        seen.add(h)
+    return header, rows
 
 
 def parse_table(text: str, src: str, *, delimiter: str | None = None

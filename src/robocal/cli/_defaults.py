@@ -1,14 +1,9 @@
-"""Defaults shared by the commands, so that ``fit``, ``plan``, ``simulate`` and ``demo`` agree."""
+"""Defaults shared by the commands, so that ``fit``, ``plan``, ``simulate`` and ``demo`` agree.
+
+The error-model names and the default model are :mod:`robocal._core.model_names`'.
+"""
 
 from __future__ import annotations
-
-#: Error models a user can ask for, and the one used when none is named: ``auto`` chooses the
-#: joint-dependent terms the data support (cross-validated), which is what a calibration
-#: engineer wants unless they say otherwise. The home of the list is
-#: ``robocal.identification.MODELS``; it is spelled out here because ``robocal --help`` must
-#: not import numpy (tests/unit/test_model_names.py checks that the two agree).
-MODELS = ("constant", "high-order", "auto")
-DEFAULT_MODEL = "auto"
 
 
 def default_validation(count: int) -> int:

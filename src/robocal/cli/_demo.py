@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robocal.cli._defaults import MODELS as _MODELS
+from robocal._core.model_names import CPA, MODELS, NOMINAL
 from robocal.cli._defaults import VALIDATION_HELP, default_validation
 
 
@@ -108,33 +108,14 @@ class _Progress:
 
 
 def _plan(args: argparse.Namespace, validation: int) -> tuple[dict[str, Any], str]:
-    """A PLAN.json document from robocal.planning, or random poses if planning fails."""
-    from robocal.errors import RobocalError
+    """The campaign's PLAN.json document (robocal.planning; its errors end the demo)."""
+    from robocal.planning import plan_campaign
 
-    try:
-        from robocal.planning import plan_campaign
-
-        plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
-                             validation=validation, cpa=True, cpa_points=24, iso=True,
-                             seed=args.seed, candidates=1024)
-        plan.save(args.out / "PLAN.json")
-        return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
-    except (ImportError, RobocalError) as err:
-        import numpy as np
-
-        from robocal.kinematics import load_robot
-
-        robot = load_robot(args.robot)
-        rng = np.random.default_rng(args.seed)
-        lim = np.degrees(robot.joint_limits)
-        n = args.poses + validation
-        q = rng.uniform(lim[:, 0] + 5.0, lim[:, 1] - 5.0, (n, robot.dof))
-        poses = [{"q_deg": [float(v) for v in q[i]],
-                  "purpose": "calibration" if i < args.poses else "validation"}
-                 for i in range(n)]
-        doc = {"format": "robocal.plan/1", "robot": args.robot, "poses": poses}
-        (args.out / "PLAN.json").write_text(json.dumps(doc, indent=1))
-        return doc, f"random poses (planning unavailable: {err})"
+    plan = plan_campaign(args.robot, "demo", count=args.poses, model="high-order",
+                         validation=validation, cpa=True, cpa_points=24, iso=True,
+                         seed=args.seed, candidates=1024)
+    plan.save(args.out / "PLAN.json")
+    return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
 
 
 async def _follow(svc: Any, cid: str, progress: _Progress, label: str,
@@ -231,7 +212,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
                                                    "stab_ms": 100}},
             "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
             "measurement": {"samples": 5, "settle_s": 0.0, "backoff_s": 0.01, "retries": 8},
-            "fit": {"models": list(_MODELS), "select": "auto", "executor": "process"},
+            "fit": {"models": list(MODELS), "select": "auto", "executor": "process"},
             # the production targets are the validation poses; every one is re-measured
             "compensation": {"kind": "targets", "verify_count": validation},
             "logging": {"level": "info", "format": "json"},
@@ -247,8 +228,8 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
     figures["wall_time_s"] = round(time.perf_counter() - t_start, 1)
     injected: dict[str, int] = {}
     for sim in (cell.fanuc_sim, cell.ltp_sim):
-        for name, n in getattr(getattr(sim, "faults", None), "counts", {}).items():
-            injected[name] = injected.get(name, 0) + int(n)
+        for name, n in (sim.faults.counts if sim is not None else {}).items():
+            injected[name] = injected.get(name, 0) + n
     figures["faults_injected"] = injected
     return figures
 
@@ -283,7 +264,7 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
     if st["state"] != "fitted":
         figures["reason"] = st["reason"]
         return figures
-    fitted = [k for k, v in st["fits"].items() if k != "nominal" and not v.get("error")]
+    fitted = [k for k, v in st["fits"].items() if k != NOMINAL and not v.get("error")]
     progress.step(f"  fitted {', '.join(fitted)} "
                   f"in {figures['fit_s']} s (worker process)")
     campaign_dir = svc.config.data_dir / "campaigns" / cid
@@ -305,7 +286,7 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
                             "before": _errors(np, p_val - targets)}
     from robocal.compensation import compensate
 
-    for name in _MODELS:
+    for name in MODELS:
         if name not in st["fits"] or st["fits"][name].get("error"):
             continue
         cal = svc.fitted_model(cid, name)
@@ -364,7 +345,7 @@ def _print_summary(f: dict[str, Any]) -> None:
       "used for fitting)\n")
     w(f"  {'model':12s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s} {'% described':>12s}"
       f" {'fit s':>7s}\n")
-    for name in ("nominal", "cpa classical", "cpa", *_MODELS):
+    for name in (NOMINAL, "cpa classical", CPA, *MODELS):
         s = fits.get(name)
         if name == "cpa classical":  # classical CPA rides in the cpa fit's summary
             det = (fits.get("cpa") or {}).get("details")
@@ -378,14 +359,14 @@ def _print_summary(f: dict[str, Any]) -> None:
             continue
         v = s.get("validation") or {}
         pct = v.get("percent_described_rms")
-        if name == "nominal":
+        if name == NOMINAL:
             pct = 0.0
         w(f"  {name:13s}{_fmt(v.get('rms_mm'), 4):>9s} {_fmt(v.get('mean_mm'), 4):>9s} "
           f"{_fmt(v.get('max_mm'), 4):>9s} {_fmt(pct, 1, ' %'):>12s} "
           f"{_fmt(s.get('seconds'), 2):>7s}\n")
     w("  nominal = nominal kinematics with only the tracker<-base transform and the reflector\n"
       "  fitted: the honest baseline of '% described'.")
-    if "cpa" in fits:
+    if CPA in fits:
         w(" cpa = Circle Point Analysis from single-joint\n"
           "  sweeps, polished by a constant-model ML fit on the sweep points (cpa classical:\n"
           "  before the polish); its arcs are as wide as the reflector stays visible (spans in\n"
@@ -397,7 +378,7 @@ def _print_summary(f: dict[str, Any]) -> None:
         w(f"\nCompensation of {comp.get('targets')} validation targets, measured again\n")
         w(f"  {'commands':22s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s}\n")
         rows = [("nominal (before)", comp.get("before"))]
-        rows += [(f"{m} compensated", comp.get(m)) for m in _MODELS if m in comp]
+        rows += [(f"{m} compensated", comp.get(m)) for m in MODELS if m in comp]
         for label, e in rows:
             if not e:
                 continue

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from robocal.cli._defaults import DEFAULT_MODEL, MODELS
+from robocal._core.model_names import DEFAULT_MODEL, MODELS
 
 
 def register(sub: Any) -> None:

@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from robocal.cli._defaults import DEFAULT_MODEL, MODELS, VALIDATION_HELP, default_validation
+from robocal._core.model_names import DEFAULT_MODEL, MODELS
+from robocal.cli._defaults import VALIDATION_HELP, default_validation
 
 
 def register(sub: Any) -> None:
@@ -25,8 +26,9 @@ def register(sub: Any) -> None:
         description="Draw candidate poses (scrambled Sobol over the joint ranges), keep those "
                     "feasible in the cell (reflector facing the tracker, clear line of sight, "
                     "no collision), choose the calibration poses for the error model (by "
-                    "default one per stratum of the joint space, D-optimal within strata), add validation poses, CPA sweeps and ISO 9283 cube poses, order "
-                    "them for short moves, check every move along its swept path (detours "
+                    "default one per stratum of the joint space, D-optimal within strata), "
+                    "add validation poses, CPA sweeps and ISO 9283 cube poses, order them "
+                    "for short moves, check every move along its swept path (detours "
                     "where needed; targets with no safe route are dropped and listed) and "
                     "write PLAN.json. Deterministic for a given seed.")
     p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")

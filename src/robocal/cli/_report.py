@@ -15,7 +15,10 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from robocal.report import Acceptance, ReportInput
 
 DEFAULT_CONFIG = "/etc/robocal/config.toml"
 
@@ -56,17 +59,17 @@ def _model_name(kind: str) -> str:
     return k if k in KNOWN_MODELS else "model"
 
 
-def _acceptance(args: argparse.Namespace, base: Any = None) -> Any:
+def _acceptance(args: argparse.Namespace, base: Acceptance | None = None) -> Acceptance:
     from robocal.report import Acceptance
 
-    kw = {} if base is None else {f: getattr(base, f) for f in Acceptance.__dataclass_fields__}
+    kw: dict[str, float] = {}
     if args.max_rms_mm is not None:
         kw["max_rms_mm"] = args.max_rms_mm
     if args.max_error_mm is not None:
         kw["max_error_mm"] = args.max_error_mm
     if args.min_described is not None:
         kw["min_percent_described"] = args.min_described
-    return Acceptance(**kw)
+    return dataclasses.replace(base or Acceptance(), **kw)
 
 
 def _compare(items: Sequence[str]) -> dict[str, Any]:
@@ -83,7 +86,8 @@ def _compare(items: Sequence[str]) -> dict[str, Any]:
 
 
 def input_from_model_file(path: str | Path, *, data: str | None = None,
-                          validate: str | None = None, compare: Sequence[str] = ()) -> Any:
+                          validate: str | None = None, compare: Sequence[str] = ()
+                          ) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a MODEL.json (+ optional CSV files)."""
     from robocal._core.measurements import MeasurementSet
     from robocal.kinematics import CalibratedModel
@@ -103,18 +107,17 @@ def input_from_model_file(path: str | Path, *, data: str | None = None,
                        selected=name, notes=notes)
 
 
-def input_from_campaign(cid: str, config: str | Path) -> Any:
+def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a campaign in the daemon's SQLite store.
 
     Uses the store's measurements (purpose ``calibration`` / ``validation`` / ``iso-Pk``),
     its fitted models (MODEL.json texts and fit summaries: outliers, status) and its
     selected model.
     """
-    import numpy as np
-
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
-    from robocal.daemon.store import Store
+    from robocal.daemon.fitting import measurement_set
+    from robocal.daemon.store import MeasurementRow, Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
     from robocal.report import MeasurementLog, ReportInput, model_entry
@@ -148,17 +151,8 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
             status=str(summ.get("status", "")) or base.status,
             stored=stored or dict(cm.metrics))
 
-    def mset(sel: list[Any]) -> MeasurementSet | None:
-        if not sel:
-            return None
-        sig = None
-        if all(r.sigma_mm is not None for r in sel):
-            sig = np.array([r.sigma_mm for r in sel], dtype=float) * 1e-3
-            if np.any(sig <= 0):
-                sig = None
-        return MeasurementSet(np.radians(np.array([r.q_act_deg for r in sel], dtype=float)),
-                              np.array([r.p_mm for r in sel], dtype=float) * 1e-3, sig,
-                              tuple(f"P{r.pose_idx:04d}" for r in sel))
+    def mset(sel: list[MeasurementRow], *, commanded: bool = False) -> MeasurementSet | None:
+        return measurement_set(sel, commanded=commanded) if sel else None
 
     cal_rows = [r for r in rows if r.purpose == "calibration"]
     if not cal_rows:
@@ -168,11 +162,8 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
     val = mset([r for r in rows if r.purpose == "validation"])
     selected = rec.selected_model if rec.selected_model in models else None
     iso_rows = [r for r in rows if r.purpose.lower().startswith("iso-")]
-    iso_set = None
-    if iso_rows:  # commanded joints: AP compares with where the controller meant to go
-        iso_set = MeasurementSet(np.radians(np.array([r.q_cmd_deg for r in iso_rows])),
-                                 np.array([r.p_mm for r in iso_rows]) * 1e-3,
-                                 pose_id=tuple(f"P{r.pose_idx:04d}" for r in iso_rows))
+    # commanded joints: AP compares with where the controller meant to go
+    iso_set = mset(iso_rows, commanded=True)
     weather: list[dict[str, float]] = []
     for r in rows:  # each change of the weather once, not a copy per pose
         if r.weather and (not weather or weather[-1] != dict(r.weather)):
@@ -182,7 +173,7 @@ def input_from_campaign(cid: str, config: str | Path) -> Any:
                          beam_losses=sum(r.beam_losses for r in rows),
                          weather=weather, tracker=str(cfg.tracker.kind),
                          controller=str(cfg.robot.kind),
-                         extra={"campaign state": str(getattr(rec.state, "value", rec.state)),
+                         extra={"campaign state": rec.state.value,
                                 "campaign name": rec.name, "created by": rec.created_by})
     robot = next((m.calibrated.robot for m in models.values()), None)
     return ReportInput(models=models, calibration=cal, validation=val, robot=robot,

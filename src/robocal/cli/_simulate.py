@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     """Simulate and write the files."""
     import numpy as np
 
-    from robocal._core import MeasurementSet
+    from robocal._core.measurements import MeasurementSet
     from robocal.errors import ConfigError
     from robocal.simulation import VirtualCell
 

@@ -26,12 +26,13 @@ import ipaddress
 import json
 import os
 import stat
-import tomllib
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from robocal._core.files import read_toml
+from robocal._core.model_names import MODELS, FitModel
 from robocal.errors import ConfigError
 
 __all__ = [
@@ -50,10 +51,6 @@ __all__ = [
     "load_config",
     "parse_config",
 ]
-
-#: ``robocal.identification.MODELS`` as a type; spelled out because the daemon's config and
-#: client import without numpy (tests/unit/test_model_names.py checks that they agree).
-FitModel = Literal["constant", "high-order", "auto"]
 
 
 class _Model(BaseModel):
@@ -169,7 +166,7 @@ class FitConfig(_Model):
     keyword arguments of :class:`robocal.identification.FitOptions` (checked at start-up).
     """
 
-    models: tuple[FitModel, ...] = get_args(FitModel)
+    models: tuple[FitModel, ...] = MODELS
     select: Literal[FitModel, "best"] = "auto"
     cpa: bool = True
     executor: Literal["process", "thread"] = "process"
@@ -329,28 +326,11 @@ def _errors(source: str, data: Any, base: Path) -> tuple[AppConfig | None, list[
         return None, [f"{source}: key {_loc(e['loc'])!r}: {e['msg']}" for e in err.errors()]
 
 
-def _read(path: Path) -> dict[str, Any]:
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError as err:
-        raise ConfigError("file not found", source=str(path)) from err
-    except IsADirectoryError as err:
-        raise ConfigError("is a directory, not a configuration file", source=str(path)) from err
-    except OSError as err:
-        raise ConfigError(f"cannot read: {err}", source=str(path)) from err
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"not UTF-8 text: {err}", source=str(path)) from err
-    except (tomllib.TOMLDecodeError, RecursionError) as err:
-        raise ConfigError(f"not valid TOML: {err or 'nested too deeply'}",
-                          source=str(path)) from err
-
-
 def config_errors(path: str | Path) -> list[str]:
     """Return every problem of the configuration file (empty when it is valid)."""
     path = Path(path)
     try:
-        data = _read(path)
+        data = read_toml(path)
     except ConfigError as err:
         return [str(err)]
     return _errors(str(path), data, path.resolve().parent)[1]
@@ -375,7 +355,7 @@ def load_config(path: str | Path) -> AppConfig:
         If the file is missing or invalid; the message names the file and the key path.
     """
     path = Path(path)
-    return parse_config(_read(path), source=str(path), base=path.resolve().parent)
+    return parse_config(read_toml(path), source=str(path), base=path.resolve().parent)
 
 
 def is_loopback(host: str) -> bool:

@@ -34,7 +34,7 @@ from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
-from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target
+from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target, with_retry
 from robocal.errors import (
     BeamLost,
     LimitViolation,
@@ -308,30 +308,35 @@ class CampaignRunner:
             raise MotionRejected(
                 f"pose {pose.idx}: robot stopped {math.degrees(dev):.3f} deg from the target "
                 f"(limit {cfg.max_joint_deviation_deg} deg)", kind="daemon")
-        delay = cfg.backoff_s
         attempts = 0
         beam_losses = 0
-        retry_on: tuple[type[Exception], ...] = (*RETRYABLE, MeasurementRejected)
-        while True:
+
+        async def attempt() -> tuple[TrackerReading, float | None]:
+            nonlocal attempts
             attempts += 1
-            problem: str
-            try:
-                reading = await tracker.measure(samples=cfg.samples, timeout=cfg.timeout_s,
-                                                point_id=f"{cid}-{pose.idx}")
-                distance = self._validate(reading, q_act, predictor)
-                return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses)
-            except retry_on as err:
-                problem = f"{type(err).__name__}: {err}"
-                beam_losses += isinstance(err, BeamLost)
-            if attempts > cfg.retries:
-                raise MeasurementError(
-                    f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
-                    f"{problem}")
-            _log.info("reading retried", campaign=cid, pose=pose.idx, attempt=attempts,
+            reading = await tracker.measure(samples=cfg.samples, timeout=cfg.timeout_s,
+                                            point_id=f"{cid}-{pose.idx}")
+            return reading, self._validate(reading, q_act, predictor)
+
+        def retried(n: int, err: Exception, delay: float) -> None:
+            nonlocal beam_losses
+            beam_losses += isinstance(err, BeamLost)
+            problem = f"{type(err).__name__}: {err}"
+            _log.info("reading retried", campaign=cid, pose=pose.idx, attempt=n,
                       problem=problem, delay_s=delay)
-            self.events.emit("retry", cid, pose=pose.idx, attempt=attempts, problem=problem)
-            await asyncio.sleep(delay)
-            delay = min(delay * cfg.backoff_factor, cfg.max_backoff_s)
+            self.events.emit("retry", cid, pose=pose.idx, attempt=n, problem=problem)
+
+        retry_on: tuple[type[Exception], ...] = (*RETRYABLE, MeasurementRejected)
+        try:
+            reading, distance = await with_retry(
+                attempt, attempts=cfg.retries + 1, backoff_s=cfg.backoff_s,
+                backoff_factor=cfg.backoff_factor, max_backoff_s=cfg.max_backoff_s,
+                retry_on=retry_on, on_retry=retried)
+        except retry_on as err:
+            raise MeasurementError(
+                f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
+                f"{type(err).__name__}: {err}") from err
+        return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses)
 
     def _validate(self, reading: TrackerReading, q_act: Sequence[float],
                   predictor: Predictor) -> float | None:

@@ -19,16 +19,20 @@ import re
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
 
 from robocal._core.files import atomic_write_text, json_default
 from robocal._core.measurements import MeasurementSet
+from robocal._core.model_names import CPA, NOMINAL
 from robocal.daemon.store import MeasurementRow
 from robocal.errors import ConfigError, IdentificationError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
+
+if TYPE_CHECKING:  # imported where used: the daemon starts without identification
+    from robocal.identification import Accuracy, CPAResult, FitOptions, FitResult
 
 __all__ = ["FitRunner", "build_fit_job", "measurement_set", "run_fit_job"]
 
@@ -55,7 +59,7 @@ def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
     return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows))
 
 
-def fit_options(options: Mapping[str, Any] | None) -> Any:
+def fit_options(options: Mapping[str, Any] | None) -> FitOptions:
     """``robocal.identification.FitOptions(**options)``; ConfigError naming a bad option."""
     from robocal.identification import FitOptions
 
@@ -101,49 +105,37 @@ def _rows(job: Mapping[str, Any]) -> list[MeasurementRow]:
     ) for r in job["rows"]]
 
 
-def _acc(obj: Any) -> dict[str, Any] | None:
-    if obj is None:
-        return None
-    if hasattr(obj, "to_dict"):
-        return dict(obj.to_dict())
-    if isinstance(obj, Mapping):
-        return dict(obj)
-    return None
-
-
-def _json_default(o: Any) -> Any:
-    """Like :func:`robocal._core.files.json_default`, but summaries never fail: str() the rest."""
-    try:
-        return json_default(o)
-    except TypeError:
-        return str(o)
-
-
-def _summary(name: str, result: Any, seconds: float) -> tuple[dict[str, Any], str | None]:
-    cal = getattr(result, "calibrated", result if isinstance(result, CalibratedModel) else None)
+def _summary(name: str, cal: CalibratedModel, seconds: float, *,
+             train: Accuracy | None = None, validation: Accuracy | None = None,
+             outliers: Sequence[str] = (), status: str | None = None,
+             details: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
+    """One model's summary (mm) and its MODEL.json text."""
     summary: dict[str, Any] = {
         "model": name,
         "seconds": round(seconds, 3),
-        "train": _acc(getattr(result, "train", None)),
-        "validation": _acc(getattr(result, "validation", None)),
-        "outliers": [str(x) for x in (getattr(result, "outliers", None) or ())],
+        "train": None if train is None else train.to_dict(),
+        "validation": None if validation is None else validation.to_dict(),
+        "outliers": [str(x) for x in outliers],
     }
-    status = getattr(result, "status", None)
     if status is not None:
-        summary["status"] = str(status)
-    fn = getattr(result, "summary", None)
-    if callable(fn):
-        try:
-            s = fn()
-            summary["details"] = json.loads(json.dumps(s, default=_json_default))
-        except Exception as err:  # a summary is informative only
-            summary["details"] = f"summary unavailable: {err}"
-    model_json = None
-    if isinstance(cal, CalibratedModel):
-        summary["model_id"] = cal.model_id
-        summary["n_params"] = int(cal.params.size)
-        model_json = json.dumps(cal.to_dict(), default=_json_default)
-    return summary, model_json
+        summary["status"] = status
+    if details is not None:
+        summary["details"] = json.loads(json.dumps(details, default=json_default))
+    summary["model_id"] = cal.model_id
+    summary["n_params"] = int(cal.params.size)
+    return summary, json.dumps(cal.to_dict(), default=json_default)
+
+
+def _fit_summary(name: str, res: FitResult, seconds: float) -> tuple[dict[str, Any], str]:
+    """Summary of an identification :class:`FitResult`."""
+    return _summary(name, res.calibrated, seconds, train=res.train, validation=res.validation,
+                    outliers=res.outliers, status=res.status, details=res.summary())
+
+
+def _cpa_summary(res: CPAResult, seconds: float) -> tuple[dict[str, Any], str]:
+    """Summary of a :class:`CPAResult` (no training accuracy, no outliers, no status)."""
+    return _summary(CPA, res.calibrated, seconds, validation=res.validation,
+                    details=res.summary())
 
 
 def _cpa_sets(rows: Sequence[MeasurementRow]) -> dict[int, MeasurementSet]:
@@ -157,14 +149,13 @@ def _cpa_sets(rows: Sequence[MeasurementRow]) -> dict[int, MeasurementSet]:
     return {j: measurement_set(rs, commanded=True) for j, rs in sorted(by_joint.items())}
 
 
-def _call_cpa(ident: Any, robot: RobotDescription, sweeps: dict[int, MeasurementSet],
+def _call_cpa(robot: RobotDescription, sweeps: dict[int, MeasurementSet],
               validation: MeasurementSet | None, baseline: CalibratedModel | None,
-              options: Any = None) -> Any:
+              options: FitOptions | None = None) -> CPAResult:
     """``identification.cpa_fit`` on the sweeps (plan purposes ``cpa-jK``, K 1-based); its
     polish uses the fit options (tracker noise, outlier test)."""
-    cpa_fit = getattr(ident, "cpa_fit", None)
-    if cpa_fit is None:
-        raise IdentificationError("robocal.identification.cpa_fit is not available")
+    from robocal.identification import cpa_fit
+
     return cpa_fit(robot, [(j - 1, ms) for j, ms in sweeps.items()], validation=validation,
                    baseline=baseline, options=options)
 
@@ -175,12 +166,12 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``fits``: model -> (summary, MODEL.json text or None); ``errors``: model -> message;
+        ``fits``: model -> (summary, MODEL.json text); ``errors``: model -> message;
         ``selected_hint``: the model with the lowest held-out RMS; ``report``: paths or a
         skip reason; ``seconds``.
     """
     t_start = time.perf_counter()
-    from robocal import identification as ident
+    from robocal.identification import accuracy, fit
 
     robot = RobotDescription.from_dict(job["robot"], source="fit job")
     rows = _rows(job)
@@ -190,13 +181,11 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         train_rows = [r for r in rows if not _CPA.match(r.purpose)]
     train = measurement_set(train_rows)
     validation = measurement_set(val_rows) if val_rows else None
-    fit = getattr(ident, "fit", None)
-    if fit is None:
-        raise IdentificationError("robocal.identification.fit is not available")
     opts = fit_options(job.get("options"))
-    results: dict[str, Any] = {}
-    fits: dict[str, tuple[dict[str, Any], str | None]] = {}
+    results: dict[str, FitResult | CPAResult | CalibratedModel] = {}
+    fits: dict[str, tuple[dict[str, Any], str]] = {}
     errors: dict[str, str] = {}
+    nominal: CalibratedModel | None = None
     for name in job["models"]:
         t0 = time.perf_counter()
         try:
@@ -205,33 +194,26 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
             errors[name] = f"{type(err).__name__}: {err}"
             continue
         results[name] = res
-        fits[name] = _summary(name, res, time.perf_counter() - t0)
-        if "nominal" not in results:
-            base = getattr(res, "baseline", None)
-            if isinstance(base, CalibratedModel):
-                results["nominal"] = base
-                summ, mj = _summary("nominal", base, 0.0)
-                score = getattr(ident, "accuracy", None)
-                if score is not None:
-                    summ["train"] = score(base, train).to_dict()
-                    if validation is not None:
-                        summ["validation"] = score(base, validation).to_dict()
-                fits["nominal"] = (summ, mj)
+        fits[name] = _fit_summary(name, res, time.perf_counter() - t0)
+        if nominal is None:
+            # every fit carries the same nominal baseline (base and reflector fitted)
+            nominal = results[NOMINAL] = res.baseline
+            fits[NOMINAL] = _summary(
+                NOMINAL, nominal, 0.0, train=accuracy(nominal, train),
+                validation=None if validation is None else accuracy(nominal, validation))
     sweeps = _cpa_sets(rows)
     if job.get("cpa") and sweeps:
         t0 = time.perf_counter()
         try:
-            base = results.get("nominal")
-            res = _call_cpa(ident, robot, sweeps, validation,
-                            base if isinstance(base, CalibratedModel) else None, opts)
-            results["cpa"] = res
-            fits["cpa"] = _summary("cpa", res, time.perf_counter() - t0)
-        except (RobocalError, TypeError, ValueError) as err:
-            errors["cpa"] = f"{type(err).__name__}: {err}"
+            cpa = _call_cpa(robot, sweeps, validation, nominal, opts)
+            results[CPA] = cpa
+            fits[CPA] = _cpa_summary(cpa, time.perf_counter() - t0)
+        except (RobocalError, ValueError) as err:
+            errors[CPA] = f"{type(err).__name__}: {err}"
     best = None
     best_rms = math.inf
     for name, (summ, _) in fits.items():
-        if name in ("nominal", "cpa") or name not in job["models"]:
+        if name in (NOMINAL, CPA) or name not in job["models"]:
             continue
         v = summ.get("validation") or summ.get("train") or {}
         rms = v.get("rms_mm")
@@ -244,15 +226,15 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         d = Path(out_dir)
         d.mkdir(parents=True, exist_ok=True)
         for name, (_, mj) in fits.items():
-            if mj is not None:
-                atomic_write_text(d / f"MODEL-{name}.json", mj)
+            atomic_write_text(d / f"MODEL-{name}.json", mj)
         if job.get("report"):
             out["report"] = _write_report(job, robot, results, train, validation, d)
     out["seconds"] = round(time.perf_counter() - t_start, 3)
     return out
 
 
-def _write_report(job: Mapping[str, Any], robot: RobotDescription, results: dict[str, Any],
+def _write_report(job: Mapping[str, Any], robot: RobotDescription,
+                  results: dict[str, FitResult | CPAResult | CalibratedModel],
                   train: MeasurementSet, validation: MeasurementSet | None,
                   out_dir: Path) -> dict[str, Any]:
     """Write ``report.html`` and ``report.json`` into ``out_dir``; a failure is reported, not
@@ -271,7 +253,7 @@ def _write_report(job: Mapping[str, Any], robot: RobotDescription, results: dict
             iso_purposes=[r.purpose for r in iso_rows],
             acceptance=Acceptance.from_mapping(job.get("acceptance") or None))
         html_path, json_path = write_report(inp, out_dir)
-    except (RobocalError, OSError, TypeError, ValueError) as err:
+    except (RobocalError, OSError, ValueError) as err:
         reason = f"report failed: {type(err).__name__}: {err}"
         _log.warning("report failed", error=reason)
         return {"skipped": reason}

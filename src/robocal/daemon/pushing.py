@@ -1,9 +1,9 @@
 """Compensation tables from an approved fit: building, safety bounds, push and rollback.
 
-A push writes the table through the robot driver's ``CompensationSink``, reads it back,
-compares content and checksum, and activates it when the driver can. Before robocal first
-writes a kind of table, the controller's own values in those slots are read
-(:func:`snapshot`) and journaled, so a rollback restores them. Tables beyond the configured
+A push writes the table through the robot driver's ``CompensationSink``, reads it back and
+compares content and checksum. Before robocal first writes a kind of table, the controller's
+own values in those slots are read (:func:`snapshot`, a driver's ``CompensationSnapshots``)
+and journaled, so a rollback restores them. Tables beyond the configured
 bounds (joint correction, frame change) are refused before anything is written, and so are
 tables whose predicted residual is not clearly below the nominal one
 (:func:`robocal.compensation.improvement_refusal`) unless forced.
@@ -19,16 +19,22 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal._core import read_joints_csv
+from robocal._core.measurements import read_joints_csv
 from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
 from robocal.compensation import ideal_positions as _ideal_positions
 from robocal.daemon.config import LimitsConfig
-from robocal.drivers import CompensationSink, ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    ControllerSnapshot,
+    snapshot_diff,
+    table_diff,
+)
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
 
@@ -200,32 +206,8 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
         raise CompensationError(f"compensation refused: {problems[0]}{more}")
 
 
-def _differences(path: str, a: Any, b: Any, *, tol: float) -> list[str]:
-    """Readable differences between two JSON values; numbers agree within ``tol``."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out: list[str] = []
-        for k in sorted(set(a) | set(b)):
-            if k not in a or k not in b:
-                out.append(f"{path}.{k}: present on one side only")
-            else:
-                out += _differences(f"{path}.{k}", a[k], b[k], tol=tol)
-        return out
-    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
-        if len(a) != len(b):
-            return [f"{path}: length {len(a)} written, {len(b)} read back"]
-        out = []
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            out += _differences(f"{path}[{i}]", x, y, tol=tol)
-        return out
-    if (isinstance(a, int | float) and isinstance(b, int | float)
-            and not isinstance(a, bool) and not isinstance(b, bool)):
-        ok = math.isfinite(float(a)) and abs(float(a) - float(b)) <= tol
-        return [] if ok else [f"{path}: {a!r} written, {b!r} read back"]
-    return [] if a == b else [f"{path}: {a!r} written, {b!r} read back"]
-
-
 async def write_and_verify(robot: object, table: CompensationTable) -> CompensationTable:
-    """Write ``table``, read it back, compare content and checksum, activate; return read-back.
+    """Write ``table``, read it back, compare content and checksum; return the read-back.
 
     Raises
     ------
@@ -241,46 +223,37 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
     back = await robot.read_compensation()
     if back is None:
         raise VerificationMismatch("the controller holds no table after writing")
-    details = _differences("table", sealed.payload_dict(), back.payload_dict(), tol=1e-3)
+    details = table_diff(sealed, back, tol=1e-3)
     if details:
         raise VerificationMismatch(f"read-back differs: {details[0]}", diff=details)
     if back.compute_checksum() != back.checksum and back.checksum:
         raise VerificationMismatch("read-back table fails its own checksum")
-    activate = getattr(robot, "activate_compensation", None)
-    if callable(activate):
-        await activate(sealed)
     return back
 
 
 # --- controller snapshots and journal reconciliation -------------------------------------------
 async def snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
     """What the controller holds in ``table``'s slots, or None if the driver cannot say."""
-    fn = getattr(robot, "snapshot_compensation", None)
-    if not callable(fn):
+    if not isinstance(robot, CompensationSnapshots):
         return None
-    snap = await fn(table)
-    return snap if isinstance(snap, ControllerSnapshot) else None
+    return await robot.snapshot_compensation(table)
 
 
 async def read_like(robot: object, table: CompensationTable) -> CompensationTable | None:
     """The controller's values in ``table``'s slots, as a table (None: nothing there)."""
-    fn = getattr(robot, "read_compensation_like", None)
-    if callable(fn):
-        back = await fn(table)
-    elif isinstance(robot, CompensationSink):
-        back = await robot.read_compensation()
-    else:
-        raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
-    return back if isinstance(back, CompensationTable) else None
+    if isinstance(robot, CompensationSlots):
+        return await robot.read_compensation_like(table)
+    if isinstance(robot, CompensationSink):
+        return await robot.read_compensation()
+    raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
 
 
 async def holds(robot: object, entry: CompensationTable | ControllerSnapshot) -> bool:
     """Whether the controller holds ``entry`` (a table or a snapshot) right now."""
     if isinstance(entry, ControllerSnapshot):
-        fn = getattr(robot, "snapshot_compensation", None)
-        if not callable(fn):
+        if not isinstance(robot, CompensationSnapshots):
             return False
-        current = await fn(_template_for(entry))
+        current = await robot.snapshot_compensation(_template_for(entry))
         saved = entry.model_copy(update={"items": {k: v for k, v in entry.items.items()
                                                    if k != "template"}})
         return not snapshot_diff(saved, current)
@@ -310,11 +283,10 @@ async def restore(robot: object, entry: CompensationTable | ControllerSnapshot
     ``restore_snapshot``, which verifies the read-back)."""
     if isinstance(entry, CompensationTable):
         return await write_and_verify(robot, entry)
-    fn = getattr(robot, "restore_snapshot", None)
-    if not callable(fn):
+    if not isinstance(robot, CompensationSnapshots):
         raise CompensationError(f"{type(robot).__name__} cannot restore controller snapshots")
     items = {k: v for k, v in entry.items.items() if k != "template"}
-    await fn(entry.model_copy(update={"items": items}))
+    await robot.restore_snapshot(entry.model_copy(update={"items": items}))
     return None
 
 

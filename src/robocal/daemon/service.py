@@ -595,7 +595,7 @@ class CalibrationService:
 
     async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
                    reason: str = "") -> dict[str, Any]:
-        """Build, check, journal, write, read back and activate the approved model's table.
+        """Build, check, journal, write and read back the approved model's table.
 
         The push is journaled as intended (idempotency ``key``, default a new one) before the
         controller is written and completed after the read-back, in one transaction with the

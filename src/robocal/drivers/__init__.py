@@ -19,9 +19,11 @@ from robocal.drivers._registry import (
     load_robot_driver,
     load_tracker_driver,
 )
-from robocal.drivers._retry import RETRYABLE, measure_with_retry
+from robocal.drivers._retry import RETRYABLE, measure_with_retry, with_retry
 from robocal.drivers.api import (
     CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
     Connectable,
     JointMover,
     JointReader,
@@ -40,6 +42,8 @@ __all__ = [
     "ROBOT_GROUP",
     "TRACKER_GROUP",
     "CompensationSink",
+    "CompensationSlots",
+    "CompensationSnapshots",
     "Connectable",
     "ControllerSnapshot",
     "DriverBase",
@@ -63,4 +67,5 @@ __all__ = [
     "require",
     "snapshot_diff",
     "table_diff",
+    "with_retry",
 ]

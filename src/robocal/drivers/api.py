@@ -1,8 +1,9 @@
 """Driver API: small capability protocols, value types and the joint-target check.
 
 A robot driver is whatever satisfies :class:`Connectable`, :class:`JointMover`,
-:class:`JointReader` and :class:`Stoppable` (optionally :class:`CompensationSink`); a tracker
-driver satisfies :class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked
+:class:`JointReader` and :class:`Stoppable` (optionally :class:`CompensationSink`, and with it
+:class:`CompensationSlots` and :class:`CompensationSnapshots`); a tracker driver satisfies
+:class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked
 with ``isinstance`` (the protocols are ``runtime_checkable``) or all at once with
 :func:`require`.
 
@@ -34,9 +35,12 @@ from robocal.errors import DriverError, LimitViolation
 
 if TYPE_CHECKING:
     from robocal.compensation import CompensationTable
+    from robocal.drivers._compensation import ControllerSnapshot
 
 __all__ = [
     "CompensationSink",
+    "CompensationSlots",
+    "CompensationSnapshots",
     "Connectable",
     "JointMover",
     "JointReader",
@@ -191,6 +195,29 @@ class CompensationSink(Protocol):
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the table held by the controller, or None when there is none."""
+        ...
+
+
+@runtime_checkable
+class CompensationSlots(Protocol):
+    """Reading the controller's values in the places a given table would be written to."""
+
+    async def read_compensation_like(self, table: CompensationTable) -> CompensationTable | None:
+        """``table``'s slots as the controller holds them, as a table (None: nothing there)."""
+        ...
+
+
+@runtime_checkable
+class CompensationSnapshots(Protocol):
+    """Verbatim snapshots of a table's slots, taken before robocal first writes there, and
+    their restoration (a rollback to the controller's own values)."""
+
+    async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
+        """Read what the controller holds in the slots ``table`` would write."""
+        ...
+
+    async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
+        """Write ``snapshot`` back, read it again and compare; raise VerificationMismatch."""
         ...
 
 

@@ -37,7 +37,13 @@ from pydantic import Field
 from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import JointReading, check_joint_target
+from robocal.drivers.api import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    JointReading,
+    check_joint_target,
+)
 from robocal.errors import (
     CompensationError,
     ConnectFailed,
@@ -107,7 +113,7 @@ class FanucRmiOptions(RobotOptions):
     override_pct: int | None = Field(default=None, ge=1, le=100)
 
 
-class FanucRmiRobot(RobotDriverBase):
+class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
     """FANUC R-30iB Plus controller through RMI.
 
     Parameters

@@ -20,7 +20,13 @@ from pydantic import Field
 from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import JointReading, TrackerReading
+from robocal.drivers.api import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    JointReading,
+    TrackerReading,
+)
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
 from robocal.errors import (
     BeamLost,
@@ -71,7 +77,7 @@ _EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
                                   frames=FramesPayload(base=_ZERO_FRAME, tool=_ZERO_FRAME))
 
 
-class MockRobot(RobotDriverBase):
+class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
     """In-process robot: moves the shared virtual robot instantly (or after ``move_time_s``).
 
     Parameters

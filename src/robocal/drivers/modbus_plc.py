@@ -34,7 +34,13 @@ from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, table_diff
-from robocal.drivers.api import JointReading, check_joint_target
+from robocal.drivers.api import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    JointReading,
+    check_joint_target,
+)
 from robocal.errors import (
     CompensationError,
     ConnectFailed,
@@ -112,7 +118,7 @@ class PlcStatus:
     table_crc: int
 
 
-class ModbusPlcRobot(RobotDriverBase):
+class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
     """Robot commanded through a Modbus-TCP register handshake.
 
     Parameters

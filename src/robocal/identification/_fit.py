@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.model_names import MODELS
 from robocal._core.threads import blas_threads
 from robocal.errors import ConfigError, DataError, NotConverged
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
@@ -30,7 +31,6 @@ from robocal.kinematics import (
 )
 
 Array = NDArray[np.float64]
-MODELS = ("constant", "high-order", "auto")
 SOLVER = ("Levenberg-Marquardt (Nielsen damping) on column-scaled whitened normal equations, "
           "Cholesky; analytic Jacobian")
 

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -442,8 +441,7 @@ def load_robot(spec: str | Path) -> RobotDescription:
     key = _ALIASES.get(text_spec.lower(), text_spec.lower())
     if not text_spec.endswith(".toml") and key in builtin_robots():
         res = resources.files("robocal.data") / "robots" / f"{key}.toml"
-        data = tomllib.loads(res.read_text())
-        return _parse(data, f"builtin:{key}")
+        return _parse(read_toml(res), f"builtin:{key}")
     path = Path(text_spec)
     if not path.exists():
         raise ConfigError(

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from robocal import __version__
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
+from robocal.identification import FitResult
 from robocal.kinematics import CalibratedModel, RobotDescription
 from robocal.report._cpa import CpaComparison, compare, with_classical
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
@@ -109,12 +110,8 @@ def _stored_for(entry: ModelEntry, which: str) -> dict[str, Any] | None:
 
 
 def _baseline_from_fits(inp: ReportInput) -> CalibratedModel | None:
-    """A ``.baseline`` model some FitResult carries (identification's nominal fit)."""
-    for v in inp.models.values():
-        b = getattr(v, "baseline", None)
-        if isinstance(b, CalibratedModel):
-            return b
-    return None
+    """The ``baseline`` model a :class:`FitResult` carries (identification's nominal fit)."""
+    return next((v.baseline for v in inp.models.values() if isinstance(v, FitResult)), None)
 
 
 def _mask(data: MeasurementSet, outliers: set[str]) -> NDArray[np.bool_]:

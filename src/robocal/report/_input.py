@@ -1,9 +1,10 @@
 """What a report is made from: :class:`ReportInput` and its parts.
 
 Everything here is SI (m, rad) like the rest of robocal; the report converts to mm and deg on
-screen. Fitted models may be given as identification ``FitResult`` objects or as bare
-:class:`~robocal.kinematics.CalibratedModel` objects; :func:`model_entry` reads either and
-tolerates fields a ``FitResult`` may not have.
+screen. Fitted models are given as identification results (:class:`FitResult`,
+:class:`CPAResult`), as bare :class:`~robocal.kinematics.CalibratedModel` objects (a MODEL.json
+file) or as a ready :class:`ModelEntry`; :func:`model_entry` normalises each and refuses
+anything else.
 """
 
 from __future__ import annotations
@@ -11,30 +12,36 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal._core.model_names import CPA, CPA_CLASSICAL, MODELS, NOMINAL
 from robocal.errors import ConfigError
+from robocal.identification import Accuracy, CPAResult, FitResult
 from robocal.kinematics import CalibratedModel, RobotDescription
 
 Array = NDArray[np.float64]
 
-#: Display order and labels of the well-known model names.
-KNOWN_MODELS: dict[str, str] = {
-    "nominal": "Nominal (base + reflector fitted)",
-    "cpa": "Circle Point Analysis",
-    "cpa-classical": "Circle Point Analysis, classical (not polished)",
+_LABELS: dict[str, str] = {
     "constant": "Constant error model",
     "high-order": "High-order joint-dependent model",
     "auto": "Auto-selected model",
 }
-#: Which model is judged when ``ReportInput.selected`` is not given (first present wins).
-SELECTION_ORDER = ("auto", "high-order", "constant", "cpa")
-BASELINE = "nominal"
+#: Display order and labels of the well-known model names (robocal._core.model_names).
+KNOWN_MODELS: dict[str, str] = {
+    NOMINAL: "Nominal (base + reflector fitted)",
+    CPA: "Circle Point Analysis",
+    CPA_CLASSICAL: "Circle Point Analysis, classical (not polished)",
+    **{name: _LABELS[name] for name in MODELS},
+}
+#: Which model is judged when ``ReportInput.selected`` is not given (first present wins):
+#: the richest fitted model, CPA last.
+SELECTION_ORDER = (*reversed(MODELS), CPA)
+BASELINE = NOMINAL
 
 
 @dataclass(frozen=True)
@@ -200,22 +207,9 @@ def _as_names(v: Any) -> tuple[str, ...]:
         return ()
 
 
-def _acc_to_dict(acc: Any) -> dict[str, Any] | None:
-    """An ``Accuracy``-like object or mapping as a plain dict (keys as given)."""
-    if acc is None:
-        return None
-    if isinstance(acc, Mapping):
-        return dict(acc)
-    to_dict = getattr(acc, "to_dict", None)
-    if callable(to_dict):
-        d = to_dict()
-        if isinstance(d, Mapping):
-            return dict(d)
-    keys = ("rms_m", "mean_m", "max_m", "percent_described_rms", "percent_described_mean",
-            "percent_described_r2", "n", "p95_m", "baseline_rms_m", "baseline_mean_m",
-            "baseline_max_m")
-    out = {k: getattr(acc, k) for k in keys if hasattr(acc, k)}
-    return out or None
+def _acc_to_dict(acc: Accuracy | None) -> dict[str, Any] | None:
+    """An :class:`Accuracy` as identification stores it (mm, %), None when absent."""
+    return None if acc is None else acc.to_dict()
 
 
 def _num(v: Any) -> float | None:
@@ -261,61 +255,78 @@ def _status(info: Mapping[str, Any], explicit: Any = None) -> str:
     return ""
 
 
-def model_entry(name: str, obj: Any) -> ModelEntry:
-    """Normalise a ``FitResult`` (anything with ``.calibrated``) or a ``CalibratedModel``."""
+#: What :attr:`ReportInput.models` maps a name to (None: a fit that produced no model).
+ModelSource: TypeAlias = FitResult | CPAResult | CalibratedModel | ModelEntry | None
+
+
+def _model_file_entry(name: str, cm: CalibratedModel) -> ModelEntry:
+    """What a MODEL.json says about its own fit (``fit`` and ``metrics`` sections)."""
+    fit_d: Mapping[str, Any] = cm.fit or {}
+    info = _info_from_fit_dict(fit_d)
+    ident = fit_d.get("identifiability")
+    removed = _as_names(fit_d.get("removed"))
+    if not removed and isinstance(ident, Mapping):
+        removed = _as_names(ident.get("removed"))
+    outliers = _as_names(fit_d.get("outliers")) or _as_names(cm.data.get("outliers"))
+    return ModelEntry(name, cm, outliers, removed, _status(info, fit_d.get("status")),
+                      dict(cm.metrics or {}), {}, info)
+
+
+def _stored(**parts: Accuracy | None) -> dict[str, Any]:
+    """The accuracies a result carries, as stored dicts, leaving out those it lacks."""
+    return {k: d for k, acc in parts.items() if (d := _acc_to_dict(acc))}
+
+
+def _fit_entry(name: str, res: FitResult) -> ModelEntry:
+    """An identification :class:`FitResult`: its own figures over its model file's."""
+    base = _model_file_entry(name, res.calibrated)
+    info = dict(base.fit_info)
+    info["converged"] = bool(res.converged)
+    for k, v in (("n_free", res.n_free), ("dof_effective", res.dof_effective)):
+        if (num := _num(v)) is not None:
+            info[k] = num
+    ident = res.identifiability
+    if _num(ident.rank) is not None:
+        info["rank"] = int(ident.rank)
+    if (cond := _num(ident.cond)) is not None:
+        info["condition_number"] = cond
+    if len(ident.singular_values):
+        info["singular_values"] = [float(x) for x in np.asarray(ident.singular_values).ravel()]
+    stored = _stored(train=res.train, validation=res.validation)
+    return ModelEntry(name, res.calibrated, tuple(res.outliers) or base.outliers,
+                      tuple(res.removed) or base.removed,
+                      _status(info, res.status) or base.status,
+                      stored or dict(base.stored), dict(res.summary()), info)
+
+
+def _cpa_entry(name: str, res: CPAResult) -> ModelEntry:
+    """A :class:`CPAResult`: held-out accuracy and summary over its model file's."""
+    base = _model_file_entry(name, res.calibrated)
+    stored = _stored(validation=res.validation)
+    return replace(base, status=_status(base.fit_info) or base.status,
+                   stored=stored or dict(base.stored), summary=dict(res.summary()))
+
+
+def model_entry(name: str, obj: ModelSource) -> ModelEntry:
+    """Normalise one of :data:`ModelSource` under ``name``.
+
+    Raises
+    ------
+    ConfigError
+        For anything else (the report does not guess what an object means).
+    """
     if obj is None:
         return ModelEntry(name, None)
     if isinstance(obj, ModelEntry):
-        return obj
+        return obj if obj.name == name else replace(obj, name=name)
     if isinstance(obj, CalibratedModel):
-        fit_d: Mapping[str, Any] = obj.fit or {}
-        info = _info_from_fit_dict(fit_d)
-        ident = fit_d.get("identifiability")
-        removed = _as_names(fit_d.get("removed"))
-        if not removed and isinstance(ident, Mapping):
-            removed = _as_names(ident.get("removed"))
-        outliers = _as_names(fit_d.get("outliers")) or _as_names(obj.data.get("outliers"))
-        return ModelEntry(name, obj, outliers, removed, _status(info, fit_d.get("status")),
-                          dict(obj.metrics or {}), {}, info)
-    cm = getattr(obj, "calibrated", None)
-    if cm is not None and not isinstance(cm, CalibratedModel):
-        raise ConfigError(f"model {name!r}: .calibrated is not a CalibratedModel")
-    base = model_entry(name, cm) if cm is not None else ModelEntry(name, None)
-    stored: dict[str, Any] = {}
-    for part in ("train", "validation"):
-        d = _acc_to_dict(getattr(obj, part, None))
-        if d:
-            stored[part] = d
-    summary: Mapping[str, Any] = {}
-    fn = getattr(obj, "summary", None)
-    if callable(fn):
-        try:
-            s = fn()
-            summary = dict(s) if isinstance(s, Mapping) else {}
-        except Exception:  # a summary is a nicety; never let it break the report
-            summary = {}
-    info = dict(base.fit_info)
-    conv = getattr(obj, "converged", None)
-    if isinstance(conv, bool | np.bool_):
-        info["converged"] = bool(conv)
-    for k in ("n_free", "dof_effective"):
-        v = _num(getattr(obj, k, None))
-        if v is not None:
-            info[k] = v
-    ident = getattr(obj, "identifiability", None)
-    if ident is not None and not callable(ident):
-        if _num(getattr(ident, "rank", None)) is not None:
-            info["rank"] = int(ident.rank)
-        if _num(getattr(ident, "cond", None)) is not None:
-            info["condition_number"] = _num(ident.cond)
-        sv = getattr(ident, "singular_values", None)
-        if sv is not None and len(sv):
-            info["singular_values"] = [float(x) for x in np.asarray(sv).ravel()]
-    removed = _as_names(getattr(obj, "removed", None)) or base.removed
-    outliers = _as_names(getattr(obj, "outliers", None)) or base.outliers
-    return ModelEntry(name, cm, outliers, removed,
-                      _status(info, getattr(obj, "status", None)) or base.status,
-                      stored or dict(base.stored), summary, info)
+        return _model_file_entry(name, obj)
+    if isinstance(obj, FitResult):
+        return _fit_entry(name, obj)
+    if isinstance(obj, CPAResult):
+        return _cpa_entry(name, obj)
+    raise ConfigError(f"model {name!r}: a {type(obj).__name__} is not a FitResult, CPAResult, "
+                      "CalibratedModel or ModelEntry")
 
 
 @dataclass
@@ -325,7 +336,8 @@ class ReportInput:
     Parameters
     ----------
     models
-        Name -> ``FitResult`` or ``CalibratedModel``. Well-known names: ``nominal`` (base and
+        Name -> :data:`ModelSource` (``FitResult``, ``CPAResult``, ``CalibratedModel``,
+        ``ModelEntry`` or None for a fit without a model). Well-known names: ``nominal`` (base and
         reflector fitted; the baseline of "% described"), ``cpa``, ``constant``,
         ``high-order``, ``auto``. When ``nominal`` is missing and calibration data is given,
         the report fits base and reflector itself.
@@ -350,7 +362,7 @@ class ReportInput:
         Verdict thresholds.
     """
 
-    models: Mapping[str, Any] = field(default_factory=dict)
+    models: Mapping[str, ModelSource] = field(default_factory=dict)
     calibration: MeasurementSet | None = None
     validation: MeasurementSet | None = None
     robot: RobotDescription | None = None

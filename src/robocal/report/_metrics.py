@@ -153,7 +153,8 @@ def fit_nominal_baseline(reference: CalibratedModel, data: MeasurementSet, *,
                                                            label="nominal"),
                            reference.model.T_ref)
     x = model.nominal_params()
-    x[:9] = reference.params[:9]
+    for part in (ParameterLayout.BASE, ParameterLayout.TOOL):  # base and reflector
+        x[part] = reference.params[part]
     for _ in range(iterations):
         p, J = model.jacobian(data.q, x)
         A = J.reshape(-1, model.size)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -11,12 +13,48 @@ from robocal.cli.main import main
 
 
 def test_help_lists_commands(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--help`` lists every subcommand of main.COMMANDS with its line, and COMMANDS names
+    every module of robocal.cli that registers a subcommand."""
+    import robocal.cli
+    from robocal.cli.main import COMMANDS
+
     with pytest.raises(SystemExit) as info:
         main(["--help"])
     assert info.value.code == 0
     out = capsys.readouterr().out
-    for cmd in ("robots", "drivers"):
-        assert cmd in out
+    assert re.findall(r"^    (\S+)", out, flags=re.MULTILINE) == list(COMMANDS)
+    flat = " ".join(out.split())  # long names wrap their help line
+    for name, text in COMMANDS.items():
+        assert f" {name} {text} " in flat
+    modules = {f.stem[1:] for f in Path(robocal.cli.__path__[0]).glob("_*.py")
+               if "\ndef register(" in f.read_text(encoding="utf-8")}
+    assert modules == set(COMMANDS)
+
+
+def test_a_subcommand_that_fails_to_import_is_an_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    from robocal.cli.main import build_parser
+
+    monkeypatch.setitem(sys.modules, "robocal.cli._robots", None)  # import raises ImportError
+    with pytest.raises(ImportError, match=r"robocal\.cli\._robots"):
+        build_parser()
+    with pytest.raises(ImportError, match=r"robocal\.cli\._robots"):
+        main(["robots"])
+
+
+def test_demo_planner_failure_is_a_one_line_error(tmp_path, monkeypatch,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """No fallback to random poses: the demo stops with the planner's error, exit 2."""
+    import robocal.planning
+    from robocal.errors import ConfigError
+
+    def no_plan(*args: object, **kwargs: object) -> None:
+        raise ConfigError("no feasible poses in the cell")
+
+    monkeypatch.setattr(robocal.planning, "plan_campaign", no_plan)
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err == "robocal demo: error: no feasible poses in the cell\n"
+    assert not (tmp_path / "demo" / "PLAN.json").exists()
 
 
 def test_robots_and_drivers(capsys: pytest.CaptureFixture[str]) -> None:
@@ -46,7 +84,8 @@ def test_commands_share_their_defaults(tmp_path, capsys: pytest.CaptureFixture[s
     """One default model and one default validation count across simulate, plan and fit."""
     import json
 
-    from robocal.cli._defaults import DEFAULT_MODEL, default_validation
+    from robocal._core.model_names import DEFAULT_MODEL
+    from robocal.cli._defaults import default_validation
 
     meas = tmp_path / "m.csv"
     assert main(["simulate", "--scenario", "constant", "--poses", "60", "--out", str(meas)]) == 0
@@ -117,3 +156,16 @@ def test_version_option(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as info:
         main(["--version"])
     assert info.value.code == 0 and capsys.readouterr().out == f"robocal {version('robocal')}\n"
+
+
+def test_light_packages_leave_heavy_modules_unimported() -> None:
+    """Why robocal.daemon and robocal.report keep lazy attributes: the client commands import
+    robocal.daemon for its light modules, the configuration check robocal.report for
+    Acceptance; neither may pull in the service, the planner or matplotlib."""
+    src = ("import sys, robocal.daemon.client, robocal.report\n"
+           "print(sorted(m for m in ('robocal.daemon.service', 'robocal.daemon._plan', "
+           "'robocal.daemon.main', 'robocal.report._write', 'matplotlib') "
+           "if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robocal._core import MeasurementSet
+from robocal._core.measurements import MeasurementSet
 from robocal.cli.main import main
 
 

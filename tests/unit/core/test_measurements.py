@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robocal._core import MeasurementSet, read_joints_csv, write_joints_csv
+from robocal._core.measurements import MeasurementSet, read_joints_csv, write_joints_csv
 from robocal.errors import DataError
 
 
@@ -45,6 +45,7 @@ def test_semicolon_decimal_comma(tmp_path: Path) -> None:
         ("a,b\n1,2\n", "q1", "no joint columns"),
         ("q1,q2,x,y,z,sx\n1,2,3,4,5,0.1\n", "sy", "together"),
         ("q1,q2,x,y,z,sx,sy,sz\n1,2,3,4,5,0.1,0,0.1\n", "sx", "positive"),
+        ("q1,q2,x,y,z,X\n1,2,3,4,5,6\n", "x", "twice"),
     ],
 )
 def test_bad_files(tmp_path: Path, text: str, key: str, match: str) -> None:

@@ -9,6 +9,8 @@ import pytest
 
 from robocal.drivers import (
     CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
     Connectable,
     JointMover,
     JointReader,
@@ -70,10 +72,11 @@ def test_value_types_are_frozen():
 )
 def test_robot_drivers_satisfy_protocols(cls, options):
     robot = cls(options)
-    for proto in (Connectable, JointMover, JointReader, RobotDriver, CompensationSink):
+    compensation = (CompensationSink, CompensationSlots, CompensationSnapshots)
+    for proto in (Connectable, JointMover, JointReader, RobotDriver, *compensation):
         assert isinstance(robot, proto)
     assert not isinstance(robot, PointMeasurer)
-    require(robot, RobotDriver, CompensationSink)
+    require(robot, RobotDriver, *compensation)
 
 
 @pytest.mark.parametrize(
@@ -83,6 +86,7 @@ def test_tracker_drivers_satisfy_protocols(cls, options):
     tracker = cls(options)
     assert isinstance(tracker, TrackerDriver) and isinstance(tracker, PointMeasurer)
     assert not isinstance(tracker, JointMover)
+    assert not isinstance(tracker, CompensationSlots | CompensationSnapshots)
     with pytest.raises(DriverError, match="JointMover"):
         require(tracker, JointMover)
 

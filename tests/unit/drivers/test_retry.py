@@ -76,3 +76,22 @@ async def test_other_errors_are_not_retried(clock):
 async def test_attempts_must_be_positive():
     with pytest.raises(ValueError):
         await measure_with_retry(Scripted([OK]), samples=1, timeout=1.0, attempts=0)
+
+
+async def test_with_retry_reports_each_retry_before_waiting(clock):
+    """The daemon's per-pose loop runs on with_retry: it counts and reports every retry."""
+    from robocal.drivers import with_retry
+    from robocal.errors import MeasurementRejected
+
+    t = Scripted([MeasurementRejected("noisy"), BeamLost("b"), OK])
+    seen: list[tuple[int, str, float]] = []
+
+    async def operation():
+        return await t.measure(samples=1, timeout=1.0)
+
+    r = await with_retry(operation, attempts=5, backoff_s=0.5, backoff_factor=3.0,
+                         retry_on=(BeamLost, MeasurementRejected), clock=clock,
+                         on_retry=lambda n, err, d: seen.append((n, type(err).__name__, d)))
+    assert r is OK
+    assert seen == [(1, "MeasurementRejected", 0.5), (2, "BeamLost", 1.5)]
+    assert clock.delays == [0.5, 1.5]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robocal._core import write_joints_csv
+from robocal._core.measurements import write_joints_csv
 from robocal.cli.main import main
 from robocal.errors import ConfigError
 from robocal.kinematics import CalibratedModel, ErrorModelSpec, KinematicModel

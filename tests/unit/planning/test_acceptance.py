@@ -160,7 +160,8 @@ def test_stratified_design_beats_random_on_a_robot_with_constant_errors() -> Non
         J, L = ds.J, ds.identifiable
         A = np.einsum("nai,naj->ij", J, J) / len(J)
 
-        def variance(idx: np.ndarray) -> float:
+        def variance(idx: np.ndarray, J: np.ndarray = J, L: int = L,
+                     A: np.ndarray = A) -> float:
             Ji = J[idx].reshape(-1, L)
             return float(np.trace(np.linalg.solve(Ji.T @ Ji, A)))
 

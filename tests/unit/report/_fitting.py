@@ -1,5 +1,8 @@
 """A small Gauss-Newton fitter for report tests (independent of robocal.identification).
 
+Its fits are given to the report as :class:`ModelEntry` objects, the report's own typed input
+for results that do not come from identification.
+
 Unidentifiable columns are found once, by a pivoted Cholesky of the normal matrix of the
 column-normalised Jacobian at the start point, and held fixed (zero covariance); the rest is
 solved by Gauss-Newton; covariance is (J^T J)^-1 scaled by the residual variance.
@@ -7,36 +10,11 @@ solved by Gauss-Newton; covariance is (J^T J)^-1 scaled by the residual variance
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from robocal._core.measurements import MeasurementSet
 from robocal.kinematics import CalibratedModel, ErrorModelSpec, KinematicModel, RobotDescription
-
-
-@dataclass
-class FakeAccuracy:
-    rms_m: float
-    mean_m: float
-    max_m: float
-    n: int
-
-
-@dataclass
-class FakeFit:
-    """Quacks like identification's FitResult (the fields the report reads)."""
-
-    calibrated: CalibratedModel
-    outliers: tuple[str, ...] = ()
-    removed: tuple[str, ...] = ()
-    status: str = "converged"
-    train: FakeAccuracy | None = None
-    validation: FakeAccuracy | None = None
-    extra: dict[str, object] = field(default_factory=dict)
-
-    def summary(self) -> dict[str, object]:
-        return {"status": self.status, "n_removed": len(self.removed)}
+from robocal.report import ModelEntry
 
 
 def _pivoted_columns(M: np.ndarray, tol: float = 1e-10) -> np.ndarray:
@@ -59,7 +37,7 @@ def _pivoted_columns(M: np.ndarray, tol: float = 1e-10) -> np.ndarray:
 
 def gn_fit(robot: RobotDescription, spec: ErrorModelSpec, T_ref: np.ndarray,
            data: MeasurementSet, *, x0: CalibratedModel | None = None, kind: str = "custom",
-           iterations: int = 8, exclude: tuple[str, ...] = ()) -> FakeFit:
+           iterations: int = 8, exclude: tuple[str, ...] = ()) -> ModelEntry:
     """Fit ``spec`` to ``data`` (poses in ``exclude`` left out)."""
     if exclude:
         keep = np.array([p not in set(exclude) for p in data.pose_id])
@@ -91,6 +69,8 @@ def gn_fit(robot: RobotDescription, spec: ErrorModelSpec, T_ref: np.ndarray,
     cm = CalibratedModel(m, x, cov, coverage=cover, kind=kind,
                          data={"calibration_sha256": data.digest()[:16]})
     removed = tuple(m.names[i] for i in sorted(set(range(m.size)) - set(free)))
-    acc = FakeAccuracy(float(np.sqrt(np.mean(res**2))), float(res.mean()), float(res.max()),
-                       len(res))
-    return FakeFit(cm, exclude, removed, train=acc)
+    train = {"rms_m": float(np.sqrt(np.mean(res**2))), "mean_m": float(res.mean()),
+             "max_m": float(res.max()), "n": len(res)}
+    return ModelEntry(kind, cm, outliers=exclude, removed=removed, status="converged",
+                      stored={"train": train},
+                      summary={"status": "converged", "n_removed": len(removed)})

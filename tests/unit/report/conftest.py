@@ -9,9 +9,9 @@ import pytest
 
 from robocal._core.measurements import MeasurementSet
 from robocal.kinematics import ErrorModelSpec
-from robocal.report import IsoPoseSeries
+from robocal.report import IsoPoseSeries, ModelEntry
 from robocal.simulation import VirtualCell
-from tests.unit.report._fitting import FakeFit, gn_fit
+from tests.unit.report._fitting import gn_fit
 
 
 @dataclass
@@ -20,7 +20,7 @@ class Campaign:
     cal: MeasurementSet
     val: MeasurementSet
     outliers: tuple[str, ...]
-    fits: dict[str, FakeFit]
+    fits: dict[str, ModelEntry]
     iso: list[IsoPoseSeries]
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from robocal.errors import ConfigError
 from robocal.kinematics import CalibratedModel
 from robocal.report import Acceptance, MeasurementLog, ReportInput, write_report
 from tests.unit.report.conftest import Campaign
@@ -194,21 +195,34 @@ def test_model_file_alone_uses_stored_metrics(campaign: Campaign, tmp_path: Path
     assert "No measurements were given" in page
 
 
-@dataclass
-class BareFit:
-    """A FitResult with nothing but the model (fields added later must not be required)."""
-
-    calibrated: CalibratedModel
-
-
-def test_tolerates_bare_fit_objects(campaign: Campaign, tmp_path: Path) -> None:
-    inp = ReportInput(models={"auto": BareFit(campaign.fits["constant"].calibrated)},
+def test_bare_model_is_judged_on_the_data(campaign: Campaign, tmp_path: Path) -> None:
+    inp = ReportInput(models={"auto": campaign.fits["constant"].calibrated},
                       validation=campaign.val, workspace_samples=0)
     _, j = write_report(inp, tmp_path / "r.html")
     s = json.loads(j.read_text())
     assert s["selected_model"] == "auto"
     assert s["accuracy"]["auto"]["validation"]["n"] == len(campaign.val)
     assert s["judged_on"] == "validation"
+
+
+def test_refuses_objects_that_are_no_fit_result(campaign: Campaign, tmp_path: Path) -> None:
+    @dataclass
+    class LooksLikeAFit:
+        calibrated: CalibratedModel
+
+    fake = LooksLikeAFit(campaign.fits["constant"].calibrated)
+    inp = ReportInput(models={"auto": fake},  # type: ignore[dict-item]
+                      validation=campaign.val, workspace_samples=0)
+    with pytest.raises(ConfigError, match="'auto': a LooksLikeAFit is not a FitResult"):
+        write_report(inp, tmp_path / "r.html")
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_entries_take_the_name_they_are_given(campaign: Campaign) -> None:
+    entry = campaign.fits["high-order"]
+    got = ReportInput(models={"auto": entry}).entries()["auto"]
+    assert got.name == "auto" and got.label == "Auto-selected model"
+    assert got.calibrated is entry.calibrated and got.removed == entry.removed
 
 
 def test_validation_glitch_is_flagged_not_hidden(campaign: Campaign, tmp_path: Path) -> None:
@@ -240,11 +254,7 @@ def test_validation_glitch_is_flagged_not_hidden(campaign: Campaign, tmp_path: P
 
 
 def test_nothing_to_judge_still_renders(tmp_path: Path) -> None:
-    @dataclass
-    class FailedFit:
-        calibrated: None = None
-
-    for models in ({}, {"auto": FailedFit()}):
+    for models in ({}, {"auto": None}):  # None: a fit that produced no model
         h, j = write_report(ReportInput(models=models), tmp_path / "r.html")
         s = json.loads(j.read_text())
         assert s["verdict"]["outcome"] == "failed" and s["figures"] == []
