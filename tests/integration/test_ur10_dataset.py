@@ -104,3 +104,15 @@ def test_series_b_auto_holds_on_splits_that_used_to_fail(dataset_dir, seed):
     train, val = full.split(0.5, seed=seed)
     auto = fit("ur10", train, "auto", validation=val)
     assert auto.validation.rms_m <= 0.13e-3
+
+
+@pytest.mark.parametrize("draw", [1, 3, 4])
+def test_constant_fit_on_fifty_poses_of_series_d_converges(series, draw):
+    # these draws crept along a nearly flat valley (scaled condition number ~2e7) and hit the
+    # former 100-iteration limit; they converge within the present 300
+    train, val = series["D"].split(0.5, seed=0)
+    rng = np.random.default_rng(draw)
+    sub = train.subset(np.sort(rng.choice(len(train), 50, replace=False)))
+    const = fit("ur10", sub, "constant", validation=val)
+    assert const.status == "converged"
+    assert const.validation.rms_m < 0.5e-3

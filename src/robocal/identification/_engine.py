@@ -42,7 +42,7 @@ class EngineSettings:
     noise: TrackerSigma = field(default_factory=TrackerSigma)
     use_point_sigma: bool = True
     rank_tol: float = 3e-4
-    max_iter: int = 100
+    max_iter: int = 300
     ftol: float = 1e-10
     creep_ftol: float = 1e-7
     detect_outliers: bool = True

@@ -516,7 +516,9 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
     if kind != "constant" and opts.fallback and const_cm is not None and const_cm is not cal:
         cal.fallback = const_cm
     if coverage is not None and cal.fallback is not None:
-        cal.coverage = coverage.copy()
+        # a refit is trusted where the frozen terms were learnt and where it was fitted now
+        cal.coverage = np.stack([np.minimum(coverage[:, 0], cal.coverage[:, 0]),
+                                 np.maximum(coverage[:, 1], cal.coverage[:, 1])], axis=1)
     outliers = [data.pose_id[i] for i in np.flatnonzero(~inl)]
     train = accuracy(cal, data, baseline=baseline_cm, exclude=outliers)
     val = val_all = None
@@ -600,8 +602,9 @@ def refit_frozen(previous: CalibratedModel, data: MeasurementSet, *,
     The joint-dependent terms of ``previous`` (maps, gravity, harmonics, ...) are frozen at
     their values; the constant kinematic errors, the tracker <- base transform and the
     reflector offset are fitted to ``data`` (new tracker placement, re-mounted reflector).
-    Coverage is the previous model's (the frozen maps are only known there); the fallback is
-    a constant model fitted on ``data``.
+    Coverage is the union of the previous model's (where the frozen maps were learnt) and of
+    ``data``'s joint ranges (where the refit was checked against measurements); outside it
+    the fallback is a constant model fitted on ``data``.
     """
     with blas_threads(1):
         return _refit_frozen(previous, data, options, validation)
@@ -613,20 +616,29 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     opts = options or FitOptions()
     rob = _check_inputs(previous.robot, data, "constant", validation)
     f, base0 = _start(rob, data, opts, validation)
-    const = f.constant(base0)
+    # The constant fit is the fallback and the screen for gross errors. On a small new data
+    # set of a robot with parallel axes it may not converge (a few nearly unidentifiable
+    # combinations); the refit does not need it, since it starts from the previous model.
+    const: Solution | None
+    try:
+        const = f.constant(base0)
+    except NotConverged:
+        const = None
+    inl = base0.inliers if const is None else const.inliers
     spec = previous.model.spec
     # register the previous model (its own terms, tool) to the new session
     prev0 = KinematicModel(rob, spec)
     xp = previous.params.copy()
     xp[ParameterLayout.BASE] = 0.0
-    T = rigid_fit(prev0.positions(data.q[const.inliers], xp), data.p[const.inliers])
+    T = rigid_fit(prev0.positions(data.q[inl], xp), data.p[inl])
     m = KinematicModel(rob, spec, T)
     x0 = xp.copy()
-    xc = const.model.transfer(const.x, m)    # constant terms from the constant fit
-    is_const = np.array([n.endswith(".const") for n in m.names])
-    x0[is_const] = xc[is_const]
+    if const is not None:
+        xc = const.model.transfer(const.x, m)    # constant terms from the constant fit
+        is_const = np.array([n.endswith(".const") for n in m.names])
+        x0[is_const] = xc[is_const]
     frozen = [n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))]
-    sol = f.engine.solve(m, x0, fixed=frozen, inliers=const.inliers, what="frozen-map refit")
+    sol = f.engine.solve(m, x0, fixed=frozen, inliers=inl, what="frozen-map refit")
     return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
                    extra_fit={"frozen_from": previous.model_id, "frozen_terms": len(frozen)},
                    coverage=previous.coverage)

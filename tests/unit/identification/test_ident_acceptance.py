@@ -150,6 +150,11 @@ def test_refit_with_frozen_maps_transfers_to_a_new_session(fine_map):
     np.testing.assert_array_equal(frozen.calibrated.params[m_idx],
                                   auto.calibrated.params[m_idx])
     assert frozen.calibrated.kind == "refit:auto"
+    # trusted where the maps were learnt and where the refit met data (else: fallback)
+    cov, prev = frozen.calibrated.coverage, auto.calibrated.coverage
+    assert cov is not None and prev is not None
+    assert np.all(cov[:, 0] <= np.minimum(prev[:, 0], q.min(axis=0)) + 1e-12)
+    assert np.all(cov[:, 1] >= np.maximum(prev[:, 1], q.max(axis=0)) - 1e-12)
     assert frozen.calibrated.fit["frozen_from"] == auto.calibrated.model_id
 
 
