@@ -29,8 +29,9 @@ def register(sub: Any) -> None:
     p.add_argument("--reuse", metavar="PREVIOUS_MODEL.json",
                    help="keep the joint-dependent terms of an earlier model and refit only the "
                         "constant errors, tracker<-base transform and reflector offset (after "
-                        "re-mastering, a crash or a tracker move; same robot, same joints' "
-                        "mechanics, data inside the earlier model's joint ranges)")
+                        "re-mastering, a crash or a tracker move; valid for the same robot "
+                        "with unchanged gears, links and payload; always --validate; see "
+                        "docs/map-reuse.md)")
     p.add_argument("--max-rms-mm", type=float, metavar="MM",
                    help="fail (exit 1, no file written) when the RMS error (validation if "
                         "given, else training) exceeds this")
