@@ -47,8 +47,10 @@ class FitOptions(EngineSettings):
     Solver
         ``rank_tol``: relative singular-value threshold of the column-scaled identification
         Jacobian below which parameter combinations count as unidentifiable (held fixed).
-        ``max_iter``, ``ftol``: Levenberg-Marquardt limits; ``creep_ftol``: a run that hits
-        ``max_iter`` with a last relative decrease below this is kept (status
+        ``max_iter``, ``ftol``: Levenberg-Marquardt limits; ``creep_ftol``,
+        ``creep_remaining``: a run that hits ``max_iter`` with a last relative decrease below
+        ``creep_ftol``, or whose undamped Gauss-Newton step predicts a relative decrease below
+        ``creep_remaining`` (it stopped that close to the minimum), is kept (status
         ``max-iterations``, reported as not converged), otherwise it is an error.
         ``chunk``: poses per Jacobian block.
     Outliers

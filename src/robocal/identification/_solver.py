@@ -195,6 +195,9 @@ class SolveInfo:
     normal: Array       # data normal matrix at the solution (k, k), free columns
     gradient: Array     # J^T r at the solution (k,)
     last_decrease: float = math.inf   # relative cost decrease of the last accepted step
+    # relative cost decrease the undamped (Gauss-Newton) step still predicts at the end of a
+    # run that hit max_iter: how far from the minimum it stopped (nan otherwise)
+    remaining: float = math.nan
 
     @property
     def converged(self) -> bool:
@@ -291,8 +294,16 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
                     message = (f"no step reduces the cost although a relative decrease of "
                                f"{pred0 / cost:.2g} is predicted")
                 break
+    remaining = math.nan
+    if status == MAX_ITERATIONS:
+        At = A if Pm is None else A + Pm
+        gs = (g - prob.prior_gradient(x)[free]) / scale
+        As = At / np.outer(scale, scale)
+        d0 = _damped_solve(As, gs, mu0)
+        remaining = float(2.0 * d0 @ gs - d0 @ As @ d0) / max(cost, 1e-300)
     return SolveInfo(x=x, cost=cost, data_cost=cd, iterations=it, status=status,
-                     message=message, normal=A, gradient=g, last_decrease=last_decrease)
+                     message=message, normal=A, gradient=g, last_decrease=last_decrease,
+                     remaining=remaining)
 
 
 def _damped_solve(As: Array, gs: Array, mu: float) -> Array:

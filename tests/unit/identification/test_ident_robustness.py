@@ -113,3 +113,16 @@ def test_degenerate_data_gives_a_robocal_error_not_linalgerror() -> None:
             continue
         assert res.status in (solver.CONVERGED, solver.MAX_ITERATIONS)
         assert len(res.removed) > 0
+
+
+def test_a_run_stopped_by_max_iter_reports_how_far_from_the_minimum_it_is() -> None:
+    prob, x0 = _problem()
+    rows = np.arange(prob.n)
+    free = np.arange(prob.model.size)[:30]
+    stopped = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=1)
+    full = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=200)
+    assert stopped.status == solver.MAX_ITERATIONS and full.converged
+    assert np.isnan(full.remaining)
+    # the Gauss-Newton prediction of what is left is close to what the full run still gained
+    left = (stopped.cost - full.cost) / stopped.cost
+    assert stopped.remaining > 0 and 0.2 * left < stopped.remaining < 5 * left
