@@ -18,7 +18,7 @@ from robocal.errors import ConfigError
 from robocal.identification import CPA_MIN_ARC_DEG, CPA_MIN_RADIUS_MM, TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
 from robocal.planning._cell import Cell, builtin_cells, load_cell
-from robocal.planning._cpa import cpa_sweeps
+from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
     DESIGNS,
     DesignSpace,
@@ -28,7 +28,7 @@ from robocal.planning._design import (
 )
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 from robocal.planning._geometry import link_frames
-from robocal.planning._iso import ISO_CYCLES, iso_cube
+from robocal.planning._iso import ISO_CYCLES, IsoCube, iso_cube
 from robocal.planning._motion import MotionChecker
 from robocal.planning._order import move_times, order_poses, two_opt
 from robocal.planning._plan import (
@@ -459,30 +459,9 @@ def plan_campaign(
         On bad input: unknown robot, cell or model; counts out of range; too few feasible
         candidates; fewer poses than the model needs.
     """
-    if not 1 <= iso_cycles <= 1000:
-        raise ConfigError(f"iso_cycles must be 1..1000, got {iso_cycles}")
-    if isinstance(robot, RobotDescription):
-        robot_name, rob = robot.name, robot
-    else:
-        robot_name, rob = str(robot), load_robot(robot)
-    if isinstance(cell, Cell):
-        the_cell, cell_source = cell, f"<{cell.name}>"
-    else:
-        the_cell, cell_source = load_cell(cell), str(cell)
-        if not cell_source.endswith(".toml") and cell_source in builtin_cells():
-            cell_source = f"builtin:{cell_source}"
-    if seed < 0:
-        raise ConfigError(f"seed must not be negative, got {seed}")
-    if count < 1:
-        raise ConfigError(f"count must be at least 1, got {count}")
-    if validation < 0:
-        raise ConfigError(f"validation must not be negative, got {validation}")
-    if cpa and cpa_points < 3:
-        raise ConfigError(f"a CPA circle needs at least 3 points per joint, got {cpa_points}")
-    if candidates < 1:
-        raise ConfigError(f"candidates must be positive, got {candidates}")
-    if design not in DESIGNS:
-        raise ConfigError(f"unknown design {design!r} (choose from {', '.join(DESIGNS)})")
+    robot_name, rob, the_cell, cell_source = _resolve(robot, cell)
+    _check_arguments(iso_cycles=iso_cycles, seed=seed, count=count, validation=validation,
+                     cpa=cpa, cpa_points=cpa_points, candidates=candidates, design=design)
     spec = model_spec(rob, model)
     model_name = model if isinstance(model, str) else spec.label
     checker = FeasibilityChecker(rob, the_cell)
@@ -493,22 +472,10 @@ def plan_campaign(
                           f"is not safe: {motion.explain(home[None, :])[0]}",
                           source=f"cell {the_cell.name!r}", key="motion.home_deg")
     warnings: list[str] = []
-
-    # -- candidates and selection -------------------------------------------------------------
-    target = max(candidates, 2 * (count + validation))
-    q_c, feas_c, counts = draw_candidates(checker, target=target, seed=seed,
-                                          max_draws=max_draws)
-    n_c = len(q_c)
-    if n_c < count + validation:
-        why = ", ".join(f"{k} {v}" for k, v in counts.items()
-                        if k not in ("drawn", "screened") and v)
-        detail = (f"of the {counts['screened']} facing the tracker, rejected by: {why}"
-                  if counts["screened"] else "none faces the tracker within the acceptance "
-                  "angle and range")
-        raise ConfigError(
-            f"only {n_c} of {counts['drawn']} candidate poses are feasible in cell "
-            f"{the_cell.name!r}, fewer than the {count + validation} requested ({detail}); "
-            "check the tracker position, reflector direction and keep-out boxes")
+    q_c, feas_c, counts = _feasible_candidates(checker, the_cell.name,
+                                               target=max(candidates, 2 * (count + validation)),
+                                               need=count + validation, seed=seed,
+                                               max_draws=max_draws)
     # weight each candidate by the tracker's noise there (radial vs transverse, growing with
     # range), as the maximum-likelihood fit will
     W = whitening(feas_c.reflector, TrackerSigma(position=tuple(checker.tracker)))
@@ -521,19 +488,139 @@ def plan_campaign(
     if count < ds.recommended_poses:
         warnings.append(f"{count} calibration poses are fewer than the {ds.recommended_poses} "
                         f"recommended for {ds.identifiable} identifiable parameters")
-    # Measured poses must be reachable: a pose whose straight move from home is not safe
-    # (under the capsule model, e.g. the KR210's forearm folded over its shoulder) may lie in
-    # a pocket no route reaches. Only the chosen poses are checked (checking every candidate
-    # costs tens of seconds); unreachable ones are excluded and the choice repeated.
     max_step = math.radians(the_cell.motion.max_joint_step_deg)
+    cal, val = _choose_poses(ds, motion, home, max_step, count=count, validation=validation,
+                             seed=seed, design=design, exchange_passes=exchange_passes,
+                             warnings=warnings)
+    baseline = np.random.default_rng([seed, 2]).choice(len(q_c), size=count, replace=False)
+    obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
+                               random_baseline=_obs_info(ds.observability(baseline)))
+    sweeps = _cpa_extras(checker, rob, q_c, cpa_points, seed, warnings) if cpa else []
+    cube = iso_cube(checker, q_c, feas_c) if iso else None
+    if iso and cube is None:
+        warnings.append("no feasible ISO 9283 cube was found; iso-P1..P5 left out")
+    speed = np.array([j.max_speed for j in rob.joints]) * the_cell.motion.speed_fraction
+    q_all, purposes, dropped = _route(motion, q_c, cal, val, sweeps, cube, iso_cycles, home,
+                                      speed, max_step, seed, the_cell.name)
+    final = checker.check(q_all)
+    bad = [i for i, p in enumerate(purposes) if p != "via" and not final.ok[i]]
+    if bad:  # pragma: no cover - margins of exactly zero cut by rounding
+        raise ConfigError(f"internal: planned poses {bad[:5]} fail their checks after rounding")
+    unsafe = motion.check_sequence(q_all, home, purposes)
+    if unsafe:  # pragma: no cover - every leg was checked exactly as written
+        raise ConfigError("internal: the planned route has unsafe moves: "
+                          + "; ".join(u.describe() for u in unsafe[:3]))
+    if dropped:
+        kinds: dict[str, int] = {}
+        for d in dropped:
+            kinds[d.purpose] = kinds.get(d.purpose, 0) + 1
+        warnings.append(f"{len(dropped)} target(s) dropped, no safe route found to them ("
+                        + ", ".join(f"{v} {k}" for k, v in kinds.items())
+                        + "): see 'dropped' in the plan")
+    poses = _planned_poses(q_all, purposes, final)
+    prev = np.vstack([home[None, :], q_all[:-1]])
+    motion_info = MotionInfo(
+        max_joint_step_deg=the_cell.motion.max_joint_step_deg,
+        speed_fraction=the_cell.motion.speed_fraction,
+        home_deg=[round(float(v), 6) for v in np.degrees(home)],
+        move_time_s=round(float(move_times(prev, q_all, speed).sum()), 3),
+        joint_travel_deg=[round(float(v), 3) for v in np.degrees(np.abs(q_all - prev).sum(0))],
+        via_points=purposes.count("via"), blocked_moves=0)
+    rejected = {k: v for k, v in counts.items() if k not in ("drawn", "screened")}
+    return Plan(
+        robocal_version=__version__,
+        robot=RobotInfo(name=robot_name, source=rob.source, description=rob.to_dict()),
+        cell=the_cell, cell_source=cell_source, seed=seed,
+        model=ModelInfo(name=model_name, label=spec.label, parameters=len(ds.names),
+                        design="stratified" if design == "stratified" else "d-optimal",
+                        design_note=design_note(model_name, design)),
+        candidates=CandidateInfo(drawn=counts["drawn"], screened=counts["screened"],
+                                 feasible=len(q_c), rejected=rejected),
+        observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion_info,
+        iso9283=None if cube is None else IsoInfo(
+            centre_mm=[round(float(v) * 1e3, 3) for v in cube.centre],
+            side_mm=round(cube.side * 1e3, 3), cycles=iso_cycles),
+        cpa=[CpaInfo(joint=s.joint, span_deg=[round(math.degrees(v), 3) for v in s.span],
+                     points=len(s.q), radius_mm=round(1e3 * cpa_radius(
+                         rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
+             for s in sweeps],
+        warnings=warnings, dropped=dropped, poses=poses)
+
+
+def _resolve(robot: RobotDescription | str | Path, cell: Cell | str | Path
+             ) -> tuple[str, RobotDescription, Cell, str]:
+    """Robot name and description, cell and where the cell came from."""
+    if isinstance(robot, RobotDescription):
+        robot_name, rob = robot.name, robot
+    else:
+        robot_name, rob = str(robot), load_robot(robot)
+    if isinstance(cell, Cell):
+        return robot_name, rob, cell, f"<{cell.name}>"
+    the_cell, cell_source = load_cell(cell), str(cell)
+    if not cell_source.endswith(".toml") and cell_source in builtin_cells():
+        cell_source = f"builtin:{cell_source}"
+    return robot_name, rob, the_cell, cell_source
+
+
+def _check_arguments(*, iso_cycles: int, seed: int, count: int, validation: int, cpa: bool,
+                     cpa_points: int, candidates: int, design: str) -> None:
+    """One clear error for the first argument out of range."""
+    if not 1 <= iso_cycles <= 1000:
+        raise ConfigError(f"iso_cycles must be 1..1000, got {iso_cycles}")
+    if seed < 0:
+        raise ConfigError(f"seed must not be negative, got {seed}")
+    if count < 1:
+        raise ConfigError(f"count must be at least 1, got {count}")
+    if validation < 0:
+        raise ConfigError(f"validation must not be negative, got {validation}")
+    if cpa and cpa_points < 3:
+        raise ConfigError(f"a CPA circle needs at least 3 points per joint, got {cpa_points}")
+    if candidates < 1:
+        raise ConfigError(f"candidates must be positive, got {candidates}")
+    if design not in DESIGNS:
+        raise ConfigError(f"unknown design {design!r} (choose from {', '.join(DESIGNS)})")
+
+
+def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target: int,
+                         need: int, seed: int, max_draws: int
+                         ) -> tuple[Array, Feasibility, dict[str, int]]:
+    """Feasible candidates (see :func:`draw_candidates`); an error naming the checks that
+    rejected the others when fewer than ``need`` are found."""
+    q_c, feas_c, counts = draw_candidates(checker, target=target, seed=seed,
+                                          max_draws=max_draws)
+    if len(q_c) < need:
+        why = ", ".join(f"{k} {v}" for k, v in counts.items()
+                        if k not in ("drawn", "screened") and v)
+        detail = (f"of the {counts['screened']} facing the tracker, rejected by: {why}"
+                  if counts["screened"] else "none faces the tracker within the acceptance "
+                  "angle and range")
+        raise ConfigError(
+            f"only {len(q_c)} of {counts['drawn']} candidate poses are feasible in cell "
+            f"{cell_name!r}, fewer than the {need} requested ({detail}); "
+            "check the tracker position, reflector direction and keep-out boxes")
+    return q_c, feas_c, counts
+
+
+def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step: float, *,
+                  count: int, validation: int, seed: int, design: str, exchange_passes: int,
+                  warnings: list[str]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Calibration poses by ``design`` and random validation poses, all reachable from home.
+
+    A pose whose straight move from home is not safe (under the capsule model, e.g. the
+    KR210's forearm folded over its shoulder) may lie in a pocket no route reaches. Only the
+    chosen poses are checked (checking every candidate costs tens of seconds); unreachable
+    ones are excluded and the choice repeated.
+    """
+    q_c = ds.q
+    n_c = len(q_c)
     allowed = np.ones(n_c, dtype=bool)
     checked = np.zeros(n_c, dtype=bool)
 
     def reachable(idx: NDArray[np.intp]) -> NDArray[np.intp]:
         new = idx[~checked[idx]]
         if len(new):
-            ok, _ = _legs_safe(motion, np.broadcast_to(home, (len(new), rob.dof)), q_c[new],
-                               max_step)
+            ok, _ = _legs_safe(motion, np.broadcast_to(home, (len(new), q_c.shape[1])),
+                               q_c[new], max_step)
             checked[new] = True
             allowed[new[~ok]] = False
         return idx[~allowed[idx]]
@@ -559,36 +646,41 @@ def plan_campaign(
     if len(val) < validation:
         warnings.append(f"only {len(val)} of {validation} validation poses could be chosen "
                         "among candidates reachable from home")
-    baseline = np.random.default_rng([seed, 2]).choice(n_c, size=count, replace=False)
-    obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
-                               random_baseline=_obs_info(ds.observability(baseline)))
+    return cal, val
 
-    # -- extras ---------------------------------------------------------------------------------
-    sweeps = []
-    if cpa:
-        sweeps = cpa_sweeps(checker, q_c, points=cpa_points, rng=np.random.default_rng([seed, 3]))
-        got = {s.joint for s in sweeps}
-        missing = [j for j in range(1, rob.dof + 1) if j not in got]
-        if missing:
-            warnings.append("no CPA sweep with the reflector visible throughout was found for "
-                            f"joint(s) {', '.join(map(str, missing))}")
-        for s in sweeps:
-            if s.width < math.radians(CPA_MIN_ARC_DEG):
-                warnings.append(f"CPA sweep of joint {s.joint} spans only "
-                                f"{math.degrees(s.width):.0f} deg (< {CPA_MIN_ARC_DEG:g}): the "
-                                "circle's centre and axis are poorly determined")
-            r = cpa_radius(rob, s.joint, s.q[0], s.feasibility.reflector[0])
-            if r < CPA_MIN_RADIUS_MM * 1e-3:
-                warnings.append(f"CPA circle of joint {s.joint} has a radius of only "
-                                f"{1e3 * r:.0f} mm (< {CPA_MIN_RADIUS_MM:g}): its axis "
-                                "direction is poorly determined; a longer reflector offset "
-                                "helps")
-    cube = iso_cube(checker, q_c, feas_c) if iso else None
-    if iso and cube is None:
-        warnings.append("no feasible ISO 9283 cube was found; iso-P1..P5 left out")
 
-    # -- ordering -------------------------------------------------------------------------------
-    speed = np.array([j.max_speed for j in rob.joints]) * the_cell.motion.speed_fraction
+def _cpa_extras(checker: FeasibilityChecker, rob: RobotDescription, q_c: Array,
+                cpa_points: int, seed: int, warnings: list[str]) -> list[CpaSweep]:
+    """CPA sweeps, with a warning per missing joint, short arc and small circle."""
+    sweeps = cpa_sweeps(checker, q_c, points=cpa_points, rng=np.random.default_rng([seed, 3]))
+    got = {s.joint for s in sweeps}
+    missing = [j for j in range(1, rob.dof + 1) if j not in got]
+    if missing:
+        warnings.append("no CPA sweep with the reflector visible throughout was found for "
+                        f"joint(s) {', '.join(map(str, missing))}")
+    for s in sweeps:
+        if s.width < math.radians(CPA_MIN_ARC_DEG):
+            warnings.append(f"CPA sweep of joint {s.joint} spans only "
+                            f"{math.degrees(s.width):.0f} deg (< {CPA_MIN_ARC_DEG:g}): the "
+                            "circle's centre and axis are poorly determined")
+        r = cpa_radius(rob, s.joint, s.q[0], s.feasibility.reflector[0])
+        if r < CPA_MIN_RADIUS_MM * 1e-3:
+            warnings.append(f"CPA circle of joint {s.joint} has a radius of only "
+                            f"{1e3 * r:.0f} mm (< {CPA_MIN_RADIUS_MM:g}): its axis "
+                            "direction is poorly determined; a longer reflector offset "
+                            "helps")
+    return sweeps
+
+
+def _route(motion: MotionChecker, q_c: Array, cal: NDArray[np.intp], val: NDArray[np.intp],
+           sweeps: list[CpaSweep], cube: IsoCube | None, iso_cycles: int, home: Array,
+           speed: Array, max_step: float, seed: int, cell_name: str
+           ) -> tuple[Array, list[str], list[DroppedTarget]]:
+    """Order the targets, route every leg safely (via-points, detours) and split the legs.
+
+    Returns all joint positions (m, dof) rad as written (rounded to 1e-6 deg), their
+    purposes ("via" for leg steps) and the targets dropped for want of a safe route.
+    """
     meas_idx = np.concatenate([cal, val])
     purposes_meas = ["calibration"] * len(cal) + ["validation"] * len(val)
     order = _order_measured(motion, q_c[meas_idx], speed, home, max_step)
@@ -611,30 +703,17 @@ def plan_campaign(
                                         pool, speed, max_step)
     if not len(q_seq):
         raise ConfigError(f"no target can be reached safely from home in cell "
-                          f"{the_cell.name!r}: {dropped[0].reason}" if dropped else
+                          f"{cell_name!r}: {dropped[0].reason}" if dropped else
                           "nothing to plan")
     _, q_all, owner = split_legs(np.vstack([home[None, :], q_seq[:-1]]), q_seq, max_step)
     is_target = np.r_[owner[1:] != owner[:-1], True]
     purposes = [seq_p[owner[i]] if is_target[i] else "via" for i in range(len(q_all))]
-    q_deg = np.round(np.degrees(q_all), 6) + 0.0
-    final = checker.check(q_all)
-    bad = [i for i, p in enumerate(purposes) if p != "via" and not final.ok[i]]
-    if bad:  # pragma: no cover - margins of exactly zero cut by rounding
-        raise ConfigError(f"internal: planned poses {bad[:5]} fail their checks after rounding")
-    unsafe = motion.check_sequence(q_all, home, purposes)
-    if unsafe:  # pragma: no cover - every leg was checked exactly as written
-        raise ConfigError("internal: the planned route has unsafe moves: "
-                          + "; ".join(u.describe() for u in unsafe[:3]))
-    if dropped:
-        kinds: dict[str, int] = {}
-        for d in dropped:
-            kinds[d.purpose] = kinds.get(d.purpose, 0) + 1
-        warnings.append(f"{len(dropped)} target(s) dropped, no safe route found to them ("
-                        + ", ".join(f"{v} {k}" for k, v in kinds.items())
-                        + "): see 'dropped' in the plan")
-    blocked = 0
-    clear = np.ones(len(q_all), dtype=bool)
+    return q_all, purposes, dropped
 
+
+def _planned_poses(q_all: Array, purposes: list[str], final: Feasibility) -> list[PlannedPose]:
+    """The plan's pose records: joints in degrees, reflector in mm, margins of measured ones."""
+    q_deg = np.round(np.degrees(q_all), 6) + 0.0
     poses = []
     for i, p in enumerate(purposes):
         vis = p != "via"
@@ -646,31 +725,5 @@ def plan_campaign(
             sight_margin_mm=round(float(final.sight_margin[i]) * 1e3, 3) if vis else None,
             collision_margin_mm=round(min(float(final.collision_margin[i]), 1e6) * 1e3, 3),
             range_mm=round(float(final.range[i]) * 1e3, 3),
-            move_clear=bool(clear[i])))
-    prev = np.vstack([home[None, :], q_all[:-1]])
-    motion_info = MotionInfo(
-        max_joint_step_deg=the_cell.motion.max_joint_step_deg,
-        speed_fraction=the_cell.motion.speed_fraction,
-        home_deg=[round(float(v), 6) for v in np.degrees(home)],
-        move_time_s=round(float(move_times(prev, q_all, speed).sum()), 3),
-        joint_travel_deg=[round(float(v), 3) for v in np.degrees(np.abs(q_all - prev).sum(0))],
-        via_points=purposes.count("via"), blocked_moves=blocked)
-    rejected = {k: v for k, v in counts.items() if k not in ("drawn", "screened")}
-    return Plan(
-        robocal_version=__version__,
-        robot=RobotInfo(name=robot_name, source=rob.source, description=rob.to_dict()),
-        cell=the_cell, cell_source=cell_source, seed=seed,
-        model=ModelInfo(name=model_name, label=spec.label, parameters=len(ds.names),
-                        design="stratified" if design == "stratified" else "d-optimal",
-                        design_note=design_note(model_name, design)),
-        candidates=CandidateInfo(drawn=counts["drawn"], screened=counts["screened"],
-                                 feasible=n_c, rejected=rejected),
-        observability=obs, unidentifiable=list(ds.unidentifiable), motion=motion_info,
-        iso9283=None if cube is None else IsoInfo(
-            centre_mm=[round(float(v) * 1e3, 3) for v in cube.centre],
-            side_mm=round(cube.side * 1e3, 3), cycles=iso_cycles),
-        cpa=[CpaInfo(joint=s.joint, span_deg=[round(math.degrees(v), 3) for v in s.span],
-                     points=len(s.q), radius_mm=round(1e3 * cpa_radius(
-                         rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
-             for s in sweeps],
-        warnings=warnings, dropped=dropped, poses=poses)
+            move_clear=True))   # every leg was routed safely (unsafe targets are dropped)
+    return poses
