@@ -3,6 +3,10 @@
 After any fault the hub drops both drivers (closing them), so the next use reconnects from a
 clean session (a lost RMI session, a tracker link in an unknown state). The daemon reaches
 simulated devices only this way, through real drivers and their wire protocols.
+
+The hub owns the :class:`~robocal.drivers.DriverContext` its drivers are built in, so drivers
+that share state (the mock robot and mock tracker share one simulated world) share it within
+one hub, across reconnects, and never with another hub.
 """
 
 from __future__ import annotations
@@ -15,7 +19,13 @@ from typing import Any, Literal
 import structlog
 
 from robocal.daemon.config import AppConfig, DriverConfig
-from robocal.drivers import RobotDriver, TrackerDriver, load_robot_driver, load_tracker_driver
+from robocal.drivers import (
+    DriverContext,
+    RobotDriver,
+    TrackerDriver,
+    load_robot_driver,
+    load_tracker_driver,
+)
 from robocal.kinematics import RobotDescription
 
 __all__ = ["DriverHub"]
@@ -46,12 +56,15 @@ class DriverHub:
     ----------
     lock : asyncio.Lock
         Held by whoever moves the robot or pushes compensation (one user at a time).
+    context : DriverContext
+        The scope the drivers are built in (lives as long as the hub).
     """
 
     def __init__(self, config: AppConfig, robot: RobotDescription) -> None:
         self.config = config
         self.description = robot
         self.lock = asyncio.Lock()
+        self.context = DriverContext()
         self._robot: RobotDriver | None = None
         self._tracker: TrackerDriver | None = None
         self.last_error: str = ""
@@ -59,14 +72,17 @@ class DriverHub:
     def validate(self) -> None:
         """Build (not connect) both drivers once, so bad kinds or options fail at start-up."""
         load_robot_driver(self.config.robot.kind,
-                          robot_options(self.config.robot, self.description))
-        load_tracker_driver(self.config.tracker.kind, self.config.tracker.options)
+                          robot_options(self.config.robot, self.description),
+                          context=self.context)
+        load_tracker_driver(self.config.tracker.kind, self.config.tracker.options,
+                            context=self.context)
 
     async def robot(self) -> RobotDriver:
         """The connected robot driver (connecting it if needed)."""
         if self._robot is None:
             cfg = self.config.robot
-            drv = load_robot_driver(cfg.kind, robot_options(cfg, self.description))
+            drv = load_robot_driver(cfg.kind, robot_options(cfg, self.description),
+                                    context=self.context)
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._robot = drv
             _log.info("robot connected", driver=cfg.kind)
@@ -76,7 +92,7 @@ class DriverHub:
         """The connected tracker driver (connecting it if needed)."""
         if self._tracker is None:
             cfg = self.config.tracker
-            drv = load_tracker_driver(cfg.kind, cfg.options)
+            drv = load_tracker_driver(cfg.kind, cfg.options, context=self.context)
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._tracker = drv
             _log.info("tracker connected", driver=cfg.kind)

@@ -11,6 +11,7 @@ True
 
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers._context import DriverContext
 from robocal.drivers._registry import (
     ROBOT_GROUP,
     TRACKER_GROUP,
@@ -47,6 +48,7 @@ __all__ = [
     "Connectable",
     "ControllerSnapshot",
     "DriverBase",
+    "DriverContext",
     "DriverOptions",
     "JointMover",
     "JointReader",

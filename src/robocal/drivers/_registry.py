@@ -4,15 +4,22 @@ Groups ``robocal.robots`` and ``robocal.trackers``; a third-party package adds a
 
     [project.entry-points."robocal.trackers"]
     leica-emscon = "mypkg.leica:LeicaTracker"
+
+A driver class is built as ``cls(options)``. One whose constructor also takes a ``context``
+keyword is built as ``cls(options, context=...)`` when the caller passes a
+:class:`~robocal.drivers.DriverContext`, the scope in which drivers built together share
+state (the mock drivers share their simulated world there).
 """
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Literal
 
 from robocal.drivers._base import validate_options
+from robocal.drivers._context import DriverContext
 from robocal.drivers.api import (
     Connectable,
     JointMover,
@@ -85,11 +92,25 @@ def driver_class(kind: str, *, role: Role) -> type[Any]:
     return cls
 
 
-def _load(kind: str, options: Mapping[str, Any] | None, role: Role) -> Any:
+def _takes_context(cls: type[Any]) -> bool:
+    """True if ``cls(options, context=...)`` is how ``cls`` wants to be built."""
+    try:
+        param = inspect.signature(cls).parameters.get("context")
+    except (TypeError, ValueError):
+        return False
+    return param is not None and param.kind in (param.KEYWORD_ONLY,
+                                                param.POSITIONAL_OR_KEYWORD)
+
+
+def _load(kind: str, options: Mapping[str, Any] | None, role: Role,
+          context: DriverContext | None) -> Any:
     cls = driver_class(kind, role=role)
     opts = validate_options(cls.Options, options, kind=kind)
     try:
-        driver = cls(opts)
+        if context is not None and _takes_context(cls):
+            driver = cls(opts, context=context)
+        else:
+            driver = cls(opts)
     except ConfigError:
         raise
     except Exception as err:
@@ -112,8 +133,12 @@ def _load(kind: str, options: Mapping[str, Any] | None, role: Role) -> Any:
     return driver
 
 
-def load_robot_driver(kind: str, options: Mapping[str, Any] | None = None) -> RobotDriver:
+def load_robot_driver(kind: str, options: Mapping[str, Any] | None = None, *,
+                      context: DriverContext | None = None) -> RobotDriver:
     """Build (not connect) the robot driver ``kind`` with validated ``options``.
+
+    ``context`` is handed to a driver that takes one (see the module docstring); without
+    it, a driver shares nothing with the others (a mock robot gets a world of its own).
 
     Raises
     ------
@@ -122,15 +147,18 @@ def load_robot_driver(kind: str, options: Mapping[str, Any] | None = None) -> Ro
     ConfigError
         If ``options`` do not validate against the driver's ``Options`` (the key is named).
     """
-    return _load(kind, options, "robot")
+    return _load(kind, options, "robot", context)
 
 
-def load_tracker_driver(kind: str, options: Mapping[str, Any] | None = None) -> TrackerDriver:
+def load_tracker_driver(kind: str, options: Mapping[str, Any] | None = None, *,
+                        context: DriverContext | None = None) -> TrackerDriver:
     """Build (not connect) the tracker driver ``kind`` with validated ``options``.
+
+    ``context`` as in :func:`load_robot_driver`.
 
     Raises
     ------
     DriverNotFound, DriverImportError, ConfigError
         As :func:`load_robot_driver`.
     """
-    return _load(kind, options, "tracker")
+    return _load(kind, options, "tracker", context)

@@ -1,9 +1,11 @@
 """In-process mock robot and tracker backed by the virtual robot (no I/O at all).
 
-A :class:`MockRobot` and a :class:`MockTracker` built with the same ``robot``, ``scenario``,
-``seed`` and ``world`` options share one :class:`~robocal.drivers.sim.world.SimWorld`, so the
-tracker measures where the robot actually is. They double as test doubles: faults can be
-injected through their options.
+A :class:`MockRobot` and a :class:`MockTracker` built in one
+:class:`~robocal.drivers.DriverContext` with the same ``robot``, ``scenario``, ``seed`` and
+``world`` options share one :class:`~robocal.drivers.sim.world.SimWorld`, so the tracker
+measures where the robot actually is. Built without a context (and without ``world=``), each
+mock driver has a world of its own. They double as test doubles: faults can be injected
+through their options.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pydantic import Field
 from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers._context import DriverContext
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -27,7 +30,7 @@ from robocal.drivers.api import (
     JointReading,
     TrackerReading,
 )
-from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
+from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
 from robocal.errors import (
     BeamLost,
     ConfigError,
@@ -44,7 +47,18 @@ class _WorldOptions(DriverOptions):
     robot: str = DEFAULT_ROBOT
     scenario: str = "paper"
     seed: int = 1
-    world: str = Field(default="default", description="name of the shared world")
+    world: str = Field(default="default",
+                       description="name of the world within the driver context")
+
+
+def _world_for(o: _WorldOptions, context: DriverContext | None) -> SimWorld:
+    """The world ``o`` names in ``context`` (created there once), or a new one without it."""
+    def create() -> SimWorld:
+        return SimWorld.create(o.robot, o.scenario, o.seed)
+
+    if context is None:
+        return create()
+    return context.shared((__name__, o.robot, o.scenario, o.seed, o.world), create)
 
 
 class MockRobotOptions(_WorldOptions):
@@ -78,14 +92,18 @@ _EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
 
 
 class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
-    """In-process robot: moves the shared virtual robot instantly (or after ``move_time_s``).
+    """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
 
     Parameters
     ----------
     options : MockRobotOptions or mapping
         Validated options.
     world : SimWorld, optional
-        Use this world instead of the shared one named by the options.
+        Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
+        then ignored).
+    context : DriverContext, optional
+        Share the world named by the options with the other drivers of this context;
+        without one (and without ``world``) the driver makes a world of its own.
     """
 
     kind: ClassVar[str] = "mock"
@@ -98,9 +116,11 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
         options: MockRobotOptions | Mapping[str, Any] | None = None,
         *,
         world: SimWorld | None = None,
+        context: DriverContext | None = None,
     ) -> None:
         super().__init__(options)
         self._world = world
+        self._context = context
         self._stored: str | None = None
         self._stop_event = asyncio.Event()
 
@@ -108,8 +128,7 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
     def world(self) -> SimWorld:
         """The simulated world (created on first use; pure computation, no I/O)."""
         if self._world is None:
-            o = self.options
-            self._world = shared_world(o.robot, o.scenario, o.seed, o.world)
+            self._world = _world_for(self.options, self._context)
         return self._world
 
     @property
@@ -229,14 +248,18 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
 
 
 class MockTracker(DriverBase):
-    """In-process tracker measuring the shared virtual robot's reflector with noise.
+    """In-process tracker measuring the virtual robot's reflector with noise.
 
     Parameters
     ----------
     options : MockTrackerOptions or mapping
         Validated options.
     world : SimWorld, optional
-        Use this world instead of the shared one named by the options.
+        Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
+        then ignored).
+    context : DriverContext, optional
+        Share the world named by the options with the other drivers of this context;
+        without one (and without ``world``) the driver makes a world of its own.
     """
 
     kind: ClassVar[str] = "mock"
@@ -248,17 +271,18 @@ class MockTracker(DriverBase):
         options: MockTrackerOptions | Mapping[str, Any] | None = None,
         *,
         world: SimWorld | None = None,
+        context: DriverContext | None = None,
     ) -> None:
         super().__init__(options)
         self._world = world
+        self._context = context
         self._faults = random.Random(self.options.fault_seed)
 
     @property
     def world(self) -> SimWorld:
         """The simulated world (created on first use)."""
         if self._world is None:
-            o = self.options
-            self._world = shared_world(o.robot, o.scenario, o.seed, o.world)
+            self._world = _world_for(self.options, self._context)
         return self._world
 
     async def _connect_impl(self, timeout: float) -> None:

@@ -9,7 +9,6 @@ Unknown keys are rejected, naming the file and the key.
 from __future__ import annotations
 
 import math
-import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -332,7 +331,7 @@ def load_cell(spec: str | Path) -> Cell:
     text = str(spec)
     if not text.endswith(".toml") and text in builtin_cells():
         res = resources.files("robocal.data") / "cells" / f"{text}.toml"
-        return Cell.from_dict(tomllib.loads(res.read_text()), source=f"builtin:{text}")
+        return Cell.from_dict(read_toml(res), source=f"builtin:{text}")
     path = Path(text)
     if not path.is_file():
         raise ConfigError(

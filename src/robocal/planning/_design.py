@@ -28,9 +28,10 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from robocal._core.model_names import MODELS
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
-from robocal.identification import MODELS, min_poses
+from robocal.identification import min_poses
 from robocal.kinematics import (
     ErrorModelSpec,
     KinematicModel,

@@ -12,17 +12,9 @@ import pytest
 
 from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
 from robocal.daemon.config import AppConfig, parse_config
-from robocal.drivers.sim.world import forget_shared_worlds
 from robocal.kinematics import load_robot
 
 ROBOT = "fanuc_lrmate200i"
-
-
-@pytest.fixture(autouse=True)
-def _fresh_worlds():
-    forget_shared_worlds()
-    yield
-    forget_shared_worlds()
 
 
 def base_config(tmp_path: Path, **sections: Any) -> dict[str, Any]:
@@ -30,8 +22,8 @@ def base_config(tmp_path: Path, **sections: Any) -> dict[str, Any]:
     cfg: dict[str, Any] = {
         "data_dir": str(tmp_path / "state"),
         "robot_description": ROBOT,
-        "robot": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp_path)}},
-        "tracker": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp_path)}},
+        "robot": {"kind": "mock", "options": {"robot": ROBOT}},
+        "tracker": {"kind": "mock", "options": {"robot": ROBOT}},
         "measurement": {"settle_s": 0.0, "backoff_s": 0.001, "max_backoff_s": 0.01},
         "fit": {"models": ["constant"], "select": "constant", "executor": "thread",
                 "report": False, "cpa": False},

@@ -1,4 +1,4 @@
-"""Mock robot and tracker over a shared virtual world."""
+"""Mock robot and tracker over a virtual world shared through a driver context."""
 
 from __future__ import annotations
 
@@ -8,17 +8,10 @@ import numpy as np
 import pytest
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload
-from robocal.drivers import load_robot_driver, load_tracker_driver
+from robocal.drivers import DriverContext, load_robot_driver, load_tracker_driver
 from robocal.drivers.mock import MockRobot, MockTracker
-from robocal.drivers.sim.world import SimWorld, forget_shared_worlds
+from robocal.drivers.sim.world import SimWorld
 from robocal.errors import BeamLost, ConfigError, ConnectFailed, Unstable, VerificationMismatch
-
-
-@pytest.fixture(autouse=True)
-def _fresh_worlds():
-    forget_shared_worlds()
-    yield
-    forget_shared_worlds()
 
 
 def frames_table() -> CompensationTable:
@@ -35,8 +28,9 @@ def frames_table() -> CompensationTable:
 
 
 async def test_tracker_measures_where_the_robot_is():
-    robot = load_robot_driver("mock", {"seed": 4})
-    tracker = load_tracker_driver("mock", {"seed": 4})
+    context = DriverContext()
+    robot = load_robot_driver("mock", {"seed": 4}, context=context)
+    tracker = load_tracker_driver("mock", {"seed": 4}, context=context)
     await robot.connect(timeout=1)
     await tracker.connect(timeout=1)
     world = robot.world
@@ -57,9 +51,21 @@ async def test_tracker_measures_where_the_robot_is():
 
 
 async def test_separate_world_names_do_not_share():
-    a = MockRobot({"world": "a"})
-    b = MockTracker({"world": "b"})
+    context = DriverContext()
+    a = MockRobot({"world": "a"}, context=context)
+    b = MockTracker({"world": "b"}, context=context)
     assert a.world is not b.world
+    assert MockTracker({"world": "a"}, context=context).world is a.world
+
+
+async def test_worlds_are_shared_only_within_one_context():
+    one, other = DriverContext(), DriverContext()
+    robot = load_robot_driver("mock", {}, context=one)
+    assert load_tracker_driver("mock", {}, context=one).world is robot.world
+    assert load_tracker_driver("mock", {}, context=other).world is not robot.world
+    # Without a context every mock driver has a world of its own.
+    assert MockTracker().world is not MockRobot().world
+    assert load_tracker_driver("mock", {}).world is not load_robot_driver("mock", {}).world
 
 
 async def test_explicit_world_and_limits_override():

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from importlib.metadata import EntryPoint
+from typing import Any
 
 import pytest
 
 from robocal.drivers import (
+    DriverContext,
     _registry,
     available,
     driver_class,
@@ -97,3 +99,25 @@ def test_class_lacking_capabilities_is_refused(monkeypatch):
     fake_eps(monkeypatch, tracker_as_robot="robocal.drivers.mock:MockTracker")
     with pytest.raises(DriverImportError, match="robot driver protocols"):
         load_robot_driver("tracker_as_robot", {})
+
+
+class _NoContextRobot(MockRobot):
+    """A plugin-style driver whose constructor takes the options only."""
+
+    def __init__(self, options=None) -> None:
+        super().__init__(options)
+
+
+def test_a_driver_without_a_context_parameter_is_built_without_it(monkeypatch):
+    monkeypatch.setattr(_registry, "driver_class", lambda kind, role: _NoContextRobot)
+    robot = load_robot_driver("plugin", {"seed": 2}, context=DriverContext())
+    assert isinstance(robot, _NoContextRobot)
+
+
+def test_a_driver_taking_a_context_gets_the_callers():
+    context = DriverContext()
+    robot: Any = load_robot_driver("mock", {}, context=context)
+    tracker: Any = load_tracker_driver("mock", {}, context=context)
+    assert robot._context is context
+    assert robot.world is tracker.world
+    assert len(context) == 1

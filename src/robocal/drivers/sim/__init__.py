@@ -31,7 +31,7 @@ from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
-from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld, shared_world
+from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
 
 __all__ = [
     "DEFAULT_ROBOT",
@@ -48,7 +48,6 @@ __all__ = [
     "SimCell",
     "SimWorld",
     "main",
-    "shared_world",
 ]
 
 _log = structlog.get_logger(__name__)

@@ -20,14 +20,15 @@ import contextlib
 import math
 import random
 import struct
-from typing import Any, Literal
+from collections.abc import Awaitable, Callable
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.drivers.sim._server import SessionServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector, RateInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, UnexpectedReply
 from robocal.protocols import emscon
@@ -218,6 +219,9 @@ class EmsconSimOptions(BaseModel):
 
 _SLOW = {Cmd.INITIALIZE, Cmd.START_MEASUREMENT, Cmd.GO_POSITION, Cmd.GO_POSITION_HVD,
          Cmd.FIND_REFLECTOR, Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2}
+
+
+_Handler = Callable[["EmsconTrackerSimulator", emscon.Command, "_Session"], Awaitable[None]]
 
 
 class _State:
@@ -441,7 +445,7 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         self.options = options or EmsconSimOptions()
         self.faults = FaultInjector(faults)
         seed = self.faults.config.seed
-        self.emscon_faults = _RateInjector(self.options.faults, seed + 7)
+        self.emscon_faults = RateInjector(self.options.faults, seed + 7)
         self.rng = random.Random(seed + 3)
         self.state = _State(self.options)
         self.commands: list[emscon.Command] = []
@@ -583,181 +587,232 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
             self._track(s.event(Event.MEAS_STATUS_READY))
 
     async def answer(self, c: emscon.Command, s: _Session) -> None:
-        """Execute one command and send its reply (and result or events)."""
-        o, st, p, cmd = self.options, self.state, c.params, c.command
-        if cmd == Cmd.GET_SYSTEM_STATUS:
-            await s.reply(cmd, last_result_status=0,
-                          tracker_processor_status=5 if st.initialized else 4, laser_status=3,
-                          adm_status=2, version_major=o.version[0], version_minor=o.version[1],
-                          version_build=o.version[2],
-                          weather_monitor_status=st.settings["weather_monitor_status"],
-                          flags_value=0, tracker_serial_number=o.serial)
-        elif cmd == Cmd.GET_TRACKER_STATUS:
-            await s.reply(cmd, tracker_status=2 if st.initialized and st.locked else 0)
-        elif cmd == Cmd.SET_UNITS:
-            for i, name in enumerate(_UNIT_FIELDS):
-                if p[name] not in _UNIT_RANGE[name]:
-                    await s.reply(cmd, 4 + i)
-                    return
-            st.units = dict(p)
-            await s.reply(cmd)
-            self._ms_event(s, Event.UNITS_CHANGED)
-        elif cmd == Cmd.GET_UNITS:
-            await s.reply(cmd, **st.units)
-        elif cmd == Cmd.INITIALIZE:
-            await self._sleep(o.initialize_s)
-            st.initialized = True
-            await s.reply(cmd, o.initialize_status)
-            if o.events == "ms":
-                for ev in (Event.INITIALIZATION_STATUS_CHANGED, Event.MEAS_STATUS_READY,
-                           Event.STATISTIC_MODE_CHANGED):
-                    await s.event(ev)
-        elif cmd == Cmd.SET_ENVIRONMENT_PARAMS:
-            t = self._temp_in(p["temperature"])
-            pr = p["pressure"] / self._press()
-            h = p["humidity"]
-            for i, (v, (lo, hi)) in enumerate(
-                    ((t, o.temp_range_c), (pr, o.press_range_hpa), (h, o.hum_range_pct))):
-                if not lo <= v <= hi:
-                    await s.reply(cmd, emscon.Status.METEO_DATA_OUT_OF_RANGE)
-                    _log.info("emscon sim: meteo out of range", index=i, value=v)
-                    return
-            if not (o.monitor_overrides_meteo and st.settings["weather_monitor_status"] == 2):
-                st.env = (t, pr, h)
-            await s.reply(cmd)
-            self._ms_event(s, Event.ENVIRONMENT_PARAMS_CHANGED)
-        elif cmd == Cmd.GET_ENVIRONMENT_PARAMS:
-            t, pr, h = self._env_out()
-            await s.reply(cmd, temperature=t, pressure=pr, humidity=h)
-        elif cmd == Cmd.SET_MEASUREMENT_MODE:
-            mode = p["meas_mode"]
-            if mode == 0 and o.stationary_mode == "reject":
-                await s.reply(cmd, o.stationary_reject_status)
-            elif mode not in (0, 20, 21, 22, 23):
-                await s.reply(cmd, 4)
-            else:
-                st.meas_mode = mode
-                await s.reply(cmd)
-                self._ms_event(s, Event.MEASUREMENT_MODE_CHANGED)
-        elif cmd == Cmd.GET_MEASUREMENT_MODE:
-            await s.reply(cmd, meas_mode=st.meas_mode)
-        elif cmd == Cmd.SET_COORDINATE_SYSTEM_TYPE:
-            if p["coord_sys_type"] not in (0, 6, 7):
-                await s.reply(cmd, emscon.Status.NOT_IMPLEMENTED)
-                return
-            st.coord_sys = p["coord_sys_type"]
-            await s.reply(cmd)
-            self._ms_event(s, Event.COORDINATE_SYSTEM_TYPE_CHANGED)
-        elif cmd == Cmd.GET_COORDINATE_SYSTEM_TYPE:
-            await s.reply(cmd, coord_sys_type=st.coord_sys)
-        elif cmd == Cmd.SET_STATIONARY_MODE_PARAMS:
-            if p["meas_time"] <= 0:
-                await s.reply(cmd, 4)
-                return
-            st.meas_time_ms, st.use_adm = p["meas_time"], p["use_adm"]
-            await s.reply(cmd)
-            self._ms_event(s, Event.STATIONARY_MODE_PARAMS_CHANGED)
-        elif cmd == Cmd.GET_STATIONARY_MODE_PARAMS:
-            await s.reply(cmd, meas_time=st.meas_time_ms, use_adm=st.use_adm)
-        elif cmd == Cmd.SET_REFLECTOR:
-            if p["internal_reflector_id"] not in {r.id for r in o.reflectors}:
-                await s.reply(cmd, 4)
-                return
-            st.reflector_id = p["internal_reflector_id"]
-            await s.reply(cmd)
-            self._ms_event(s, Event.REFLECTOR_CHANGED)
-        elif cmd == Cmd.GET_REFLECTOR:
-            await s.reply(cmd, internal_reflector_id=st.reflector_id)
-        elif cmd == Cmd.GET_REFLECTORS:
-            if not o.reflectors:
-                await s.reply(cmd, emscon.Status.WRONG_PARAMETER)
-            for r in o.reflectors:
-                await s.reply(cmd, total_reflectors=len(o.reflectors), internal_reflector_id=r.id,
-                              target_type=r.target_type,
-                              surface_offset=r.surface_offset_mm / 1000 * self._len(),
-                              reflector_name=r.name)
-        elif cmd == Cmd.SET_SEARCH_PARAMS:
-            st.search = (p["search_radius"], p["timeout"])
-            await s.reply(cmd)
-        elif cmd == Cmd.GET_SEARCH_PARAMS:
-            await s.reply(cmd, search_radius=st.search[0], timeout=st.search[1])
-        elif cmd == Cmd.SET_SYSTEM_SETTINGS:
-            st.settings = dict(p)
-            await s.reply(cmd)
-            self._ms_event(s, Event.SYSTEM_SETTINGS_CHANGED)
-            if st.settings["send_reflector_position_data"]:
-                s.start_stream()
-        elif cmd == Cmd.GET_SYSTEM_SETTINGS:
-            await s.reply(cmd, **st.settings)
-        elif cmd == Cmd.SET_STATISTIC_MODE:
-            st.statistic_mode = (p["stationary_mode"], p["continuous_mode"])
-            await s.reply(cmd)
-            self._ms_event(s, Event.STATISTIC_MODE_CHANGED)
-        elif cmd == Cmd.GET_STATISTIC_MODE:
-            await s.reply(cmd, stationary_mode=st.statistic_mode[0],
-                          continuous_mode=st.statistic_mode[1])
-        elif cmd == Cmd.START_MEASUREMENT:
-            await self._measure(s)
-        elif cmd == Cmd.STOP_MEASUREMENT:
-            await s.reply(cmd)
-        elif cmd in (Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2):
-            await self._sleep(o.motion_s)
-            await s.reply(cmd)
-            self._lock_again(s)
-        elif cmd in (Cmd.GO_POSITION, Cmd.GO_POSITION_HVD):
-            await self._sleep(o.motion_s)
-            await s.reply(cmd)
-        elif cmd == Cmd.POSITION_RELATIVE_HV:
-            await s.reply(cmd)
-        elif cmd == Cmd.FIND_REFLECTOR:
-            await self._sleep(o.motion_s)
-            if o.find_fail_status:
-                await s.reply(cmd, o.find_fail_status)
-                await s.event(Event.MEAS_STATUS_NOT_READY)
-                return
-            await s.reply(cmd)
-            self._lock_again(s)
-        elif cmd == Cmd.GET_DIRECTION:
-            await s.reply(cmd, hz_angle=st.direction[0] * self._ang(),
-                          vt_angle=st.direction[1] * self._ang())
-        elif cmd == Cmd.GET_MEASUREMENT_STATUS_INFO:
-            bits = 1 | 2 | 4 | 8 | 4096
-            bits |= emscon.MSI_REFLECTOR_FOUND if st.locked else 0
-            bits |= emscon.MSI_INITIALIZED if st.initialized else 0
-            await s.reply(cmd, last_result_status=0, measurement_status_info=bits)
-        elif cmd == Cmd.SET_LONG_SYSTEM_PARAMETER:
-            st.long_params[p["system_param"]] = p["parameter"]
-            if p["system_param"] == 10:
-                st.settings["send_reflector_position_data"] = int(p["parameter"] != 0)
-                s.start_stream()
-            await s.reply(cmd)
-        elif cmd == Cmd.GET_LONG_SYSTEM_PARAMETER:
-            await s.reply(cmd, system_param=p["system_param"],
-                          parameter=st.long_params.get(p["system_param"], 0))
-        elif cmd == Cmd.SET_DOUBLE_SYSTEM_PARAMETER:
-            st.double_params[p["system_param"]] = p["parameter"]
-            await s.reply(cmd)
-        elif cmd == Cmd.GET_DOUBLE_SYSTEM_PARAMETER:
-            await s.reply(cmd, system_param=p["system_param"],
-                          parameter=st.double_params.get(p["system_param"], 0.0))
-        elif cmd == Cmd.CLEAR_COMMAND_QUEUE:
-            await s.reply(cmd)
-        elif cmd == Cmd.GET_TRACKER_INFO:
-            await s.reply(cmd, tracker_type=70, tracker_name="AT401 (robocal sim)",
-                          tracker_serial_number=o.serial, compensation_id=1, has_adm=1,
-                          has_overview_camera=1, has_nivel=1, nivel_mount_offset=0.0,
-                          max_distance=160.0 * self._len(), min_distance=0.8 * self._len(),
-                          max_data_rate=1000, number_of_faces=2,
-                          hz_angle_range=2 * math.pi * self._ang(),
-                          vt_angle_range=(145 / 180 * math.pi) * self._ang(), accuracy_model=0,
-                          lcp_firmware_major=2, lcp_firmware_minor=1)
-        elif cmd == Cmd.GET_SYSTEM_SOFTWARE_VERSION:
-            v = o.version
-            await s.reply(cmd, version=f"emScon {v[0]}.{v[1]}.{v[2]} (robocal sim)")
-        else:
-            await s.reply(cmd, emscon.Status.NOT_IMPLEMENTED)
+        """Execute one command and send its reply (and result or events); see ``_COMMANDS``."""
+        handler = self._COMMANDS.get(c.command)
+        if handler is None:
+            await s.reply(c.command, emscon.Status.NOT_IMPLEMENTED)
+            return
+        await handler(self, c, s)
 
-    async def _measure(self, s: _Session) -> None:
+    async def _ok(self, c: emscon.Command, s: _Session) -> None:
+        """A command that only needs a successful reply (StopMeasurement, ...)."""
+        await s.reply(c.command)
+
+    async def _get_system_status(self, c: emscon.Command, s: _Session) -> None:
+        o, st = self.options, self.state
+        await s.reply(c.command, last_result_status=0,
+                      tracker_processor_status=5 if st.initialized else 4, laser_status=3,
+                      adm_status=2, version_major=o.version[0], version_minor=o.version[1],
+                      version_build=o.version[2],
+                      weather_monitor_status=st.settings["weather_monitor_status"],
+                      flags_value=0, tracker_serial_number=o.serial)
+
+    async def _get_tracker_status(self, c: emscon.Command, s: _Session) -> None:
+        st = self.state
+        await s.reply(c.command, tracker_status=2 if st.initialized and st.locked else 0)
+
+    async def _set_units(self, c: emscon.Command, s: _Session) -> None:
+        for i, name in enumerate(_UNIT_FIELDS):
+            if c.params[name] not in _UNIT_RANGE[name]:
+                await s.reply(c.command, 4 + i)
+                return
+        self.state.units = dict(c.params)
+        await s.reply(c.command)
+        self._ms_event(s, Event.UNITS_CHANGED)
+
+    async def _get_units(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, **self.state.units)
+
+    async def _initialize(self, c: emscon.Command, s: _Session) -> None:
+        o = self.options
+        await self._sleep(o.initialize_s)
+        self.state.initialized = True
+        await s.reply(c.command, o.initialize_status)
+        if o.events == "ms":
+            for ev in (Event.INITIALIZATION_STATUS_CHANGED, Event.MEAS_STATUS_READY,
+                       Event.STATISTIC_MODE_CHANGED):
+                await s.event(ev)
+
+    async def _set_environment_params(self, c: emscon.Command, s: _Session) -> None:
+        o, st, p = self.options, self.state, c.params
+        t = self._temp_in(p["temperature"])
+        pr = p["pressure"] / self._press()
+        h = p["humidity"]
+        for i, (v, (lo, hi)) in enumerate(
+                ((t, o.temp_range_c), (pr, o.press_range_hpa), (h, o.hum_range_pct))):
+            if not lo <= v <= hi:
+                await s.reply(c.command, emscon.Status.METEO_DATA_OUT_OF_RANGE)
+                _log.info("emscon sim: meteo out of range", index=i, value=v)
+                return
+        if not (o.monitor_overrides_meteo and st.settings["weather_monitor_status"] == 2):
+            st.env = (t, pr, h)
+        await s.reply(c.command)
+        self._ms_event(s, Event.ENVIRONMENT_PARAMS_CHANGED)
+
+    async def _get_environment_params(self, c: emscon.Command, s: _Session) -> None:
+        t, pr, h = self._env_out()
+        await s.reply(c.command, temperature=t, pressure=pr, humidity=h)
+
+    async def _set_measurement_mode(self, c: emscon.Command, s: _Session) -> None:
+        o, mode = self.options, c.params["meas_mode"]
+        if mode == 0 and o.stationary_mode == "reject":
+            await s.reply(c.command, o.stationary_reject_status)
+        elif mode not in (0, 20, 21, 22, 23):
+            await s.reply(c.command, 4)
+        else:
+            self.state.meas_mode = mode
+            await s.reply(c.command)
+            self._ms_event(s, Event.MEASUREMENT_MODE_CHANGED)
+
+    async def _get_measurement_mode(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, meas_mode=self.state.meas_mode)
+
+    async def _set_coordinate_system_type(self, c: emscon.Command, s: _Session) -> None:
+        if c.params["coord_sys_type"] not in (0, 6, 7):
+            await s.reply(c.command, emscon.Status.NOT_IMPLEMENTED)
+            return
+        self.state.coord_sys = c.params["coord_sys_type"]
+        await s.reply(c.command)
+        self._ms_event(s, Event.COORDINATE_SYSTEM_TYPE_CHANGED)
+
+    async def _get_coordinate_system_type(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, coord_sys_type=self.state.coord_sys)
+
+    async def _set_stationary_mode_params(self, c: emscon.Command, s: _Session) -> None:
+        st, p = self.state, c.params
+        if p["meas_time"] <= 0:
+            await s.reply(c.command, 4)
+            return
+        st.meas_time_ms, st.use_adm = p["meas_time"], p["use_adm"]
+        await s.reply(c.command)
+        self._ms_event(s, Event.STATIONARY_MODE_PARAMS_CHANGED)
+
+    async def _get_stationary_mode_params(self, c: emscon.Command, s: _Session) -> None:
+        st = self.state
+        await s.reply(c.command, meas_time=st.meas_time_ms, use_adm=st.use_adm)
+
+    async def _set_reflector(self, c: emscon.Command, s: _Session) -> None:
+        if c.params["internal_reflector_id"] not in {r.id for r in self.options.reflectors}:
+            await s.reply(c.command, 4)
+            return
+        self.state.reflector_id = c.params["internal_reflector_id"]
+        await s.reply(c.command)
+        self._ms_event(s, Event.REFLECTOR_CHANGED)
+
+    async def _get_reflector(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, internal_reflector_id=self.state.reflector_id)
+
+    async def _get_reflectors(self, c: emscon.Command, s: _Session) -> None:
+        """One reply per reflector (a failed reply when there are none)."""
+        reflectors = self.options.reflectors
+        if not reflectors:
+            await s.reply(c.command, emscon.Status.WRONG_PARAMETER)
+        for r in reflectors:
+            await s.reply(c.command, total_reflectors=len(reflectors),
+                          internal_reflector_id=r.id, target_type=r.target_type,
+                          surface_offset=r.surface_offset_mm / 1000 * self._len(),
+                          reflector_name=r.name)
+
+    async def _set_search_params(self, c: emscon.Command, s: _Session) -> None:
+        self.state.search = (c.params["search_radius"], c.params["timeout"])
+        await s.reply(c.command)
+
+    async def _get_search_params(self, c: emscon.Command, s: _Session) -> None:
+        radius, timeout = self.state.search
+        await s.reply(c.command, search_radius=radius, timeout=timeout)
+
+    async def _set_system_settings(self, c: emscon.Command, s: _Session) -> None:
+        st = self.state
+        st.settings = dict(c.params)
+        await s.reply(c.command)
+        self._ms_event(s, Event.SYSTEM_SETTINGS_CHANGED)
+        if st.settings["send_reflector_position_data"]:
+            s.start_stream()
+
+    async def _get_system_settings(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, **self.state.settings)
+
+    async def _set_statistic_mode(self, c: emscon.Command, s: _Session) -> None:
+        self.state.statistic_mode = (c.params["stationary_mode"], c.params["continuous_mode"])
+        await s.reply(c.command)
+        self._ms_event(s, Event.STATISTIC_MODE_CHANGED)
+
+    async def _get_statistic_mode(self, c: emscon.Command, s: _Session) -> None:
+        stationary, continuous = self.state.statistic_mode
+        await s.reply(c.command, stationary_mode=stationary, continuous_mode=continuous)
+
+    async def _go_bird_bath(self, c: emscon.Command, s: _Session) -> None:
+        """GoBirdBath, GoBirdBath2: a motion that locks onto the reflector again."""
+        await self._sleep(self.options.motion_s)
+        await s.reply(c.command)
+        self._lock_again(s)
+
+    async def _go_position(self, c: emscon.Command, s: _Session) -> None:
+        """GoPosition, GoPositionHVD: a motion that takes ``motion_s``."""
+        await self._sleep(self.options.motion_s)
+        await s.reply(c.command)
+
+    async def _find_reflector(self, c: emscon.Command, s: _Session) -> None:
+        o = self.options
+        await self._sleep(o.motion_s)
+        if o.find_fail_status:
+            await s.reply(c.command, o.find_fail_status)
+            await s.event(Event.MEAS_STATUS_NOT_READY)
+            return
+        await s.reply(c.command)
+        self._lock_again(s)
+
+    async def _get_direction(self, c: emscon.Command, s: _Session) -> None:
+        hz, vt = self.state.direction
+        await s.reply(c.command, hz_angle=hz * self._ang(), vt_angle=vt * self._ang())
+
+    async def _get_measurement_status_info(self, c: emscon.Command, s: _Session) -> None:
+        st = self.state
+        bits = 1 | 2 | 4 | 8 | 4096
+        bits |= emscon.MSI_REFLECTOR_FOUND if st.locked else 0
+        bits |= emscon.MSI_INITIALIZED if st.initialized else 0
+        await s.reply(c.command, last_result_status=0, measurement_status_info=bits)
+
+    async def _set_long_system_parameter(self, c: emscon.Command, s: _Session) -> None:
+        """Stores the value; parameter 10 switches the reflector position stream."""
+        st, p = self.state, c.params
+        st.long_params[p["system_param"]] = p["parameter"]
+        if p["system_param"] == 10:
+            st.settings["send_reflector_position_data"] = int(p["parameter"] != 0)
+            s.start_stream()
+        await s.reply(c.command)
+
+    async def _get_long_system_parameter(self, c: emscon.Command, s: _Session) -> None:
+        param = c.params["system_param"]
+        await s.reply(c.command, system_param=param,
+                      parameter=self.state.long_params.get(param, 0))
+
+    async def _set_double_system_parameter(self, c: emscon.Command, s: _Session) -> None:
+        self.state.double_params[c.params["system_param"]] = c.params["parameter"]
+        await s.reply(c.command)
+
+    async def _get_double_system_parameter(self, c: emscon.Command, s: _Session) -> None:
+        param = c.params["system_param"]
+        await s.reply(c.command, system_param=param,
+                      parameter=self.state.double_params.get(param, 0.0))
+
+    async def _get_tracker_info(self, c: emscon.Command, s: _Session) -> None:
+        o = self.options
+        await s.reply(c.command, tracker_type=70, tracker_name="AT401 (robocal sim)",
+                      tracker_serial_number=o.serial, compensation_id=1, has_adm=1,
+                      has_overview_camera=1, has_nivel=1, nivel_mount_offset=0.0,
+                      max_distance=160.0 * self._len(), min_distance=0.8 * self._len(),
+                      max_data_rate=1000, number_of_faces=2,
+                      hz_angle_range=2 * math.pi * self._ang(),
+                      vt_angle_range=(145 / 180 * math.pi) * self._ang(), accuracy_model=0,
+                      lcp_firmware_major=2, lcp_firmware_minor=1)
+
+    async def _get_system_software_version(self, c: emscon.Command, s: _Session) -> None:
+        v = self.options.version
+        await s.reply(c.command, version=f"emScon {v[0]}.{v[1]}.{v[2]} (robocal sim)")
+
+    async def _start_measurement(self, c: emscon.Command, s: _Session) -> None:
+        """StartMeasurement: a reply and a result packet, in ``result_order``, or a failure."""
         o, st, cmd = self.options, self.state, Cmd.START_MEASUREMENT
         if not st.initialized:
             await s.reply(cmd, emscon.Status.TRACKER_NOT_INITIALIZED)
@@ -811,6 +866,48 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         if o.relock_after_s is not None:
             self._beam_broken(s, announce=False)
 
+    _COMMANDS: ClassVar[dict[int, _Handler]] = {
+        Cmd.GET_SYSTEM_STATUS: _get_system_status,
+        Cmd.GET_TRACKER_STATUS: _get_tracker_status,
+        Cmd.SET_UNITS: _set_units,
+        Cmd.GET_UNITS: _get_units,
+        Cmd.INITIALIZE: _initialize,
+        Cmd.SET_ENVIRONMENT_PARAMS: _set_environment_params,
+        Cmd.GET_ENVIRONMENT_PARAMS: _get_environment_params,
+        Cmd.SET_MEASUREMENT_MODE: _set_measurement_mode,
+        Cmd.GET_MEASUREMENT_MODE: _get_measurement_mode,
+        Cmd.SET_COORDINATE_SYSTEM_TYPE: _set_coordinate_system_type,
+        Cmd.GET_COORDINATE_SYSTEM_TYPE: _get_coordinate_system_type,
+        Cmd.SET_STATIONARY_MODE_PARAMS: _set_stationary_mode_params,
+        Cmd.GET_STATIONARY_MODE_PARAMS: _get_stationary_mode_params,
+        Cmd.SET_REFLECTOR: _set_reflector,
+        Cmd.GET_REFLECTOR: _get_reflector,
+        Cmd.GET_REFLECTORS: _get_reflectors,
+        Cmd.SET_SEARCH_PARAMS: _set_search_params,
+        Cmd.GET_SEARCH_PARAMS: _get_search_params,
+        Cmd.SET_SYSTEM_SETTINGS: _set_system_settings,
+        Cmd.GET_SYSTEM_SETTINGS: _get_system_settings,
+        Cmd.SET_STATISTIC_MODE: _set_statistic_mode,
+        Cmd.GET_STATISTIC_MODE: _get_statistic_mode,
+        Cmd.START_MEASUREMENT: _start_measurement,
+        Cmd.STOP_MEASUREMENT: _ok,
+        Cmd.GO_BIRD_BATH: _go_bird_bath,
+        Cmd.GO_BIRD_BATH2: _go_bird_bath,
+        Cmd.GO_POSITION: _go_position,
+        Cmd.GO_POSITION_HVD: _go_position,
+        Cmd.POSITION_RELATIVE_HV: _ok,
+        Cmd.FIND_REFLECTOR: _find_reflector,
+        Cmd.GET_DIRECTION: _get_direction,
+        Cmd.GET_MEASUREMENT_STATUS_INFO: _get_measurement_status_info,
+        Cmd.SET_LONG_SYSTEM_PARAMETER: _set_long_system_parameter,
+        Cmd.GET_LONG_SYSTEM_PARAMETER: _get_long_system_parameter,
+        Cmd.SET_DOUBLE_SYSTEM_PARAMETER: _set_double_system_parameter,
+        Cmd.GET_DOUBLE_SYSTEM_PARAMETER: _get_double_system_parameter,
+        Cmd.CLEAR_COMMAND_QUEUE: _ok,
+        Cmd.GET_TRACKER_INFO: _get_tracker_info,
+        Cmd.GET_SYSTEM_SOFTWARE_VERSION: _get_system_software_version,
+    }
+
     # --- TCP -----------------------------------------------------------------------------------
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Serve on ``host:port`` (0 picks a free port); return the bound port."""
@@ -844,18 +941,3 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
             await session.stop()
         await self._stop_serving()
 
-
-class _RateInjector:
-    """Draw the emScon-specific faults of :class:`EmsconFaults`."""
-
-    def __init__(self, rates: EmsconFaults, seed: int) -> None:
-        self.rates = rates
-        self._rng = random.Random(seed)
-        self.counts: dict[str, int] = {}
-
-    def fire(self, name: str) -> bool:
-        rate: float = getattr(self.rates, f"{name}_rate")
-        if rate > 0.0 and self._rng.random() < rate:
-            self.counts[name] = self.counts.get(name, 0) + 1
-            return True
-        return False

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import random
+from typing import Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["FaultConfig", "FaultInjector"]
+__all__ = ["FaultConfig", "FaultInjector", "RateInjector"]
+
+R = TypeVar("R", bound=BaseModel)
 
 _P = Field(default=0.0, ge=0.0, le=1.0)
 
@@ -56,21 +59,42 @@ class FaultConfig(BaseModel):
         )
 
 
-class FaultInjector:
-    """Draw faults from a :class:`FaultConfig` with its own seeded generator."""
+class RateInjector(Generic[R]):
+    """Draw named faults at the rates of a settings model, with its own seeded generator.
 
-    def __init__(self, config: FaultConfig | None = None) -> None:
-        self.config = config or FaultConfig()
-        self._rng = random.Random(self.config.seed)
+    ``fire("x")`` uses the model's ``x_rate`` field; :attr:`rates` may be replaced at any time
+    (tests switch faults on and off), :attr:`counts` counts the faults fired by name.
+    """
+
+    def __init__(self, rates: R, seed: int) -> None:
+        self.rates = rates
+        self._rng = random.Random(seed)
         self.counts: dict[str, int] = {}
 
     def fire(self, name: str) -> bool:
-        """Return True (and count it) with probability ``config.<name>_rate``."""
-        rate: float = getattr(self.config, f"{name}_rate")
+        """Return True (and count it) with probability ``rates.<name>_rate``."""
+        rate: float = getattr(self.rates, f"{name}_rate")
         if rate > 0.0 and self._rng.random() < rate:
             self.counts[name] = self.counts.get(name, 0) + 1
             return True
         return False
+
+
+class FaultInjector(RateInjector[FaultConfig]):
+    """Draw the shared faults of a :class:`FaultConfig`, seeded with its ``seed``."""
+
+    def __init__(self, config: FaultConfig | None = None) -> None:
+        config = config or FaultConfig()
+        super().__init__(config, config.seed)
+
+    @property
+    def config(self) -> FaultConfig:
+        """The fault settings (the same object as :attr:`rates`; assignable)."""
+        return self.rates
+
+    @config.setter
+    def config(self, config: FaultConfig) -> None:
+        self.rates = config
 
     def garbage(self) -> bytes:
         """Return one garbage line body (no CR LF); one time in four longer than 4 kB."""

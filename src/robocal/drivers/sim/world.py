@@ -11,6 +11,10 @@ duration; :attr:`SimWorld.q_actual_rad` is the interpolated position while it ru
 :meth:`SimWorld.halt` freezes the robot where it is, the way a controller's abort does, and
 :meth:`SimWorld.finish_motion` settles a motion that ran to its end (adding the repeatability
 noise). :meth:`SimWorld.move` is the instantaneous form.
+
+There is no process-wide registry of worlds: whoever builds the simulators or mock drivers of
+one cell hands them the same world, directly (``world=``, :class:`~robocal.drivers.sim.SimCell`)
+or through the :class:`~robocal.drivers.DriverContext` the drivers are loaded in.
 """
 
 from __future__ import annotations
@@ -29,8 +33,6 @@ __all__ = [
     "SimMotion",
     "SimWorld",
     "WorldMeasurement",
-    "forget_shared_worlds",
-    "shared_world",
 ]
 
 DEFAULT_ROBOT = "fanuc_lrmate200id"
@@ -236,29 +238,3 @@ class SimWorld:
             rms_m=rms,
             n=n,
         )
-
-
-_SHARED: dict[tuple[str, str, int, str], SimWorld] = {}
-_SHARED_LOCK = threading.Lock()
-
-
-def shared_world(
-    robot: str = DEFAULT_ROBOT, scenario: str = "paper", seed: int = 1, name: str = "default"
-) -> SimWorld:
-    """Return the process-wide world for these parameters, creating it once.
-
-    Mock robot and mock tracker drivers built with the same options share a world this way,
-    so the mock tracker measures where the mock robot is.
-    """
-    key = (robot, scenario, seed, name)
-    with _SHARED_LOCK:
-        world = _SHARED.get(key)
-        if world is None:
-            world = _SHARED[key] = SimWorld.create(robot, scenario, seed)
-        return world
-
-
-def forget_shared_worlds() -> None:
-    """Drop every shared world (tests use it for isolation)."""
-    with _SHARED_LOCK:
-        _SHARED.clear()
