@@ -21,7 +21,8 @@ def test_every_user_of_the_model_names_has_the_one_tuple() -> None:
     assert FitConfig().models == MODELS
     select = get_args(FitConfig.model_fields["select"].annotation)
     assert select == (*MODELS, "best")
-    assert tuple(KNOWN_MODELS) == (model_names.NOMINAL, model_names.CPA, *MODELS)
+    assert tuple(KNOWN_MODELS) == (model_names.NOMINAL, model_names.CPA,
+                                   model_names.CPA_CLASSICAL, *MODELS)
     assert BASELINE == model_names.NOMINAL
 
 
