@@ -103,11 +103,19 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
     groups: list[Group] = []
     tau = gravity_torques(robot, q) if (opts.auto_gravity and robot.has_masses) else None
     for j, jt in enumerate(robot.joints):
+        # A harmonic of order k on a joint whose angle takes fewer than 2k + 2 distinct values
+        # (1 deg apart) interpolates those values exactly together with the constant term:
+        # cross-validation cannot see it overfit (every fold holds every value), and its
+        # coupling with other joints' terms explodes elsewhere (UR10 series D: J6 at -90, 0
+        # and 90 deg only, 10 mm off at a configuration unlike the training ones).
+        distinct = len(np.unique(np.round(np.degrees(q[:, j]))))
         for k in range(1, opts.auto_max_order + 1):
+            if distinct < 2 * k + 2:
+                continue
             terms = [Term(j, c, fam, k) for c in COMPONENTS for fam in ("cos", "sin")]
             groups.append(Group(f"j{j + 1}:fourier{k}", terms, joint=j))
         for k in opts.auto_ripple_orders:
-            if k > opts.auto_max_order:
+            if k > opts.auto_max_order and distinct >= 2 * k + 2:
                 # fine periodic joint-angle error (gear and encoder ripple, many cycles per
                 # revolution) on the rotation about the axis: two columns, cheap to test
                 groups.append(Group(f"j{j + 1}:ripple{k}", [Term(j, "ez", "cos", int(k)),
