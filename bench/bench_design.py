@@ -24,8 +24,14 @@ import platform
 import numpy as np
 
 from robocal._core.measurements import MeasurementSet
-from robocal.identification import TrackerSigma, fit, whitening
-from robocal.planning import DesignSpace, FeasibilityChecker, draw_candidates, load_cell, model_spec
+from robocal.identification import fit
+from robocal.planning import (
+    FeasibilityChecker,
+    cell_design_space,
+    draw_candidates,
+    load_cell,
+    model_spec,
+)
 from robocal.planning._cell import Cell
 from robocal.simulation import VirtualCell
 
@@ -66,9 +72,7 @@ def main() -> None:
         checker = FeasibilityChecker(vc.robot, cell)
         q, f, _ = draw_candidates(checker, target=2048, seed=seed)
         q_val, _, _ = draw_candidates(checker, target=800, seed=seed + 1000)
-        W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
-        ds = DesignSpace(vc.robot, model_spec(vc.robot, design_model), q,
-                         np.asarray(checker.tool_offset), weights=W)
+        ds = cell_design_space(checker, model_spec(vc.robot, design_model), q, f)
         rng = np.random.default_rng(seed + 7)
         for n in counts:
             designs = {"random": rng.choice(len(q), n, replace=False),

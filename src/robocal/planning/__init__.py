@@ -12,7 +12,12 @@ Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
 :func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
 """
 
-from robocal.planning._campaign import draw_candidates, plan_campaign, split_legs
+from robocal.planning._campaign import (
+    cell_design_space,
+    draw_candidates,
+    plan_campaign,
+    split_legs,
+)
 from robocal.planning._cell import Cell, builtin_cells, load_cell, pydantic_config_error
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
@@ -57,6 +62,7 @@ __all__ = [
     "PlannedPose",
     "UnsafeMove",
     "builtin_cells",
+    "cell_design_space",
     "cpa_sweeps",
     "default_link_radii",
     "draw_candidates",

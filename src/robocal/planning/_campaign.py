@@ -476,10 +476,7 @@ def plan_campaign(
                                                target=max(candidates, 2 * (count + validation)),
                                                need=count + validation, seed=seed,
                                                max_draws=max_draws)
-    # weight each candidate by the tracker's noise there (radial vs transverse, growing with
-    # range), as the maximum-likelihood fit will
-    W = whitening(feas_c.reflector, TrackerSigma(position=tuple(checker.tracker)))
-    ds = DesignSpace(rob, spec, q_c, np.asarray(checker.tool_offset), weights=W)
+    ds = cell_design_space(checker, spec, q_c, feas_c)
     if count < ds.min_poses:
         raise ConfigError(
             f"count {count} is below the {ds.min_poses} poses the {model_name} model needs "
@@ -545,6 +542,17 @@ def plan_campaign(
                          rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
              for s in sweeps],
         warnings=warnings, dropped=dropped, poses=poses)
+
+
+def cell_design_space(checker: FeasibilityChecker, spec: ErrorModelSpec, q: Array,
+                      feasibility: Feasibility) -> DesignSpace:
+    """The design space of feasible candidates ``q`` (n, dof) rad in ``checker``'s cell.
+
+    Each candidate is weighted by the tracker's noise where its reflector is (radial vs
+    transverse, growing with range), as the maximum-likelihood fit will weight it.
+    """
+    W = whitening(feasibility.reflector, TrackerSigma(position=tuple(checker.tracker)))
+    return DesignSpace(checker.robot, spec, q, np.asarray(checker.tool_offset), weights=W)
 
 
 def _resolve(robot: RobotDescription | str | Path, cell: Cell | str | Path

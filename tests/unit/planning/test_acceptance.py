@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from robocal._core.measurements import MeasurementSet
-from robocal.identification import TrackerSigma, fit, whitening
+from robocal.identification import fit
 from robocal.planning import (
-    DesignSpace,
     FeasibilityChecker,
+    cell_design_space,
     draw_candidates,
     load_cell,
     model_spec,
@@ -87,9 +87,7 @@ def test_sixty_poses_cannot_match_a_hundred_and_twenty_random_ones() -> None:
         "position_mm": [float(v) for v in vc.tracker_in_base * 1e3]})
     checker = FeasibilityChecker(vc.robot, cell)
     q, f, _ = draw_candidates(checker, target=1024, seed=0)
-    W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
-    ds = DesignSpace(vc.robot, model_spec(vc.robot, "constant"), q,
-                     np.asarray(checker.tool_offset), weights=W)
+    ds = cell_design_space(checker, model_spec(vc.robot, "constant"), q, f)
     J = ds.J
     L = J.shape[2]
     A = np.einsum("nai,naj->ij", J, J) / len(J)
@@ -114,9 +112,7 @@ def _design_trial(scenario: str, fit_model: str, n: int, seed: int) -> dict[str,
     checker = FeasibilityChecker(vc.robot, cell)
     q, f, _ = draw_candidates(checker, target=1024, seed=seed)
     q_val, _, _ = draw_candidates(checker, target=400, seed=seed + 1000)
-    W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
-    ds = DesignSpace(vc.robot, model_spec(vc.robot, fit_model), q,
-                     np.asarray(checker.tool_offset), weights=W)
+    ds = cell_design_space(checker, model_spec(vc.robot, fit_model), q, f)
     designs = {"random": np.random.default_rng(seed + 7).choice(len(q), n, replace=False),
                "stratified": ds.select_stratified(n)}
     out = {}
@@ -154,9 +150,7 @@ def test_stratified_design_beats_random_on_a_robot_with_constant_errors() -> Non
             "position_mm": [float(v) for v in vc.tracker_in_base * 1e3]})
         checker = FeasibilityChecker(vc.robot, cell)
         q, f, _ = draw_candidates(checker, target=1024, seed=seed)
-        W = whitening(f.reflector, TrackerSigma(position=tuple(checker.tracker)))
-        ds = DesignSpace(vc.robot, model_spec(vc.robot, "constant"), q,
-                         np.asarray(checker.tool_offset), weights=W)
+        ds = cell_design_space(checker, model_spec(vc.robot, "constant"), q, f)
         J, L = ds.J, ds.identifiable
         A = np.einsum("nai,naj->ij", J, J) / len(J)
 
