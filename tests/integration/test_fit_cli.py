@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import subprocess
 import sys
@@ -123,7 +124,10 @@ def test_non_convergence_is_an_error_and_writes_nothing(files, tmp_path, capsys,
     real = _solver.levenberg_marquardt
 
     def stuck(*a, **k):
-        return real(*a, **{**k, "max_iter": 1})     # status max-iterations, still descending
+        # stopped by max_iter, still descending, far from the minimum
+        info = real(*a, **{**k, "max_iter": 1})
+        return dataclasses.replace(info, status=_solver.MAX_ITERATIONS, last_decrease=0.1,
+                                   remaining=0.5)
 
     monkeypatch.setattr(_engine, "levenberg_marquardt", stuck)
     out = tmp_path / "nc.json"

@@ -382,17 +382,23 @@ class _Fitter:
         self.engine = Engine(robot, data, opts.engine_settings())
         self.tool0 = np.asarray(opts.tool_m if opts.tool_m is not None else robot.tool, float)
         self.T = _initial_base(robot, data, self.tool0)
+        self._baselines: dict[tuple[bool, bytes], Solution] = {}
 
     def model(self, spec: ErrorModelSpec) -> KinematicModel:
         return KinematicModel(self.robot, spec, self.T)
 
     def baseline(self, inliers: NDArray[np.bool_] | None = None, robust: bool = False
                  ) -> Solution:
-        m = self.model(ErrorModelSpec(self.robot.dof, ()))
-        x0 = m.nominal_params()
-        x0[ParameterLayout.TOOL] = self.tool0
-        return self.engine.solve(m, x0, inliers=inliers, robust=robust,
-                                 what="nominal (base + reflector) model")
+        """The nominal model with base and reflector fitted (the same poses: fitted once)."""
+        n = len(self.data.q)
+        key = (robust, (np.ones(n, dtype=bool) if inliers is None else inliers).tobytes())
+        if key not in self._baselines:
+            m = self.model(ErrorModelSpec(self.robot.dof, ()))
+            x0 = m.nominal_params()
+            x0[ParameterLayout.TOOL] = self.tool0
+            self._baselines[key] = self.engine.solve(m, x0, inliers=inliers, robust=robust,
+                                                     what="nominal (base + reflector) model")
+        return self._baselines[key]
 
     def constant(self, start: Solution) -> Solution:
         m = self.model(constant_spec(self.robot))

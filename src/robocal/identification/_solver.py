@@ -458,7 +458,7 @@ def _select_columns(M: Array, tiers: NDArray[np.int_], rank: int, tau: float) ->
         chosen.append(j)
         avail[j] = False
 
-    for t in np.unique(tiers):
+    for t in sorted(set(tiers.tolist())):   # np.unique would import numpy.ma (17 ms)
         while len(chosen) < rank:
             cand = np.flatnonzero(avail & (tiers == t))
             if len(cand) == 0:

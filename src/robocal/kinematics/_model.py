@@ -49,6 +49,15 @@ class ChainState:
     jang: Array
 
 
+def _cross_axis1(a: Array, b: Array) -> Array:
+    """Cross products of 3-vectors along axis 1: ``a``, ``b`` (n, 3, m) -> (n, 3, m)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _cols_rot(R: Array, i: int, j: int, c: Array, s: Array) -> None:
     """In place: columns (i, j) of R <- (c Ri + s Rj, -s Ri + c Rj), a rotation about k."""
     ri = R[:, :, i].copy()
@@ -197,12 +206,15 @@ class KinematicModel:
         p = o + R @ x[ParameterLayout.TOOL]
         lin = np.stack(lin_cols, axis=2)
         ang = np.stack(ang_cols, axis=2)
-        for k, piv in enumerate(pivots):
-            if piv is not None:
-                lin[:, :, k] = np.cross(lin[:, :, k], p - piv)
+        ks = [k for k, piv in enumerate(pivots) if piv is not None]
+        if ks:
+            # all rotation columns at once: one cross product per pose and column, not a
+            # numpy call per column (there are 3 per error term)
+            levers = np.stack([np.broadcast_to(p - pivots[k], p.shape) for k in ks], axis=2)
+            lin[:, :, ks] = _cross_axis1(lin[:, :, ks], levers)
         jang = np.stack(jaxes, axis=2)
         lever = p[:, None, :] - np.stack(jorig, axis=1)  # (n, dof, 3)
-        jlin = np.cross(jang, lever, axisa=1, axisb=2, axisc=1)
+        jlin = _cross_axis1(jang, lever.transpose(0, 2, 1))
         return ChainState(p=p, R=R, o=o, lin=lin, ang=ang, jlin=jlin, jang=jang)
 
     def positions(self, q: Array, x: Array) -> Array:
