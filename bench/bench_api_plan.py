@@ -28,8 +28,8 @@ ROBOT = "fanuc_lrmate200i"
 
 def _config(tmp: Path) -> dict[str, object]:
     return {"data_dir": str(tmp / "state"), "robot_description": ROBOT,
-            "robot": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp)}},
-            "tracker": {"kind": "mock", "options": {"robot": ROBOT, "world": str(tmp)}},
+            "robot": {"kind": "mock", "options": {"robot": ROBOT}},
+            "tracker": {"kind": "mock", "options": {"robot": ROBOT}},
             "fit": {"models": ["constant"], "select": "constant", "executor": "thread"}}
 
 
