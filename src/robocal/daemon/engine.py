@@ -29,6 +29,7 @@ import numpy as np
 import structlog
 from numpy.typing import NDArray
 
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
@@ -187,8 +188,9 @@ class CampaignRunner:
 
     def __init__(self, *, store: Store, hub: DriverHub, events: EventBus, config: AppConfig,
                  robot: RobotDescription, reference: CalibratedModel | None = None,
-                 actor: str = "daemon") -> None:
+                 actor: str = "daemon", clock: Clock = SYSTEM_CLOCK) -> None:
         self.store = store
+        self.clock = clock      # settle time and retry backoff wait on it
         self.hub = hub
         self.events = events
         self.config = config
@@ -300,7 +302,7 @@ class CampaignRunner:
         q_cmd = await self._move(pose)
         robot = await self.hub.robot()
         if cfg.settle_s > 0:
-            await asyncio.sleep(cfg.settle_s)
+            await self.clock.sleep(cfg.settle_s)
         joints = await robot.read_joints()
         q_act = list(joints.q_rad)
         dev = max(abs(a - b) for a, b in zip(q_act, q_cmd, strict=True))
@@ -331,7 +333,7 @@ class CampaignRunner:
             reading, distance = await with_retry(
                 attempt, attempts=cfg.retries + 1, backoff_s=cfg.backoff_s,
                 backoff_factor=cfg.backoff_factor, max_backoff_s=cfg.max_backoff_s,
-                retry_on=retry_on, on_retry=retried)
+                retry_on=retry_on, on_retry=retried, clock=self.clock)
         except retry_on as err:
             raise MeasurementError(
                 f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "

@@ -28,6 +28,7 @@ import numpy as np
 import structlog
 
 from robocal import __version__
+from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import pushing
@@ -75,8 +76,10 @@ class CalibrationService:
         Overrides ``config.robot_description``.
     """
 
-    def __init__(self, config: AppConfig, *, robot: RobotDescription | None = None) -> None:
+    def __init__(self, config: AppConfig, *, robot: RobotDescription | None = None,
+                 clock: Clock = SYSTEM_CLOCK) -> None:
         self.config = config
+        self.clock = clock      # the campaign runner's settle time and retry backoff
         self.robot = robot or load_robot(config.robot_description)
         self.store = Store(config.db_path)
         self.events = EventBus()
@@ -402,7 +405,7 @@ class CalibrationService:
     async def _measure(self, cid: str) -> None:
         runner = CampaignRunner(store=self.store, hub=self.hub, events=self.events,
                                 config=self.config, robot=self.robot,
-                                reference=self._reference_model(cid))
+                                reference=self._reference_model(cid), clock=self.clock)
         try:
             state = await runner.run(cid)
         except asyncio.CancelledError:

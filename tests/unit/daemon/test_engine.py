@@ -66,3 +66,30 @@ async def test_a_noisy_reading_is_rejected(make_config):
         assert "sample RMS" in st["reason"] and st["poses_measured"] == 0
     finally:
         await svc.stop()
+
+
+async def test_retry_backoff_waits_on_the_service_clock(make_config):
+    """A 30 s backoff passes when the clock says so, not on the wall clock (ADR 0017)."""
+    from robocal.daemon.service import CalibrationService
+    from tests._clock import ManualClock
+    from tests._waiting import eventually
+    from tests.unit.daemon.conftest import random_plan
+
+    clock = ManualClock()
+    cfg = make_config(tracker={"options": {"beam_break_rate": 1.0}},
+                      measurement={"retries": 2, "backoff_s": 30.0, "max_backoff_s": 30.0})
+    svc = CalibrationService(cfg, clock=clock)
+    await svc.start()
+    try:
+        st = await svc.create(random_plan(3, seed=4), actor="t")
+        for _ in range(2):                       # two backoffs between three attempts
+            await eventually(lambda: clock.sleepers == 1, what="the runner backs off")
+            assert svc.status(st["id"])["state"] == "running"
+            clock.advance(29.0)
+            assert svc.status(st["id"])["state"] == "running"
+            clock.advance(1.0)
+            await eventually(lambda: clock.sleepers == 0)
+        st = await svc.wait(st["id"], ["faulted"], timeout=10)
+        assert "no valid reading after 3 attempts" in st["reason"]
+    finally:
+        await svc.stop()
