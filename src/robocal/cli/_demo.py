@@ -5,7 +5,7 @@ What it does (everything in-process, loopback only, no arguments needed):
 1. starts the FANUC RMI controller and LTP/1 laser-tracker simulators around one virtual
    FANUC LR Mate 200i with planted constant and joint-dependent errors (and a few % of
    injected beam breaks / unstable readings / garbage lines);
-2. plans the campaign (D-optimal calibration poses, validation poses, CPA sweeps);
+2. plans the campaign (stratified calibration poses, validation poses, CPA sweeps);
 3. runs it through the real drivers and the daemon's campaign engine, with an SQLite store;
 4. fits the constant, high-order and auto models (and CPA), and writes the report;
 5. compensates the validation targets with each model and measures them again (a model
@@ -115,7 +115,7 @@ def _plan(args: argparse.Namespace, validation: int) -> tuple[dict[str, Any], st
                          validation=validation, cpa=True, cpa_points=24, iso=True,
                          seed=args.seed, candidates=1024)
     plan.save(args.out / "PLAN.json")
-    return plan.model_dump(mode="json"), "robocal.planning (D-optimal, demo cell)"
+    return plan.model_dump(mode="json"), "robocal.planning (stratified design, demo cell)"
 
 
 async def _follow(svc: Any, cid: str, progress: _Progress, label: str,
