@@ -212,8 +212,9 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
 
     Column-scaled Levenberg-Marquardt on the normal equations (Cholesky; a truncated
     eigen-solve if the damped matrix is numerically singular), Nielsen's damping update.
-    Converged when the (predicted or actual) relative cost decrease falls below ``ftol`` or
-    the scaled step below ``xtol``. When the damping grows past 1e12 without an accepted step,
+    Converged when the (predicted or actual) relative cost decrease falls below ``ftol``, the
+    scaled step below ``xtol``, or the undamped Gauss-Newton step predicts a relative decrease
+    below ``gtol``. When the damping grows past 1e12 without an accepted step,
     the point counts as converged only if the undamped model predicts a relative decrease
     below ``gtol`` (a minimum within rounding); otherwise the status is ``no-progress``, or
     ``non-finite`` when the trial steps produced non-finite model values. Hitting
@@ -258,6 +259,14 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
         if nu == 2.0 and (predicted <= ftol * cost or step <= xtol * (xs + xtol)):
             status, message = CONVERGED, "converged"
             break
+        if nu == 2.0 and predicted <= 1e3 * gtol * cost:
+            # LM's damping can stay large in a curved valley and crawl for hundreds of steps
+            # (UR10 high-order fits); when even the undamped Gauss-Newton step predicts less
+            # than gtol, the point is a minimum within that tolerance
+            d0 = _damped_solve(As, gs, mu0)
+            if float(2.0 * d0 @ gs - d0 @ As @ d0) <= gtol * cost:
+                status, message = CONVERGED, "converged (Gauss-Newton step below gtol)"
+                break
         x_new = x.copy()
         x_new[free] += d / scale
         c_new = prob.cost(x_new, rows)

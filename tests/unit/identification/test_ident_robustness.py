@@ -126,3 +126,16 @@ def test_a_run_stopped_by_max_iter_reports_how_far_from_the_minimum_it_is() -> N
     # the Gauss-Newton prediction of what is left is close to what the full run still gained
     left = (stopped.cost - full.cost) / stopped.cost
     assert stopped.remaining > 0 and 0.2 * left < stopped.remaining < 5 * left
+
+
+def test_gauss_newton_stop_ends_at_the_same_minimum_in_fewer_steps() -> None:
+    prob, x0 = _problem()
+    rows = np.arange(prob.n)
+    cols = np.arange(prob.model.size)
+    _, keep, _ = solver.analyse_jacobian(prob, x0, rows, cols, tol=3e-4)
+    free = cols[keep]
+    strict = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=300, gtol=0.0)
+    early = solver.levenberg_marquardt(prob, x0, free, rows, max_iter=300)
+    assert early.converged and strict.converged
+    assert early.iterations <= strict.iterations
+    assert early.cost <= strict.cost * (1 + 1e-6)
