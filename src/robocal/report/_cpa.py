@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from robocal.errors import ConfigError
+from robocal.identification import CPAResult
 from robocal.kinematics import CalibratedModel
 from robocal.report._input import BASELINE, ModelEntry, model_entry
 
@@ -35,9 +36,8 @@ def classical_name(name: str) -> str:
 def _classical_of(obj: Any, cm: CalibratedModel, name: str) -> CalibratedModel | None:
     """Classical CPA of a polished CPA model: the result's ``.classical`` or the copy in its
     fit record; None when there is none (not polished, older file) or it does not load."""
-    classical = getattr(obj, "classical", None)
-    if isinstance(classical, CalibratedModel):
-        return classical
+    if isinstance(obj, CPAResult):
+        return obj.classical
     rec = cm.fit.get("classical")
     d = rec.get("model") if isinstance(rec, Mapping) else None
     if not isinstance(d, dict):
