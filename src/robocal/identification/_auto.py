@@ -223,10 +223,7 @@ class _CV:
             Gf = self.G_f[f][ix]
             bf = self.b_f[f][cols]
             A = Gc - Gf
-            try:
-                d = spd_solve(A, self.b[cols] - bf)
-            except np.linalg.LinAlgError:
-                d = np.linalg.lstsq(A, self.b[cols] - bf, rcond=1e-12)[0]
+            d = _spd_or_lstsq(A, self.b[cols] - bf)
             total += float(self.c_f[f] - 2.0 * d @ bf + d @ Gf @ d)
         return total
 
@@ -400,13 +397,15 @@ def _spd_solve_stack(M: Array, r: Array) -> Array:
             raise np.linalg.LinAlgError("matrix is not finite")
         return np.asarray(np.linalg.solve(M, r[..., None])[..., 0], dtype=np.float64)
     except np.linalg.LinAlgError:
-        out = np.empty_like(r)
-        for e in range(len(M)):
-            try:
-                out[e] = spd_solve(M[e], r[e])
-            except np.linalg.LinAlgError:
-                out[e] = np.linalg.lstsq(M[e], r[e], rcond=1e-12)[0]
-        return out
+        return np.stack([_spd_or_lstsq(M[e], r[e]) for e in range(len(M))])
+
+
+def _spd_or_lstsq(A: Array, b: Array) -> Array:
+    """``A^-1 b`` for symmetric positive definite ``A``; least squares when it is not."""
+    try:
+        return spd_solve(A, b)
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(A, b, rcond=1e-12)[0], dtype=np.float64)
 
 
 def _solve_small(A: Array, b: Array) -> Array:
