@@ -448,32 +448,36 @@ def _kmeans_strata(q: Array, k: int, iterations: int) -> tuple[Index, Index]:
     """
     span = np.ptp(q, axis=0)
     x = (q - q.min(axis=0)) / np.where(span > 0, span, 1.0)
+    n, dof = x.shape
     centres = x[:k].copy()
-    labels = np.zeros(len(x), dtype=np.intp)
+
+    def nearest(c: Array) -> Index:
+        # argmin_c |x - c|^2 = argmin_c (|c|^2 - 2 x.c): |x|^2 is the same for every centre
+        d = x @ c.T
+        d *= -2.0
+        d += np.sum(c**2, axis=1)
+        return np.argmin(d, axis=1)
+
     for _ in range(iterations):
-        d2 = (np.sum(x**2, axis=1)[:, None] - 2.0 * x @ centres.T
-              + np.sum(centres**2, axis=1)[None, :])
-        labels = np.argmin(d2, axis=1)
+        labels = nearest(centres)
         counts = np.bincount(labels, minlength=k)
-        sums = np.zeros_like(centres)
-        np.add.at(sums, labels, x)
         filled = counts > 0
-        centres[filled] = sums[filled] / counts[filled, None]
-    d2 = (np.sum(x**2, axis=1)[:, None] - 2.0 * x @ centres.T
-          + np.sum(centres**2, axis=1)[None, :])
-    labels = np.argmin(d2, axis=1)
+        for j in range(dof):
+            sums = np.bincount(labels, weights=x[:, j], minlength=k)
+            centres[filled, j] = sums[filled] / counts[filled]
+    labels = nearest(centres)
+    d_own = np.sum((x - centres[labels]) ** 2, axis=1)
     # nearest row to each centre, among the stratum's members; a stratum that lost all its
     # members takes the nearest row not yet taken
     members = np.full(k, -1, dtype=np.intp)
-    taken = np.zeros(len(x), dtype=bool)
-    order = np.argsort(d2[np.arange(len(x)), labels])
-    for i in order:
-        if members[labels[i]] < 0:
-            members[labels[i]] = i
-            taken[i] = True
+    order = np.lexsort((d_own, labels))             # by stratum, nearest first
+    first = np.r_[True, labels[order][1:] != labels[order][:-1]]
+    members[labels[order][first]] = order[first]
+    taken = np.zeros(n, dtype=bool)
+    taken[members[members >= 0]] = True
     for c in np.flatnonzero(members < 0):
         free = np.flatnonzero(~taken)
-        i = int(free[np.argmin(d2[free, c])])
+        i = int(free[np.argmin(np.sum((x[free] - centres[c]) ** 2, axis=1))])
         members[c] = i
         labels[i] = c
         taken[i] = True
