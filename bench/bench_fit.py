@@ -23,6 +23,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -89,7 +90,9 @@ def reuse(n_new: int = 50, repeats: int = 10) -> None:
 
     The source is the physically structured ``auto`` model (maps, gravity, pitch; no
     harmonics and no fine ripple, which belong to one session), as ``tests/integration``
-    uses it; the constant-only figure is a constant fit on the same ``n_new`` poses.
+    uses it. Three refits per draw: the default (map gaps filled, link constants held near
+    the earlier values), the strict freeze of issue 14's first version (every map knot kept,
+    all constants free), and a constant fit on the same ``n_new`` poses.
     """
     from robocal.identification import FitOptions, refit_frozen
     from robocal.identification.datasets import ipa_series_path
@@ -100,22 +103,31 @@ def reuse(n_new: int = 50, repeats: int = 10) -> None:
     src = fit("ur10", load_ipa_series(ipa_series_path(DATA, "A")), "auto",
               options=FitOptions(auto_max_order=0, auto_ripple_orders=()))
     print(f"source fit on all of A: {time.perf_counter() - t0:.0f} s")
-    print(f"{'series':8s}{'median':>9s}{'worst':>9s}{'best':>9s}{'constant-only median':>22s}")
+    strict = FitOptions(reuse_fill_gaps=False, reuse_link_mm=math.inf,
+                        reuse_link_deg=math.inf)
+    print(f"{'series':8s}{'median':>9s}{'worst':>9s}{'best':>9s}{'strict median':>15s}"
+          f"{'strict worst':>14s}{'constant median':>17s}{'s/refit':>9s}")
     for s in ("B", "D"):
         data = load_ipa_series(ipa_series_path(DATA, s))
-        r, c = [], []
+        r, f, c, secs = [], [], [], []
         for seed in range(repeats):
             rng = np.random.default_rng(seed)
             pick = np.zeros(len(data), dtype=bool)
             pick[rng.choice(len(data), n_new, replace=False)] = True
             train, val = data.subset(pick), data.subset(~pick)
+            t = time.perf_counter()
             res = refit_frozen(src.calibrated, train, validation=val)
-            assert res.validation is not None
-            r.append(res.validation.rms_m * 1e3)
+            secs.append(time.perf_counter() - t)
+            old = refit_frozen(src.calibrated, train, validation=val, options=strict)
             const = fit("ur10", train, "constant", validation=val)
-            assert const.validation is not None
+            assert res.validation and old.validation and const.validation
+            r.append(res.validation.rms_m * 1e3)
+            f.append(old.validation.rms_m * 1e3)
             c.append(const.validation.rms_m * 1e3)
-        print(f"{s:8s}{np.median(r):9.4f}{max(r):9.4f}{min(r):9.4f}{np.median(c):22.4f}")
+            print(f"  {s} draw {seed}: {r[-1]:.4f} mm (strict {f[-1]:.4f}, constant "
+                  f"{c[-1]:.4f})", flush=True)
+        print(f"{s:8s}{np.median(r):9.4f}{max(r):9.4f}{min(r):9.4f}{np.median(f):15.4f}"
+              f"{max(f):14.4f}{np.median(c):17.4f}{np.mean(secs):9.1f}")
 
 
 def startup() -> None:

@@ -287,6 +287,16 @@ def test_reuse_keeps_the_joint_dependent_terms(files, tmp_path, capsys):
     _expect_error(capsys, ["fit", "--reuse", str(first), "--model", "auto", "--data",
                            str(tmp_path / "new.csv"), "--out", str(tmp_path / "x.json")],
                   tmp_path / "x.json", "--reuse")
+    _expect_error(capsys, ["fit", "--robot", "fanuc_lrmate200i", "--no-fill-gaps", "--data",
+                           str(tmp_path / "new.csv"), "--out", str(tmp_path / "x.json")],
+                  tmp_path / "x.json", "--no-fill-gaps")
+    # the link constants stay near the earlier ones (prior 0.05 mm / 0.005 deg); the joint
+    # offsets move freely
+    links = [i for i, n in enumerate(cal.model.names)
+             if n.endswith(".const") and not n.endswith(".ez.const")]
+    step = np.abs(cal.params[links] - prev.params[links])
+    lin = np.array([".d" in cal.model.names[i] for i in links])
+    assert step[lin].max() < 0.15e-3 and step[~lin].max() < np.radians(0.015)
 
 
 def test_report_exit_code_follows_the_verdict(files, tmp_path, capsys):

@@ -27,11 +27,15 @@ def register(sub: Any) -> None:
     p.add_argument("--model", choices=MODELS,
                    help=f"error model (default {DEFAULT_MODEL}; not with --reuse)")
     p.add_argument("--reuse", metavar="PREVIOUS_MODEL.json",
-                   help="keep the joint-dependent terms of an earlier model and refit only the "
-                        "constant errors, tracker<-base transform and reflector offset (after "
-                        "re-mastering, a crash or a tracker move; valid for the same robot "
-                        "with unchanged gears, links and payload; always --validate; see "
-                        "docs/map-reuse.md)")
+                   help="keep the joint-dependent terms of an earlier model and refit the "
+                        "joint offsets, tracker<-base transform and reflector offset, with the "
+                        "link constants held near their earlier values (after re-mastering, "
+                        "a crash or a tracker move; valid for the same robot with unchanged "
+                        "gears, links and payload; always --validate; see docs/map-reuse.md)")
+    p.add_argument("--no-fill-gaps", action="store_true",
+                   help="with --reuse: keep every map knot at its earlier value, also where "
+                        "the earlier data did not reach (default: the new data fill those "
+                        "gaps)")
     p.add_argument("--max-rms-mm", type=float, metavar="MM",
                    help="fail (exit 1, no file written) when the RMS error (validation if "
                         "given, else training) exceeds this")
@@ -86,6 +90,8 @@ def _options(args: argparse.Namespace) -> Any:
     if args.seed is not None:
         kw["seed"] = args.seed
     kw["fallback"] = not args.no_fallback
+    if args.no_fill_gaps:
+        kw["reuse_fill_gaps"] = False
     kw["sanity"] = not args.no_sanity
     return FitOptions(**kw)
 
@@ -101,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--robot is required (unless --reuse)")
     if args.reuse is None and args.model is None:
         args.model = DEFAULT_MODEL
+    if args.no_fill_gaps and args.reuse is None:
+        raise ConfigError("--no-fill-gaps only applies with --reuse")
     if args.reuse is not None and args.model is not None:
         raise ConfigError("--reuse keeps the earlier model's structure; leave out --model")
     if args.max_rms_mm is not None and not args.max_rms_mm > 0:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,17 +121,34 @@ class Engine:
         """Number of poses."""
         return len(self.data)
 
-    def problem(self, model: KinematicModel, priors: Sequence[MapPrior] = ()) -> Problem:
-        """The whitened problem of ``model`` on all poses."""
-        return Problem(model, self.data.q, self.data.p, self.W,
-                       penalty=penalty_for(model.names, priors), chunk=self.s.chunk,
-                       R_probe=self.R_probe, W_rot=self.W_rot)
+    def problem(self, model: KinematicModel, priors: Sequence[MapPrior] = (),
+                target: Array | None = None, anchors: Mapping[str, float] | None = None
+                ) -> Problem:
+        """The whitened problem of ``model`` on all poses.
+
+        The map ``priors`` and the ``anchors`` (parameter name -> prior sigma, SI) are centred
+        on ``target`` (P,) (None: on zero).
+        """
+        pen = penalty_for(model.names, priors)
+        if anchors:
+            if pen is None:
+                pen = np.zeros((model.size, model.size))
+            idx = {n: i for i, n in enumerate(model.names)}
+            for name, sigma in anchors.items():
+                pen[idx[name], idx[name]] += 1.0 / sigma**2
+        return Problem(model, self.data.q, self.data.p, self.W, penalty=pen, target=target,
+                       chunk=self.s.chunk, R_probe=self.R_probe, W_rot=self.W_rot)
 
     # ------------------------------------------------------------------------------------
     def solve(self, model: KinematicModel, x0: Array, *, priors: Sequence[MapPrior] = (),
               fixed: Sequence[str] = (), inliers: BoolArray | None = None,
-              robust: bool | None = None, what: str = "model") -> Solution:
+              robust: bool | None = None, what: str = "model",
+              target: Array | None = None, anchors: Mapping[str, float] | None = None
+              ) -> Solution:
         """Robust ML (MAP with ``priors``) fit of ``model`` starting at ``x0``.
+
+        ``anchors`` (parameter name -> prior sigma, SI) add independent priors; all priors
+        are centred on ``target`` (P,) (None: on zero). Penalised parameters are always free.
 
         Parameters named in ``fixed`` are held at their ``x0`` values. Redundant and
         unobservable parameters (rank analysis of the unpenalised columns at ``x0``) are held
@@ -145,9 +162,9 @@ class Engine:
         NotConverged
             The solver did not converge.
         """
-        prob = self.problem(model, priors)
+        prob = self.problem(model, priors, target, anchors)
         names = model.names
-        pen = {t.name for pr in priors for t in map_terms(pr.joint, pr.knots)}
+        pen = {t.name for pr in priors for t in map_terms(pr.joint, pr.knots)} | set(anchors or ())
         fixed_set = set(fixed)
         cand = np.array([i for i, nm in enumerate(names) if nm not in pen and nm not in fixed_set],
                         dtype=np.intp)

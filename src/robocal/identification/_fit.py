@@ -18,7 +18,13 @@ from robocal.errors import ConfigError, DataError, NotConverged
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
 from robocal.identification._linalg import median
 from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
-from robocal.identification._models import constant_spec, high_order_spec
+from robocal.identification._models import (
+    MapPrior,
+    constant_spec,
+    high_order_spec,
+    knot_counts,
+    map_terms,
+)
 from robocal.identification._solver import Identifiability
 from robocal.kinematics import (
     CalibratedModel,
@@ -80,6 +86,13 @@ class FitOptions(EngineSettings):
         ``sanity``: refuse data whose joints look like radians or positions like metres, and
         data the nominal robot cannot explain: median pose error above
         ``sanity_baseline_mm`` after fitting only base and reflector (wrong robot or variant).
+    Reuse (:func:`refit_frozen`)
+        ``reuse_fill_gaps``: refit the map knots the earlier data did not support (fewer than
+        ``map_min_points`` earlier poses) where the new data reach them; the other knots keep
+        their values within ``reuse_anchor_deg``, and the change is smoothed with the earlier
+        smoothness weight times ``reuse_smoothing``. ``reuse_link_mm`` / ``reuse_link_deg``:
+        prior sigmas of the constant link errors around their earlier values (the joint
+        offsets, base and reflector are free; ``inf`` frees the links too).
     Output
         ``fallback``: store a constant-model fallback for poses outside the covered joint range
         (the training range of each joint widened by ``coverage_margin_deg``; the full joint
@@ -103,6 +116,11 @@ class FitOptions(EngineSettings):
     map_min_points: int = 8
     map_tie_deg: float = 5e-4
     map_weak_deg: float = 2e-3
+    reuse_fill_gaps: bool = True
+    reuse_anchor_deg: float = 1e-3
+    reuse_smoothing: float = 30.0
+    reuse_link_mm: float = 0.05
+    reuse_link_deg: float = 0.005
     auto_gravity: bool = True
     auto_strain_wave: bool = True
     auto_min_improvement: float = 0.01
@@ -510,7 +528,8 @@ def _start(rob: RobotDescription, data: MeasurementSet, opts: FitOptions,
 def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
             selection: list[dict[str, Any]], validation: MeasurementSet | None,
             t0: float, extra_fit: dict[str, Any] | None = None,
-            coverage: Array | None = None) -> FitResult:
+            coverage: Array | None = None,
+            prior_support: dict[str, list[int]] | None = None) -> FitResult:
     data, opts = f.data, f.opts
     inl = final.inliers
     base = f.baseline(inliers=inl, robust=False)
@@ -589,6 +608,7 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
         "n_used": int(inl.sum()),
         "sigma_source": f.engine.sigma_source,
         "coverage_deg": np.degrees(_coverage(data.q[inl])).tolist(),
+        "map_support": _map_support(final.model.spec, data.q[inl], prior_support),
         "validation_digest": None if validation is None else validation.digest(),
         "validation_n_poses": None if validation is None else len(validation),
     }
@@ -605,11 +625,15 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
 def refit_frozen(previous: CalibratedModel, data: MeasurementSet, *,
                  options: FitOptions | None = None, validation: MeasurementSet | None = None
                  ) -> FitResult:
-    """Re-use a model's joint-dependent terms on a new session; refit only the constant part.
+    """Re-use a model's joint-dependent terms on a new session; refit mainly the constant part.
 
-    The joint-dependent terms of ``previous`` (maps, gravity, harmonics, ...) are frozen at
-    their values; the constant kinematic errors, the tracker <- base transform and the
-    reflector offset are fitted to ``data`` (new tracker placement, re-mounted reflector).
+    The joint-dependent terms of ``previous`` (maps, gravity, harmonics, ...) keep their
+    values; the joint offsets, the tracker <- base transform and the reflector offset are
+    fitted to ``data`` (re-mastering, new tracker placement, re-mounted reflector), the other
+    constant link errors with a prior around their earlier values (``reuse_link_mm``,
+    ``reuse_link_deg``). Map knots the earlier data did not support, which its fit only
+    bridged, are refitted where ``data`` reach them (``reuse_fill_gaps``; needs the
+    ``map_support`` counts models record since issue 14, older files stay fully frozen).
     Coverage is the union of the previous model's (where the frozen maps were learnt) and of
     ``data``'s joint ranges (where the refit was checked against measurements); outside it
     the fallback is a constant model fitted on ``data``.
@@ -645,8 +669,90 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
         xc = const.model.transfer(const.x, m)    # constant terms from the constant fit
         is_const = np.array([n.endswith(".const") for n in m.names])
         x0[is_const] = xc[is_const]
-    frozen = [n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))]
-    sol = f.engine.solve(m, x0, fixed=frozen, inliers=inl, what="frozen-map refit")
+    frozen = {n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))}
+    support = previous.data.get("map_support")
+    priors = (_gap_priors(previous, data.q[inl], opts)
+              if isinstance(support, dict) and opts.reuse_fill_gaps else [])
+    for pr in priors:
+        frozen -= {t.name for t in map_terms(pr.joint, pr.knots)}
+    anchors = _link_anchors(m.names, opts)
+    start = x0.copy()
+    for n in anchors:
+        # the link geometry is held near the earlier values, not at the new constant fit's
+        start[m.names.index(n)] = xp[m.names.index(n)]
+    sol = f.engine.solve(m, start, fixed=sorted(frozen), priors=priors, target=xp.copy(),
+                         anchors=anchors, inliers=inl, what="frozen-map refit")
+    done = {pr.joint + 1 for pr in priors}
+    kept = [d for d in previous.fit.get("map_priors") or []
+            if isinstance(d, dict) and d.get("joint") not in done]
+    extra = {"frozen_from": previous.model_id, "frozen_terms": len(frozen),
+             "refreshed_map_knots": {f"j{pr.joint + 1}": len(pr.knots) - len(pr.anchored)
+                                     for pr in priors},
+             "map_priors": kept + [pr.to_dict() for pr in priors]}
     return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
-                   extra_fit={"frozen_from": previous.model_id, "frozen_terms": len(frozen)},
-                   coverage=previous.coverage)
+                   extra_fit=extra, coverage=previous.coverage,
+                   prior_support=support if isinstance(support, dict) else None)
+
+
+def _link_anchors(names: tuple[str, ...], opts: FitOptions) -> dict[str, float]:
+    """Prior sigmas (SI) of the constant link errors for a refit: all but the joint offsets.
+
+    Re-mastering moves the joint zeros (``jN.ez.const``); the links themselves do not change
+    between sessions beyond thermal growth, so holding them near the earlier values keeps a
+    small new data set from trading them against the base and reflector.
+    """
+    out = {}
+    for n in names:
+        if not n.endswith(".const") or n.endswith(".ez.const"):
+            continue
+        sig = opts.reuse_link_mm * 1e-3 if ".d" in n else math.radians(opts.reuse_link_deg)
+        if math.isfinite(sig):
+            out[n] = sig
+    return out
+
+
+def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[MapPrior]:
+    """Priors that let the new data fill the gaps of the earlier model's angle maps.
+
+    A map knot with at least ``map_min_points`` earlier poses in its support keeps its value
+    (prior sigma ``reuse_anchor_deg`` on the change); the other knots of that map, which the
+    earlier fit only bridged, are refitted where the new data ``q`` (n, dof) rad reach them,
+    with the earlier smoothness prior acting on the change. Maps without such knots stay frozen.
+    """
+    spec = previous.model.spec
+    support = previous.data.get("map_support") or {}
+    settings = {d.get("joint"): d for d in previous.fit.get("map_priors") or []
+                if isinstance(d, dict)}
+    out = []
+    for j, nk in enumerate(spec.map_knots):
+        knots = tuple(sorted(t.index for t in spec.terms if t.joint == j and t.family == "map"))
+        sup = support.get(f"j{j + 1}")
+        st = settings.get(j + 1)
+        if not knots or st is None or not isinstance(sup, list) or len(sup) != nk:
+            continue
+        anchored = tuple(k for k in knots if sup[k] >= opts.map_min_points)
+        new = knot_counts(q[:, j], nk)
+        if not any(new[k] > 0 for k in knots if k not in set(anchored)):
+            continue
+        out.append(MapPrior(j, nk, knots, float(st["lambda_per_rad2"]) * opts.reuse_smoothing,
+                            math.radians(float(st["ridge_sigma_deg"])), anchored=anchored,
+                            anchor_sigma=math.radians(opts.reuse_anchor_deg)))
+    return out
+
+
+def _map_support(spec: ErrorModelSpec, q: Array,
+                 earlier: dict[str, list[int]] | None) -> dict[str, list[int]]:
+    """Poses in each map knot's support, per mapped joint (``{"j2": [counts...]}``).
+
+    A refit adds its new poses to the earlier model's counts.
+    """
+    out = {}
+    for j, nk in enumerate(spec.map_knots):
+        if nk == 0:
+            continue
+        c = knot_counts(q[:, j], nk)
+        prev = (earlier or {}).get(f"j{j + 1}")
+        if isinstance(prev, list) and len(prev) == nk:
+            c = c + np.asarray(prev, dtype=np.intp)
+        out[f"j{j + 1}"] = [int(v) for v in c]
+    return out

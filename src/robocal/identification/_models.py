@@ -125,6 +125,8 @@ class MapPrior:
     weak: tuple[int, ...] = ()
     tie_sigma: float = math.inf
     weak_sigma: float = math.inf
+    anchored: tuple[int, ...] = ()
+    anchor_sigma: float = math.inf
 
     def matrix(self) -> Array:
         """Penalty matrix (k, k) over this map's coefficients."""
@@ -133,6 +135,10 @@ class MapPrior:
         if self.weak:
             P = P + weak_penalty(self.knots, self.n_knots, self.weak, self.tie_sigma,
                                  self.weak_sigma)
+        if self.anchored and math.isfinite(self.anchor_sigma):
+            pos = {int(k): i for i, k in enumerate(self.knots)}
+            idx = [pos[int(k)] for k in self.anchored]
+            P[idx, idx] += 1.0 / self.anchor_sigma**2
         return P
 
     def to_dict(self) -> dict[str, object]:
@@ -144,7 +150,10 @@ class MapPrior:
                 "tie_sigma_deg": (math.degrees(self.tie_sigma) if math.isfinite(self.tie_sigma)
                                   else None),
                 "weak_sigma_deg": (math.degrees(self.weak_sigma)
-                                   if math.isfinite(self.weak_sigma) else None)}
+                                   if math.isfinite(self.weak_sigma) else None),
+                "anchored_knots": len(self.anchored),
+                "anchor_sigma_deg": (math.degrees(self.anchor_sigma)
+                                     if math.isfinite(self.anchor_sigma) else None)}
 
 
 def weak_knots(knots: Sequence[int] | NDArray[np.intp], counts: NDArray[np.intp],
