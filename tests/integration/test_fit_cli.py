@@ -312,3 +312,25 @@ def test_report_exit_code_follows_the_verdict(files, tmp_path, capsys):
                  "--out", str(tmp_path / "bad.html"), "--json"])
     verdict = json.loads(capsys.readouterr().out)["verdict"]
     assert verdict["outcome"] == "failed" and code == 1
+
+
+def test_fit_prints_warnings_about_extrapolated_validation_poses(tmp_path, capsys):
+    """Training J6 at 0 and 2 deg only: the summary warns, the JSON and model carry it."""
+    cell = VirtualCell.create("ur10", "paper", seed=3)
+    rng = np.random.default_rng(3)
+    q = cell.random_joints(60, rng)
+    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
+    q, p, _, _ = cell.simulate(q, rng)
+    qv, pv, _, _ = cell.simulate(cell.random_joints(100, rng), rng)
+    MeasurementSet(q, p).write_csv(tmp_path / "t.csv")
+    MeasurementSet(qv, pv).write_csv(tmp_path / "v.csv")
+    out = tmp_path / "m.json"
+    argv = ["fit", "--robot", "ur10", "--model", "constant", "--data", str(tmp_path / "t.csv"),
+            "--validate", str(tmp_path / "v.csv"), "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    warn = [ln for ln in text.splitlines() if ln.startswith("WARNING: ")]
+    assert len(warn) == 1 and "with J6 angles the training poses lack" in warn[0]
+    assert CalibratedModel.load(out).fit["warnings"] == [warn[0][len("WARNING: "):]]
+    assert main([*argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["warnings"] == [warn[0][len("WARNING: "):]]

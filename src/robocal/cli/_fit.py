@@ -194,5 +194,7 @@ def format_summary(s: dict[str, Any]) -> str:
     groups = [e for e in s.get("selection", []) if e.get("action") == "final"]
     if groups:
         lines.append("auto terms: " + (", ".join(groups[0]["groups"]) or "constant only"))
+    for w in s.get("warnings", []):
+        lines.append("WARNING: " + w)
     lines.append(f"wrote {s['out']}")
     return "\n".join(lines) + "\n"

@@ -139,3 +139,40 @@ def test_gauss_newton_stop_ends_at_the_same_minimum_in_fewer_steps() -> None:
     assert early.converged and strict.converged
     assert early.iterations <= strict.iterations
     assert early.cost <= strict.cost * (1 + 1e-6)
+
+
+def test_fit_warns_about_extrapolated_validation_poses_and_many_screened_ones():
+    """Training J6 at 0 and 2 deg only: the reflector's direction about J6 is nearly free."""
+    cell = VirtualCell.create("ur10", "paper", seed=3)
+    rng = np.random.default_rng(3)
+    q = cell.random_joints(60, rng)
+    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
+    q, p, _, _ = cell.simulate(q, rng)
+    qv = cell.random_joints(200, rng)
+    qv[:100, 5] = np.radians(rng.choice([0.0, 2.0], 100))
+    qv, pv, _, _ = cell.simulate(qv, rng)
+    val = MeasurementSet(qv, pv)
+    weak = fit(cell.robot, MeasurementSet(q, p), "constant", validation=val)
+    assert len(weak.warnings) == 1
+    w = weak.warnings[0]
+    assert "validation poses lie where the training poses leave the model nearly free" in w
+    assert "with J6 angles the training poses lack" in w
+    n_far = int(w.split(" of ")[0])
+    assert 60 <= n_far <= 100                 # only poses with J6 elsewhere are flagged
+    # the flagged uncertainty is real: those poses are ~10x worse than the others
+    e = np.linalg.norm(weak.calibrated.predict(qv) - pv, axis=1)
+    assert np.sqrt(np.mean(e[100:] ** 2)) > 5 * np.sqrt(np.mean(e[:100] ** 2))
+    assert weak.calibrated.fit["warnings"] == weak.warnings
+    assert weak.summary()["warnings"] == weak.warnings
+    # the same number of random poses: no warning
+    q2, p2, _, _ = cell.simulate(cell.random_joints(60, rng), rng)
+    healthy = fit(cell.robot, MeasurementSet(q2, p2), "constant", validation=val)
+    assert healthy.warnings == []
+    # 10 % of the validation poses 5 mm off: screened, and said so with the unscreened RMS
+    pv_bad = pv.copy()
+    pv_bad[:20] += 0.005
+    glitchy = fit(cell.robot, MeasurementSet(q2, p2), "constant",
+                  validation=MeasurementSet(qv, pv_bad))
+    assert len(glitchy.validation_outliers) == 20
+    assert glitchy.warnings == [w for w in glitchy.warnings if "20 of 200 validation" in w]
+    assert len(glitchy.warnings) == 1
