@@ -7,7 +7,8 @@ Public API::
     res.calibrated.save("MODEL.json")
 
 plus :func:`min_poses` (fewest poses a fit accepts; the planner uses it),
-:func:`identifiability`, :func:`refit_frozen` (re-use joint-dependent terms on a new
+:func:`identifiability`, :func:`extrapolation` (poses a fit leaves nearly free),
+:func:`refit_frozen` (re-use joint-dependent terms on a new
 session), :func:`cpa_fit` (Circle Point Analysis baseline, classical and polished; the internal
 ``_cpa.cpa_sweeps`` makes sweep joint sets for the virtual robot in tests) and
 :func:`load_ipa_series` (public UR10 data set).
@@ -25,7 +26,13 @@ from robocal.identification._cpa import (
 )
 from robocal.identification._engine import min_poses
 from robocal.identification._fit import MODELS, FitOptions, FitResult, fit, refit_frozen
-from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
+from robocal.identification._metrics import (
+    BASELINE_DESCRIPTION,
+    Accuracy,
+    Extrapolation,
+    accuracy,
+    extrapolation,
+)
 from robocal.identification._solver import Identifiability, identifiability
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.identification.datasets import load_ipa_series
@@ -40,12 +47,14 @@ __all__ = [
     "CPAPolish",
     "CPAResult",
     "CircleFit",
+    "Extrapolation",
     "FitOptions",
     "FitResult",
     "Identifiability",
     "TrackerSigma",
     "accuracy",
     "cpa_fit",
+    "extrapolation",
     "fit",
     "identifiability",
     "load_ipa_series",

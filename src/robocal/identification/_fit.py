@@ -17,7 +17,12 @@ from robocal._core.threads import blas_threads
 from robocal.errors import ConfigError, DataError, NotConverged
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
 from robocal.identification._linalg import median
-from robocal.identification._metrics import BASELINE_DESCRIPTION, Accuracy, accuracy
+from robocal.identification._metrics import (
+    BASELINE_DESCRIPTION,
+    Accuracy,
+    accuracy,
+    extrapolation,
+)
 from robocal.identification._models import (
     MapPrior,
     constant_spec,
@@ -627,65 +632,17 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
         warnings=warnings)
 
 
-#: A validation pose whose predicted position is this many times less certain than the
-#: median training pose lies where the training poses do not determine the model.
-EXTRAPOLATION_FACTOR = 10.0
 #: More screened validation poses than this fraction (and than 2) get a warning.
 SCREENED_FRACTION = 0.02
-
-
-def _constant_part_sigma(cal: CalibratedModel, q: Array, chunk: int = 512) -> Array:
-    """1-sigma (n,) m of the predicted position from the base, reflector and constant terms.
-
-    Only that block of the covariance is used: it is what a design can leave nearly free
-    (the joint-dependent terms outside their coverage are replaced by the fallback).
-    """
-    cov = cal.covariance
-    assert cov is not None
-    sel = np.array([i for i, n in enumerate(cal.model.names)
-                    if (n.startswith(("base.", "tool.")) or n.endswith(".const"))
-                    and cov[i, i] > 0], dtype=np.intp)
-    C = cov[np.ix_(sel, sel)]
-    out = np.empty(len(q))
-    for a in range(0, len(q), chunk):
-        _, J = cal.model.jacobian(q[a:a + chunk], cal.params)
-        Js = J[:, :, sel]
-        out[a:a + chunk] = np.sqrt(np.clip(
-            np.einsum("nip,pq,niq->n", Js, C, Js, optimize=True), 0.0, None))
-    return out
-
-
-def _unseen_joints(train_q: Array, q: Array, min_deg: float = 10.0) -> str:
-    """", with J6 angles the training poses lack" for joints whose values at ``q`` (n, dof) rad
-    lie typically more than ``min_deg`` from every training value (``train_q`` (m, dof))."""
-    names = []
-    for j in range(q.shape[1]):
-        t = np.sort(train_q[:, j])
-        k = np.clip(np.searchsorted(t, q[:, j]), 1, len(t) - 1) if len(t) > 1 else None
-        if k is None:
-            d = np.abs(q[:, j] - t[0])
-        else:
-            d = np.minimum(np.abs(q[:, j] - t[k - 1]), np.abs(q[:, j] - t[k]))
-        if median(np.degrees(d)) > min_deg:
-            names.append(f"J{j + 1}")
-    return f", with {'/'.join(names)} angles the training poses lack" if names else ""
 
 
 def _warnings(cal: CalibratedModel, train_q: Array, validation: MeasurementSet | None,
               val_out: list[str], val_all: Accuracy | None) -> list[str]:
     """What an operator must know about a fit that its RMS figures do not show."""
     out = []
-    if validation is not None and cal.covariance is not None and len(train_q):
-        step = max(1, len(train_q) // 500)
-        ref = median(_constant_part_sigma(cal, train_q[::step]))
-        sv = _constant_part_sigma(cal, validation.q)
-        far = sv > EXTRAPOLATION_FACTOR * ref
-        if ref > 0 and far.any():
-            out.append(f"{int(far.sum())} of {len(sv)} validation poses lie where the training "
-                       "poses leave the model nearly free: their predicted positions are up to "
-                       f"{sv.max() * 1e3:.3g} mm uncertain (1 sigma; median training pose "
-                       f"{ref * 1e3:.3g} mm); add training poses like them (robocal plan)"
-                       + _unseen_joints(train_q, validation.q[far]))
+    ex = None if validation is None else extrapolation(cal, train_q, validation.q)
+    if ex is not None and ex.n:
+        out.append(f"{ex.n} of {len(ex.sigma_m)} validation poses " + ex.message())
     if val_all is not None and len(val_out) > max(2, SCREENED_FRACTION * val_all.n):
         out.append(f"{len(val_out)} of {val_all.n} validation poses "
                    f"({100 * len(val_out) / val_all.n:.0f} %) were screened as gross errors and "

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
+from robocal.identification._linalg import median
 from robocal.kinematics import CalibratedModel
 
 Array = NDArray[np.float64]
@@ -125,3 +126,87 @@ def accuracy(model: CalibratedModel | Callable[[Array], Array], data: Measuremen
     if gone:
         acc = replace(acc, excluded=tuple(sorted(gone)))
     return acc
+
+
+#: A validation pose whose predicted position is this many times less certain than the
+#: median training pose lies where the training poses do not determine the model.
+EXTRAPOLATION_FACTOR = 10.0
+
+
+@dataclass(frozen=True)
+class Extrapolation:
+    """Poses whose predicted position the fit leaves nearly free (see :func:`extrapolation`)."""
+
+    far: NDArray[np.bool_]       # (n,) the flagged poses
+    sigma_m: Array               # (n,) 1-sigma of each pose's predicted position, m
+    reference_m: float           # median 1-sigma over the training poses, m
+    joints: tuple[int, ...]      # 0-based joints whose angles at the flagged poses training lacks
+
+    @property
+    def n(self) -> int:
+        """Number of flagged poses."""
+        return int(self.far.sum())
+
+    def message(self) -> str:
+        """"lie where ...": the rest of a sentence that starts with the pose count."""
+        lack = (f", with {'/'.join(f'J{j + 1}' for j in self.joints)} angles the training "
+                "poses lack" if self.joints else "")
+        return ("lie where the training poses leave the model nearly free: their predicted "
+                f"positions are up to {self.sigma_m.max() * 1e3:.3g} mm uncertain (1 sigma; "
+                f"median training pose {self.reference_m * 1e3:.3g} mm); add training poses "
+                f"like them (robocal plan){lack}")
+
+
+def extrapolation(cal: CalibratedModel, train_q: Array, q: Array) -> Extrapolation | None:
+    """Which poses ``q`` (n, dof) rad the training poses ``train_q`` (m, dof) leave nearly free.
+
+    A pose is flagged when the 1-sigma of its predicted position (base, reflector and constant
+    block of ``cal``'s covariance) exceeds ``EXTRAPOLATION_FACTOR`` times the median over the
+    training poses. None without a covariance or poses.
+    """
+    if cal.covariance is None or len(train_q) == 0 or len(q) == 0:
+        return None
+    step = max(1, len(train_q) // 500)
+    ref = median(_constant_part_sigma(cal, train_q[::step]))
+    sv = _constant_part_sigma(cal, q)
+    far = sv > EXTRAPOLATION_FACTOR * ref if ref > 0 else np.zeros(len(q), dtype=bool)
+    return Extrapolation(far, sv, ref, _unseen_joints(train_q, q[far]) if far.any() else ())
+
+
+def _constant_part_sigma(cal: CalibratedModel, q: Array, chunk: int = 512) -> Array:
+    """1-sigma (n,) m of the predicted position from the base, reflector and constant terms.
+
+    Only that block of the covariance is used: it is what a design can leave nearly free
+    (the joint-dependent terms outside their coverage are replaced by the fallback).
+    """
+    cov = cal.covariance
+    assert cov is not None
+    sel = np.array([i for i, n in enumerate(cal.model.names)
+                    if (n.startswith(("base.", "tool.")) or n.endswith(".const"))
+                    and cov[i, i] > 0], dtype=np.intp)
+    C = cov[np.ix_(sel, sel)]
+    out = np.empty(len(q))
+    for a in range(0, len(q), chunk):
+        _, J = cal.model.jacobian(q[a:a + chunk], cal.params)
+        Js = J[:, :, sel]
+        out[a:a + chunk] = np.sqrt(np.clip(
+            np.einsum("nip,pq,niq->n", Js, C, Js, optimize=True), 0.0, None))
+    return out
+
+
+def _unseen_joints(train_q: Array, q: Array, min_deg: float = 10.0) -> tuple[int, ...]:
+    """Joints whose values at ``q`` (n, dof) rad lie typically more than ``min_deg`` from
+    every training value (``train_q`` (m, dof))."""
+    names = []
+    for j in range(q.shape[1]):
+        t = np.sort(train_q[:, j])
+        k = np.clip(np.searchsorted(t, q[:, j]), 1, len(t) - 1) if len(t) > 1 else None
+        if k is None:
+            d = np.abs(q[:, j] - t[0])
+        else:
+            d = np.minimum(np.abs(q[:, j] - t[k - 1]), np.abs(q[:, j] - t[k]))
+        if median(np.degrees(d)) > min_deg:
+            names.append(j)
+    return tuple(names)
+
+

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from robocal import __version__
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
-from robocal.identification import FitResult
+from robocal.identification import FitResult, extrapolation
 from robocal.kinematics import CalibratedModel, RobotDescription
 from robocal.report._cpa import CpaComparison, compare, with_classical
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
@@ -286,7 +286,20 @@ def _judged(inp: ReportInput, models: dict[str, ModelResult], selected: str | No
                   None if cal is None or cal.stats is None or on == "calibration"
                   else cal.stats.rms_m,
                   n_outliers=n_out, n_poses=n_poses, expected_ratio=expected,
-                  status=sel_entry.status if sel_entry else "")
+                  status=sel_entry.status if sel_entry else "",
+                  extrapolation=_extrapolation(inp, sel_entry, out_set))
+
+
+def _extrapolation(inp: ReportInput, sel_entry: ModelEntry | None, out_set: set[str]) -> str:
+    """The verdict's note on validation poses the calibration poses leave nearly free."""
+    cm = None if sel_entry is None else sel_entry.calibrated
+    if cm is None or inp.calibration is None or inp.validation is None:
+        return ""
+    train = inp.calibration.q[_mask(inp.calibration, out_set)]
+    ex = extrapolation(cm, train, inp.validation.q)
+    if ex is None or not ex.n:
+        return ""
+    return f"{ex.n} of {len(ex.sigma_m)} validation poses {ex.message()}"
 
 
 def _joint_curves(entries: dict[str, ModelEntry], selected: str | None

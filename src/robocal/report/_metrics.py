@@ -495,6 +495,7 @@ class Judged:
     n_poses: int = 0
     status: str = ""
     expected_ratio: float = 1.0      # validation/calibration RMS expected from fitting alone
+    extrapolation: str = ""          # "N of M validation poses lie where ...", or ""
 
 
 def _f(v: float | None, unit: str = " mm", digits: int = 3) -> str:
@@ -567,6 +568,8 @@ def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
         checks.append(Check("over-fitting", WARN if over else PASS,
                             f"validation RMS {_f(rms_mm)} vs calibration {_f(cal)} "
                             f"(ratio {ratio:.2f}{expl}; limit {limit:.2f})"))
+    if j.extrapolation:
+        checks.append(Check("extrapolation", WARN, j.extrapolation))
     # outliers
     if j.n_poses > 0:
         frac = j.n_outliers / j.n_poses

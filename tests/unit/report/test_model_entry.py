@@ -67,3 +67,28 @@ def test_cpa_result_entry(cell: VirtualCell, constant: FitResult,
     assert e.calibrated is res.calibrated and e.label == "Circle Point Analysis"
     assert e.stored == {"validation": res.validation.to_dict()}
     assert e.summary == res.summary() and e.outliers == ()
+
+
+def test_verdict_warns_about_extrapolated_validation_poses() -> None:
+    """Calibration poses with J6 at 0 and 2 deg only: the report names the poses it guesses."""
+    cell = VirtualCell.create("ur10", "paper", seed=3)
+    rng = np.random.default_rng(3)
+    q = cell.random_joints(60, rng)
+    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
+    q, p, _, _ = cell.simulate(q, rng)
+    qv, pv, _, _ = cell.simulate(cell.random_joints(40, rng), rng)
+    train, val = MeasurementSet(q, p), MeasurementSet(qv, pv)
+    res = fit(cell.robot, train, "constant", validation=val)
+    an = analyse(ReportInput(models={"constant": res}, calibration=train, validation=val,
+                             workspace_samples=0))
+    checks = {c.name: c for c in an.verdict.checks}
+    assert checks["extrapolation"].status == "warn"
+    assert "with J6 angles the training poses lack" in checks["extrapolation"].message
+    assert an.verdict.outcome != "succeeded"
+    # a random design of the same size: no such check
+    q2, p2, _, _ = cell.simulate(cell.random_joints(60, rng), rng)
+    train2 = MeasurementSet(q2, p2)
+    ok = analyse(ReportInput(models={"constant": fit(cell.robot, train2, "constant",
+                                                     validation=val)},
+                             calibration=train2, validation=val, workspace_samples=0))
+    assert "extrapolation" not in {c.name for c in ok.verdict.checks}
