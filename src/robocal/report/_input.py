@@ -61,7 +61,10 @@ class Acceptance:
     by ``sqrt(m / (m - p))``, what fitting p free parameters to m coordinates alone gives.
     Validation poses whose error under the judged model exceeds ``validation_outlier_factor``
     times the median error are treated as measurement glitches (beam breaks): listed, marked
-    and left out of the statistics, and counted as outliers (0 disables this).
+    and left out of the statistics, and counted as outliers (0 disables this). Validation
+    poses whose predicted position is far less certain than the calibration poses' (the
+    calibration poses leave the model nearly free there; see
+    :func:`robocal.identification.extrapolation`) make the result marginal.
     """
 
     min_percent_described: float = 50.0
