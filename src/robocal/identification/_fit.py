@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from robocal._core.measurements import MeasurementSet
 from robocal._core.model_names import MODELS
 from robocal._core.threads import blas_threads
-from robocal.errors import ConfigError, DataError, NotConverged
+from robocal.errors import ConfigError, DataError, NotConverged, NotIdentifiable
 from robocal.identification._engine import Engine, EngineSettings, Solution, screen
 from robocal.identification._linalg import median
 from robocal.identification._metrics import (
@@ -681,11 +681,12 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     # The constant fit is the fallback and the screen for gross errors. On a small new data
     # set of a robot with parallel axes it may not converge (a few nearly unidentifiable
     # combinations); the refit does not need it, since it starts from the previous model.
-    const: Solution | None
-    try:
-        const = f.constant(base0)
-    except NotConverged:
-        const = None
+    const: Solution | None = _anchored_constant(f, previous, data, base0, opts)
+    if const is None:
+        try:
+            const = f.constant(base0)
+        except NotConverged:
+            const = None
     inl = base0.inliers if const is None else const.inliers
     spec = previous.model.spec
     # register the previous model (its own terms, tool) to the new session
@@ -722,6 +723,36 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
                    extra_fit=extra, coverage=previous.coverage,
                    prior_support=support if isinstance(support, dict) else None)
+
+
+def _anchored_constant(f: _Fitter, previous: CalibratedModel, data: MeasurementSet,
+                       base0: Solution, opts: FitOptions) -> Solution | None:
+    """The earlier session's constant model refitted like the main refit, or None.
+
+    A free constant fit on a few dozen poses can land on a mirrored solution (two J6 angles
+    leave the reflector direction and the wrist offsets nearly free) that puts unseen
+    configurations hundreds of mm off; as the fallback outside coverage that would be worse
+    than no fallback. So the earlier constant model (``previous.fallback``, or ``previous``
+    itself when it has only constant terms) is registered to the new session and refitted
+    with the link constants held near their earlier values.
+    """
+    src = previous.fallback
+    if src is None and all(t.family == "const" for t in previous.model.spec.terms):
+        src = previous
+    if src is None:
+        return None
+    rob = f.robot
+    xf = src.params.copy()
+    xf[ParameterLayout.BASE] = 0.0
+    mc0 = KinematicModel(rob, src.model.spec)
+    inl = base0.inliers
+    Tf = rigid_fit(mc0.positions(data.q[inl], xf), data.p[inl])
+    mc = KinematicModel(rob, src.model.spec, Tf)
+    try:
+        return f.engine.solve(mc, xf, anchors=_link_anchors(mc.names, opts), target=xf.copy(),
+                              what="anchored constant refit")
+    except (NotConverged, NotIdentifiable):
+        return None
 
 
 def _link_anchors(names: tuple[str, ...], opts: FitOptions) -> dict[str, float]:
