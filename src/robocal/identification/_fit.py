@@ -536,7 +536,7 @@ def _finish(f: _Fitter, kind: str, final: Solution, const: Solution | None,
             selection: list[dict[str, Any]], validation: MeasurementSet | None,
             t0: float, extra_fit: dict[str, Any] | None = None,
             coverage: Array | None = None,
-            prior_support: dict[str, list[int]] | None = None) -> FitResult:
+            prior_support: dict[int, NDArray[np.intp]] | None = None) -> FitResult:
     data, opts = f.data, f.opts
     inl = final.inliers
     base = f.baseline(inliers=inl, robust=False)
@@ -677,6 +677,8 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     t0 = time.perf_counter()
     opts = options or FitOptions()
     rob = _check_inputs(previous.robot, data, "constant", validation)
+    support = _earlier_support(previous)           # a malformed file fails before any fit
+    _earlier_map_settings(previous)
     f, base0 = _start(rob, data, opts, validation)
     # The constant fit is the fallback and the screen for gross errors. On a small new data
     # set of a robot with parallel axes it may not converge (a few nearly unidentifiable
@@ -701,9 +703,7 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
         is_const = np.array([n.endswith(".const") for n in m.names])
         x0[is_const] = xc[is_const]
     frozen = {n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))}
-    support = previous.data.get("map_support")
-    priors = (_gap_priors(previous, data.q[inl], opts)
-              if isinstance(support, dict) and opts.reuse_fill_gaps else [])
+    priors = _gap_priors(previous, data.q[inl], opts) if support and opts.reuse_fill_gaps else []
     for pr in priors:
         frozen -= {t.name for t in map_terms(pr.joint, pr.knots)}
     anchors = _link_anchors(m.names, opts)
@@ -722,7 +722,7 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
              "map_priors": kept + [pr.to_dict() for pr in priors]}
     return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
                    extra_fit=extra, coverage=previous.coverage,
-                   prior_support=support if isinstance(support, dict) else None)
+                   prior_support=support)
 
 
 def _anchored_constant(f: _Fitter, previous: CalibratedModel, data: MeasurementSet,
@@ -772,6 +772,54 @@ def _link_anchors(names: tuple[str, ...], opts: FitOptions) -> dict[str, float]:
     return out
 
 
+def _earlier_support(previous: CalibratedModel) -> dict[int, NDArray[np.intp]]:
+    """``data.map_support`` of an earlier model, checked: 0-based joint -> counts (n_knots,).
+
+    Empty for files written before models recorded it. Raises :class:`ConfigError` naming
+    the key when the entry is malformed (a hand-edited file).
+    """
+    raw = previous.data.get("map_support")
+    if raw is None:
+        return {}
+    src = f"model {previous.model_id or '<unnamed>'}"
+    if not isinstance(raw, dict):
+        raise ConfigError("must be an object of per-joint knot counts", source=src,
+                          key="data.map_support")
+    out = {}
+    for j, nk in enumerate(previous.model.spec.map_knots):
+        v = raw.get(f"j{j + 1}")
+        if nk == 0 or v is None:
+            continue
+        if not (isinstance(v, list) and len(v) == nk
+                and all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in v)):
+            raise ConfigError(f"must be a list of {nk} non-negative integers (one per knot)",
+                              source=src, key=f"data.map_support.j{j + 1}")
+        out[j] = np.asarray(v, dtype=np.intp)
+    return out
+
+
+def _earlier_map_settings(previous: CalibratedModel) -> dict[int, tuple[float, float]]:
+    """Smoothness weight (1/rad^2) and ridge sigma (rad) of each earlier map (0-based joint)."""
+    src = f"model {previous.model_id or '<unnamed>'}"
+    out = {}
+    raw = previous.fit.get("map_priors") or []
+    if not isinstance(raw, list):
+        raise ConfigError("must be a list", source=src, key="fit.map_priors")
+    for i, d in enumerate(raw):
+        try:
+            j = int(d["joint"]) - 1
+            lam, ridge = float(d["lambda_per_rad2"]), math.radians(float(d["ridge_sigma_deg"]))
+        except (TypeError, KeyError, ValueError):
+            raise ConfigError("needs joint, lambda_per_rad2 and ridge_sigma_deg", source=src,
+                              key=f"fit.map_priors[{i}]") from None
+        if not (0 <= j < previous.robot.dof and math.isfinite(lam) and lam >= 0
+                and math.isfinite(ridge) and ridge > 0):
+            raise ConfigError("joint out of range, or a weight that is not finite and positive",
+                              source=src, key=f"fit.map_priors[{i}]")
+        out[j] = (lam, ridge)
+    return out
+
+
 def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[MapPrior]:
     """Priors that let the new data fill the gaps of the earlier model's angle maps.
 
@@ -781,39 +829,36 @@ def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[M
     with the earlier smoothness prior acting on the change. Maps without such knots stay frozen.
     """
     spec = previous.model.spec
-    support = previous.data.get("map_support") or {}
-    settings = {d.get("joint"): d for d in previous.fit.get("map_priors") or []
-                if isinstance(d, dict)}
+    support = _earlier_support(previous)
+    settings = _earlier_map_settings(previous)
     out = []
     for j, nk in enumerate(spec.map_knots):
         knots = tuple(sorted(t.index for t in spec.terms if t.joint == j and t.family == "map"))
-        sup = support.get(f"j{j + 1}")
-        st = settings.get(j + 1)
-        if not knots or st is None or not isinstance(sup, list) or len(sup) != nk:
+        if not knots or j not in support or j not in settings:
             continue
-        anchored = tuple(k for k in knots if sup[k] >= opts.map_min_points)
+        anchored = tuple(k for k in knots if support[j][k] >= opts.map_min_points)
         new = knot_counts(q[:, j], nk)
         if not any(new[k] > 0 for k in knots if k not in set(anchored)):
             continue
-        out.append(MapPrior(j, nk, knots, float(st["lambda_per_rad2"]) * opts.reuse_smoothing,
-                            math.radians(float(st["ridge_sigma_deg"])), anchored=anchored,
+        lam, ridge = settings[j]
+        out.append(MapPrior(j, nk, knots, lam * opts.reuse_smoothing, ridge, anchored=anchored,
                             anchor_sigma=math.radians(opts.reuse_anchor_deg)))
     return out
 
 
 def _map_support(spec: ErrorModelSpec, q: Array,
-                 earlier: dict[str, list[int]] | None) -> dict[str, list[int]]:
+                 earlier: dict[int, NDArray[np.intp]] | None) -> dict[str, list[int]]:
     """Poses in each map knot's support, per mapped joint (``{"j2": [counts...]}``).
 
-    A refit adds its new poses to the earlier model's counts.
+    A refit adds its new poses to the earlier model's counts (0-based joint -> counts).
     """
     out = {}
     for j, nk in enumerate(spec.map_knots):
         if nk == 0:
             continue
         c = knot_counts(q[:, j], nk)
-        prev = (earlier or {}).get(f"j{j + 1}")
-        if isinstance(prev, list) and len(prev) == nk:
-            c = c + np.asarray(prev, dtype=np.intp)
+        prev = (earlier or {}).get(j)
+        if prev is not None and len(prev) == nk:
+            c = c + prev
         out[f"j{j + 1}"] = [int(v) for v in c]
     return out
