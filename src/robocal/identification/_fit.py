@@ -713,13 +713,13 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
         start[m.names.index(n)] = xp[m.names.index(n)]
     sol = f.engine.solve(m, start, fixed=sorted(frozen), priors=priors, target=xp.copy(),
                          anchors=anchors, inliers=inl, what="frozen-map refit")
-    done = {pr.joint + 1 for pr in priors}
-    kept = [d for d in previous.fit.get("map_priors") or []
-            if isinstance(d, dict) and d.get("joint") not in done]
+    # the maps' own smoothness settings carry over unchanged to the next reuse; the priors of
+    # this refit (on the change, x reuse_smoothing, anchored) are recorded beside them
     extra = {"frozen_from": previous.model_id, "frozen_terms": len(frozen),
              "refreshed_map_knots": {f"j{pr.joint + 1}": len(pr.knots) - len(pr.anchored)
                                      for pr in priors},
-             "map_priors": kept + [pr.to_dict() for pr in priors]}
+             "map_priors": list(previous.fit.get("map_priors") or []),
+             "reuse_priors": [pr.to_dict() for pr in priors]}
     return _finish(f, "refit:" + previous.kind, sol, const, [], validation, t0,
                    extra_fit=extra, coverage=previous.coverage,
                    prior_support=support)

@@ -231,5 +231,9 @@ def test_reuse_fills_the_gaps_of_the_earlier_maps(tmp_path):
     assert filled.validation.rms_m < frozen.validation.rms_m
     assert filled.calibrated.fit["refreshed_map_knots"]["j2"] > 0
     assert frozen.calibrated.fit["refreshed_map_knots"] == {}
-    # the refit's support adds the new poses to the earlier counts
+    # the refit's support adds the new poses to the earlier counts; the maps' own smoothness
+    # settings carry over unchanged (a chain of reuses does not compound the reuse factor)
     assert sum(filled.calibrated.data["map_support"]["j2"]) > sum(support)
+    assert filled.calibrated.fit["map_priors"] == first.fit["map_priors"]
+    assert any(d["joint"] == 2 and d["anchored_knots"] > 0
+               for d in filled.calibrated.fit["reuse_priors"])
