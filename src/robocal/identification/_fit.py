@@ -92,9 +92,10 @@ class FitOptions(EngineSettings):
         data the nominal robot cannot explain: median pose error above
         ``sanity_baseline_mm`` after fitting only base and reflector (wrong robot or variant).
     Reuse (:func:`refit_frozen`)
-        ``reuse_fill_gaps``: refit the map knots the earlier data did not support (fewer than
-        ``map_min_points`` earlier poses) where the new data reach them; the other knots keep
-        their values within ``reuse_anchor_deg``, and the change is smoothed with the earlier
+        ``reuse_fill_gaps``: refit the map knots the earlier data did not support (runs of
+        knots at least ``reuse_min_gap_deg`` wide with fewer than ``map_min_points`` earlier
+        poses each) where the new data reach them; the other knots keep their values within
+        ``reuse_anchor_deg``, and the change is smoothed with the earlier
         smoothness weight times ``reuse_smoothing``. ``reuse_link_mm`` / ``reuse_link_deg``:
         prior sigmas of the constant link errors around their earlier values (the joint
         offsets, base and reflector are free; ``inf`` frees the links too).
@@ -122,6 +123,7 @@ class FitOptions(EngineSettings):
     map_tie_deg: float = 5e-4
     map_weak_deg: float = 2e-3
     reuse_fill_gaps: bool = True
+    reuse_min_gap_deg: float = 10.0
     reuse_anchor_deg: float = 1e-3
     reuse_smoothing: float = 30.0
     reuse_link_mm: float = 0.05
@@ -820,13 +822,41 @@ def _earlier_map_settings(previous: CalibratedModel) -> dict[int, tuple[float, f
     return out
 
 
+def _gap_knots(knots: tuple[int, ...], support: NDArray[np.intp], n_knots: int,
+               min_points: int, min_gap_deg: float) -> set[int]:
+    """Knots of ``knots`` in runs of consecutive weakly supported knots at least
+    ``min_gap_deg`` wide: the earlier data's real gaps, not the odd thin knot of a random
+    design (those keep their bridged values)."""
+    present = set(knots)
+    weak = {k for k in knots if support[k] < min_points}
+    out: set[int] = set()
+    seen: set[int] = set()
+    for k in sorted(weak):
+        if k in seen:
+            continue
+        run = [k]
+        a = (k - 1) % n_knots                       # walk back and forth around the circle
+        while a in weak and a in present and a not in run:
+            run.insert(0, a)
+            a = (a - 1) % n_knots
+        b = (k + 1) % n_knots
+        while b in weak and b in present and b not in run:
+            run.append(b)
+            b = (b + 1) % n_knots
+        seen.update(run)
+        if len(run) * 360.0 / n_knots >= min_gap_deg:
+            out.update(run)
+    return out
+
+
 def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[MapPrior]:
     """Priors that let the new data fill the gaps of the earlier model's angle maps.
 
-    A map knot with at least ``map_min_points`` earlier poses in its support keeps its value
-    (prior sigma ``reuse_anchor_deg`` on the change); the other knots of that map, which the
-    earlier fit only bridged, are refitted where the new data ``q`` (n, dof) rad reach them,
-    with the earlier smoothness prior acting on the change. Maps without such knots stay frozen.
+    Knots in runs of at least ``reuse_min_gap_deg`` where fewer than ``map_min_points``
+    earlier poses lay (gaps the earlier fit only bridged) are refitted where the new data
+    ``q`` (n, dof) rad reach them, with the earlier smoothness prior acting on the change; all
+    other knots keep their values (prior sigma ``reuse_anchor_deg`` on the change). Maps
+    without such gaps stay frozen.
     """
     spec = previous.model.spec
     support = _earlier_support(previous)
@@ -836,7 +866,8 @@ def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[M
         knots = tuple(sorted(t.index for t in spec.terms if t.joint == j and t.family == "map"))
         if not knots or j not in support or j not in settings:
             continue
-        anchored = tuple(k for k in knots if support[j][k] >= opts.map_min_points)
+        gap = _gap_knots(knots, support[j], nk, opts.map_min_points, opts.reuse_min_gap_deg)
+        anchored = tuple(k for k in knots if k not in gap)
         new = knot_counts(q[:, j], nk)
         if not any(new[k] > 0 for k in knots if k not in set(anchored)):
             continue

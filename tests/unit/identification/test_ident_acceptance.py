@@ -7,8 +7,6 @@ any model can reach with these poses and this noise.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -146,20 +144,14 @@ def test_refit_with_frozen_maps_transfers_to_a_new_session(fine_map):
     const2 = fit(c1.robot, train2, "constant", validation=val2)
     assert frozen.validation.rms_m <= 0.35 * const2.validation.rms_m
     assert frozen.validation.rms_m <= 1.5 * auto.validation.rms_m
-    # gravity stays as it was; map knots the first session supported move by a fraction of
-    # their anchor sigma, the knots it only bridged may be refilled from the new data
+    # random poses leave no gap of 10 deg or more in the first session's maps: every
+    # joint-dependent term is kept exactly, constant kinematics were refitted
+    assert frozen.calibrated.fit["refreshed_map_knots"] == {}
     names = auto.calibrated.model.names
-    g_idx = [i for i, n in enumerate(names) if n.endswith(".gravity")]
-    np.testing.assert_array_equal(frozen.calibrated.params[g_idx],
-                                  auto.calibrated.params[g_idx])
-    support = auto.calibrated.data["map_support"]
-    anchored, bridged = [], []
-    for i, n in enumerate(names):
-        if ".map" in n:
-            j, k = int(n[1]), int(n.split("map")[1])
-            (anchored if support[f"j{j}"][k] >= 8 else bridged).append(i)
-    step = np.abs(frozen.calibrated.params - auto.calibrated.params)
-    assert anchored and step[anchored].max() < math.radians(1e-3)
+    m_idx = [i for i, n in enumerate(names) if not (n.startswith(("base.", "tool."))
+                                                    or n.endswith(".const"))]
+    np.testing.assert_array_equal(frozen.calibrated.params[m_idx],
+                                  auto.calibrated.params[m_idx])
     assert frozen.calibrated.kind == "refit:auto"
     # trusted where the maps were learnt and where the refit met data (else: fallback)
     cov, prev = frozen.calibrated.coverage, auto.calibrated.coverage
