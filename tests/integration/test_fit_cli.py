@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests._designs import thin_j6_design
 
 from robocal._core.measurements import MeasurementSet, write_joints_csv
 from robocal.cli.main import main
@@ -316,13 +317,9 @@ def test_report_exit_code_follows_the_verdict(files, tmp_path, capsys):
 
 def test_fit_prints_warnings_about_extrapolated_validation_poses(tmp_path, capsys):
     """Training J6 at 0 and 2 deg only: the summary warns, the JSON and model carry it."""
-    cell = VirtualCell.create("ur10", "paper", seed=3)
-    rng = np.random.default_rng(3)
-    q = cell.random_joints(60, rng)
-    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
-    q, p, _, _ = cell.simulate(q, rng)
+    cell, rng, train = thin_j6_design()
     qv, pv, _, _ = cell.simulate(cell.random_joints(100, rng), rng)
-    MeasurementSet(q, p).write_csv(tmp_path / "t.csv")
+    train.write_csv(tmp_path / "t.csv")
     MeasurementSet(qv, pv).write_csv(tmp_path / "v.csv")
     out = tmp_path / "m.json"
     argv = ["fit", "--robot", "ur10", "--model", "constant", "--data", str(tmp_path / "t.csv"),

@@ -680,7 +680,7 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
     opts = options or FitOptions()
     rob = _check_inputs(previous.robot, data, "constant", validation)
     support = _earlier_support(previous)           # a malformed file fails before any fit
-    _earlier_map_settings(previous)
+    settings = _earlier_map_settings(previous)
     f, base0 = _start(rob, data, opts, validation)
     # The constant fit is the fallback and the screen for gross errors. On a small new data
     # set of a robot with parallel axes it may not converge (a few nearly unidentifiable
@@ -692,27 +692,19 @@ def _refit_frozen(previous: CalibratedModel, data: MeasurementSet, options: FitO
         except NotConverged:
             const = None
     inl = base0.inliers if const is None else const.inliers
-    spec = previous.model.spec
-    # register the previous model (its own terms, tool) to the new session
-    prev0 = KinematicModel(rob, spec)
-    xp = previous.params.copy()
-    xp[ParameterLayout.BASE] = 0.0
-    T = rigid_fit(prev0.positions(data.q[inl], xp), data.p[inl])
-    m = KinematicModel(rob, spec, T)
-    x0 = xp.copy()
+    m, xp = _registered(previous, data, inl)
+    anchors = _link_anchors(m.names, opts)
+    start = xp.copy()
     if const is not None:
-        xc = const.model.transfer(const.x, m)    # constant terms from the constant fit
-        is_const = np.array([n.endswith(".const") for n in m.names])
-        x0[is_const] = xc[is_const]
+        # joint offsets from the constant fit; the link geometry stays at the earlier values
+        xc = const.model.transfer(const.x, m)
+        take = np.array([n.endswith(".const") and n not in anchors for n in m.names])
+        start[take] = xc[take]
     frozen = {n for n in m.names if not (n.startswith(("base.", "tool.")) or n.endswith(".const"))}
-    priors = _gap_priors(previous, data.q[inl], opts) if support and opts.reuse_fill_gaps else []
+    priors = (_gap_priors(previous, data.q[inl], opts, support, settings)
+              if opts.reuse_fill_gaps else [])
     for pr in priors:
         frozen -= {t.name for t in map_terms(pr.joint, pr.knots)}
-    anchors = _link_anchors(m.names, opts)
-    start = x0.copy()
-    for n in anchors:
-        # the link geometry is held near the earlier values, not at the new constant fit's
-        start[m.names.index(n)] = xp[m.names.index(n)]
     sol = f.engine.solve(m, start, fixed=sorted(frozen), priors=priors, target=xp.copy(),
                          anchors=anchors, inliers=inl, what="frozen-map refit")
     # the maps' own smoothness settings carry over unchanged to the next reuse; the priors of
@@ -743,18 +735,26 @@ def _anchored_constant(f: _Fitter, previous: CalibratedModel, data: MeasurementS
         src = previous
     if src is None:
         return None
-    rob = f.robot
-    xf = src.params.copy()
-    xf[ParameterLayout.BASE] = 0.0
-    mc0 = KinematicModel(rob, src.model.spec)
-    inl = base0.inliers
-    Tf = rigid_fit(mc0.positions(data.q[inl], xf), data.p[inl])
-    mc = KinematicModel(rob, src.model.spec, Tf)
+    mc, xf = _registered(src, data, base0.inliers)
     try:
         return f.engine.solve(mc, xf, anchors=_link_anchors(mc.names, opts), target=xf.copy(),
                               what="anchored constant refit")
     except (NotConverged, NotIdentifiable):
         return None
+
+
+def _registered(cm: CalibratedModel, data: MeasurementSet, inliers: NDArray[np.bool_]
+                ) -> tuple[KinematicModel, Array]:
+    """``cm``'s model and parameters with its base registered to ``data``'s tracker frame.
+
+    The base correction is zeroed and the reference pose refitted rigidly on the inliers.
+    """
+    x = cm.params.copy()
+    x[ParameterLayout.BASE] = 0.0
+    spec = cm.model.spec
+    T = rigid_fit(KinematicModel(cm.robot, spec).positions(data.q[inliers], x),
+                  data.p[inliers])
+    return KinematicModel(cm.robot, spec, T), x
 
 
 def _link_anchors(names: tuple[str, ...], opts: FitOptions) -> dict[str, float]:
@@ -849,7 +849,9 @@ def _gap_knots(knots: tuple[int, ...], support: NDArray[np.intp], n_knots: int,
     return out
 
 
-def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[MapPrior]:
+def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions,
+                support: dict[int, NDArray[np.intp]],
+                settings: dict[int, tuple[float, float]]) -> list[MapPrior]:
     """Priors that let the new data fill the gaps of the earlier model's angle maps.
 
     Knots in runs of at least ``reuse_min_gap_deg`` where fewer than ``map_min_points``
@@ -859,8 +861,6 @@ def _gap_priors(previous: CalibratedModel, q: Array, opts: FitOptions) -> list[M
     without such gaps stay frozen.
     """
     spec = previous.model.spec
-    support = _earlier_support(previous)
-    settings = _earlier_map_settings(previous)
     out = []
     for j, nk in enumerate(spec.map_knots):
         knots = tuple(sorted(t.index for t in spec.terms if t.joint == j and t.family == "map"))

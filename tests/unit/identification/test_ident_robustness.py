@@ -13,6 +13,7 @@ from robocal.identification._models import high_order_spec
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.kinematics import KinematicModel, load_robot
 from robocal.simulation import VirtualCell
+from tests._designs import thin_j6_design
 
 
 def test_min_poses_meets_the_redundancy_rule() -> None:
@@ -143,16 +144,12 @@ def test_gauss_newton_stop_ends_at_the_same_minimum_in_fewer_steps() -> None:
 
 def test_fit_warns_about_extrapolated_validation_poses_and_many_screened_ones():
     """Training J6 at 0 and 2 deg only: the reflector's direction about J6 is nearly free."""
-    cell = VirtualCell.create("ur10", "paper", seed=3)
-    rng = np.random.default_rng(3)
-    q = cell.random_joints(60, rng)
-    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
-    q, p, _, _ = cell.simulate(q, rng)
+    cell, rng, train = thin_j6_design()
     qv = cell.random_joints(200, rng)
     qv[:100, 5] = np.radians(rng.choice([0.0, 2.0], 100))
     qv, pv, _, _ = cell.simulate(qv, rng)
     val = MeasurementSet(qv, pv)
-    weak = fit(cell.robot, MeasurementSet(q, p), "constant", validation=val)
+    weak = fit(cell.robot, train, "constant", validation=val)
     assert len(weak.warnings) == 1
     w = weak.warnings[0]
     assert "validation poses lie where the training poses leave the model nearly free" in w

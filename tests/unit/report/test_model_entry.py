@@ -10,6 +10,7 @@ from robocal.identification import CPAResult, FitResult, cpa_fit, fit
 from robocal.identification._cpa import cpa_sweeps
 from robocal.report import ReportInput, analyse, model_entry
 from robocal.simulation import VirtualCell
+from tests._designs import thin_j6_design
 
 
 @pytest.fixture(scope="module")
@@ -71,13 +72,9 @@ def test_cpa_result_entry(cell: VirtualCell, constant: FitResult,
 
 def test_verdict_warns_about_extrapolated_validation_poses() -> None:
     """Calibration poses with J6 at 0 and 2 deg only: the report names the poses it guesses."""
-    cell = VirtualCell.create("ur10", "paper", seed=3)
-    rng = np.random.default_rng(3)
-    q = cell.random_joints(60, rng)
-    q[:, 5] = np.radians(rng.choice([0.0, 2.0], len(q)))
-    q, p, _, _ = cell.simulate(q, rng)
+    cell, rng, train = thin_j6_design()
     qv, pv, _, _ = cell.simulate(cell.random_joints(40, rng), rng)
-    train, val = MeasurementSet(q, p), MeasurementSet(qv, pv)
+    val = MeasurementSet(qv, pv)
     res = fit(cell.robot, train, "constant", validation=val)
     an = analyse(ReportInput(models={"constant": res}, calibration=train, validation=val,
                              workspace_samples=0))
