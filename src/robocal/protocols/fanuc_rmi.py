@@ -36,6 +36,7 @@ __all__ = [
     "DEFAULT_CONNECT_PORT",
     "ERROR_TEXT",
     "JOINT_KEYS",
+    "LINEAR_SPEED_TYPES",
     "MAX_IN_FLIGHT",
     "MAX_LINE",
     "MAX_SEQUENCE_ID",
@@ -48,9 +49,11 @@ __all__ = [
     "frame_fields",
     "joint_angles",
     "joint_motion_jrep",
+    "linear_motion",
     "next_sequence_id",
     "normalise_numbers",
     "parse_frame",
+    "port_value",
     "rmit",
 ]
 
@@ -319,12 +322,14 @@ def joint_motion_jrep(
     speed_pct: float,
     term_type: Literal["FINE", "CNT", "CR"] = "FINE",
     term_value: int = 0,
+    relative: bool = False,
 ) -> dict[str, Any]:
-    """Return an ``FRC_JointMotionJRep`` instruction to joint angles ``q_deg`` (degrees)."""
+    """Return an ``FRC_JointMotionJRep`` instruction to joint angles ``q_deg`` (degrees), or
+    with ``relative`` an ``FRC_JointRelativeJRep`` moving each joint by ``q_deg``."""
     if not 1 <= len(q_deg) <= 9:
         raise FramingError("RMI joint motion takes 1..9 joints")
     return {
-        "Instruction": "FRC_JointMotionJRep",
+        "Instruction": "FRC_JointRelativeJRep" if relative else "FRC_JointMotionJRep",
         "SequenceID": sequence_id,
         "JointAngle": {f"J{i + 1}": _num(q, 6) for i, q in enumerate(q_deg)},
         "SpeedType": "Percent",
@@ -332,6 +337,56 @@ def joint_motion_jrep(
         "TermType": term_type,
         "TermValue": term_value,
     }
+
+
+#: SpeedType values of linear motions and their factor to mm/s (``Time``/``mSec`` give the
+#: motion's duration instead and are not used by robocal).
+LINEAR_SPEED_TYPES: dict[str, float] = {"mmSec": 1.0, "InchMin": 25.4 / 60.0}
+
+
+def linear_motion(
+    sequence_id: int,
+    position: Mapping[str, float],
+    configuration: Configuration,
+    *,
+    speed_mm_s: float,
+    term_type: Literal["FINE", "CNT", "CR"] = "FINE",
+    term_value: int = 0,
+    relative: bool = False,
+) -> dict[str, Any]:
+    """Return an ``FRC_LinearMotion`` instruction to ``position`` (X..R, mm and degrees, in
+    the configuration's user frame with its tool), or with ``relative`` an
+    ``FRC_LinearRelative`` displacing the tool centre by ``position``."""
+    if not math.isfinite(speed_mm_s) or speed_mm_s <= 0:
+        raise FramingError(f"linear speed must be positive, got {speed_mm_s!r}")
+    return {
+        "Instruction": "FRC_LinearRelative" if relative else "FRC_LinearMotion",
+        "SequenceID": sequence_id,
+        "Configuration": configuration.fields(),
+        "Position": frame_fields(*(float(position[k]) for k in _FRAME_KEYS)),
+        "SpeedType": "mmSec",
+        "Speed": _num(speed_mm_s, 3),
+        "TermType": term_type,
+        "TermValue": term_value,
+    }
+
+
+def port_value(body: Mapping[str, Any]) -> bool:
+    """Return the ``PortValue`` of an ``FRC_ReadDIN`` reply or ``FRC_WriteDOUT`` command.
+
+    Controllers write ``"ON"``/``"OFF"``; 1/0 is accepted too.
+
+    Raises
+    ------
+    UnexpectedReply
+        If the field is missing or neither form.
+    """
+    value = body.get("PortValue")
+    if isinstance(value, str) and value.upper() in ("ON", "OFF"):
+        return value.upper() == "ON"
+    if not isinstance(value, bool) and value in (0, 1):
+        return bool(value)
+    raise UnexpectedReply(f"PortValue is not ON or OFF: {value!r}"[:200])
 
 
 #: Keys a joint-angle object comes under: newer firmware answers ``JointAngle``, older

@@ -148,3 +148,39 @@ async def test_frames_and_registers_storage(world):
         assert (await c.recv())["ErrorID"] == rmi.rmit(23)  # no Configuration
         await c.send({"Command": "FRC_ReadPositionRegister", "RegisterNumber": 0})
         assert (await c.recv())["ErrorID"] == rmi.rmit(4)
+
+
+async def test_cartesian_read_linear_moves_and_io(world):
+    async with session(world, time_scale=0.0) as (sim, c):
+        await c.send({"Command": "FRC_Initialize"})
+        await c.recv()
+        await c.send(motion(1, 10.0))
+        assert (await c.recv())["ErrorID"] == 0
+        await c.send({"Command": "FRC_ReadCartesianPosition", "Group": 1})
+        reply = await c.recv()
+        assert reply["ErrorID"] == 0 and reply["Configuration"]["UToolNumber"] == 1
+        here = reply["Position"]
+        assert here == sim.tcp_position(world.q_actual_rad, 0, 1)
+        config = rmi.Configuration(utool_number=1)
+        target = dict(here, Z=here["Z"] - 20.0)
+        await c.send(rmi.linear_motion(2, target, config, speed_mm_s=100))
+        assert (await c.recv()) == {"Instruction": "FRC_LinearMotion", "ErrorID": 0,
+                                    "SequenceID": 2}
+        reached = sim.tcp_position(world.q_cmd_rad, 0, 1)
+        assert all(abs(reached[k] - target[k]) < 1e-6 for k in "XYZ")
+        # SpeedType Percent belongs to joint motions
+        await c.send({**rmi.linear_motion(3, target, config, speed_mm_s=100),
+                      "SpeedType": "Percent"})
+        assert (await c.recv())["ErrorID"] == rmi.rmit(30)
+        # an unreachable point is a system fault (MOTN-018) and HOLD, not a reply
+        far = dict(here, X=here["X"] + 5000.0)
+        await c.send(rmi.linear_motion(4, far, config, speed_mm_s=100))
+        assert (await c.recv()) == {"Communication": "FRC_SystemFault", "SequenceID": 4}
+        assert sim.hold and "MOTN-018" in sim.last_alarm
+        await c.send({"Command": "FRC_WriteDOUT", "PortNumber": 0, "PortValue": "ON"})
+        assert (await c.recv())["ErrorID"] == rmi.rmit(38)
+        await c.send({"Command": "FRC_WriteDOUT", "PortNumber": 2, "PortValue": "MAYBE"})
+        assert (await c.recv())["ErrorID"] == rmi.rmit(21)
+        await c.send({"Command": "FRC_ReadDIN", "PortNumber": 2})
+        assert (await c.recv()) == {"Command": "FRC_ReadDIN", "ErrorID": 0, "PortNumber": 2,
+                                    "PortValue": "OFF"}

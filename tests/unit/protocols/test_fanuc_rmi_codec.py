@@ -219,3 +219,43 @@ def test_encode_decode_round_trip(category, name, fields):
     packet = {category: name, **fields}
     decoded = rmi.decode(rmi.encode(packet))
     assert (decoded.category, decoded.name, dict(decoded.body)) == (category, name, packet)
+
+
+def test_golden_linear_and_relative_instructions():
+    pos = {"X": 400.0, "Y": 0.5, "Z": 300.0, "W": 180.0, "P": 0.0, "R": -90.0}
+    config = rmi.Configuration(utool_number=1, uframe_number=0)
+    packet = json.loads(rmi.encode(rmi.linear_motion(3, pos, config, speed_mm_s=200)))
+    assert packet == {
+        "Instruction": "FRC_LinearMotion", "SequenceID": 3,
+        "Configuration": {"UToolNumber": 1, "UFrameNumber": 0, "Front": 1, "Up": 1, "Left": 0,
+                          "Flip": 0, "Turn4": 0, "Turn5": 0, "Turn6": 0},
+        "Position": pos, "SpeedType": "mmSec", "Speed": 200.0, "TermType": "FINE",
+        "TermValue": 0,
+    }
+    rel = rmi.linear_motion(4, pos, config, speed_mm_s=50, relative=True)
+    assert rel["Instruction"] == "FRC_LinearRelative"
+    jrel = rmi.joint_motion_jrep(5, [1.0] * 6, speed_pct=20, relative=True)
+    assert jrel["Instruction"] == "FRC_JointRelativeJRep" and jrel["JointAngle"]["J6"] == 1.0
+    with pytest.raises(FramingError):
+        rmi.linear_motion(6, pos, config, speed_mm_s=0.0)
+
+
+def test_port_value_forms():
+    assert rmi.port_value({"PortValue": "ON"}) is True
+    assert rmi.port_value({"PortValue": "off"}) is False
+    assert rmi.port_value({"PortValue": 1}) is True
+    for bad in ({}, {"PortValue": "HIGH"}, {"PortValue": 2}, {"PortValue": None}):
+        with pytest.raises(UnexpectedReply):
+            rmi.port_value(bad)
+
+
+@given(st.one_of(st.none(), st.booleans(), st.integers(), st.floats(allow_nan=False),
+                 st.text(max_size=5)))
+def test_port_value_accepts_only_on_off_or_bit(value):
+    try:
+        on = rmi.port_value({"PortValue": value})
+    except UnexpectedReply:
+        assert not (isinstance(value, str) and value.upper() in ("ON", "OFF")) and not (
+            type(value) in (int, float) and value in (0, 1))
+    else:
+        assert on is (value.upper() == "ON" if isinstance(value, str) else bool(value))

@@ -22,13 +22,17 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
+import numpy as np
 import structlog
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from robocal.compensation import nominal_fk, nominal_ik
 from robocal.drivers.sim._server import SimServer, port_of
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError, UnexpectedReply
+from robocal.kinematics import matrix_to_wpr, wpr_to_matrix
 from robocal.protocols import LineFramer
 from robocal.protocols import fanuc_rmi as rmi
 
@@ -51,7 +55,8 @@ class FanucSimOptions(BaseModel):
     ``joint_key`` is the key of ``FRC_ReadJointAngles`` replies (older firmware: plural);
     ``alarm_at_connect`` starts with a resettable alarm (servo off until ``FRC_Reset``);
     ``session_port_delay_s`` is how long after ``FRC_Connect`` the session port starts
-    listening (connections before that are refused).
+    listening (connections before that are refused). ``n_digital_io`` is the number of
+    DIN/DOUT ports (1..n); ``max_linear_speed_mm_s`` bounds linear motion speed.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -75,6 +80,8 @@ class FanucSimOptions(BaseModel):
     n_uframes: int = 9
     n_utools: int = 10
     n_position_registers: int = 200
+    n_digital_io: int = Field(default=512, ge=1)
+    max_linear_speed_mm_s: float = Field(default=2000.0, gt=0.0)
     joint_limits_deg: tuple[tuple[float, float], ...] | None = None
 
 
@@ -371,6 +378,8 @@ class FanucRmiSimulator(SimServer):
         self.position_registers: dict[int, dict[str, Any]] = {}
         self.active_uframe = 0
         self.active_utool = 1
+        self.digital_inputs: dict[int, bool] = {}
+        self.digital_outputs: dict[int, bool] = {}
         self.override = 100
         self.next_sequence_id = self.options.initial_sequence_id
         self.dropped_stale = 0
@@ -660,6 +669,40 @@ class FanucRmiSimulator(SimServer):
         self.position_registers[n] = {"Configuration": dict(config), "Position": position}
         return req.ok(RegisterNumber=n)
 
+    def _read_cartesian_position(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadCartesianPosition: the tool centre in the active user frame (mm, degrees),
+        by the controller's nominal kinematics from the actual joints."""
+        uf, ut = self.active_uframe, self.active_utool
+        position = self.tcp_position(self.world.q_actual_rad, uf, ut)
+        config = rmi.Configuration(utool_number=ut, uframe_number=uf).fields()
+        return req.ok(TimeTag=self._time_tag(), Configuration=config, Position=position,
+                      Group=int(req.body.get("Group", 1) or 1))
+
+    def _port_number(self, req: _Request) -> int | None:
+        n = req.body.get("PortNumber")
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= self.options.n_digital_io:
+            return None
+        return n
+
+    def _read_din(self, req: _Request) -> dict[str, Any]:
+        """FRC_ReadDIN: one digital input, ``"ON"`` or ``"OFF"`` (inputs never set read OFF)."""
+        n = self._port_number(req)
+        if n is None:
+            return req.err(38)
+        on = self.digital_inputs.get(n, False)
+        return req.ok(PortNumber=n, PortValue="ON" if on else "OFF")
+
+    def _write_dout(self, req: _Request) -> dict[str, Any]:
+        """FRC_WriteDOUT: set one digital output ON or OFF."""
+        n = self._port_number(req)
+        if n is None:
+            return req.err(38)
+        try:
+            self.digital_outputs[n] = rmi.port_value(req.body)
+        except ProtocolError:
+            return req.err(21)
+        return req.ok()
+
     _COMMANDS: ClassVar[dict[str, _CommandHandler]] = {
         "FRC_GetStatus": _get_status,
         "FRC_Initialize": _initialize,
@@ -678,7 +721,32 @@ class FanucRmiSimulator(SimServer):
         "FRC_WriteUToolData": _utool_data,
         "FRC_ReadPositionRegister": _read_position_register,
         "FRC_WritePositionRegister": _write_position_register,
+        "FRC_ReadCartesianPosition": _read_cartesian_position,
+        "FRC_ReadDIN": _read_din,
+        "FRC_WriteDOUT": _write_dout,
     }
+
+    # --- Cartesian positions -------------------------------------------------------------------
+    def _frame(self, store: dict[int, dict[str, float]], n: int) -> NDArray[np.float64]:
+        """Stored user or tool frame ``n`` as a (4, 4) transform, metres (identity if unset)."""
+        return _matrix(store.get(n, _ZERO_FRAME))
+
+    def tcp_position(self, q_rad: Any, uframe: int, utool: int) -> dict[str, float]:
+        """Tool ``utool``'s centre at joints ``q_rad`` in user frame ``uframe`` (X..R, mm and
+        degrees), by the nominal kinematics a controller uses."""
+        T_base_flange = nominal_fk(self.world.cell.robot, np.asarray(q_rad, dtype=float))[0]
+        T_base_tcp = T_base_flange @ self._frame(self.utools, utool)
+        return _fields(np.linalg.inv(self._frame(self.uframes, uframe)) @ T_base_tcp)
+
+    def joints_for(self, position: Mapping[str, float], uframe: int, utool: int,
+                   seed_rad: Any) -> NDArray[np.float64] | None:
+        """Joints (radians) putting tool ``utool``'s centre at ``position`` of user frame
+        ``uframe``, closest to ``seed_rad``; None when unreachable within the limits."""
+        T_uf_tcp = _matrix(position)
+        T_base_flange = (self._frame(self.uframes, uframe) @ T_uf_tcp
+                         @ np.linalg.inv(self._frame(self.utools, utool)))
+        ik = nominal_ik(self.world.cell.robot, T_base_flange, np.asarray(seed_rad, dtype=float))
+        return np.asarray(ik.q[0], dtype=float) if bool(ik.found[0]) else None
 
     # --- instructions --------------------------------------------------------------------------
     def _fault(self, seq: int, text: str, session: _Session) -> None:
@@ -696,11 +764,11 @@ class FanucRmiSimulator(SimServer):
         return await handler(self, seq, _Request(packet, session))
 
     async def _joint_motion_jrep(self, seq: int, req: _Request) -> int | None:
-        """FRC_JointMotionJRep: a joint move that takes simulated time."""
-        body, session = req.body, req.session
-        dof = self.world.dof
+        """FRC_JointMotionJRep and FRC_JointRelativeJRep: a joint move (absolute angles, or
+        increments added to the commanded ones) that takes simulated time."""
+        body = req.body
         try:
-            q_deg = rmi.joint_angles(body, dof)
+            q_deg = rmi.joint_angles(body, self.world.dof)
         except ProtocolError:
             return rmi.rmit(23)
         if body.get("SpeedType", "Percent") != "Percent":
@@ -710,6 +778,66 @@ class FanucRmiSimulator(SimServer):
             return rmi.rmit(31)
         if body.get("TermType", "FINE") not in ("FINE", "CNT", "CR"):
             return rmi.rmit(32)
+        current = [math.degrees(v) for v in self.world.q_cmd_rad]
+        if req.name == "FRC_JointRelativeJRep":
+            q_deg = [a + b for a, b in zip(current, q_deg, strict=True)]
+        dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
+        rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
+        return await self._sweep(seq, q_deg, dist / rate, req.session)
+
+    async def _linear_motion(self, seq: int, req: _Request) -> int | None:
+        """FRC_LinearMotion and FRC_LinearRelative: a move of the tool centre to a position of
+        the configuration's user frame (or by a displacement in it: translation added,
+        rotation applied about the user frame's axes at the tool centre).
+
+        The simulated robot sweeps its joints to the inverse-kinematics solution closest to
+        the commanded joints over the time the straight line takes at ``Speed``; the end point
+        and the duration are the controller's, the path in between is not a straight line.
+        """
+        body = req.body
+        config = body.get("Configuration")
+        if not isinstance(config, Mapping):
+            return rmi.rmit(23)
+        uf, ut = config.get("UFrameNumber"), config.get("UToolNumber")
+        if isinstance(uf, bool) or not isinstance(uf, int) or not 0 <= uf <= self.options.n_uframes:
+            return rmi.rmit(3)
+        if isinstance(ut, bool) or not isinstance(ut, int) or not 0 <= ut <= self.options.n_utools:
+            return rmi.rmit(2)
+        try:
+            pos = rmi.parse_frame(body, "Position")
+        except ProtocolError:
+            return rmi.rmit(23)
+        factor = rmi.LINEAR_SPEED_TYPES.get(str(body.get("SpeedType", "mmSec")))
+        if factor is None:
+            return rmi.rmit(30)
+        speed = body.get("Speed")
+        if isinstance(speed, bool) or not isinstance(speed, int | float) or not speed > 0:
+            return rmi.rmit(31)
+        speed_mm_s = min(speed * factor, self.options.max_linear_speed_mm_s)
+        if body.get("TermType", "FINE") not in ("FINE", "CNT", "CR"):
+            return rmi.rmit(32)
+        q_now = self.world.q_cmd_rad
+        start = _matrix(self.tcp_position(q_now, uf, ut))
+        target = dict(zip("XYZWPR", pos, strict=True))
+        if req.name == "FRC_LinearRelative":
+            T = _matrix(target)
+            moved = np.eye(4)
+            moved[:3, :3] = T[:3, :3] @ start[:3, :3]
+            moved[:3, 3] = start[:3, 3] + T[:3, 3]
+            target = _fields(moved)
+        q = self.joints_for(target, uf, ut, q_now)
+        if q is None:
+            self._fault(seq, "MOTN-018 Position not reachable", req.session)
+            return None
+        dist_mm = 1000.0 * float(np.linalg.norm(_matrix(target)[:3, 3] - start[:3, 3]))
+        rate = speed_mm_s * self.override / 100.0
+        return await self._sweep(seq, [math.degrees(v) for v in q], dist_mm / rate, req.session)
+
+    async def _sweep(self, seq: int, q_deg: list[float], duration_s: float,
+                     session: _Session) -> int | None:
+        """Move to ``q_deg`` over ``duration_s`` (scaled by ``time_scale``): a system fault
+        outside the joint limits or on an injected alarm, ``_ABORTED`` when FRC_Abort cut
+        it short, else 0."""
         for i, (v, (lo, hi)) in enumerate(zip(q_deg, self.joint_limits_deg, strict=True)):
             if not lo <= v <= hi:
                 self._fault(seq, f"MOTN-017 Limit error (G:1^J{i + 1})", session)
@@ -717,10 +845,7 @@ class FanucRmiSimulator(SimServer):
         if self.faults.fire("alarm"):
             self._fault(seq, "SRVO-050 Collision Detect alarm (injected)", session)
             return None
-        current = [math.degrees(v) for v in self.world.q_cmd_rad]
-        dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=True))
-        rate = self.options.max_joint_speed_deg_s * speed / 100.0 * self.override / 100.0
-        duration = max(dist / rate, self.options.min_motion_s) * self.options.time_scale
+        duration = max(duration_s, self.options.min_motion_s) * self.options.time_scale
         if duration <= 0:
             self.world.move([math.radians(v) for v in q_deg])
             return 0
@@ -757,7 +882,25 @@ class FanucRmiSimulator(SimServer):
 
     _INSTRUCTIONS: ClassVar[dict[str, _InstructionHandler]] = {
         "FRC_JointMotionJRep": _joint_motion_jrep,
+        "FRC_JointRelativeJRep": _joint_motion_jrep,
+        "FRC_LinearMotion": _linear_motion,
+        "FRC_LinearRelative": _linear_motion,
         "FRC_WaitTime": _wait_time,
         "FRC_SetUFrame": _set_uframe,
         "FRC_SetUTool": _set_utool,
     }
+
+
+def _matrix(frame: Mapping[str, float]) -> NDArray[np.float64]:
+    """An RMI frame (X..R, mm and degrees) as a (4, 4) transform, metres."""
+    T = np.eye(4)
+    T[:3, :3] = wpr_to_matrix(*(math.radians(float(frame[k])) for k in "WPR"))
+    T[:3, 3] = [float(frame[k]) / 1000.0 for k in "XYZ"]
+    return T
+
+
+def _fields(T: NDArray[np.float64]) -> dict[str, float]:
+    """A (4, 4) transform (metres) as an RMI frame (X..R, mm and degrees)."""
+    w, p, r = (math.degrees(a) for a in matrix_to_wpr(T[:3, :3]))
+    x, y, z = (1000.0 * float(v) for v in T[:3, 3])
+    return rmi.frame_fields(x, y, z, w, p, r)
