@@ -14,6 +14,8 @@ from robocal.drivers.sim import (
     FanucRmiSimulator,
     FanucSimOptions,
     FaultConfig,
+    KukaKvpSimulator,
+    KukaSimOptions,
     LtpSimOptions,
     ModbusPlcSimulator,
     ModbusSimOptions,
@@ -39,13 +41,17 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
         fanuc=FanucSimOptions(time_scale=0.0) if name == "fanuc_rmi" else False,
         modbus=ModbusSimOptions(time_scale=0.0) if name == "modbus_plc" else False,
         ltp=False,
+        kuka=KukaSimOptions(time_scale=0.0) if name == "kuka_kvp" else False,
     )
     async with cell:
         options = cell.robot_options(name)  # type: ignore[arg-type]
-        sim: FanucRmiSimulator | ModbusPlcSimulator
+        sim: FanucRmiSimulator | ModbusPlcSimulator | KukaKvpSimulator
         if name == "fanuc_rmi":
             rmi_sim = sim = cell.fanuc_sim
             received: Callable[[], int] = lambda: len(rmi_sim.received)  # noqa: E731
+        elif name == "kuka_kvp":
+            kvp_sim = sim = cell.kuka_sim
+            received = lambda: len(kvp_sim.requests)  # noqa: E731
         else:
             plc_sim = sim = cell.modbus_sim
             received = lambda: len(plc_sim.commands)  # noqa: E731
@@ -122,7 +128,7 @@ def emscon_cell(world: SimWorld, *, faulty: bool) -> SimCell:
                    faults=FaultConfig(beam_break_rate=0.05, seed=9))
 
 
-ROBOTS = ["mock", "fanuc_rmi", "modbus_plc"]
+ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "kuka_kvp"]
 TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty", "emscon", "emscon-faults"]
 
 

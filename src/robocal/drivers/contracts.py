@@ -24,7 +24,13 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from robocal.compensation import CompensationTable, Frame, FramesPayload, JointCorrection
+from robocal.compensation import (
+    CompensationTable,
+    Frame,
+    FramesPayload,
+    JointCorrection,
+    TargetRow,
+)
 from robocal.drivers._compensation import table_diff
 from robocal.drivers.api import (
     CompensationSink,
@@ -363,7 +369,8 @@ async def check_robot_stop_mid_move(rut: RobotUnderTest) -> None:
         _expect(err < rut.joint_tol_rad, f"{rut.name}: move after stop missed by {err:.3g} rad")
 
 
-def _sample_table(kind: str, dof: int) -> CompensationTable:
+def _sample_table(kind: str, dof: int,
+                  limits: Sequence[tuple[float, float]] = ()) -> CompensationTable:
     common: dict[str, Any] = {
         "model_id": "contract",
         "robot": "contract-robot",
@@ -380,6 +387,14 @@ def _sample_table(kind: str, dof: int) -> CompensationTable:
             ),
             **common,
         ).sealed()
+    if kind == "targets":
+        # rows inside the limits, with gaps in the indices (slots that are not consecutive)
+        rows = [
+            TargetRow(index=i, q_deg=[math.degrees(lo + f * (hi - lo)) for lo, hi in limits],
+                      status="ok", model_residual_mm=0.01 * i)
+            for i, f in ((0, 0.41), (1, 0.5), (4, 0.5625))
+        ]
+        return CompensationTable(kind="targets", targets=rows, **common).sealed()
     return CompensationTable(
         kind="joint",
         joints=[
@@ -402,8 +417,8 @@ async def check_robot_compensation(rut: RobotUnderTest) -> None:
         if not isinstance(robot, CompensationSink):
             return
         supported = getattr(robot, "supported_compensation", frozenset({"frames"}))
-        kind = "frames" if "frames" in supported else "joint"
-        table = _sample_table(kind, robot.dof)
+        kind = next(k for k in ("frames", "joint", "targets") if k in supported)
+        table = _sample_table(kind, robot.dof, robot.joint_limits_rad)
         await robot.write_compensation(table)
         back = await robot.read_compensation()
         _expect(isinstance(back, CompensationTable), f"{rut.name}: nothing read back")

@@ -29,6 +29,7 @@ from robocal.drivers.sim._server import publish_ports, until_signalled
 from robocal.drivers.sim.emscon import EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.kuka_kvp import KukaKvpSimulator, KukaSimOptions
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
@@ -41,6 +42,8 @@ __all__ = [
     "FanucSimOptions",
     "FaultConfig",
     "FaultInjector",
+    "KukaKvpSimulator",
+    "KukaSimOptions",
     "LtpSimOptions",
     "LtpTrackerSimulator",
     "ModbusPlcSimulator",
@@ -68,17 +71,19 @@ class SimCell:
         Serve the tracker on TCP and/or on a pty pair.
     emscon : bool or options
         Run the emScon tracker simulator (off by default).
+    kuka : bool or options
+        Run the KUKA KUKAVARPROXY simulator (off by default).
     faults : FaultConfig, optional
         Injected faults, shared by all simulators (each draws with its own generator).
     host : str
         Listening address (loopback).
     ports : dict, optional
-        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``
-        (0: free port).
+        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``,
+        ``kuka`` (0: free port).
 
     Attributes
     ----------
-    fanuc_sim, modbus_sim, ltp_sim, emscon_sim
+    fanuc_sim, modbus_sim, ltp_sim, emscon_sim, kuka_sim
         The running simulators (None when not requested).
     """
 
@@ -95,6 +100,7 @@ class SimCell:
         ltp_tcp: bool = True,
         ltp_pty: bool = False,
         emscon: bool | EmsconSimOptions = False,
+        kuka: bool | KukaSimOptions = False,
         faults: FaultConfig | None = None,
         host: str = "127.0.0.1",
         ports: dict[str, int] | None = None,
@@ -104,6 +110,7 @@ class SimCell:
         self._fanuc, self._modbus, self._ltp = fanuc, modbus, ltp
         self.ltp_tcp, self.ltp_pty = ltp_tcp, ltp_pty
         self._emscon = emscon
+        self._kuka = kuka
         self.faults = faults
         self.host = host
         self._fixed = dict(ports or {})
@@ -111,6 +118,7 @@ class SimCell:
         self.modbus_sim: ModbusPlcSimulator | None = None
         self.ltp_sim: LtpTrackerSimulator | None = None
         self.emscon_sim: EmsconTrackerSimulator | None = None
+        self.kuka_sim: KukaKvpSimulator | None = None
 
     @property
     def world(self) -> SimWorld:
@@ -144,6 +152,10 @@ class SimCell:
                 eopts = self._emscon if isinstance(self._emscon, EmsconSimOptions) else None
                 self.emscon_sim = EmsconTrackerSimulator(world, eopts, self.faults)
                 await self.emscon_sim.start(self.host, p.get("emscon", 0))
+            if self._kuka is not False:
+                kopts = self._kuka if isinstance(self._kuka, KukaSimOptions) else None
+                self.kuka_sim = KukaKvpSimulator(world, kopts, self.faults)
+                await self.kuka_sim.start(self.host, p.get("kuka", 0))
         except BaseException:
             await self.stop()
             raise
@@ -151,7 +163,8 @@ class SimCell:
 
     async def stop(self) -> None:
         """Stop every simulator; idempotent."""
-        for sim in (self.emscon_sim, self.ltp_sim, self.modbus_sim, self.fanuc_sim):
+        for sim in (self.kuka_sim, self.emscon_sim, self.ltp_sim, self.modbus_sim,
+                    self.fanuc_sim):
             if sim is not None:
                 await sim.stop()
 
@@ -179,11 +192,20 @@ class SimCell:
             }
         if self.emscon_sim is not None:
             out["emscon_tracker"] = {"port": self.emscon_sim.port}
+        if self.kuka_sim is not None:
+            out["kuka_kvp"] = {"port": self.kuka_sim.port}
         return out
 
-    def robot_options(self, kind: Literal["fanuc_rmi", "modbus_plc", "mock"]) -> dict[str, Any]:
+    def robot_options(
+        self, kind: Literal["fanuc_rmi", "modbus_plc", "kuka_kvp", "mock"]
+    ) -> dict[str, Any]:
         """Options for ``load_robot_driver(kind, ...)`` pointing at this cell's simulator."""
         limits = [list(lim) for lim in self.world.joint_limits_deg]
+        if kind == "kuka_kvp":
+            if self.kuka_sim is None:
+                raise RuntimeError("the KUKA KVP simulator is not running")
+            return {"host": self.host, "port": self.kuka_sim.port, "joint_limits_deg": limits,
+                    "poll_interval_s": 0.001, "comp_size": self.kuka_sim.options.comp_size}
         if kind == "fanuc_rmi":
             if self.fanuc_sim is None:
                 raise RuntimeError("the FANUC RMI simulator is not running")
@@ -234,7 +256,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "which",
-        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "all", "relay"],
+        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "kuka", "all",
+                 "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
     p.add_argument("--scenario", default="paper", help="planted-error scenario")
@@ -244,7 +267,8 @@ def _parser() -> argparse.ArgumentParser:
         "--port",
         type=int,
         default=0,
-        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4",
+        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4;"
+        " kuka P+5",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
@@ -268,12 +292,15 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return {"ltp": port}
     if which == "emscon-tracker":
         return {"emscon": port}
+    if which == "kuka":
+        return {"kuka": port}
     return {
         "fanuc_connect": port,
         "fanuc_main": port + 1,
         "modbus": port + 2,
         "ltp": port + 3,
         "emscon": port + 4,
+        "kuka": port + 5,
     }
 
 
@@ -295,6 +322,7 @@ async def _serve(args: argparse.Namespace) -> int:
         emscon=(
             EmsconSimOptions(time_scale=scale) if which in ("emscon-tracker", "all") else False
         ),
+        kuka=KukaSimOptions(time_scale=scale) if which in ("kuka", "all") else False,
         faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
         host=args.host,
         ports=_fixed_ports(which, args.port),
@@ -306,7 +334,7 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|all|relay [options]``."""
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|kuka|all|relay ...``."""
     args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if not structlog.is_configured():
         # stdout carries the ports JSON; keep log lines off it.
