@@ -41,7 +41,6 @@ from robocal.drivers.api import (
 )
 from robocal.errors import (
     CompensationError,
-    ConfigError,
     ConnectFailed,
     DriverTimeout,
     LimitViolation,
@@ -97,7 +96,8 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
     Parameters
     ----------
     options : KukaKvpOptions or mapping
-        Validated options (``joint_limits_deg`` is required, at most 12 axes: A1..A6, E1..E6).
+        Validated options (``joint_limits_deg`` is required; joints map to A1..A6, then
+        E1..E3).
     """
 
     kind: ClassVar[str] = "kuka_kvp"
@@ -107,9 +107,6 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
 
     def __init__(self, options: KukaKvpOptions | Mapping[str, Any] | None = None) -> None:
         super().__init__(options)
-        if self.dof > len(kvp.AXIS_NAMES):
-            raise ConfigError(f"E6AXIS holds {len(kvp.AXIS_NAMES)} axes, not {self.dof}",
-                              source=f"{self.kind} options", key="joint_limits_deg")
         self.robot_name: str | None = None
         self._transport: TcpTransport | None = None
         self._framer = kvp.KvpFramer()
