@@ -46,7 +46,8 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
         ports = json.loads(line)
         assert json.loads(ports_file.read_text()) == ports
         assert set(ports) == {
-            "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker"
+            "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker",
+            "kuka_kvp",
         }
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")
@@ -72,6 +73,12 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
             assert (await robot.read_joints()).q_rad[0] == pytest.approx(-0.3, abs=1e-4)
             c = await tcp.measure(samples=10, timeout=5)
             assert np.linalg.norm(np.subtract(a.position_m, c.position_m)) > 0.05
+            # and so does the KUKA loop behind KUKAVARPROXY
+            kuka = load_robot_driver(
+                "kuka_kvp", {"port": ports["kuka_kvp"]["port"], "joint_limits_deg": limits})
+            async with kuka:
+                await kuka.move_to([0.1] * 6, timeout=10)
+            assert (await robot.read_joints()).q_rad[0] == pytest.approx(0.1, abs=1e-4)
         finally:
             for d in (robot, plc, tcp, serial):
                 await d.close()
