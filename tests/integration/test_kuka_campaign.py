@@ -19,6 +19,7 @@ from tests.unit.daemon.test_motion_stop import HALT_BOUND_S, _halted_after, _mid
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import FaultConfig, KukaSimOptions, LtpSimOptions, SimCell
+from robocal.protocols import kuka_kvp as kvp
 
 N_POSES = 100
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "config" / "kuka.toml"
@@ -89,5 +90,55 @@ async def test_abort_mid_move_halts_the_kuka_robot_within_bound(tmp_path):
             # the halt is the loop's stop interrupt: RC_STOP cleared, RC_STATUS stopped
             assert cell.kuka_sim.read("RC_STOP") == ("FALSE", True)
             assert cell.kuka_sim.read("RC_STATUS") == ("4", True)
+        finally:
+            await svc.stop()
+
+
+async def test_push_writes_rc_comp_and_rollback_restores_what_was_there(tmp_path):
+    """The daemon pushes corrected targets into the E6AXIS array, measures their effect and
+    rolls back to what another program had left in RC_COMP."""
+    from tests.unit.daemon.conftest import base_config
+    from tests.unit.daemon.test_service import program_plan
+
+    cell = SimCell(robot=ROBOT, seed=4, fanuc=False, modbus=False,
+                   ltp=LtpSimOptions(time_scale=0.0), kuka=KukaSimOptions(time_scale=0.0))
+    async with cell:
+        sim = cell.kuka_sim
+        assert sim is not None
+        for i in range(1, 41):
+            sim.write(f"RC_COMP[{i}]", "{A1 " + str(i + 0.5) + ", A2 -1.25}")
+        sim.write("RC_COMP_N", "40")
+        original = [sim.read(f"RC_COMP[{i}]")[0] for i in range(1, 41)]
+        cfg = base_config(tmp_path, limits={"max_joint_correction_deg": 5.0},
+                          compensation={"verify_count": 3})
+        cfg["robot"] = {"kind": "kuka_kvp", "options": cell.robot_options("kuka_kvp")}
+        cfg["tracker"] = {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
+                                                     "stab_ms": 10}}
+        svc = CalibrationService(parse_config(cfg, source="test"))
+        await svc.start()
+        try:
+            st = await svc.create(program_plan(36, validation=8), actor="a")
+            st = await svc.wait(st["id"], ["fitted", "faulted"], timeout=120)
+            assert st["state"] == "fitted", st["reason"]
+            await svc.approve(st["id"], actor="a")
+            st = await svc.push(st["id"], actor="a")
+            v = await svc.wait_verification(st["push"]["key"], timeout=120)
+            assert v is not None and v["state"] == "done", v
+            assert v["after"]["rms_mm"] < 0.6 * v["before"]["rms_mm"]
+            robot = await svc.hub.robot()
+            table = await robot.read_compensation()
+            assert table is not None and table.kind == "targets" and table.targets
+            ok = [r for r in table.targets if r.status == "ok"]
+            for r in ok:
+                held = kvp.parse_e6axis(sim.read(f"RC_COMP[{r.index + 1}]")[0],
+                                        components=len(r.q_deg))
+                assert np.allclose(held, r.q_deg, atol=1e-4)
+            # the checksum of the table as pushed (the re-read one differs in float32 digits)
+            pushed = sim.read("RC_COMP_ID[]")[0].strip('"')
+            assert len(pushed) == 64 and pushed in str(svc.compensation())
+
+            await svc.rollback(actor="b")
+            assert [sim.read(f"RC_COMP[{i}]")[0] for i in range(1, 41)] == original
+            assert sim.read("RC_COMP_N") == ("40", True)
         finally:
             await svc.stop()
