@@ -8,7 +8,8 @@ them. The robot side reproduces ``deploy/kuka/robocal_loop.src``: when ``RC_CMD_
 from ``RC_ACK_SEQ`` it checks ``RC_SPEED`` and the software limits, moves to ``RC_TARGET``
 (simulated time), sets ``RC_STATUS`` and copies the sequence number to ``RC_ACK_SEQ``;
 ``RC_STOP=TRUE`` runs the stop interrupt at once (halt where the robot is, ``RC_STATUS`` 4,
-acknowledge, ``RC_STOP=FALSE``). Protocol and loop: docs/protocols/kuka-kvp.md.
+acknowledge every command written so far, ``RC_STOP=FALSE``). Protocol and loop:
+docs/protocols/kuka-kvp.md.
 """
 
 from __future__ import annotations
@@ -135,6 +136,7 @@ class KukaKvpSimulator(SimServer):
             "RC_SPEED": _Var("INT", 10),
             "RC_CMD_SEQ": _Var("INT", 0),
             "RC_ACK_SEQ": _Var("INT", 0),
+            "RC_RUN_SEQ": _Var("INT", 0),
             "RC_STATUS": _Var("INT", IDLE),
             "RC_ERROR": _Var("INT", 0),
             "RC_STOP": _Var("BOOL", False),
@@ -313,16 +315,20 @@ class KukaKvpSimulator(SimServer):
 
     # --- the KRL loop --------------------------------------------------------------------------
     async def _krl_loop(self) -> None:
-        """LOOP: WAIT FOR RC_CMD_SEQ<>RC_ACK_SEQ; RC_MOVE(); RC_ACK_SEQ=RC_CMD_SEQ."""
+        """LOOP: WAIT FOR RC_CMD_SEQ<>RC_ACK_SEQ; RC_RUN_SEQ=RC_CMD_SEQ; RC_MOVE();
+        unless stopped (the interrupt acknowledged), RC_ACK_SEQ=RC_RUN_SEQ."""
         self._set("RC_ACK_SEQ", self._int("RC_CMD_SEQ"))
+        self._set("RC_RUN_SEQ", self._int("RC_CMD_SEQ"))
         loop = self._loop
         while True:
             await loop.wake.wait()
             loop.wake.clear()
             while self._int("RC_CMD_SEQ") != self._int("RC_ACK_SEQ"):
                 loop.stopped.clear()
+                self._set("RC_RUN_SEQ", self._int("RC_CMD_SEQ"))
                 await self._rc_move(loop)
-                self._set("RC_ACK_SEQ", self._int("RC_CMD_SEQ"))
+                if self._int("RC_STATUS") != STOPPED:
+                    self._set("RC_ACK_SEQ", self._int("RC_RUN_SEQ"))
 
     async def _rc_move(self, loop: _Loop) -> None:
         speed = self._int("RC_SPEED")
