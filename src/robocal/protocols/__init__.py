@@ -15,6 +15,8 @@ ltp
     LTP/1 tracker line protocol codec.
 fanuc_rmi
     FANUC RMI JSON packet codec and ErrorID table.
+kuka_kvp
+    KUKAVARPROXY message codec (framer, read/write requests, replies) and KRL value text.
 emscon
     Leica emScon TPI binary packet codec (size-field framer, command and result structs).
 modbus
