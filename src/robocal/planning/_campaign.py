@@ -8,9 +8,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
-from scipy.stats import qmc
 
 from robocal import __version__
 from robocal._core.threads import single_threaded
@@ -95,6 +92,8 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
     """
     dof = checker.robot.dof
     lo, hi = checker.ranges[:, 0], checker.ranges[:, 1]
+    from scipy.stats import qmc  # 0.5-2 s to import: only where Sobol draws are made
+
     sampler = qmc.Sobol(d=dof, scramble=True, seed=np.random.default_rng(seed))
     m = max(10, math.ceil(math.log2(max(1, 16 * target))))
     m = min(m, max(1, int(math.log2(max_draws))))
@@ -308,6 +307,9 @@ class _Roadmap:
             i = np.concatenate([np.array(self.ei)[use], nb])
             j = np.concatenate([np.array(self.ej)[use], np.full(len(nb), goal)])
             w = np.concatenate([np.array(self.ew)[use], t[nb]]) + 1e-9
+            from scipy.sparse import csr_matrix
+            from scipy.sparse.csgraph import dijkstra
+
             G = csr_matrix((w, (i, j)), shape=(n + 1, n + 1))
             dist, pred = dijkstra(G, directed=False, indices=a, return_predecessors=True)
             if not np.isfinite(dist[goal]):
@@ -387,6 +389,8 @@ def _detour_pool(motion: MotionChecker, q_c: Array, seed: int, n: int = 1024) ->
     the rest Sobol points that pass the motion checks (no need to face the tracker), rounded
     as in the file."""
     lo, hi = motion.limits[:, 0], motion.limits[:, 1]
+    from scipy.stats import qmc
+
     sob = qmc.Sobol(d=motion.robot.dof, scramble=True, seed=np.random.default_rng([seed, 4]))
     q = _round_deg(lo + sob.random_base2(int(math.log2(2 * n))) * (hi - lo))
     q = q[~motion.bad(q)]
