@@ -298,7 +298,7 @@ class AbbRwsSimulator:
         nonce = params.get("nonce", "")
         if nonce not in self._nonces or params.get("username") != o.user:
             return False
-        if params.get("uri") != request.path_qs:
+        if params.get("uri") != request.raw_path:
             return False
         qop = params.get("qop")
         try:
