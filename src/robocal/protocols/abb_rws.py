@@ -29,6 +29,7 @@ single-precision value.
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import html.parser
 import json
@@ -430,9 +431,13 @@ def parse_robtarget_state(items: Sequence[Mapping[str, Any]]) -> RobTarget:
 # --- RAPID literals ------------------------------------------------------------------------------
 def single_precision(v: float) -> float:
     """``v`` rounded to IEEE single precision (what a RAPID ``num`` holds)."""
-    if not math.isfinite(v) or abs(v) > 3.4e38:
+    try:
+        f = float(struct.unpack("<f", struct.pack("<f", v))[0])
+    except OverflowError:
+        f = math.inf
+    if not math.isfinite(f):
         raise ValueError(f"{v!r} is not a RAPID num")
-    return float(struct.unpack("<f", struct.pack("<f", v))[0])
+    return f
 
 
 def format_num(v: float) -> str:
@@ -442,8 +447,9 @@ def format_num(v: float) -> str:
         return "0"
     for digits in range(1, 10):
         text = f"{f:.{digits}G}"
-        if single_precision(float(text)) == f:
-            break
+        with contextlib.suppress(ValueError):  # rounded up beyond the largest single
+            if single_precision(float(text)) == f:
+                break
     mant, _, exp = text.partition("E")
     if exp:
         return f"{mant}E{int(exp):+03d}"
