@@ -110,7 +110,7 @@ async def test_connect_refusals(world, robotware):
         with pytest.raises(ConnectFailed, match="motors are off"):
             await off.connect(timeout=5)
         other = load_robot_driver("abb_rws", driver_options(sim, world, module="Other"))
-        with pytest.raises(ConnectFailed, match="RobocalServer.mod"):
+        with pytest.raises(ConnectFailed, match=r"RobocalServer\.mod"):
             await other.connect(timeout=5)
         assert sim.execstate == "stopped"  # nothing was started by the refused sessions
 
