@@ -3,9 +3,14 @@ refusals at connect, motion errors, and compensation in ``rc_comp``."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import json
 import math
+import os
 import re
+import signal
+import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -184,3 +189,32 @@ async def test_targets_table_snapshot_and_restore(world, robotware):
             assert sim.symbols["rc_comp"].value == before.items["rc_comp"]  # nothing written
         finally:
             await robot.close()
+
+
+async def test_robocal_sim_abb_as_a_process(tmp_path):
+    """``robocal sim abb --robotware 7`` serves RWS 2.0 until SIGTERM; the driver moves it."""
+    ports_file = tmp_path / "ports.json"
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "robocal.drivers.sim", "abb", "--robotware", "7",
+        "--time-scale", "0", "--ports-file", str(ports_file),
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    try:
+        assert proc.stdout is not None
+        ports = json.loads(await asyncio.wait_for(proc.stdout.readline(), 30))
+        assert ports["abb_rws"]["robotware"] == 7 and set(ports) == {"host", "robot", "abb_rws"}
+        robot = load_robot_driver("abb_rws", {
+            "port": ports["abb_rws"]["port"], "scheme": "http", "robotware": 7,
+            "joint_limits_deg": [(-90.0, 90.0)] * 6, "poll_interval_s": 0.002})
+        await robot.connect(timeout=10)
+        try:
+            r = await robot.move_to([0.3] * 6, timeout=10)
+            assert r.q_rad[0] == pytest.approx(0.3, abs=1e-4)
+        finally:
+            await robot.close()
+        proc.send_signal(signal.SIGTERM)
+        assert await asyncio.wait_for(proc.wait(), 20) == 0
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

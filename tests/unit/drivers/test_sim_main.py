@@ -46,7 +46,8 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
         ports = json.loads(line)
         assert json.loads(ports_file.read_text()) == ports
         assert set(ports) == {
-            "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker"
+            "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker",
+            "abb_rws",
         }
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")
