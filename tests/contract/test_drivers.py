@@ -96,7 +96,7 @@ async def abb_case(world: SimWorld, robotware: int) -> AsyncIterator[contracts.R
             f"abb_rws{robotware}",
             make=lambda: load_robot_driver("abb_rws", options),
             actual_joints=lambda: world.q_actual_rad,
-            messages_received=lambda: len(sim.received),
+            messages_received=lambda: sim.requests,
             slow_moves=real_time,
         )
 

@@ -338,6 +338,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             if gen != self._stop_gen:
                 raise MotionStopped("stop requested before the move was sent", kind=self.kind)
             state = await self._field(rws.execution(self.dialect), "ctrlexecstate")
+            if gen != self._stop_gen:
+                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
             if state != "running":
                 self.log.warning("RAPID was stopped; restarting RobocalServer")
                 await self._restart_program(deadline)

@@ -23,6 +23,7 @@ from robocal.drivers import load_robot_driver
 from robocal.drivers.sim import AbbRwsSimulator, AbbSimOptions, SimWorld
 from robocal.errors import CompensationError, ConnectFailed, LimitViolation, MotionRejected
 from robocal.protocols import abb_rws as rws
+from tests._waiting import eventually
 
 MODULE_SOURCE = Path(__file__).resolve().parents[3] / "deploy" / "abb" / "RobocalServer.mod"
 
@@ -132,6 +133,29 @@ async def test_sessions_are_limited_and_logout_frees_one(world):
             await first.close()
         await second.connect(timeout=5)
         await second.close()
+
+
+async def test_idle_sessions_end(world):
+    """A client that never logs out holds its session only until it has been idle long."""
+    async with abb_sim(world, robotware=7, max_sessions=1, session_idle_s=0.1) as sim:
+        basic = {"Authorization": rws.basic_authorization("Admin", "robotics")}
+        async with aiohttp.ClientSession() as http, http.get(  # logs in, never logs out
+                sim.base_url + "/rw/panel/opmode", headers=basic) as r:
+            assert r.status == 200
+        late = load_robot_driver("abb_rws", driver_options(sim, world))
+
+        async def connects() -> bool:
+            try:
+                await late.connect(timeout=5)
+            except ConnectFailed as err:
+                assert "too many sessions" in str(err)
+                return False
+            return True
+
+        try:
+            await eventually(connects, 5, interval=0.02, what="the idle session ended")
+        finally:
+            await late.close()
 
 
 async def test_motion_error_is_rejected_and_the_next_move_restarts_the_program(world):

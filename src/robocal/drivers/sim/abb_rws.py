@@ -27,7 +27,8 @@ import json
 import math
 import secrets
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections import deque
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from html import escape
 from typing import Any, Literal
@@ -61,6 +62,8 @@ class AbbSimOptions(BaseModel):
     ``time_scale`` multiplies motion times (0 = instantaneous, 1 = real time).
     ``max_joint_speed_deg_s`` is the joint speed at 100 % ``rc_speed`` and 100 % speed ratio.
     ``comp_size`` is the length of the ``rc_comp`` array (as declared in the module).
+    ``max_sessions`` sessions are held at once (503 beyond); one unused for
+    ``session_idle_s`` seconds ends.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -72,6 +75,7 @@ class AbbSimOptions(BaseModel):
     opmode: Literal["AUTO", "MANR", "MANF"] = "AUTO"
     motors_on: bool = False
     max_sessions: int = Field(default=70, ge=1)
+    session_idle_s: float = Field(default=600.0, gt=0.0)
     max_joint_speed_deg_s: float = Field(default=180.0, gt=0.0)
     min_motion_s: float = Field(default=0.012, ge=0.0)
     comp_size: int = Field(default=500, ge=1, le=5000)
@@ -154,7 +158,7 @@ class _Fail(Exception):
 class _Session:
     sid: str
     abbcx: str
-    created: float = field(default_factory=time.monotonic)
+    last_used: float = field(default_factory=time.monotonic)
 
 
 @dataclass(frozen=True)
@@ -171,8 +175,10 @@ class AbbRwsSimulator:
 
     Attributes
     ----------
-    received : list of (method, path and query)
-        Every request that reached a resource (after authentication).
+    requests : int
+        Number of requests that reached a resource (after authentication).
+    received : deque of (method, path and query)
+        The last 1000 of them.
     symbols : dict
         RAPID data of the server module, by lower-case name.
     elog : list of ElogEntry
@@ -191,7 +197,8 @@ class AbbRwsSimulator:
         self.execstate = "stopped"
         self.speedratio = 100
         self.symbols = _server_symbols(o.module, o.comp_size)
-        self.received: list[tuple[str, str]] = []
+        self.requests = 0
+        self.received: deque[tuple[str, str]] = deque(maxlen=1000)
         self.elog: list[ElogEntry] = []
         self.port = 0
         self.host = "127.0.0.1"
@@ -239,6 +246,7 @@ class AbbRwsSimulator:
     async def _handle(self, request: web.Request) -> web.StreamResponse:
         try:
             new_session = self._authenticate(request)
+            self.requests += 1
             self.received.append((request.method, request.path_qs))
             if self.faults.fire("slow"):
                 await asyncio.sleep(self.faults.config.slow_s)
@@ -264,8 +272,10 @@ class AbbRwsSimulator:
 
     def _authenticate(self, request: web.Request) -> _Session | None:
         """Accept a session cookie or credentials; a new session on good credentials."""
+        now = time.monotonic()
         sid = request.cookies.get("-http-session-")
         if sid is not None and sid in self._sessions:
+            self._sessions[sid].last_used = now
             return None
         header = request.headers.get("Authorization")
         if header is None:
@@ -276,6 +286,12 @@ class AbbRwsSimulator:
             raise self._challenge() from err
         if not self._credentials_ok(request, scheme, params):
             raise self._challenge()
+        idle = [k for k, v in self._sessions.items()
+                if now - v.last_used > self.options.session_idle_s]
+        for k in idle:
+            self._sessions.pop(k)
+            if self._master == k:
+                self._master = None
         if len(self._sessions) >= self.options.max_sessions:
             raise _Fail(503, ERR_SESSIONS, "too many sessions")
         self._abbcx += 1
@@ -731,5 +747,3 @@ def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
     sign = -1.0 if q[0] < 0 else 1.0
     return tuple(float(sign * v) for v in q)  # type: ignore[return-value]
 
-
-Handler = Callable[[web.Request, Mapping[str, str]], Awaitable[Any] | Any]
