@@ -342,7 +342,11 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
                 raise MotionStopped("stop requested before the move was sent", kind=self.kind)
             if state != "running":
                 self.log.warning("RAPID was stopped; restarting RobocalServer")
-                await self._restart_program(deadline)
+                try:
+                    await self._restart_program(deadline)
+                except RwsRequestError as err:
+                    raise MotionRejected(f"cannot restart RobocalServer: {err}",
+                                         kind=self.kind) from err
             await self._write_var(_TARGET, rws.format_jointtarget([math.degrees(v) for v in q]))
             await self._write_var(_SPEED, rws.format_num(max(0.01, min(100.0, speed))))
             if gen != self._stop_gen:
@@ -410,7 +414,13 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         self._stop_gen += 1
         await self._call(rws.stop_execution(self.dialect))
         async with self._cmd_lock:
-            await self._restart_program(time.monotonic() + self.options.request_timeout_s)
+            try:
+                await self._restart_program(time.monotonic() + self.options.request_timeout_s)
+            except RwsRequestError as err:
+                # Halted all the same (e.g. motors off after a guard stop); the next move_to
+                # tries the restart again and reports why it fails.
+                self.log.warning("stopped; RobocalServer not restarted", error=str(err))
+                return
         self.log.info("stopped", next_seq=self._seq + 1)
 
     # --- compensation --------------------------------------------------------------------------

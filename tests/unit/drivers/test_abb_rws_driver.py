@@ -242,3 +242,25 @@ async def test_robocal_sim_abb_as_a_process(tmp_path):
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
+
+
+async def test_stop_after_motors_off_halts_and_the_next_move_names_the_cause(world):
+    """A guard stop switched the motors off: stop() still confirms the halt; the next move is
+    rejected with the controller's reason until the motors are on again."""
+    async with abb_sim(world, robotware=7) as sim:
+        robot = load_robot_driver("abb_rws", driver_options(sim, world, motors_on=False,
+                                                            username="Admin"))
+        sim.ctrlstate = "motoron"
+        await robot.connect(timeout=5)
+        try:
+            sim.ctrlstate = "motoroff"  # as a guard stop leaves it
+            await robot.stop()
+            assert sim.execstate == "stopped"
+            target = [0.5 * math.radians(lo + hi) for lo, hi in world.joint_limits_deg]
+            with pytest.raises(MotionRejected, match="motors are off"):
+                await robot.move_to(target, speed_pct=50, timeout=5)
+            sim.ctrlstate = "motoron"
+            r = await robot.move_to(target, speed_pct=50, timeout=5)
+            assert max(abs(a - b) for a, b in zip(r.q_rad, target, strict=True)) < 1e-3
+        finally:
+            await robot.close()
