@@ -173,8 +173,10 @@ def write_symbol(dialect: Dialect, task: str, module: str | None, name: str,
 
 
 def ctrlstate(dialect: Dialect) -> Request:
-    """GET the controller state (field ``ctrlstate``: ``motoron``, ``motoroff``, ...)."""
-    return _request(dialect, "GET", "/rw/panel/ctrlstate")
+    """GET the controller state (field ``ctrlstate``: ``motoron``, ``motoroff``, ...); RWS 2.0
+    names the resource ``ctrl-state``."""
+    path = "/rw/panel/ctrlstate" if dialect == "rws1" else "/rw/panel/ctrl-state"
+    return _request(dialect, "GET", path)
 
 
 def motors_on(dialect: Dialect, on: bool = True) -> Request:
