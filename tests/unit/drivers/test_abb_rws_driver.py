@@ -95,6 +95,9 @@ async def test_rws2_wants_versioned_form_bodies_and_basic_auth(world):
             assert r.headers["Content-Type"] == rws.JSON_RWS2
             assert rws.single(rws.parse_states(await r.read(), rws.JSON_RWS2),
                               "ctrlstate") == "motoron"
+        async with http.get(sim.base_url + "/rw/panel/opmode",
+                            headers={**basic, "Accept": "application/json"}) as r:
+            assert r.status == 406  # an unversioned media type
         http.cookie_jar.clear()
         digest_like = {"Authorization": rws.basic_authorization("Admin", "wrong")}
         async with http.get(sim.base_url + "/rw/panel/opmode", headers=digest_like) as r:

@@ -250,6 +250,7 @@ class AbbRwsSimulator:
             self.received.append((request.method, request.path_qs))
             if self.faults.fire("slow"):
                 await asyncio.sleep(self.faults.config.slow_s)
+            self._check_accept(request)
             form: Mapping[str, str] = {}
             if request.method == "POST":
                 self._check_content_type(request)
@@ -262,6 +263,12 @@ class AbbRwsSimulator:
             response.set_cookie("-http-session-", new_session.sid, path="/", httponly=True)
             response.set_cookie("ABBCX", new_session.abbcx, path="/")
         return response
+
+    def _check_accept(self, request: web.Request) -> None:
+        accept = request.headers.get("Accept", "*/*").replace(" ", "")
+        if self.dialect == "rws2" and "*/*" not in accept and "v=2.0" not in accept:
+            raise _Fail(406, ERR_BAD_VALUE,
+                        "RWS 2.0 answers application/hal+json;v=2.0 (or xhtml+xml;v=2.0) only")
 
     def _check_content_type(self, request: web.Request) -> None:
         if self.dialect == "rws2" and request.can_read_body:
