@@ -280,6 +280,7 @@ MODULE RobocalServer
     PERS string rc_comp_kind := "";
     PERS string rc_comp_sum := "";
     VAR speeddata rc_v := [100,30,5000,1000];
+    VAR num rc_pct := 10;
 
     PROC main()
         rc_main;
@@ -290,8 +291,11 @@ MODULE RobocalServer
         rc_done := rc_seq;
         WHILE TRUE DO
             WaitUntil rc_seq <> rc_done \PollRate:=0.01;
-            rc_v.v_ori := rc_vmax * Max(0.01, Min(100, rc_speed)) / 100;
-            rc_v.v_tcp := 5000 * Max(0.01, Min(100, rc_speed)) / 100;
+            rc_pct := rc_speed;
+            IF rc_pct < 0.01 rc_pct := 0.01;
+            IF rc_pct > 100 rc_pct := 100;
+            rc_v.v_ori := rc_vmax * rc_pct / 100;
+            rc_v.v_tcp := 5000 * rc_pct / 100;
             MoveAbsJ rc_target, rc_v, fine, tool0 \WObj:=wobj0;
             rc_done := rc_seq;
         ENDWHILE
