@@ -35,7 +35,9 @@ def _config(cell: SimCell, tmp_path: Path, **measurement: Any) -> Any:
     doc["robot_description"] = ROBOT
     doc.pop("cell", None)  # random plans are not checked against a cell's obstacles
     doc["robot"]["options"].update(cell.robot_options("abb_rws"))
-    doc["robot"]["options"].pop("username")  # the default user of the simulated RobotWare
+    # the simulated RobotWare's default user; plain HTTP on loopback
+    for key in ("username", "ca_file"):
+        doc["robot"]["options"].pop(key)
     doc["tracker"]["options"] = {**cell.tracker_options("tcp"), "stab_ms": 10}
     doc["api"] = {"socket": str(tmp_path / "api.sock")}
     doc["measurement"].update({"settle_s": 0.0, "backoff_s": 0.001, "samples": 4,

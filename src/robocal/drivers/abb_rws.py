@@ -27,6 +27,7 @@ import asyncio
 import contextlib
 import math
 import secrets
+import ssl as ssl_module
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Literal
@@ -85,9 +86,10 @@ class AbbRwsOptions(RobotOptions):
         6 (RWS 1.0, digest authentication) or 7 (RWS 2.0, basic authentication).
     username, password
         RWS user (default ``Default User`` on 6, ``Admin`` on 7; password ``robotics``).
-    verify_tls
-        Check the controller's certificate (OmniCore ships a self-signed one: install it, or
-        switch this off on an isolated cell network).
+    verify_tls, ca_file
+        Check the controller's certificate, against the system's CAs or the PEM file
+        ``ca_file`` (OmniCore ships a self-signed certificate: export it and name it here, or
+        switch checking off on an isolated cell network).
     task, module, mechunit
         Where the RobocalServer module runs and which mechanical unit is read.
     request_timeout_s, poll_interval_s
@@ -107,6 +109,7 @@ class AbbRwsOptions(RobotOptions):
     username: str | None = None
     password: str = "robotics"
     verify_tls: bool = True
+    ca_file: str | None = None
     task: str = "T_ROB1"
     module: str = "RobocalServer"
     mechunit: str = "ROB_1"
@@ -239,7 +242,13 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
     async def _connect_impl(self, timeout: float) -> None:
         o = self.options
         deadline = time.monotonic() + timeout
-        ssl = bool(o.verify_tls)
+        ssl: bool | ssl_module.SSLContext = False
+        if o.verify_tls and self.base_url.startswith("https:"):
+            try:
+                ssl = ssl_module.create_default_context(cafile=o.ca_file)
+            except (OSError, ssl_module.SSLError) as err:
+                raise ConnectFailed(f"cannot load ca_file {o.ca_file}: {err}",
+                                    kind=self.kind) from err
         self._http = aiohttp.ClientSession(
             cookie_jar=aiohttp.CookieJar(unsafe=True),
             timeout=aiohttp.ClientTimeout(total=min(o.request_timeout_s, timeout)),

@@ -10,6 +10,7 @@ import math
 import os
 import re
 import signal
+import ssl
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+import trustme
 
 from robocal.compensation import CompensationTable, TargetRow
 from robocal.drivers import load_robot_driver
@@ -267,3 +269,34 @@ async def test_stop_after_motors_off_halts_and_the_next_move_names_the_cause(wor
             assert max(abs(a - b) for a, b in zip(r.q_rad, target, strict=True)) < 1e-3
         finally:
             await robot.close()
+
+
+async def test_robotware7_over_https_checks_the_certificate(world, tmp_path):
+    """RobotWare 7 serves HTTPS only: the driver trusts the site's CA file, refuses an
+    unknown certificate, and connects unchecked only when told to."""
+    ca = trustme.CA()
+    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("127.0.0.1").configure_cert(server_ctx)
+    ca_file = tmp_path / "omnicore-ca.pem"
+    ca.cert_pem.write_to_path(str(ca_file))
+    sim = AbbRwsSimulator(world, AbbSimOptions(robotware=7, time_scale=0.0))
+    await sim.start(ssl_context=server_ctx)
+    try:
+        assert sim.base_url.startswith("https://")
+        base = driver_options(sim, world, scheme="https")
+        unknown = load_robot_driver("abb_rws", base)
+        with pytest.raises(ConnectFailed, match=r"(?i)certificate"):
+            await unknown.connect(timeout=5)
+        missing = load_robot_driver("abb_rws", {**base, "ca_file": str(tmp_path / "none.pem")})
+        with pytest.raises(ConnectFailed, match="ca_file"):
+            await missing.connect(timeout=5)
+        for extra in ({"ca_file": str(ca_file)}, {"verify_tls": False}):
+            robot = load_robot_driver("abb_rws", {**base, **extra})
+            await robot.connect(timeout=5)
+            try:
+                r = await robot.move_to([0.2] * world.dof, speed_pct=50, timeout=5)
+                assert r.q_rad[0] == pytest.approx(0.2, abs=1e-4)
+            finally:
+                await robot.close()
+    finally:
+        await sim.stop()

@@ -26,6 +26,7 @@ import contextlib
 import json
 import math
 import secrets
+import ssl
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -202,6 +203,7 @@ class AbbRwsSimulator:
         self.elog: list[ElogEntry] = []
         self.port = 0
         self.host = "127.0.0.1"
+        self.scheme = "http"
         # program pointer: "main" (start of main), "wait" (in the WaitUntil) or "move"
         self.pp: Literal["main", "wait", "move"] = "main"
         self._program: asyncio.Task[None] | None = None
@@ -215,14 +217,16 @@ class AbbRwsSimulator:
         self._limits_deg = np.degrees(lim)
 
     # --- lifecycle -------------------------------------------------------------------------------
-    async def start(self, host: str = "127.0.0.1", port: int = 0) -> None:
-        """Listen on ``host:port`` (0: a free port)."""
+    async def start(self, host: str = "127.0.0.1", port: int = 0,
+                    ssl_context: ssl.SSLContext | None = None) -> None:
+        """Listen on ``host:port`` (0: a free port); HTTPS with ``ssl_context``."""
         app = web.Application(client_max_size=4 << 20)
         app.router.add_route("*", "/{tail:.*}", self._handle)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
                                      shutdown_timeout=0.5)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, host, port)
+        site = web.TCPSite(self._runner, host, port, ssl_context=ssl_context)
+        self.scheme = "https" if ssl_context is not None else "http"
         await site.start()
         self.host = host
         self.port = int(self._runner.addresses[0][1])
@@ -239,8 +243,8 @@ class AbbRwsSimulator:
 
     @property
     def base_url(self) -> str:
-        """``http://host:port`` of the running server."""
-        return f"http://{self.host}:{self.port}"
+        """``http(s)://host:port`` of the running server."""
+        return f"{self.scheme}://{self.host}:{self.port}"
 
     # --- HTTP plumbing ---------------------------------------------------------------------------
     async def _handle(self, request: web.Request) -> web.StreamResponse:
