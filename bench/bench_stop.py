@@ -28,9 +28,15 @@ import structlog
 
 from robocal.drivers import load_robot_driver
 from robocal.drivers.mock import MockRobot
-from robocal.drivers.sim import FanucSimOptions, ModbusSimOptions, SimCell, SimWorld
+from robocal.drivers.sim import (
+    AbbSimOptions,
+    FanucSimOptions,
+    ModbusSimOptions,
+    SimCell,
+    SimWorld,
+)
 
-KINDS = ("fanuc_rmi", "modbus_plc", "mock")
+KINDS = ("fanuc_rmi", "modbus_plc", "mock", "abb_rws6", "abb_rws7")
 
 
 @contextlib.asynccontextmanager
@@ -43,14 +49,17 @@ async def _robot(kind: str, world: SimWorld) -> AsyncIterator[Any]:
         finally:
             await robot.close()
         return
+    abb = kind.startswith("abb_rws")
     cell = SimCell(
         world=world,
         fanuc=FanucSimOptions(time_scale=1.0) if kind == "fanuc_rmi" else False,
         modbus=ModbusSimOptions(time_scale=1.0) if kind == "modbus_plc" else False,
         ltp=False,
+        abb=AbbSimOptions(time_scale=1.0, robotware=int(kind[-1])) if abb else False,  # type: ignore[arg-type]
     )
     async with cell:
-        robot = load_robot_driver(kind, cell.robot_options(kind))  # type: ignore[arg-type]
+        driver = "abb_rws" if abb else kind
+        robot = load_robot_driver(driver, cell.robot_options(driver))  # type: ignore[arg-type]
         await robot.connect(timeout=5)
         try:
             yield robot
@@ -79,10 +88,10 @@ async def _trial(kind: str, seed: int) -> tuple[float, float]:
         return world.last_halt_time - t0, confirmed
 
 
-async def run(trials: int) -> dict[str, Any]:
+async def run(trials: int, kinds: list[str] | tuple[str, ...] = KINDS) -> dict[str, Any]:
     """Return per-driver latency statistics in milliseconds."""
     out: dict[str, Any] = {}
-    for kind in KINDS:
+    for kind in kinds:
         halts, confirms = [], []
         for i in range(trials):
             h, c = await _trial(kind, seed=i)
@@ -108,15 +117,16 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--trials", type=int, default=30)
     p.add_argument("--json", action="store_true")
+    p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     args = p.parse_args()
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(40))
-    result = asyncio.run(run(args.trials))
+    result = asyncio.run(run(args.trials, args.kinds))
     result["machine"] = {"python": platform.python_version(), "cpu": platform.processor()}
     if args.json:
         print(json.dumps(result, indent=2))
         return
     print(f"{'driver':<12} {'halt median/p95/max ms':>26} {'stop() returned median/p95/max':>32}")
-    for kind in KINDS:
+    for kind in args.kinds:
         h, c = result[kind]["halt_ms"], result[kind]["stop_returned_ms"]
         print(
             f"{kind:<12} {h['median']:8.2f} {h['p95']:8.2f} {h['max']:8.2f}"

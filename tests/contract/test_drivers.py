@@ -10,6 +10,7 @@ import pytest
 from robocal.drivers import contracts, load_robot_driver, load_tracker_driver
 from robocal.drivers.mock import MockRobot, MockTracker
 from robocal.drivers.sim import (
+    AbbSimOptions,
     EmsconSimOptions,
     FanucRmiSimulator,
     FanucSimOptions,
@@ -35,6 +36,10 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
             make=lambda: MockRobot({"move_time_s": 0.3}, world=world),
             actual_joints=lambda: world.q_actual_rad,
         )
+        return
+    if name.startswith("abb_rws"):
+        async with abb_case(world, int(name[-1])) as rut:
+            yield rut
         return
     cell = SimCell(
         world=world,
@@ -70,6 +75,34 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
             make=lambda: load_robot_driver(name, options),
             actual_joints=lambda: world.q_actual_rad,
             messages_received=received,
+            slow_moves=real_time,
+        )
+
+
+@contextlib.asynccontextmanager
+async def abb_case(world: SimWorld, robotware: int) -> AsyncIterator[contracts.RobotUnderTest]:
+    """The ABB driver against the RWS simulator of RobotWare ``robotware`` (6 or 7)."""
+    cell = SimCell(world=world, fanuc=False, modbus=False, ltp=False,
+                   abb=AbbSimOptions(robotware=robotware, time_scale=0.0))  # type: ignore[arg-type]
+    async with cell:
+        sim = cell.abb_sim
+        assert sim is not None
+        options = cell.robot_options("abb_rws")
+
+        @contextlib.contextmanager
+        def real_time() -> Iterator[None]:
+            fast = sim.options
+            sim.options = fast.model_copy(update={"time_scale": 1.0})
+            try:
+                yield
+            finally:
+                sim.options = fast
+
+        yield contracts.RobotUnderTest(
+            f"abb_rws{robotware}",
+            make=lambda: load_robot_driver("abb_rws", options),
+            actual_joints=lambda: world.q_actual_rad,
+            messages_received=lambda: sim.requests,
             slow_moves=real_time,
         )
 
@@ -128,7 +161,7 @@ def emscon_cell(world: SimWorld, *, faulty: bool) -> SimCell:
                    faults=FaultConfig(beam_break_rate=0.05, seed=9))
 
 
-ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "kuka_kvp"]
+ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "kuka_kvp", "abb_rws6", "abb_rws7"]
 TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty", "emscon", "emscon-faults"]
 
 

@@ -21,7 +21,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 ACTIVATE = ". .venv/bin/activate"
-SIM_PORTS = range(17001, 17006)
+SIM_PORTS = (*range(17001, 17007), 17010)  # sim all: ..., emScon 17005, KUKA 17006, ABB 17010
 
 
 def _using_blocks() -> list[str]:

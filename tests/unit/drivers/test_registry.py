@@ -24,7 +24,7 @@ from robocal.errors import ConfigError, DriverImportError, DriverNotFound
 
 def test_available_lists_declared_entry_points():
     assert available() == {
-        "robots": ["fanuc_rmi", "kuka_kvp", "mock", "modbus_plc"],
+        "robots": ["abb_rws", "fanuc_rmi", "kuka_kvp", "mock", "modbus_plc"],
         "trackers": ["emscon", "ltp", "mock"],
     }
 

@@ -48,6 +48,7 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
         assert set(ports) == {
             "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker",
             "kuka_kvp",
+            "abb_rws",
         }
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")

@@ -26,6 +26,7 @@ from typing import Any, Literal
 import structlog
 
 from robocal.drivers.sim._server import publish_ports, until_signalled
+from robocal.drivers.sim.abb_rws import AbbRwsSimulator, AbbSimOptions
 from robocal.drivers.sim.emscon import EmsconSimOptions, EmsconTrackerSimulator
 from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
@@ -36,6 +37,8 @@ from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
 
 __all__ = [
     "DEFAULT_ROBOT",
+    "AbbRwsSimulator",
+    "AbbSimOptions",
     "EmsconSimOptions",
     "EmsconTrackerSimulator",
     "FanucRmiSimulator",
@@ -73,17 +76,19 @@ class SimCell:
         Run the emScon tracker simulator (off by default).
     kuka : bool or options
         Run the KUKA KUKAVARPROXY simulator (off by default).
+    abb : bool or options
+        Run the ABB Robot Web Services simulator (off by default).
     faults : FaultConfig, optional
         Injected faults, shared by all simulators (each draws with its own generator).
     host : str
         Listening address (loopback).
     ports : dict, optional
         Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``,
-        ``kuka`` (0: free port).
+        ``kuka``, ``abb`` (0: free port).
 
     Attributes
     ----------
-    fanuc_sim, modbus_sim, ltp_sim, emscon_sim, kuka_sim
+    fanuc_sim, modbus_sim, ltp_sim, emscon_sim, kuka_sim, abb_sim
         The running simulators (None when not requested).
     """
 
@@ -101,6 +106,7 @@ class SimCell:
         ltp_pty: bool = False,
         emscon: bool | EmsconSimOptions = False,
         kuka: bool | KukaSimOptions = False,
+        abb: bool | AbbSimOptions = False,
         faults: FaultConfig | None = None,
         host: str = "127.0.0.1",
         ports: dict[str, int] | None = None,
@@ -111,6 +117,8 @@ class SimCell:
         self.ltp_tcp, self.ltp_pty = ltp_tcp, ltp_pty
         self._emscon = emscon
         self._kuka = kuka
+        self._abb = abb
+        self.abb_sim: AbbRwsSimulator | None = None
         self.faults = faults
         self.host = host
         self._fixed = dict(ports or {})
@@ -156,6 +164,10 @@ class SimCell:
                 kopts = self._kuka if isinstance(self._kuka, KukaSimOptions) else None
                 self.kuka_sim = KukaKvpSimulator(world, kopts, self.faults)
                 await self.kuka_sim.start(self.host, p.get("kuka", 0))
+            if self._abb is not False:
+                aopts = self._abb if isinstance(self._abb, AbbSimOptions) else None
+                self.abb_sim = AbbRwsSimulator(world, aopts, self.faults)
+                await self.abb_sim.start(self.host, p.get("abb", 0))
         except BaseException:
             await self.stop()
             raise
@@ -163,8 +175,8 @@ class SimCell:
 
     async def stop(self) -> None:
         """Stop every simulator; idempotent."""
-        for sim in (self.kuka_sim, self.emscon_sim, self.ltp_sim, self.modbus_sim,
-                    self.fanuc_sim):
+        for sim in (self.abb_sim, self.kuka_sim, self.emscon_sim, self.ltp_sim,
+                    self.modbus_sim, self.fanuc_sim):
             if sim is not None:
                 await sim.stop()
 
@@ -194,10 +206,13 @@ class SimCell:
             out["emscon_tracker"] = {"port": self.emscon_sim.port}
         if self.kuka_sim is not None:
             out["kuka_kvp"] = {"port": self.kuka_sim.port}
+        if self.abb_sim is not None:
+            out["abb_rws"] = {"port": self.abb_sim.port,
+                              "robotware": self.abb_sim.options.robotware}
         return out
 
     def robot_options(
-        self, kind: Literal["fanuc_rmi", "modbus_plc", "kuka_kvp", "mock"]
+        self, kind: Literal["fanuc_rmi", "modbus_plc", "kuka_kvp", "abb_rws", "mock"]
     ) -> dict[str, Any]:
         """Options for ``load_robot_driver(kind, ...)`` pointing at this cell's simulator."""
         limits = [list(lim) for lim in self.world.joint_limits_deg]
@@ -214,6 +229,13 @@ class SimCell:
                 "connect_port": self.fanuc_sim.connect_port,
                 "joint_limits_deg": limits,
             }
+        if kind == "abb_rws":
+            if self.abb_sim is None:
+                raise RuntimeError("the ABB RWS simulator is not running")
+            # the simulator serves plain HTTP on loopback, also for RobotWare 7
+            return {"host": self.host, "port": self.abb_sim.port, "scheme": "http",
+                    "robotware": self.abb_sim.options.robotware, "joint_limits_deg": limits,
+                    "poll_interval_s": 0.002}
         if kind == "modbus_plc":
             if self.modbus_sim is None:
                 raise RuntimeError("the Modbus PLC simulator is not running")
@@ -256,7 +278,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "which",
-        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "kuka", "all",
+        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "kuka", "abb",
+                 "all",
                  "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
@@ -268,12 +291,14 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4;"
-        " kuka P+5",
+        " kuka P+5; abb P+9",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
     p.add_argument("--time-scale", type=float, default=0.001, help="simulated time factor")
     p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
+    p.add_argument("--robotware", type=int, choices=[6, 7], default=6,
+                   help="abb: RobotWare 6 (RWS 1.0, digest) or 7 (RWS 2.0, basic)")
     p.add_argument("--replay", type=Path, help="emscon-tracker: answer from this recording")
     p.add_argument("--listen", default="127.0.0.1:0", help="relay: HOST:PORT to listen on")
     p.add_argument("--target", help="relay: the tracker's HOST:PORT (e.g. 192.168.0.1:700)")
@@ -294,6 +319,8 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return {"emscon": port}
     if which == "kuka":
         return {"kuka": port}
+    if which == "abb":
+        return {"abb": port}
     return {
         "fanuc_connect": port,
         "fanuc_main": port + 1,
@@ -301,6 +328,7 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         "ltp": port + 3,
         "emscon": port + 4,
         "kuka": port + 5,
+        "abb": port + 9,
     }
 
 
@@ -323,6 +351,10 @@ async def _serve(args: argparse.Namespace) -> int:
             EmsconSimOptions(time_scale=scale) if which in ("emscon-tracker", "all") else False
         ),
         kuka=KukaSimOptions(time_scale=scale) if which in ("kuka", "all") else False,
+        abb=(
+            AbbSimOptions(time_scale=scale, robotware=args.robotware)
+            if which in ("abb", "all") else False
+        ),
         faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
         host=args.host,
         ports=_fixed_ports(which, args.port),
@@ -334,7 +366,8 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|kuka|all|relay ...``."""
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|kuka|abb|all|relay
+    [options]``."""
     args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if not structlog.is_configured():
         # stdout carries the ports JSON; keep log lines off it.
