@@ -19,6 +19,46 @@ SHARED = REPO.parent / "shared"
 DATASET = SHARED / "datasets" / "ipa-ur10-lasertracker"
 
 
+#: Outcomes of the tests marked ``dataset`` (real UR10 data), counted in the controlling
+#: process (xdist workers send their reports there).
+_DATASET_OUTCOMES: dict[str, int] = {"passed": 0, "failed": 0, "skipped": 0}
+
+
+def _dataset_present() -> bool:
+    return (DATASET / "Series_C").is_dir()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if "dataset" not in report.keywords:
+        return
+    if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):
+        _DATASET_OUTCOMES[report.outcome] += 1
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """A real-data test skipped while the data set is there is a failure of the run: the
+    acceptance figures on real data would silently not have been checked."""
+    if (_dataset_present() and _DATASET_OUTCOMES["skipped"]
+            and exitstatus == pytest.ExitCode.OK):
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter, exitstatus: int,
+                            config: pytest.Config) -> None:
+    ran, skipped = (_DATASET_OUTCOMES["passed"] + _DATASET_OUTCOMES["failed"],
+                    _DATASET_OUTCOMES["skipped"])
+    if not ran and not skipped:
+        return
+    where = f"data set {'present' if _dataset_present() else 'absent'} at {DATASET}"
+    line = f"real-data tests: {ran} ran, {skipped} skipped ({where})"
+    if _dataset_present() and skipped:
+        terminalreporter.write_line(line + ": FAILED, the data set is present but tests "
+                                    "that need it were skipped", red=True)
+    else:
+        terminalreporter.write_line(line)
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     """A seeded generator, fresh per test."""
@@ -28,7 +68,7 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def dataset_dir() -> Path:
     """The IPA UR10 dataset directory; skips the test when it is absent."""
-    if not (DATASET / "Series_C").is_dir():
+    if not _dataset_present():
         pytest.skip(f"dataset not found at {DATASET}")
     return DATASET
 
