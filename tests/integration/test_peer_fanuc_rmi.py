@@ -15,12 +15,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import fanuc_rmi  # a test dependency: missing, the test errors rather than skips
 import numpy as np
-import pytest
 
 from robocal.drivers.sim import FanucRmiSimulator, FanucSimOptions, SimWorld
-
-fanuc_rmi = pytest.importorskip("fanuc_rmi")
 
 TOOL = {"X": 0.0, "Y": 0.0, "Z": 120.0, "W": 0.0, "P": 0.0, "R": 0.0}
 UFRAME = {"X": 300.0, "Y": -50.0, "Z": 10.0, "W": 0.0, "P": 0.0, "R": 30.0}

@@ -16,12 +16,10 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import pytest
+import py_openshowvar  # a test dependency: missing, the test errors rather than skips
 
 from robocal.drivers.sim import KukaKvpSimulator, KukaSimOptions, SimWorld
 from robocal.protocols import kuka_kvp as kvp
-
-py_openshowvar = pytest.importorskip("py_openshowvar")
 
 
 def _wait(pred: Callable[[], Any], timeout: float = 10.0) -> Any:

@@ -76,9 +76,8 @@ def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
 
 def test_campaign_from_the_store(campaign: Campaign, tmp_path: Path,
                                  capsys: pytest.CaptureFixture[str]) -> None:
-    store_mod = pytest.importorskip("robocal.daemon.store")
-    Store, MeasurementRow, PoseRow = (store_mod.Store, store_mod.MeasurementRow,
-                                      store_mod.PoseRow)
+    from robocal.daemon.store import MeasurementRow, PoseRow, Store
+
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'data_dir = "{tmp_path}"\nrobot_description = "fanuc_lrmate200i"\n'
                    '[robot]\nkind = "mock"\n[tracker]\nkind = "mock"\n')
