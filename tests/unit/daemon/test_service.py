@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
 from pathlib import Path
@@ -147,7 +146,7 @@ async def test_pause_and_resume_keep_every_measurement_once(service):
     rec = svc.store.campaign(cid)
     assert rec.state.value == "paused" and 5 <= rec.poses_measured < 30
     assert svc._measure_task is not None and svc._measure_task[1].done()
-    await asyncio.sleep(0.03)  # three move times: a pose still in flight would land here
+    # the measuring task has ended, so no pose can still be in flight to land after this
     assert svc.store.campaign(cid).poses_measured == rec.poses_measured
     await svc.resume(cid, actor="a")
     st = await svc.wait(cid, ["fitted"], timeout=60)
@@ -204,7 +203,7 @@ async def test_abort_stops_motion(service):
     assert st["state"] == "aborted"
     n = st["poses_measured"]
     assert svc._measure_task is not None and svc._measure_task[1].done()
-    await asyncio.sleep(0.04)  # two move times: a pose still in flight would land here
+    # the measuring task has ended, so no pose can still be in flight to land after this
     assert svc.store.campaign(st["id"]).poses_measured == n < 30
     with pytest.raises(InvalidTransition):
         await svc.resume(st["id"], actor="a")
