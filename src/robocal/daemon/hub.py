@@ -98,11 +98,6 @@ class DriverHub:
             _log.info("tracker connected", driver=cfg.kind)
         return self._tracker
 
-    @property
-    def robot_connected(self) -> bool:
-        """True while a robot driver is connected (only then can anything be moving)."""
-        return self._robot is not None
-
     async def stop_motion(
         self, reason: str, *, timeout: float = 5.0
     ) -> tuple[Literal["stopped", "not-connected", "failed"], str]:

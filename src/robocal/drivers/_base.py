@@ -85,11 +85,6 @@ class DriverBase:
         self.state: DriverState = "new"
         self.log = structlog.get_logger(f"robocal.drivers.{self.kind}").bind(driver=self.kind)
 
-    @classmethod
-    def from_options(cls, options: Mapping[str, Any] | None = None) -> Self:
-        """Validate a plain mapping and build the driver."""
-        return cls(options)
-
     @property
     def connected(self) -> bool:
         """True after a successful connect and before close."""

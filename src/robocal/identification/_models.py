@@ -47,12 +47,6 @@ def knots_for_spacing(spacing_deg: float) -> int:
     return max(8, round(360.0 / spacing_deg))
 
 
-def covered_knots(q: Array, n_knots: int) -> NDArray[np.intp]:
-    """Knot indices (sorted) whose B-spline support contains at least one of the angles ``q``."""
-    idx, _, _ = spline_weights(np.asarray(q, dtype=float), n_knots)
-    return np.unique(idx)
-
-
 def knot_counts(q: Array, n_knots: int) -> NDArray[np.intp]:
     """Number of angles ``q`` (n,) rad in the B-spline support of each knot (n_knots,)."""
     idx, _, _ = spline_weights(np.asarray(q, dtype=float), n_knots)
@@ -62,7 +56,7 @@ def knot_counts(q: Array, n_knots: int) -> NDArray[np.intp]:
 def span_knots(q: Array, n_knots: int) -> NDArray[np.intp]:
     """Knot indices (sorted) of the whole arc the angles ``q`` (n,) rad span.
 
-    Unlike :func:`covered_knots`, gaps between data inside the range are bridged: a map
+    Unlike the knots with data (:func:`knot_counts` > 0), gaps inside the range are bridged: a map
     that simply stops at a gap drops to zero there, far from its values on both sides (a
     pose in the gap then gets a worse correction than the constant model's). Only the
     largest empty arc of the circle is left out (all knots if the data leave no gap wider

@@ -200,12 +200,6 @@ class ErrorModelSpec:
         new = [*self.terms, *(t for t in extra if t not in have)]
         return ErrorModelSpec(self.dof, tuple(new), tuple(knots), label or self.label)
 
-    def without(self, drop: Iterable[Term], *, label: str | None = None) -> ErrorModelSpec:
-        """Return a spec without the given terms (map knot counts kept)."""
-        gone = set(drop)
-        return ErrorModelSpec(self.dof, tuple(t for t in self.terms if t not in gone),
-                              self.map_knots, label or self.label)
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form."""
         return {"dof": self.dof, "label": self.label, "map_knots": list(self.map_knots),
