@@ -19,13 +19,15 @@ from robocal.drivers.sim import (
     ModbusSimOptions,
     SimCell,
     SimWorld,
+    UrSimOptions,
+    UrSimulator,
 )
 from robocal.drivers.sim.emscon import EmsconFaults
 
 
 @contextlib.asynccontextmanager
 async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
-    world = SimWorld.create(seed=5)
+    world = SimWorld.create("ur10" if name == "universal_robots" else "fanuc_lrmate200id", seed=5)
     if name == "mock":
         yield contracts.RobotUnderTest(
             "mock",
@@ -39,13 +41,17 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
         fanuc=FanucSimOptions(time_scale=0.0) if name == "fanuc_rmi" else False,
         modbus=ModbusSimOptions(time_scale=0.0) if name == "modbus_plc" else False,
         ltp=False,
+        ur=UrSimOptions(time_scale=0.0) if name == "universal_robots" else False,
     )
     async with cell:
         options = cell.robot_options(name)  # type: ignore[arg-type]
-        sim: FanucRmiSimulator | ModbusPlcSimulator
+        sim: FanucRmiSimulator | ModbusPlcSimulator | UrSimulator
         if name == "fanuc_rmi":
             rmi_sim = sim = cell.fanuc_sim
             received: Callable[[], int] = lambda: len(rmi_sim.received)  # noqa: E731
+        elif name == "universal_robots":
+            ur_sim = sim = cell.ur_sim
+            received = lambda: len(ur_sim.scripts)  # noqa: E731
         else:
             plc_sim = sim = cell.modbus_sim
             received = lambda: len(plc_sim.commands)  # noqa: E731
@@ -122,7 +128,7 @@ def emscon_cell(world: SimWorld, *, faulty: bool) -> SimCell:
                    faults=FaultConfig(beam_break_rate=0.05, seed=9))
 
 
-ROBOTS = ["mock", "fanuc_rmi", "modbus_plc"]
+ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "universal_robots"]
 TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty", "emscon", "emscon-faults"]
 
 

@@ -31,6 +31,7 @@ from robocal.drivers.sim.fanuc_rmi import FanucRmiSimulator, FanucSimOptions
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
+from robocal.drivers.sim.universal_robots import UrSimOptions, UrSimulator
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
 
 __all__ = [
@@ -47,6 +48,8 @@ __all__ = [
     "ModbusSimOptions",
     "SimCell",
     "SimWorld",
+    "UrSimOptions",
+    "UrSimulator",
     "main",
 ]
 
@@ -68,13 +71,18 @@ class SimCell:
         Serve the tracker on TCP and/or on a pty pair.
     emscon : bool or options
         Run the emScon tracker simulator (off by default).
+    ur : bool or options
+        Run the Universal Robots simulator (off by default).
     faults : FaultConfig, optional
         Injected faults, shared by all simulators (each draws with its own generator).
     host : str
         Listening address (loopback).
     ports : dict, optional
-        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``
-        (0: free port).
+        Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``,
+        ``ur_dashboard``, ``ur_primary``, ``ur_secondary``, ``ur_rtde`` (0: free port).
+    ur_host : str, optional
+        Listening address of the UR simulator (default ``host``); ur-rtde reaches RTDE on
+        port 30004 only, so tests give it a loopback address of its own.
 
     Attributes
     ----------
@@ -95,6 +103,8 @@ class SimCell:
         ltp_tcp: bool = True,
         ltp_pty: bool = False,
         emscon: bool | EmsconSimOptions = False,
+        ur: bool | UrSimOptions = False,
+        ur_host: str | None = None,
         faults: FaultConfig | None = None,
         host: str = "127.0.0.1",
         ports: dict[str, int] | None = None,
@@ -104,6 +114,8 @@ class SimCell:
         self._fanuc, self._modbus, self._ltp = fanuc, modbus, ltp
         self.ltp_tcp, self.ltp_pty = ltp_tcp, ltp_pty
         self._emscon = emscon
+        self._ur = ur
+        self.ur_host = ur_host or host
         self.faults = faults
         self.host = host
         self._fixed = dict(ports or {})
@@ -111,6 +123,7 @@ class SimCell:
         self.modbus_sim: ModbusPlcSimulator | None = None
         self.ltp_sim: LtpTrackerSimulator | None = None
         self.emscon_sim: EmsconTrackerSimulator | None = None
+        self.ur_sim: UrSimulator | None = None
 
     @property
     def world(self) -> SimWorld:
@@ -144,6 +157,14 @@ class SimCell:
                 eopts = self._emscon if isinstance(self._emscon, EmsconSimOptions) else None
                 self.emscon_sim = EmsconTrackerSimulator(world, eopts, self.faults)
                 await self.emscon_sim.start(self.host, p.get("emscon", 0))
+            if self._ur is not False:
+                uopts = self._ur if isinstance(self._ur, UrSimOptions) else None
+                self.ur_sim = UrSimulator(world, uopts, self.faults)
+                await self.ur_sim.start(
+                    self.ur_host, dashboard=p.get("ur_dashboard", 0),
+                    primary=p.get("ur_primary", 0), secondary=p.get("ur_secondary", 0),
+                    rtde_port=p.get("ur_rtde", 0),
+                )
         except BaseException:
             await self.stop()
             raise
@@ -151,7 +172,8 @@ class SimCell:
 
     async def stop(self) -> None:
         """Stop every simulator; idempotent."""
-        for sim in (self.emscon_sim, self.ltp_sim, self.modbus_sim, self.fanuc_sim):
+        for sim in (self.ur_sim, self.emscon_sim, self.ltp_sim, self.modbus_sim,
+                    self.fanuc_sim):
             if sim is not None:
                 await sim.stop()
 
@@ -179,9 +201,13 @@ class SimCell:
             }
         if self.emscon_sim is not None:
             out["emscon_tracker"] = {"port": self.emscon_sim.port}
+        if self.ur_sim is not None:
+            out["universal_robots"] = {"host": self.ur_host, **self.ur_sim.ports}
         return out
 
-    def robot_options(self, kind: Literal["fanuc_rmi", "modbus_plc", "mock"]) -> dict[str, Any]:
+    def robot_options(
+        self, kind: Literal["fanuc_rmi", "modbus_plc", "universal_robots", "mock"]
+    ) -> dict[str, Any]:
         """Options for ``load_robot_driver(kind, ...)`` pointing at this cell's simulator."""
         limits = [list(lim) for lim in self.world.joint_limits_deg]
         if kind == "fanuc_rmi":
@@ -201,6 +227,17 @@ class SimCell:
                 "joint_limits_deg": limits,
                 "register_map": self.modbus_sim.map.model_dump(),
                 "poll_interval_s": 0.001,
+            }
+        if kind == "universal_robots":
+            if self.ur_sim is None:
+                raise RuntimeError("the Universal Robots simulator is not running")
+            ports = self.ur_sim.ports
+            return {
+                "host": self.ur_host,
+                "dashboard_port": ports["dashboard"],
+                "primary_port": ports["primary"],
+                "rtde_port": ports["rtde"],
+                "joint_limits_deg": limits,
             }
         return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
 
@@ -234,7 +271,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "which",
-        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "all", "relay"],
+        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "ur", "all",
+                 "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
     p.add_argument("--scenario", default="paper", help="planted-error scenario")
@@ -244,7 +282,9 @@ def _parser() -> argparse.ArgumentParser:
         "--port",
         type=int,
         default=0,
-        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4",
+        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4; "
+        "ur P+5, P+7, P+8, P+10. ur: dashboard P, primary P+2, secondary P+3, RTDE P+5 "
+        "(P=29999 gives the real ports)",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
@@ -268,13 +308,22 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return {"ltp": port}
     if which == "emscon-tracker":
         return {"emscon": port}
+    if which == "ur":
+        return _ur_ports(port)
     return {
+        **_ur_ports(port + 5),
         "fanuc_connect": port,
         "fanuc_main": port + 1,
         "modbus": port + 2,
         "ltp": port + 3,
         "emscon": port + 4,
     }
+
+
+def _ur_ports(port: int) -> dict[str, int]:
+    """The UR ports from the dashboard's, with the real controller's spacing."""
+    return {"ur_dashboard": port, "ur_primary": port + 2, "ur_secondary": port + 3,
+            "ur_rtde": port + 5}
 
 
 async def _serve(args: argparse.Namespace) -> int:
@@ -295,6 +344,7 @@ async def _serve(args: argparse.Namespace) -> int:
         emscon=(
             EmsconSimOptions(time_scale=scale) if which in ("emscon-tracker", "all") else False
         ),
+        ur=UrSimOptions(time_scale=scale) if which in ("ur", "all") else False,
         faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
         host=args.host,
         ports=_fixed_ports(which, args.port),
@@ -306,7 +356,7 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|all|relay [options]``."""
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|ur|all|relay ...``."""
     args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if not structlog.is_configured():
         # stdout carries the ports JSON; keep log lines off it.
