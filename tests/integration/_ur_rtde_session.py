@@ -35,6 +35,11 @@ def step(name: str, fn: Callable[[], Any], check: Callable[[Any], bool]) -> Any:
     return value
 
 
+def near(q: list[float]) -> bool:
+    """``q`` is the expected pose within 1 mrad per joint."""
+    return len(q) == 6 and max(abs(a - b) for a, b in zip(q, EXPECTED_Q, strict=True)) < 1e-3
+
+
 def until(fn: Callable[[], Any], check: Callable[[Any], bool], timeout: float = 5.0) -> Any:
     """Poll ``fn`` until ``check`` holds (bounded); return the last value."""
     deadline = time.monotonic() + timeout
@@ -75,9 +80,9 @@ r = step("rtde_receive.RTDEReceiveInterface", lambda: rtde_receive.RTDEReceiveIn
          lambda v: v.isConnected())
 if r is not None:
     step("rtde_receive.getActualQ", r.getActualQ,
-         lambda v: len(v) == 6 and max(abs(a - b) for a, b in zip(v, EXPECTED_Q)) < 1e-3)
+         near)
     step("rtde_receive.getTargetQ", r.getTargetQ,
-         lambda v: max(abs(a - b) for a, b in zip(v, EXPECTED_Q)) < 1e-3)
+         near)
     step("rtde_receive.getRobotMode", r.getRobotMode, lambda v: v == 7)
     step("rtde_receive.getSafetyMode", r.getSafetyMode, lambda v: v == 1)
     step("rtde_receive.getRuntimeState", r.getRuntimeState, lambda v: v == 1)
