@@ -52,7 +52,9 @@ def register(sub: Any) -> None:
                    help="planted errors (default paper)")
     p.add_argument("--fault-rate", type=float, default=0.03,
                    help="injected tracker fault rate per reading (default 0.03)")
-    p.add_argument("--robot", default="fanuc_lrmate200i", help=argparse.SUPPRESS)
+    p.add_argument("--robot", default="fanuc_lrmate200i",
+                   help="virtual robot: fanuc_lrmate200i (default; FANUC RMI simulator) or ur10 "
+                        "(Universal Robots simulator: Dashboard, RTDE, primary interface)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -182,7 +184,13 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
     from robocal.daemon.config import parse_config
     from robocal.daemon.pushing import ideal_positions
     from robocal.daemon.service import CalibrationService
-    from robocal.drivers.sim import FanucSimOptions, FaultConfig, LtpSimOptions, SimCell
+    from robocal.drivers.sim import (
+        FanucSimOptions,
+        FaultConfig,
+        LtpSimOptions,
+        SimCell,
+        UrSimOptions,
+    )
 
     out: Path = args.out
     progress = _Progress(args.quiet)
@@ -198,8 +206,11 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
                   f"in {time.perf_counter() - t0:.1f} s")
 
     faults = FaultConfig.uniform(args.fault_rate, seed=args.seed)
+    ur = args.robot.startswith("ur")  # UR arms go through the UR simulator and driver
+    robot_kind = "universal_robots" if ur else "fanuc_rmi"
     cell = SimCell(robot=args.robot, scenario=args.scenario, seed=args.seed,
-                   fanuc=FanucSimOptions(time_scale=0.0005), modbus=False,
+                   fanuc=False if ur else FanucSimOptions(time_scale=0.0005), modbus=False,
+                   ur=UrSimOptions(time_scale=0.0005) if ur else False,
                    ltp=LtpSimOptions(time_scale=0.0005), faults=faults)
     figures: dict[str, Any] = {}
     async with cell:
@@ -207,7 +218,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             "data_dir": str(out / "state"),
             "robot_description": args.robot,
             "cell": "demo",
-            "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
+            "robot": {"kind": robot_kind, "options": cell.robot_options(robot_kind)},
             "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
                                                    "stab_ms": 100}},
             "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
@@ -227,7 +238,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             await asyncio.sleep(0.1)
     figures["wall_time_s"] = round(time.perf_counter() - t_start, 1)
     injected: dict[str, int] = {}
-    for sim in (cell.fanuc_sim, cell.ltp_sim):
+    for sim in (cell.fanuc_sim, cell.ur_sim, cell.ltp_sim):
         for name, n in (sim.faults.counts if sim is not None else {}).items():
             injected[name] = injected.get(name, 0) + n
     figures["faults_injected"] = injected
