@@ -28,7 +28,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
 from robocal.cli._defaults import VALIDATION_HELP, default_validation
@@ -207,7 +207,8 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
 
     faults = FaultConfig.uniform(args.fault_rate, seed=args.seed)
     ur = args.robot.startswith("ur")  # UR arms go through the UR simulator and driver
-    robot_kind = "universal_robots" if ur else "fanuc_rmi"
+    robot_kind: Literal["universal_robots", "fanuc_rmi"] = (
+        "universal_robots" if ur else "fanuc_rmi")
     cell = SimCell(robot=args.robot, scenario=args.scenario, seed=args.seed,
                    fanuc=False if ur else FanucSimOptions(time_scale=0.0005), modbus=False,
                    ur=UrSimOptions(time_scale=0.0005) if ur else False,
