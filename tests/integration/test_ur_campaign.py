@@ -13,13 +13,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tests._waiting import eventually
 
 from robocal.daemon import parse_plan, plan_from_poses
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import FaultConfig, LtpSimOptions, SimCell, SimWorld, UrSimOptions
 from robocal.kinematics import load_robot
-from tests._waiting import eventually
 
 ROBOT = "ur10"
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "config" / "ur.toml"
