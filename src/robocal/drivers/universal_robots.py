@@ -10,9 +10,11 @@ keeps the newest data package. The primary interface (30001) carries URScript to
 controller and brings the kinematics info (the controller's calibrated DH table and its
 per-joint checksums, :attr:`UniversalRobotsRobot.kinematics`) and runtime exceptions back.
 
-Every program robocal sends ends by writing a fresh token to ``output_int_register_<base>``;
-the program is done when an RTDE package shows that token, and failed when a runtime
-exception arrives first. ``move_to`` sends ``movej`` this way; ``stop`` sends ``stopj``,
+Every program robocal sends starts by writing a fresh token to
+``output_int_register_<base + 1>`` and ends by writing it to ``output_int_register_<base>``;
+the program is done when an RTDE package shows the end token, and failed when a runtime
+exception arrives first, or a package shows the start token with no program running and no
+end token (stopped from the pendant or dashboard), or the arm leaves RUNNING/NORMAL. ``move_to`` sends ``movej`` this way; ``stop`` sends ``stopj``,
 which replaces the running program (a new program always does on a UR), and fails the
 waiting ``move_to`` with MotionStopped.
 
@@ -63,7 +65,7 @@ from robocal.protocols import ur_dashboard as dash
 from robocal.protocols import ur_primary as prim
 from robocal.protocols import ur_rtde as rtde
 from robocal.protocols.framing import LineFramer
-from robocal.protocols.ur_rtde import RobotMode, SafetyMode
+from robocal.protocols.ur_rtde import RobotMode, RuntimeState, SafetyMode
 
 __all__ = ["UniversalRobotsOptions", "UniversalRobotsRobot"]
 
@@ -164,6 +166,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._primary: TcpTransport | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._reg_int = f"output_int_register_{self.options.register_base}"
+        self._reg_start = f"output_int_register_{self.options.register_base + 1}"
         self._names: list[str] = []
         self._types: list[str] = []
         self._state: dict[str, Any] = {}
@@ -283,7 +286,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self.controller_version = rtde.parse_controller_version(pkg.payload)
         base = o.register_base
         names = ["timestamp", "actual_q", "target_q", "robot_mode", "safety_mode",
-                 "runtime_state", self._reg_int,
+                 "runtime_state", self._reg_int, self._reg_start,
                  *(f"output_double_register_{base + k}" for k in range(_READ_CHUNK))]
         pkg = await ask(rtde.setup_outputs(names, o.rtde_frequency_hz), rtde.SETUP_OUTPUTS)
         rid, types = rtde.parse_recipe_reply(pkg.payload)
@@ -381,8 +384,31 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         fut = self._waiters.get(token)
         if fut is not None and not fut.done():
             fut.set_result(state)
+        pending = [t for t, f in self._waiters.items() if not f.done()]
+        if pending:
+            self._watch_programs(state, pending)
         self._fresh.set()
         self._fresh = asyncio.Event()
+
+    def _watch_programs(self, state: dict[str, Any], pending: list[int]) -> None:
+        """Fail waiting programs the controller ended without their token: a protective or
+        emergency stop, or a stop from the pendant or dashboard after the program ran."""
+        safety = int(state["safety_mode"])
+        mode = int(state["robot_mode"])
+        running = int(state["runtime_state"]) == RuntimeState.PLAYING
+        if safety not in (SafetyMode.NORMAL, SafetyMode.REDUCED) or mode != RobotMode.RUNNING:
+            why = (f"robot mode {RobotMode.NAMES.get(mode, mode)}, safety mode "
+                   f"{SafetyMode.NAMES.get(safety, safety)}")
+            self._fail_waiters(MotionRejected(f"program ended: {why}", kind=self.kind,
+                                              code=safety), only=set(pending))
+            return
+        started = int(state[self._reg_start])
+        if not running and started in pending:
+            # Our program wrote its start token, is no longer running and never wrote its
+            # end token (the package showing it would have resolved it above).
+            self._fail_waiters(_ProgramFailed("the program stopped before it finished "
+                                              "(stopped on the pendant or dashboard?)"),
+                               only={started})
 
     async def _next_state(self, timeout: float) -> dict[str, Any]:
         event = self._fresh
@@ -435,9 +461,11 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             self._waiters[token] = fut
             if motion:
                 self._motion.add(token)
-            program = "\n".join([f"def rc_{token}():", *(f"  {line}" for line in body),
-                                 f"  write_output_integer_register({self.options.register_base}"
-                                 f", {token})", "end", ""])
+            base = self.options.register_base
+            program = "\n".join([f"def rc_{token}():",
+                                 f"  write_output_integer_register({base + 1}, {token})",
+                                 *(f"  {line}" for line in body),
+                                 f"  write_output_integer_register({base}, {token})", "end", ""])
             try:
                 with self.translate_errors():
                     await conn.write(program.encode())

@@ -41,6 +41,7 @@ __all__ = [
     "RobotMode",
     "RtdeFramer",
     "RtdePackage",
+    "RuntimeState",
     "SafetyMode",
     "decode_values",
     "encode",

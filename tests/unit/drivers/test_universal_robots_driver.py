@@ -3,6 +3,7 @@ compensation as installation variables, and the kinematics fingerprint."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import math
 from collections.abc import AsyncIterator
@@ -14,6 +15,7 @@ from robocal.drivers import load_robot_driver, table_diff
 from robocal.drivers.sim import FaultConfig, SimCell, SimWorld, UrSimOptions, UrSimulator
 from robocal.drivers.universal_robots import UniversalRobotsRobot
 from robocal.errors import CompensationError, ConnectFailed, MotionRejected
+from tests._waiting import eventually
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -78,8 +80,9 @@ async def test_protective_stop_rejects_the_move_and_the_next_until_unlocked():
         await r.connect(timeout=5)
         try:
             sim.faults.config = FaultConfig(alarm_rate=1.0)
-            with pytest.raises(MotionRejected, match="protective stop"):
+            with pytest.raises(MotionRejected, match="PROTECTIVE_STOP"):
                 await r.move_to([0.1] * 6, speed_pct=20, timeout=5)
+            assert sim.runtime_errors == []  # the controller just stopped the program
             sim.faults.config = FaultConfig()
             await r._next_state(1.0)
             with pytest.raises(MotionRejected, match="PROTECTIVE_STOP"):
@@ -142,3 +145,21 @@ async def test_kinematics_fingerprint_follows_the_controller_calibration():
         finally:
             await r.close()
         assert second["fingerprint"] != first["fingerprint"]
+
+
+async def test_a_program_stopped_from_the_dashboard_fails_the_move():
+    async with ur_cell(start_powered=True, time_scale=1.0) as (cell, sim):
+        r = robot(cell)
+        await r.connect(timeout=5)
+        try:
+            move = asyncio.create_task(r.move_to([2.0] * 6, speed_pct=5, timeout=20))
+            await eventually(lambda: cell.world.moving, 5, what="moving")
+            await r._next_state(1.0)  # the driver has seen the program playing
+            assert await r.dashboard("stop") == "Stopped"
+            with pytest.raises(MotionRejected, match="stopped before it finished"):
+                async with asyncio.timeout(5):
+                    await move
+            assert not cell.world.moving
+            assert sim.runtime_errors == []
+        finally:
+            await r.close()

@@ -680,6 +680,8 @@ class UrSimulator(SimServer):
                 await self._statement(s, local, n)
         except _RuntimeError as err:
             self._runtime_exception(f"{name or 'script'}: {err}", err.line)
+        except _ProgramHalted:
+            pass
 
     def _value(self, v: Any, local: dict[str, Any], line: int) -> Any:
         if isinstance(v, tuple) and len(v) == 2 and v[0] == "ref":
@@ -741,9 +743,11 @@ class UrSimulator(SimServer):
         if len(target) != 6 or not world.within_limits(target[:world.dof]):
             raise _RuntimeError(f"movej target {target} outside the joint limits", line)
         if self.faults.fire("alarm"):
+            # A protective stop ends the program without a runtime exception; clients see it
+            # in the safety mode (RTDE, robot mode data) and the dashboard's safetystatus.
             world.halt()
             self.safety_mode = SafetyMode.PROTECTIVE_STOP
-            raise _RuntimeError("protective stop (injected)", line)
+            raise _ProgramHalted
         v = max(1e-6, min(v, self.options.max_joint_speed_rad_s) * self.speed_slider)
         dist = max(abs(t - c) for t, c in zip(target[:world.dof], world.q_cmd_rad, strict=True))
         ramp = v / max(a, 1e-6)
@@ -755,6 +759,10 @@ class UrSimulator(SimServer):
         motion = world.start_motion(target[:world.dof], duration)
         await asyncio.sleep(duration)
         world.finish_motion(motion)
+
+
+class _ProgramHalted(Exception):
+    """The program was ended by the controller (protective stop), without an exception."""
 
 
 class _RuntimeError(Exception):
