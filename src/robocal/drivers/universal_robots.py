@@ -14,7 +14,8 @@ Every program robocal sends starts by writing a fresh token to
 ``output_int_register_<base + 1>`` and ends by writing it to ``output_int_register_<base>``;
 the program is done when an RTDE package shows the end token, and failed when a runtime
 exception arrives first, or a package shows the start token with no program running and no
-end token (stopped from the pendant or dashboard), or the arm leaves RUNNING/NORMAL. ``move_to`` sends ``movej`` this way; ``stop`` sends ``stopj``,
+end token (stopped from the pendant or dashboard), or the arm leaves RUNNING/NORMAL.
+``move_to`` sends ``movej`` this way; ``stop`` sends ``stopj``,
 which replaces the running program (a new program always does on a UR), and fails the
 waiting ``move_to`` with MotionStopped.
 
