@@ -57,7 +57,7 @@ class UrSimOptions(BaseModel):
     ``remote_control``: False makes the dashboard refuse power, play and load (local mode);
     ``start_powered``: begin in RUNNING instead of POWER_OFF. The installation declares
     ``rc_wp_0`` .. ``rc_wp_<declared_waypoints - 1>`` (six zeros each) and ``rc_jq_<j>``,
-    ``rc_jdq_<j>`` (``declared_joint_points`` zeros), as ``deploy/ur/README.md`` asks of a
+    ``rc_jdq_<j>`` (``declared_joint_points`` zeros), as ``deploy/config/ur.toml`` asks of a
     real robot's installation.
     """
 
