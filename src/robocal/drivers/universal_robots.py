@@ -22,8 +22,8 @@ waiting ``move_to`` with MotionStopped.
 Compensation: ``targets`` tables become installation variables ``<prefix>wp_<index>`` (the
 corrected program waypoints, joint radians, as a program's ``movej`` takes them); ``joint``
 tables ``<prefix>jq_<joint>`` and ``<prefix>jdq_<joint>`` (radians). The variables must be
-declared in the robot's installation (``deploy/config/ur.toml`` lists them); values are read back by a
-program that copies them into ``output_double_register_<base>...<base+23>``.
+declared in the robot's installation (``deploy/config/ur.toml`` lists them); values are
+read back by a program that copies them into ``output_double_register_<base>...<base+23>``.
 """
 
 from __future__ import annotations
