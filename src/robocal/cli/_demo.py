@@ -4,7 +4,8 @@ What it does (everything in-process, loopback only, no arguments needed):
 
 1. starts the FANUC RMI controller and LTP/1 laser-tracker simulators around one virtual
    FANUC LR Mate 200i with planted constant and joint-dependent errors (and a few % of
-   injected beam breaks / unstable readings / garbage lines);
+   injected beam breaks / unstable readings / garbage lines); with ``--robot ur10``, the
+   Universal Robots simulator around a virtual UR10 instead of the FANUC one;
 2. plans the campaign (stratified calibration poses, validation poses, CPA sweeps);
 3. runs it through the real drivers and the daemon's campaign engine, with an SQLite store;
 4. fits the constant, high-order and auto models (and CPA), and writes the report;
