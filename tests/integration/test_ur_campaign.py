@@ -16,7 +16,7 @@ import numpy as np
 from tests._waiting import eventually
 
 from robocal.daemon import parse_plan, plan_from_poses
-from robocal.daemon.config import parse_config
+from robocal.daemon.config import config_errors, load_config, parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import FaultConfig, LtpSimOptions, SimCell, SimWorld, UrSimOptions
 from robocal.kinematics import load_robot
@@ -26,15 +26,20 @@ DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "config" / "ur.toml"
 HALT_BOUND_S = 0.2
 
 
-def ur_plan(n: int, seed: int) -> Any:
-    """``n`` random UR10 poses, ``+-150`` degrees per joint."""
+def ur_plan(n: int, seed: int, validation: int = 0) -> Any:
+    """``n`` random UR10 poses, ``+-150`` degrees per joint, the wrist at least 20 degrees
+    from its singularity (the last ``validation`` held out: they are the pushed targets)."""
     robot = load_robot(ROBOT)
-    q = np.random.default_rng(seed).uniform(-150.0, 150.0, (n, robot.dof))
-    return parse_plan(plan_from_poses(q.tolist(), robot=ROBOT), source="test", strict=False)
+    q = np.random.default_rng(seed).uniform(-150.0, 150.0, (4 * n, robot.dof))
+    q = q[np.abs(np.sin(np.radians(q[:, 4]))) >= math.sin(math.radians(20.0))][:n]
+    purposes = ["calibration" if i < n - validation else "validation" for i in range(n)]
+    return parse_plan(plan_from_poses(q.tolist(), robot=ROBOT, purposes=purposes),
+                      source="test", strict=False)
 
 
 @contextlib.asynccontextmanager
-async def service(tmp_path: Path, *, time_scale: float, faults: FaultConfig | None = None
+async def service(tmp_path: Path, *, time_scale: float, faults: FaultConfig | None = None,
+                  models: tuple[str, ...] = ("constant",)
                   ) -> AsyncIterator[tuple[CalibrationService, SimCell]]:
     doc = tomllib.loads(DEPLOY.read_text())
     cell = SimCell(robot=ROBOT, seed=8, fanuc=False, modbus=False,
@@ -49,8 +54,10 @@ async def service(tmp_path: Path, *, time_scale: float, faults: FaultConfig | No
         doc["limits"]["speed_pct"] = 100.0
         doc["measurement"].update({"settle_s": 0.0, "backoff_s": 0.001, "samples": 2,
                                    "retries": 8})
-        doc["fit"] = {"models": ["constant"], "select": "constant", "executor": "thread",
+        doc["fit"] = {"models": list(models), "select": models[-1], "executor": "thread",
                       "report": False, "cpa": False}
+        doc["compensation"]["verify_count"] = 4
+        doc["limits"]["max_joint_correction_deg"] = 5.0
         svc = CalibrationService(parse_config(doc, source=str(DEPLOY)))
         await svc.start()
         try:
@@ -108,3 +115,29 @@ async def test_abort_mid_move_halts_the_ur_arm_within_bound(tmp_path):
         stops = [a for a in svc.store.audit_log() if a["action"] == "motion.stop"]
         assert len(stops) == 1 and stops[0]["detail"]["outcome"] == "stopped"
         assert any("  stopj(" in s for s in cell.ur_sim.scripts)  # type: ignore[union-attr]
+
+
+def test_the_deploy_config_validates():
+    assert config_errors(DEPLOY) == []
+    cfg = load_config(DEPLOY)
+    assert cfg.robot.kind == "universal_robots"
+
+
+async def test_push_writes_waypoint_variables_and_rollback_restores_the_sites(tmp_path):
+    async with service(tmp_path, time_scale=0.0) as (svc, cell):
+        sim = cell.ur_sim
+        assert sim is not None
+        site = {f"rc_wp_{i}": [0.1 * i, -1.0, 1.0, -0.5, 1.2, 0.0] for i in range(40)}
+        sim.variables.update({k: list(v) for k, v in site.items()})
+        st = await svc.create(ur_plan(40, seed=3, validation=8), actor="a")
+        st = await svc.wait(st["id"], ["fitted", "faulted"], timeout=120)
+        assert st["state"] == "fitted", st.get("reason")
+        await svc.approve(st["id"], actor="a")
+        st = await svc.push(st["id"], actor="a")
+        v = await svc.wait_verification(st["push"]["key"], timeout=120)
+        assert v is not None and v["state"] == "done", v
+        assert v["after"]["rms_mm"] < 0.6 * v["before"]["rms_mm"]
+        pushed = [k for k in site if sim.variables[k] != site[k]]
+        assert len(pushed) == 8  # one corrected waypoint per validation target
+        await svc.rollback(actor="b")
+        assert {k: sim.variables[k] for k in site} == site
