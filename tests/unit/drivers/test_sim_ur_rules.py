@@ -156,3 +156,18 @@ async def test_primary_sends_version_then_state_and_runs_scripts():
             assert "not defined" in exc.text  # type: ignore[union-attr]
         finally:
             writer.close()
+
+
+async def test_an_unframeable_rtde_package_drops_only_that_client():
+    async with ur_sim() as sim:
+        bad = await Rtde.open(sim)
+        good = await Rtde.open(sim)
+        try:
+            bad.writer.write(b"\x00\x01V")  # size 1 < the 3-byte header
+            async with asyncio.timeout(5):
+                assert await bad.reader.read(100) == b""  # closed by the controller
+            ok = await good.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            assert ok.payload == b"\x01"
+        finally:
+            await bad.close()
+            await good.close()
