@@ -21,7 +21,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 ACTIVATE = ". .venv/bin/activate"
-SIM_PORTS = range(17001, 17006)
+SIM_PORTS = (*range(17001, 17007), 17008, 17009, 17011)  # sim all --port 17001 (UR from 17006)
 
 
 def _using_blocks() -> list[str]:
