@@ -237,6 +237,7 @@ class SimCell:
                 "dashboard_port": ports["dashboard"],
                 "primary_port": ports["primary"],
                 "rtde_port": ports["rtde"],
+                "rtde_frequency_hz": 500.0,  # the simulator reports an e-Series controller
                 "joint_limits_deg": limits,
             }
         return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
