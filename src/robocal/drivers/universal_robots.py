@@ -394,14 +394,11 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     def _watch_programs(self, state: dict[str, Any], pending: list[int]) -> None:
         """Fail waiting programs the controller ended without their token: a protective or
         emergency stop, or a stop from the pendant or dashboard after the program ran."""
-        safety = int(state["safety_mode"])
-        mode = int(state["robot_mode"])
         running = int(state["runtime_state"]) == RuntimeState.PLAYING
-        if safety not in (SafetyMode.NORMAL, SafetyMode.REDUCED) or mode != RobotMode.RUNNING:
-            why = (f"robot mode {RobotMode.NAMES.get(mode, mode)}, safety mode "
-                   f"{SafetyMode.NAMES.get(safety, safety)}")
-            self._fail_waiters(MotionRejected(f"program ended: {why}", kind=self.kind,
-                                              code=safety), only=set(pending))
+        if not self._modes_ok():
+            self._fail_waiters(MotionRejected(f"program ended: {self._modes()}", kind=self.kind,
+                                              code=int(state["safety_mode"])),
+                               only=set(pending))
             return
         started = int(state[self._reg_start])
         if not running and started in pending:
@@ -515,14 +512,22 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             raise MotionRejected(f"movej failed: {err}", kind=self.kind) from err
         return JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
 
-    def _check_modes(self) -> None:
+    def _modes(self) -> str:
         mode = int(self._state.get("robot_mode", RobotMode.NO_CONTROLLER))
         safety = int(self._state.get("safety_mode", 0))
-        if mode != RobotMode.RUNNING or safety not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
-            raise MotionRejected(
-                f"robot mode {RobotMode.NAMES.get(mode, mode)}, safety mode "
-                f"{SafetyMode.NAMES.get(safety, safety)}: cannot move", kind=self.kind,
-                code=safety)
+        return (f"robot mode {RobotMode.NAMES.get(mode, mode)}, safety mode "
+                f"{SafetyMode.NAMES.get(safety, safety)}")
+
+    def _modes_ok(self) -> bool:
+        """True when the arm runs normally (robot mode RUNNING, safety NORMAL or REDUCED)."""
+        mode = int(self._state.get("robot_mode", RobotMode.NO_CONTROLLER))
+        safety = int(self._state.get("safety_mode", 0))
+        return mode == RobotMode.RUNNING and safety in (SafetyMode.NORMAL, SafetyMode.REDUCED)
+
+    def _check_modes(self) -> None:
+        if not self._modes_ok():
+            raise MotionRejected(f"{self._modes()}: cannot move", kind=self.kind,
+                                 code=int(self._state.get("safety_mode", 0)))
 
     async def read_joints(self) -> JointReading:
         """Return ``actual_q`` from the newest RTDE package (radians)."""
@@ -536,7 +541,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         """Halt motion with ``stopj`` (a program of its own, which replaces the running one).
 
         Returns once an RTDE package shows the stop program finished; a waiting ``move_to``
-        raises MotionStopped. A no-op when not connected.
+        raises MotionStopped. A no-op when not connected, and nothing is sent when the
+        controller has halted the arm itself (protective or emergency stop, power off).
 
         Raises
         ------
@@ -554,6 +560,11 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._stop_gen += 1
         self._fail_waiters(MotionStopped("motion stopped by request (stopj)", kind=self.kind),
                            only=set(self._motion))
+        if not self._modes_ok():
+            # A protective or emergency stop, or power off: the controller has halted the
+            # arm already and would refuse to run a program.
+            self.log.info("stop: the arm is halted by the controller", state=self._modes())
+            return
         decel = self.options.stop_deceleration_rad_s2
         try:
             await self._run([f"stopj({decel!r})"], timeout=self.options.reply_timeout_s)

@@ -83,6 +83,7 @@ async def test_protective_stop_rejects_the_move_and_the_next_until_unlocked():
             with pytest.raises(MotionRejected, match="PROTECTIVE_STOP"):
                 await r.move_to([0.1] * 6, speed_pct=20, timeout=5)
             assert sim.runtime_errors == []  # the controller just stopped the program
+            await r.stop()  # allowed after a motion fault: the arm is halted already
             sim.faults.config = FaultConfig()
             await r._next_state(1.0)
             with pytest.raises(MotionRejected, match="PROTECTIVE_STOP"):
