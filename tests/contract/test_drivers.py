@@ -22,13 +22,15 @@ from robocal.drivers.sim import (
     ModbusSimOptions,
     SimCell,
     SimWorld,
+    UrSimOptions,
+    UrSimulator,
 )
 from robocal.drivers.sim.emscon import EmsconFaults
 
 
 @contextlib.asynccontextmanager
 async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
-    world = SimWorld.create(seed=5)
+    world = SimWorld.create("ur10" if name == "universal_robots" else "fanuc_lrmate200id", seed=5)
     if name == "mock":
         yield contracts.RobotUnderTest(
             "mock",
@@ -47,16 +49,20 @@ async def robot_case(name: str) -> AsyncIterator[contracts.RobotUnderTest]:
         modbus=ModbusSimOptions(time_scale=0.0) if name == "modbus_plc" else False,
         ltp=False,
         kuka=KukaSimOptions(time_scale=0.0) if name == "kuka_kvp" else False,
+        ur=UrSimOptions(time_scale=0.0) if name == "universal_robots" else False,
     )
     async with cell:
         options = cell.robot_options(name)  # type: ignore[arg-type]
-        sim: FanucRmiSimulator | ModbusPlcSimulator | KukaKvpSimulator
+        sim: FanucRmiSimulator | ModbusPlcSimulator | KukaKvpSimulator | UrSimulator
         if name == "fanuc_rmi":
             rmi_sim = sim = cell.fanuc_sim
             received: Callable[[], int] = lambda: len(rmi_sim.received)  # noqa: E731
         elif name == "kuka_kvp":
             kvp_sim = sim = cell.kuka_sim
             received = lambda: len(kvp_sim.requests)  # noqa: E731
+        elif name == "universal_robots":
+            ur_sim = sim = cell.ur_sim
+            received = lambda: len(ur_sim.scripts)  # noqa: E731
         else:
             plc_sim = sim = cell.modbus_sim
             received = lambda: len(plc_sim.commands)  # noqa: E731
@@ -161,7 +167,8 @@ def emscon_cell(world: SimWorld, *, faulty: bool) -> SimCell:
                    faults=FaultConfig(beam_break_rate=0.05, seed=9))
 
 
-ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "kuka_kvp", "abb_rws6", "abb_rws7"]
+ROBOTS = ["mock", "fanuc_rmi", "modbus_plc", "universal_robots", "kuka_kvp", "abb_rws6",
+          "abb_rws7"]
 TRACKERS = ["mock", "ltp-tcp", "ltp-socket", "ltp-pty", "emscon", "emscon-faults"]
 
 

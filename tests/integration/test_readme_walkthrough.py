@@ -21,7 +21,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 ACTIVATE = ". .venv/bin/activate"
-SIM_PORTS = (*range(17001, 17007), 17010)  # sim all: ..., emScon 17005, KUKA 17006, ABB 17010
+# sim all --port 17001: ..., UR 17006/08/09/11, KUKA 17007, ABB 17010
+SIM_PORTS = range(17001, 17012)
 
 
 def _using_blocks() -> list[str]:

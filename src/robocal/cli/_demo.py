@@ -4,7 +4,8 @@ What it does (everything in-process, loopback only, no arguments needed):
 
 1. starts the FANUC RMI controller and LTP/1 laser-tracker simulators around one virtual
    FANUC LR Mate 200i with planted constant and joint-dependent errors (and a few % of
-   injected beam breaks / unstable readings / garbage lines);
+   injected beam breaks / unstable readings / garbage lines); with ``--robot ur10``, the
+   Universal Robots simulator around a virtual UR10 instead of the FANUC one;
 2. plans the campaign (stratified calibration poses, validation poses, CPA sweeps);
 3. runs it through the real drivers and the daemon's campaign engine, with an SQLite store;
 4. fits the constant, high-order and auto models (and CPA), and writes the report;
@@ -28,7 +29,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
 from robocal.cli._defaults import VALIDATION_HELP, default_validation
@@ -52,7 +53,9 @@ def register(sub: Any) -> None:
                    help="planted errors (default paper)")
     p.add_argument("--fault-rate", type=float, default=0.03,
                    help="injected tracker fault rate per reading (default 0.03)")
-    p.add_argument("--robot", default="fanuc_lrmate200i", help=argparse.SUPPRESS)
+    p.add_argument("--robot", default="fanuc_lrmate200i",
+                   help="virtual robot: fanuc_lrmate200i (default; FANUC RMI simulator) or ur10 "
+                        "(Universal Robots simulator: Dashboard, RTDE, primary interface)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
@@ -182,7 +185,13 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
     from robocal.daemon.config import parse_config
     from robocal.daemon.pushing import ideal_positions
     from robocal.daemon.service import CalibrationService
-    from robocal.drivers.sim import FanucSimOptions, FaultConfig, LtpSimOptions, SimCell
+    from robocal.drivers.sim import (
+        FanucSimOptions,
+        FaultConfig,
+        LtpSimOptions,
+        SimCell,
+        UrSimOptions,
+    )
 
     out: Path = args.out
     progress = _Progress(args.quiet)
@@ -198,8 +207,12 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
                   f"in {time.perf_counter() - t0:.1f} s")
 
     faults = FaultConfig.uniform(args.fault_rate, seed=args.seed)
+    ur = args.robot.startswith("ur")  # UR arms go through the UR simulator and driver
+    robot_kind: Literal["universal_robots", "fanuc_rmi"] = (
+        "universal_robots" if ur else "fanuc_rmi")
     cell = SimCell(robot=args.robot, scenario=args.scenario, seed=args.seed,
-                   fanuc=FanucSimOptions(time_scale=0.0005), modbus=False,
+                   fanuc=False if ur else FanucSimOptions(time_scale=0.0005), modbus=False,
+                   ur=UrSimOptions(time_scale=0.0005) if ur else False,
                    ltp=LtpSimOptions(time_scale=0.0005), faults=faults)
     figures: dict[str, Any] = {}
     async with cell:
@@ -207,7 +220,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             "data_dir": str(out / "state"),
             "robot_description": args.robot,
             "cell": "demo",
-            "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
+            "robot": {"kind": robot_kind, "options": cell.robot_options(robot_kind)},
             "tracker": {"kind": "ltp", "options": {**cell.tracker_options("tcp"),
                                                    "stab_ms": 100}},
             "limits": {"joint_margin_deg": 0.5, "speed_pct": 100.0},
@@ -227,7 +240,7 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
             await asyncio.sleep(0.1)
     figures["wall_time_s"] = round(time.perf_counter() - t_start, 1)
     injected: dict[str, int] = {}
-    for sim in (cell.fanuc_sim, cell.ltp_sim):
+    for sim in (cell.fanuc_sim, cell.ur_sim, cell.ltp_sim):
         for name, n in (sim.faults.counts if sim is not None else {}).items():
             injected[name] = injected.get(name, 0) + n
     figures["faults_injected"] = injected

@@ -19,12 +19,13 @@ from robocal.drivers.fanuc_rmi import FanucRmiRobot
 from robocal.drivers.ltp import LtpTracker
 from robocal.drivers.mock import MockRobot, MockTracker
 from robocal.drivers.modbus_plc import ModbusPlcRobot
+from robocal.drivers.universal_robots import UniversalRobotsRobot
 from robocal.errors import ConfigError, DriverImportError, DriverNotFound
 
 
 def test_available_lists_declared_entry_points():
     assert available() == {
-        "robots": ["abb_rws", "fanuc_rmi", "kuka_kvp", "mock", "modbus_plc"],
+        "robots": ["abb_rws", "fanuc_rmi", "kuka_kvp", "mock", "modbus_plc", "universal_robots"],
         "trackers": ["emscon", "ltp", "mock"],
     }
 
@@ -32,6 +33,7 @@ def test_available_lists_declared_entry_points():
 def test_driver_classes_resolve():
     assert driver_class("fanuc_rmi", role="robot") is FanucRmiRobot
     assert driver_class("modbus_plc", role="robot") is ModbusPlcRobot
+    assert driver_class("universal_robots", role="robot") is UniversalRobotsRobot
     assert driver_class("mock", role="robot") is MockRobot
     assert driver_class("mock", role="tracker") is MockTracker
     assert driver_class("ltp", role="tracker") is LtpTracker

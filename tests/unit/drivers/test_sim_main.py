@@ -49,6 +49,7 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
             "host", "robot", "fanuc_rmi", "modbus_plc", "ltp_tracker", "emscon_tracker",
             "kuka_kvp",
             "abb_rws",
+            "universal_robots",
         }
         pty = ports["ltp_tracker"]["pty"]
         assert pty.startswith("/dev/")
@@ -91,3 +92,43 @@ async def test_all_in_one_process_shares_one_world(tmp_path):
             await proc.wait()
         with contextlib.suppress(Exception):
             await proc.communicate()
+
+
+async def test_sim_ur_serves_the_ur_interfaces(tmp_path):
+    """``robocal sim ur --robot ur10``: dashboard, primary and RTDE at the real spacing."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "robocal.drivers.sim", "ur", "--robot", "ur10", "--time-scale",
+        "0", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        line = await asyncio.wait_for(proc.stdout.readline(), 30)
+        ports = json.loads(line)
+        assert set(ports) == {"host", "robot", "universal_robots"}
+        ur = ports["universal_robots"]
+        robot = load_robot_driver("universal_robots", {
+            "host": ur["host"], "dashboard_port": ur["dashboard"],
+            "primary_port": ur["primary"], "rtde_port": ur["rtde"],
+            "joint_limits_deg": [(-360.0, 360.0)] * 6})
+        await robot.connect(timeout=10)
+        try:
+            reached = await robot.move_to([0.3] * 6, timeout=10)
+            assert reached.q_rad[0] == pytest.approx(0.3, abs=1e-4)
+        finally:
+            await robot.close()
+        proc.send_signal(signal.SIGTERM)
+        assert await asyncio.wait_for(proc.wait(), 20) == 0
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+        with contextlib.suppress(Exception):
+            await proc.communicate()
+
+
+def test_ur_ports_keep_the_real_spacing():
+    from robocal.drivers.sim import _fixed_ports
+
+    assert _fixed_ports("ur", 29999) == {"ur_dashboard": 29999, "ur_primary": 30001,
+                                         "ur_secondary": 30002, "ur_rtde": 30004}
+    assert _fixed_ports("all", 17001)["ur_rtde"] == 17011

@@ -33,6 +33,7 @@ from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.kuka_kvp import KukaKvpSimulator, KukaSimOptions
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
+from robocal.drivers.sim.universal_robots import UrSimOptions, UrSimulator
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
 
 __all__ = [
@@ -53,6 +54,8 @@ __all__ = [
     "ModbusSimOptions",
     "SimCell",
     "SimWorld",
+    "UrSimOptions",
+    "UrSimulator",
     "main",
 ]
 
@@ -78,17 +81,23 @@ class SimCell:
         Run the KUKA KUKAVARPROXY simulator (off by default).
     abb : bool or options
         Run the ABB Robot Web Services simulator (off by default).
+    ur : bool or options
+        Run the Universal Robots simulator (off by default).
     faults : FaultConfig, optional
         Injected faults, shared by all simulators (each draws with its own generator).
     host : str
         Listening address (loopback).
     ports : dict, optional
         Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``,
-        ``kuka``, ``abb`` (0: free port).
+        ``kuka``, ``abb``, ``ur_dashboard``, ``ur_primary``, ``ur_secondary``, ``ur_rtde``
+        (0: free port).
+    ur_host : str, optional
+        Listening address of the UR simulator (default ``host``); ur-rtde reaches RTDE on
+        port 30004 only, so tests give it a loopback address of its own.
 
     Attributes
     ----------
-    fanuc_sim, modbus_sim, ltp_sim, emscon_sim, kuka_sim, abb_sim
+    fanuc_sim, modbus_sim, ltp_sim, emscon_sim, kuka_sim, abb_sim, ur_sim
         The running simulators (None when not requested).
     """
 
@@ -107,6 +116,8 @@ class SimCell:
         emscon: bool | EmsconSimOptions = False,
         kuka: bool | KukaSimOptions = False,
         abb: bool | AbbSimOptions = False,
+        ur: bool | UrSimOptions = False,
+        ur_host: str | None = None,
         faults: FaultConfig | None = None,
         host: str = "127.0.0.1",
         ports: dict[str, int] | None = None,
@@ -119,6 +130,8 @@ class SimCell:
         self._kuka = kuka
         self._abb = abb
         self.abb_sim: AbbRwsSimulator | None = None
+        self._ur = ur
+        self.ur_host = ur_host or host
         self.faults = faults
         self.host = host
         self._fixed = dict(ports or {})
@@ -127,6 +140,7 @@ class SimCell:
         self.ltp_sim: LtpTrackerSimulator | None = None
         self.emscon_sim: EmsconTrackerSimulator | None = None
         self.kuka_sim: KukaKvpSimulator | None = None
+        self.ur_sim: UrSimulator | None = None
 
     @property
     def world(self) -> SimWorld:
@@ -168,6 +182,14 @@ class SimCell:
                 aopts = self._abb if isinstance(self._abb, AbbSimOptions) else None
                 self.abb_sim = AbbRwsSimulator(world, aopts, self.faults)
                 await self.abb_sim.start(self.host, p.get("abb", 0))
+            if self._ur is not False:
+                uopts = self._ur if isinstance(self._ur, UrSimOptions) else None
+                self.ur_sim = UrSimulator(world, uopts, self.faults)
+                await self.ur_sim.start(
+                    self.ur_host, dashboard=p.get("ur_dashboard", 0),
+                    primary=p.get("ur_primary", 0), secondary=p.get("ur_secondary", 0),
+                    rtde_port=p.get("ur_rtde", 0),
+                )
         except BaseException:
             await self.stop()
             raise
@@ -175,7 +197,7 @@ class SimCell:
 
     async def stop(self) -> None:
         """Stop every simulator; idempotent."""
-        for sim in (self.abb_sim, self.kuka_sim, self.emscon_sim, self.ltp_sim,
+        for sim in (self.ur_sim, self.abb_sim, self.kuka_sim, self.emscon_sim, self.ltp_sim,
                     self.modbus_sim, self.fanuc_sim):
             if sim is not None:
                 await sim.stop()
@@ -209,10 +231,14 @@ class SimCell:
         if self.abb_sim is not None:
             out["abb_rws"] = {"port": self.abb_sim.port,
                               "robotware": self.abb_sim.options.robotware}
+        if self.ur_sim is not None:
+            out["universal_robots"] = {"host": self.ur_host, **self.ur_sim.ports}
         return out
 
     def robot_options(
-        self, kind: Literal["fanuc_rmi", "modbus_plc", "kuka_kvp", "abb_rws", "mock"]
+        self,
+        kind: Literal["fanuc_rmi", "modbus_plc", "kuka_kvp", "abb_rws", "universal_robots",
+                      "mock"],
     ) -> dict[str, Any]:
         """Options for ``load_robot_driver(kind, ...)`` pointing at this cell's simulator."""
         limits = [list(lim) for lim in self.world.joint_limits_deg]
@@ -246,6 +272,18 @@ class SimCell:
                 "register_map": self.modbus_sim.map.model_dump(),
                 "poll_interval_s": 0.001,
             }
+        if kind == "universal_robots":
+            if self.ur_sim is None:
+                raise RuntimeError("the Universal Robots simulator is not running")
+            ports = self.ur_sim.ports
+            return {
+                "host": self.ur_host,
+                "dashboard_port": ports["dashboard"],
+                "primary_port": ports["primary"],
+                "rtde_port": ports["rtde"],
+                "rtde_frequency_hz": 500.0,  # the simulator reports an e-Series controller
+                "joint_limits_deg": limits,
+            }
         return {"robot": self.robot, "scenario": self.scenario, "seed": self.seed}
 
     def tracker_options(self, via: Literal["tcp", "socket", "pty"] = "tcp") -> dict[str, Any]:
@@ -278,9 +316,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "which",
-        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "kuka", "abb",
-                 "all",
-                 "relay"],
+        choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "ur", "kuka", "abb",
+                 "all", "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
     p.add_argument("--scenario", default="paper", help="planted-error scenario")
@@ -290,8 +327,9 @@ def _parser() -> argparse.ArgumentParser:
         "--port",
         type=int,
         default=0,
-        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4;"
-        " kuka P+5; abb P+9",
+        help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4; "
+        "ur P+5, P+7, P+8, P+10; kuka P+6; abb P+9. ur: dashboard P, primary P+2, "
+        "secondary P+3, RTDE P+5 (P=29999 gives the real ports)",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
@@ -321,15 +359,24 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return {"kuka": port}
     if which == "abb":
         return {"abb": port}
+    if which == "ur":
+        return _ur_ports(port)
     return {
+        **_ur_ports(port + 5),
         "fanuc_connect": port,
         "fanuc_main": port + 1,
         "modbus": port + 2,
         "ltp": port + 3,
         "emscon": port + 4,
-        "kuka": port + 5,
+        "kuka": port + 6,
         "abb": port + 9,
     }
+
+
+def _ur_ports(port: int) -> dict[str, int]:
+    """The UR ports from the dashboard's, with the real controller's spacing."""
+    return {"ur_dashboard": port, "ur_primary": port + 2, "ur_secondary": port + 3,
+            "ur_rtde": port + 5}
 
 
 async def _serve(args: argparse.Namespace) -> int:
@@ -355,6 +402,7 @@ async def _serve(args: argparse.Namespace) -> int:
             AbbSimOptions(time_scale=scale, robotware=args.robotware)
             if which in ("abb", "all") else False
         ),
+        ur=UrSimOptions(time_scale=scale) if which in ("ur", "all") else False,
         faults=FaultConfig.uniform(args.fault_rate, seed=args.seed),
         host=args.host,
         ports=_fixed_ports(which, args.port),
@@ -366,7 +414,7 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|kuka|abb|all|relay
+    """Run ``robocal sim fanuc-rmi|modbus-plc|ltp-tracker|emscon-tracker|ur|kuka|abb|all|relay
     [options]``."""
     args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if not structlog.is_configured():

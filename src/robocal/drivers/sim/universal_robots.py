@@ -1,0 +1,781 @@
+"""An asyncio Universal Robots controller simulator (docs/protocols/universal-robots.md).
+
+Four listening sockets around one :class:`SimWorld` robot, as an e-Series controller has:
+
+* Dashboard server (29999): power on/off, brake release, load/play/stop/pause of ``.urp``
+  programs, robot mode, safety status and mode, remote control, program state.
+* Primary (30001) and secondary (30002) interfaces: a version message on connect, then robot
+  state messages (robot mode data, joint data, kinematics info with its checksums) at 10 Hz
+  (scaled); URScript received on either is compiled as robocal's subset and run: a ``def``
+  program or a single line replaces the running program (halting any motion), a ``sec``
+  program runs at once beside it and may not move the robot.
+* RTDE (30004): protocol version 2, controller version, output and input recipes, start and
+  pause, data packages streamed at the recipe frequency (capped by ``rtde_max_hz``), inputs
+  applied to the standard, configurable and tool digital outputs, the speed slider and the
+  input registers.
+
+Installation variables are the names assigned by a program that start with
+``installation_prefix``; they keep their values after the program ends (as variables
+declared in the PolyScope installation do). Reading an undefined variable is a runtime
+exception: the program stops and a runtime-exception message goes to the primary and
+secondary clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import structlog
+from pydantic import BaseModel, ConfigDict, Field
+
+from robocal.drivers.sim._server import SimServer, port_of
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.world import SimWorld
+from robocal.errors import FramingError, ProtocolError
+from robocal.protocols import ur_dashboard as dash
+from robocal.protocols import ur_primary as prim
+from robocal.protocols import ur_rtde as rtde
+from robocal.protocols.framing import LineFramer
+from robocal.protocols.ur_rtde import RobotMode, RuntimeState, SafetyMode
+
+__all__ = ["UrSimOptions", "UrSimulator"]
+
+_log = structlog.get_logger(__name__)
+
+
+class UrSimOptions(BaseModel):
+    """Behaviour of the simulated controller.
+
+    ``time_scale`` multiplies motion, power-up and brake-release times (0: instantaneous,
+    1: real time). ``controller_version`` is what RTDE and the version message report (5.x:
+    e-Series, 3.x: CB3). ``programs`` are the ``.urp`` files on the controller.
+    ``remote_control``: False makes the dashboard refuse power, play and load (local mode);
+    ``start_powered``: begin in RUNNING instead of POWER_OFF. The installation declares
+    ``rc_wp_0`` .. ``rc_wp_<declared_waypoints - 1>`` (six zeros each) and ``rc_jq_<j>``,
+    ``rc_jdq_<j>`` (``declared_joint_points`` zeros), as ``deploy/config/ur.toml`` asks of a
+    real robot's installation.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    time_scale: float = Field(default=0.001, ge=0.0)
+    controller_version: tuple[int, int, int, int] = (5, 12, 2, 1101534)
+    robot_model: str = "UR10"
+    serial_number: str = "20235500001"
+    programs: tuple[str, ...] = ("calibration.urp", "robocal.urp")
+    remote_control: bool = True
+    start_powered: bool = False
+    power_on_s: float = Field(default=1.0, ge=0.0)
+    brake_release_s: float = Field(default=2.0, ge=0.0)
+    max_joint_speed_rad_s: float = Field(default=math.pi, gt=0.0)
+    min_motion_s: float = Field(default=0.012, ge=0.0)
+    state_hz: float = Field(default=10.0, gt=0.0)
+    rtde_max_hz: float = Field(default=500.0, gt=0.0)
+    installation_prefix: str = "rc_"
+    declared_waypoints: int = Field(default=200, ge=0)
+    declared_joint_points: int = Field(default=64, ge=0)
+    calibration_status: int = 0
+
+
+class _RtdeSession:
+    """One RTDE client's recipes and streaming task."""
+
+    def __init__(self, sim: UrSimulator, writer: asyncio.StreamWriter) -> None:
+        self.sim = sim
+        self.writer = writer
+        self.version = 1
+        self.out_names: list[str] = []
+        self.out_types: list[str] = []
+        self.frequency = 125.0
+        self.inputs: dict[int, tuple[list[str], list[str]]] = {}
+        self.streaming: asyncio.Task[None] | None = None
+        self.closed = False
+
+    async def send(self, data: bytes) -> None:
+        if self.closed:
+            return
+        try:
+            self.writer.write(data)
+            await self.writer.drain()
+        except (ConnectionError, RuntimeError):
+            self.closed = True
+
+    async def handle(self, pkg: rtde.RtdePackage) -> None:
+        sim = self.sim
+        t = pkg.type
+        if t == rtde.REQUEST_PROTOCOL_VERSION:
+            v = int.from_bytes(pkg.payload[:2], "big") if len(pkg.payload) >= 2 else 0
+            ok = v in (1, 2)
+            if ok:
+                self.version = v
+            await self.send(rtde.accepted(t, ok))
+        elif t == rtde.GET_URCONTROL_VERSION:
+            await self.send(rtde.controller_version(*sim.options.controller_version))
+        elif t == rtde.SETUP_OUTPUTS:
+            if self.version >= 2:
+                freq, names = rtde.parse_setup_outputs_request(pkg.payload)
+            else:
+                freq, names = 125.0, rtde.parse_names(pkg.payload)
+            types = [rtde.output_type(n) for n in names]
+            ok = bool(names) and "NOT_FOUND" not in types and 0 < freq <= 500.0
+            if ok:
+                self.out_names, self.out_types, self.frequency = names, types, freq
+            await self.send(rtde.recipe_reply(t, 1 if ok else 0, types))
+        elif t == rtde.SETUP_INPUTS:
+            names = rtde.parse_names(pkg.payload)
+            types = [rtde.input_type(n) for n in names]
+            types = ["IN_USE" if ty != "NOT_FOUND" and sim.input_owner(n, self) else ty
+                     for n, ty in zip(names, types, strict=True)]
+            ok = bool(names) and not ({"NOT_FOUND", "IN_USE"} & set(types))
+            rid = 0
+            if ok:
+                rid = len(self.inputs) + 1
+                self.inputs[rid] = (names, types)
+            await self.send(rtde.recipe_reply(t, rid, types))
+        elif t == rtde.START:
+            ok = bool(self.out_names)
+            await self.send(rtde.accepted(t, ok))
+            if ok and self.streaming is None:
+                self.streaming = asyncio.create_task(self._stream())
+        elif t == rtde.PAUSE:
+            await self._pause()
+            await self.send(rtde.accepted(t, True))
+        elif t == rtde.DATA_PACKAGE:
+            if not pkg.payload or pkg.payload[0] not in self.inputs:
+                await self.send(rtde.text_message("unknown input recipe", "RTDE", 2))
+                return
+            names, types = self.inputs[pkg.payload[0]]
+            try:
+                values = rtde.values_by_name(names, types, pkg.payload[1:])
+            except ProtocolError as err:
+                await self.send(rtde.text_message(str(err)[:200], "RTDE", 2))
+                return
+            sim.apply_inputs(values)
+        else:
+            await self.send(rtde.text_message(f"unknown package type {pkg.letter}", "RTDE", 2))
+
+    async def _pause(self) -> None:
+        task, self.streaming = self.streaming, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _stream(self) -> None:
+        period = 1.0 / min(self.frequency, self.sim.options.rtde_max_hz)
+        nxt = time.monotonic()
+        while not self.closed:
+            values = self.sim.output_values(self.out_names)
+            await self.send(rtde.data_package(1, self.out_types, values))
+            nxt += period
+            delay = nxt - time.monotonic()
+            if delay < -period:  # fell behind: do not burst
+                nxt = time.monotonic()
+                delay = 0.0
+            await asyncio.sleep(max(0.0, delay))
+
+    async def stop(self) -> None:
+        self.closed = True
+        await self._pause()
+
+
+class UrSimulator(SimServer):
+    """Simulated Universal Robots e-Series (or CB3) controller on loopback.
+
+    Attributes
+    ----------
+    variables : dict
+        Installation variables: name -> number, string or list of floats.
+    scripts : list of str
+        Every program received on the primary or secondary interface.
+    dashboard_log : list of str
+        Every dashboard command line received.
+    """
+
+    def __init__(self, world: SimWorld, options: UrSimOptions | None = None,
+                 faults: FaultConfig | None = None) -> None:
+        super().__init__()
+        self.world = world
+        self.options = options or UrSimOptions()
+        self.faults = FaultInjector(faults)
+        self.robot_mode = RobotMode.RUNNING if self.options.start_powered else RobotMode.POWER_OFF
+        self.safety_mode = SafetyMode.NORMAL
+        self.remote_control = self.options.remote_control
+        self.loaded_program = ""
+        self.program_state = "STOPPED"  # of the loaded .urp: STOPPED, PLAYING, PAUSED
+        self.variables: dict[str, Any] = self._declared()
+        self.scripts: list[str] = []
+        self.dashboard_log: list[str] = []
+        self.int_out = [0] * 48
+        self.double_out = [0.0] * 48
+        self.bool_out = [False] * 128
+        self.int_in = [0] * 48
+        self.double_in = [0.0] * 48
+        self.bool_in = [False] * 128
+        self.digital_out = 0  # bits 0-7 standard, 8-15 configurable, 16-17 tool
+        self.speed_slider = 1.0
+        self.analog_out = [0.0, 0.0]
+        self.script_runs = 0
+        self.runtime_errors: list[str] = []
+        self.ports: dict[str, int] = {}
+        self._program: asyncio.Task[None] | None = None
+        self._program_kind = ""
+        self._input_owners: dict[str, _RtdeSession] = {}
+        self._state_writers: set[asyncio.StreamWriter] = set()
+        self._mode_task: asyncio.Task[None] | None = None
+        self._t0 = time.monotonic()
+        self._dh = self._nominal_dh()
+
+    def _declared(self) -> dict[str, Any]:
+        o = self.options
+        p = o.installation_prefix
+        out: dict[str, Any] = {f"{p}wp_{i}": [0.0] * 6 for i in range(o.declared_waypoints)}
+        for j in range(1, 7):
+            out[f"{p}jq_{j}"] = [0.0] * o.declared_joint_points
+            out[f"{p}jdq_{j}"] = [0.0] * o.declared_joint_points
+        return out
+
+    # --- lifecycle -----------------------------------------------------------------------------
+    async def start(self, host: str = "127.0.0.1", *, dashboard: int = 0, primary: int = 0,
+                    secondary: int = 0, rtde_port: int = 0) -> dict[str, int]:
+        """Listen on the four ports (0: free ones); return them by name."""
+        for name, handler, port in (
+            ("dashboard", self._on_dashboard, dashboard),
+            ("primary", self._on_primary, primary),
+            ("secondary", self._on_primary, secondary),
+            ("rtde", self._on_rtde, rtde_port),
+        ):
+            self.ports[name] = port_of(await self._listen(handler, host, port))
+        self._track(self._broadcast_state())
+        _log.info("ur sim listening", host=host, **self.ports)
+        return dict(self.ports)
+
+    async def stop(self) -> None:
+        """Stop serving; idempotent."""
+        self._close_listeners()
+        await self._end_program()
+        await self._stop_serving()
+
+    # --- world state ---------------------------------------------------------------------------
+    def _nominal_dh(self) -> tuple[tuple[float, ...], ...]:
+        robot = self.world.cell.robot
+        joints = list(robot.joints)[:6]
+        joints += [joints[-1]] * (6 - len(joints))
+        return (tuple(float(j.theta_offset) for j in joints), tuple(float(j.a) for j in joints),
+                tuple(float(j.d) for j in joints), tuple(float(j.alpha) for j in joints))
+
+    def kinematics(self) -> prim.KinematicsInfo:
+        """The kinematics info the controller reports (its calibrated DH table)."""
+        theta, a, d, alpha = self._dh
+        checks = tuple(prim.dh_checksum(*v) for v in zip(theta, a, d, alpha, strict=True))
+        return prim.KinematicsInfo(checks, theta, a, d, alpha, self.options.calibration_status)
+
+    def set_kinematics(self, theta: Sequence[float], a: Sequence[float], d: Sequence[float],
+                       alpha: Sequence[float]) -> None:
+        """Replace the controller's DH table (as a new factory calibration would)."""
+        self._dh = (tuple(theta), tuple(a), tuple(d), tuple(alpha))
+
+    @property
+    def runtime_state(self) -> int:
+        """RTDE ``runtime_state``: a script program or the loaded .urp playing, or stopped."""
+        if self._program is not None and not self._program.done():
+            return RuntimeState.PLAYING
+        return {"PLAYING": RuntimeState.PLAYING, "PAUSED": RuntimeState.PAUSED}.get(
+            self.program_state, RuntimeState.STOPPED)
+
+    def _q6(self, q: Any) -> list[float]:
+        vals = [float(v) for v in q][:6]
+        return vals + [0.0] * (6 - len(vals))
+
+    def output_values(self, names: Sequence[str]) -> list[Any]:
+        """Current values of RTDE output variables ``names`` (recipe order)."""
+        world = self.world
+        q = self._q6(world.q_actual_rad)
+        motion = world.motion
+        qd = [0.0] * 6
+        if motion is not None and motion.duration_s > 0:
+            qd = self._q6((motion.q_to_rad - motion.q_from_rad) / motion.duration_s)
+        running = self.runtime_state == RuntimeState.PLAYING
+        power = self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
+        safety_bits = 1 << (self.safety_mode - 1) if self.safety_mode >= 1 else 0
+        out: list[Any] = []
+        for n in names:
+            t = rtde.output_type(n)
+            if n == "timestamp":
+                v: Any = time.monotonic() - self._t0
+            elif n in ("actual_q", "target_q"):
+                v = q if n == "actual_q" else self._q6(world.q_cmd_rad)
+            elif n in ("actual_qd", "target_qd"):
+                v = qd
+            elif n == "robot_mode":
+                v = self.robot_mode
+            elif n == "safety_mode" or n == "safety_status":
+                v = self.safety_mode
+            elif n == "runtime_state":
+                v = self.runtime_state
+            elif n == "joint_mode":
+                v = [253 if self.robot_mode == RobotMode.RUNNING else 251] * 6
+            elif n == "robot_status_bits":
+                v = int(power) | (int(running) << 1)
+            elif n == "safety_status_bits":
+                v = safety_bits
+            elif n in ("speed_scaling", "target_speed_fraction"):
+                v = self.speed_slider
+            elif n == "actual_digital_output_bits":
+                v = self.digital_out
+            elif n.startswith(("output_int_register_", "output_double_register_",
+                               "input_int_register_", "input_double_register_")):
+                i = int(n.rsplit("_", 1)[1])
+                bank = n.split("_register_")[0]
+                if bank == "output_int":
+                    v = self.int_out[i]
+                elif bank == "output_double":
+                    v = self.double_out[i]
+                else:
+                    v = self.int_in[i] if bank == "input_int" else self.double_in[i]
+            elif n.startswith(("output_bit_register_", "input_bit_register_")):
+                i = int(n.rsplit("_", 1)[1])
+                v = (self.bool_out if n.startswith("output") else self.bool_in)[i]
+            elif n.endswith("_bits") and n.startswith(("output_bit_registers",
+                                                       "input_bit_registers")):
+                bits = self.bool_out if n.startswith("output") else self.bool_in
+                base = 0 if "0_to_31" in n else 32
+                v = sum(1 << k for k in range(32) if bits[base + k])
+            elif n in ("standard_analog_output0", "standard_analog_output1"):
+                v = self.analog_out[int(n[-1])]
+            elif n in ("actual_main_voltage", "actual_robot_voltage"):
+                v = 48.0 if power else 0.0
+            elif n == "joint_temperatures":
+                v = [33.0] * 6
+            else:
+                v = _zero(t)
+            out.append(v)
+        return out
+
+    def input_owner(self, name: str, session: _RtdeSession) -> bool:
+        """True when another live RTDE session has ``name`` in an input recipe (IN_USE)."""
+        owner = self._input_owners.get(name)
+        if owner is not None and owner is not session and not owner.closed:
+            return True
+        self._input_owners[name] = session
+        return False
+
+    def apply_inputs(self, values: dict[str, Any]) -> None:
+        """Apply an RTDE input data package."""
+        for mask_name, value_name, shift in (
+            ("standard_digital_output_mask", "standard_digital_output", 0),
+            ("configurable_digital_output_mask", "configurable_digital_output", 8),
+            ("tool_digital_output_mask", "tool_digital_output", 16),
+        ):
+            if mask_name in values and value_name in values:
+                mask = int(values[mask_name]) << shift
+                self.digital_out = (self.digital_out & ~mask) | ((int(values[value_name])
+                                                                  << shift) & mask)
+        if values.get("speed_slider_mask") and "speed_slider_fraction" in values:
+            self.speed_slider = min(1.0, max(0.0, float(values["speed_slider_fraction"])))
+        if "standard_analog_output_mask" in values:
+            mask = int(values["standard_analog_output_mask"])
+            for k in (0, 1):
+                if mask & (1 << k) and f"standard_analog_output_{k}" in values:
+                    self.analog_out[k] = float(values[f"standard_analog_output_{k}"])
+        for name, value in values.items():
+            if name.startswith("input_int_register_"):
+                self.int_in[int(name.rsplit("_", 1)[1])] = int(value)
+            elif name.startswith("input_double_register_"):
+                self.double_in[int(name.rsplit("_", 1)[1])] = float(value)
+            elif name.startswith("input_bit_register_"):
+                self.bool_in[int(name.rsplit("_", 1)[1])] = bool(value)
+            elif name.startswith("input_bit_registers") and name.endswith(("0_to_31",
+                                                                          "32_to_63")):
+                base = 0 if name.endswith("0_to_31") else 32
+                for k in range(32):
+                    self.bool_in[base + k] = bool(int(value) >> k & 1)
+
+    # --- dashboard -----------------------------------------------------------------------------
+    async def _on_dashboard(self, reader: asyncio.StreamReader,
+                            writer: asyncio.StreamWriter) -> None:
+        framer = LineFramer(max_length=dash.MAX_LINE)
+        writer.write(dash.encode(dash.GREETING))
+        await writer.drain()
+        while True:
+            try:
+                data = await reader.read(4096)
+            except ConnectionError:
+                return
+            if not data:
+                return
+            framer.feed(data)
+            for line in framer.lines():
+                if isinstance(line, FramingError):
+                    reply = "could not understand: (line too long)"
+                else:
+                    text = line.decode("utf-8", errors="replace").strip()
+                    if not text:
+                        continue
+                    self.dashboard_log.append(text)
+                    reply = await self._dashboard(text)
+                # One write per reply: clients read a reply with one recv.
+                writer.write(dash.encode(reply))
+                await writer.drain()
+                if reply == "Disconnected":
+                    return
+
+    async def _dashboard(self, text: str) -> str:
+        cmd = dash.parse_command(text)
+        if cmd is None:
+            return f"could not understand: '{text}'"
+        w, arg = cmd.word, cmd.argument
+        mode_name = RobotMode.NAMES.get(self.robot_mode, "UNKNOWN")
+        remote_only = {"power on", "power off", "brake release", "load", "play",
+                       "unlock protective stop", "restart safety"}
+        if w in remote_only and not self.remote_control:
+            return f"Command is not allowed due to safety reasons: {w}"
+        if w == "power on":
+            if self.robot_mode in (RobotMode.POWER_OFF,):
+                self._change_mode(RobotMode.POWER_ON, RobotMode.IDLE, self.options.power_on_s)
+            return "Powering on"
+        if w == "power off":
+            await self._end_program()
+            self.world.halt()
+            self.program_state = "STOPPED"
+            self._cancel_mode_change()
+            self.robot_mode = RobotMode.POWER_OFF
+            return "Powering off"
+        if w == "brake release":
+            if self.robot_mode in (RobotMode.IDLE, RobotMode.POWER_ON):
+                self._change_mode(RobotMode.IDLE, RobotMode.RUNNING,
+                                  self.options.brake_release_s, wait_idle=True)
+            elif self.robot_mode == RobotMode.POWER_OFF:
+                return "Brake release failed: robot is powered off"
+            return "Brake releasing"
+        if w == "robotmode":
+            return f"Robotmode: {mode_name}"
+        if w == "safetystatus":
+            return f"Safetystatus: {SafetyMode.NAMES.get(self.safety_mode, 'FAULT')}"
+        if w == "safetymode":
+            return f"Safetymode: {SafetyMode.NAMES.get(self.safety_mode, 'FAULT')}"
+        if w == "is in remote control":
+            return "true" if self.remote_control else "false"
+        if w == "load":
+            name = arg.rsplit("/", 1)[-1]
+            if not name.endswith(".urp") or name not in self.options.programs:
+                return f"File not found: {arg}"
+            await self._end_program()
+            self.program_state = "STOPPED"
+            self.loaded_program = "/programs/" + name
+            return f"Loading program: {arg}"
+        if w == "get loaded program":
+            return (f"Loaded program: {self.loaded_program}" if self.loaded_program
+                    else "No program loaded")
+        if w == "play":
+            if (not self.loaded_program or self.robot_mode != RobotMode.RUNNING
+                    or self.safety_mode != SafetyMode.NORMAL):
+                return "Failed to execute: play"
+            await self._end_program()
+            self.program_state = "PLAYING"
+            return "Starting program"
+        if w == "stop":
+            if self.runtime_state == RuntimeState.STOPPED:
+                return "Failed to execute: stop"
+            await self._end_program()
+            self.world.halt()
+            self.program_state = "STOPPED"
+            return "Stopped"
+        if w == "pause":
+            if self.program_state != "PLAYING":
+                return "Failed to execute: pause"
+            self.program_state = "PAUSED"
+            return "Pausing program"
+        if w == "programstate":
+            name = self.loaded_program.rsplit("/", 1)[-1] or "<unnamed>"
+            return f"{self.program_state} {name}"
+        if w == "running":
+            running = self.runtime_state == RuntimeState.PLAYING
+            return f"Program running: {'true' if running else 'false'}"
+        if w == "polyscopeversion":
+            v = self.options.controller_version
+            return f"URSoftware {v[0]}.{v[1]}.{v[2]}.{v[3]} (Jan 12 2023)"
+        if w == "get robot model":
+            return self.options.robot_model[:4]
+        if w == "get serial number":
+            return self.options.serial_number
+        if w == "unlock protective stop":
+            if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
+                return "Cannot unlock protective stop until 5s after occurrence. Always inspect "\
+                       "cause of protective stop before unlocking"
+            self.safety_mode = SafetyMode.NORMAL
+            return "Protective stop releasing"
+        if w == "restart safety":
+            self.safety_mode = SafetyMode.NORMAL
+            self.robot_mode = RobotMode.POWER_OFF
+            return "Restarting safety"
+        if w == "isprogramsaved":
+            name = self.loaded_program.rsplit("/", 1)[-1] or "<unnamed>"
+            return f"true {name}"
+        if w in ("close popup", "close safety popup"):
+            return "closing popup" if w == "close popup" else "closing safety popup"
+        if w == "popup":
+            return "showing popup"
+        if w == "addtolog":
+            return "Added log message"
+        if w == "setuserrole":
+            return f"Setting user role: {arg}"
+        if w == "shutdown":
+            return "Shutting down"
+        return "Disconnected"  # quit
+
+    def _cancel_mode_change(self) -> None:
+        if self._mode_task is not None:
+            self._mode_task.cancel()
+            self._mode_task = None
+
+    def _change_mode(self, now: int, then: int, seconds: float, *,
+                     wait_idle: bool = False) -> None:
+        """Go to ``now`` at once and to ``then`` after ``seconds`` (scaled)."""
+        self._cancel_mode_change()
+        if not wait_idle:
+            self.robot_mode = now
+        delay = seconds * self.options.time_scale
+
+        async def later() -> None:
+            if wait_idle and self.robot_mode == RobotMode.POWER_ON:
+                await asyncio.sleep(self.options.power_on_s * self.options.time_scale)
+            await asyncio.sleep(delay)
+            self.robot_mode = then
+
+        task = asyncio.create_task(later())
+        self._mode_task = task
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # --- RTDE ----------------------------------------------------------------------------------
+    async def _on_rtde(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        session = _RtdeSession(self, writer)
+        framer = rtde.RtdeFramer()
+        try:
+            while not session.closed:
+                try:
+                    data = await reader.read(65536)
+                except ConnectionError:
+                    return
+                if not data:
+                    return
+                framer.feed(data)
+                try:
+                    for pkg in framer.packages():
+                        await session.handle(pkg)
+                except FramingError:
+                    return  # the stream cannot be resynchronised: drop the client
+        finally:
+            await session.stop()
+            for name in [n for n, s in self._input_owners.items() if s is session]:
+                del self._input_owners[name]
+
+    # --- primary / secondary -------------------------------------------------------------------
+    def _state_message(self) -> bytes:
+        world = self.world
+        running = self.runtime_state == RuntimeState.PLAYING
+        mode = prim.RobotModeData(
+            int((time.monotonic() - self._t0) * 1e6), True, True,
+            self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING),
+            self.safety_mode in (SafetyMode.SYSTEM_EMERGENCY_STOP,
+                                 SafetyMode.ROBOT_EMERGENCY_STOP),
+            self.safety_mode == SafetyMode.PROTECTIVE_STOP, running,
+            self.program_state == "PAUSED", self.robot_mode, 0, 1.0, self.speed_slider, 1.0)
+        q = self._q6(world.q_actual_rad)
+        joints = prim.JointData(tuple(q), tuple(self._q6(world.q_cmd_rad)), (0.0,) * 6,
+                                (253,) * 6)
+        return prim.encode_robot_state(prim.RobotState(mode, joints, self.kinematics()))
+
+    async def _on_primary(self, reader: asyncio.StreamReader,
+                          writer: asyncio.StreamWriter) -> None:
+        v = self.options.controller_version
+        writer.write(prim.encode_version(
+            prim.VersionMessage("URControl", v[0], v[1], v[2], v[3], "12-01-2023, 10:18:46")))
+        writer.write(self._state_message())
+        await writer.drain()
+        self._state_writers.add(writer)
+        buffer = ""
+        try:
+            while True:
+                try:
+                    data = await reader.read(65536)
+                except ConnectionError:
+                    return
+                if not data:
+                    return
+                buffer += data.decode("utf-8", errors="replace").replace("\r", "")
+                programs, buffer = prim.split_programs(buffer)
+                for program in programs:
+                    await self._run_script(program)
+                if len(buffer) > 1 << 20:
+                    buffer = ""
+        finally:
+            self._state_writers.discard(writer)
+
+    async def _broadcast_state(self) -> None:
+        period = 1.0 / self.options.state_hz
+        while True:
+            await asyncio.sleep(period)
+            if not self._state_writers:
+                continue
+            msg = self._state_message()
+            for w in list(self._state_writers):
+                try:
+                    w.write(msg)
+                except (ConnectionError, RuntimeError):
+                    self._state_writers.discard(w)
+
+    def _runtime_exception(self, text: str, line: int = 0) -> None:
+        self.runtime_errors.append(text)
+        _log.info("ur sim: runtime exception", text=text)
+        msg = prim.encode_runtime_exception(
+            prim.RuntimeException(line, 0, text), int((time.monotonic() - self._t0) * 1e6))
+        for w in list(self._state_writers):
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                w.write(msg)
+
+    async def _run_script(self, program: str) -> None:
+        self.scripts.append(program)
+        try:
+            name, statements = prim.parse_script(program)
+        except prim.ScriptError as err:
+            self._runtime_exception(f"compile error: {err}")
+            return
+        secondary = program.lstrip().startswith("sec ")
+        if secondary:
+            if any(s.kind == "call" and s.name in ("movej", "stopj") for s in statements):
+                self._runtime_exception("secondary programs may not move the robot")
+                return
+            await self._execute(statements, name)
+            return
+        await self._end_program()
+        if self.robot_mode != RobotMode.RUNNING or self.safety_mode != SafetyMode.NORMAL:
+            self._runtime_exception(
+                f"program {name or '<line>'} not started: robot mode "
+                f"{RobotMode.NAMES.get(self.robot_mode)}, safety "
+                f"{SafetyMode.NAMES.get(self.safety_mode)}")
+            return
+        self.program_state = "STOPPED"
+        self.script_runs += 1
+        self._program = asyncio.create_task(self._execute(statements, name))
+
+    async def _end_program(self) -> None:
+        task, self._program = self._program, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            self.world.halt()
+
+    async def _execute(self, statements: Sequence[prim.Statement], name: str) -> None:
+        local: dict[str, Any] = {}
+        try:
+            for n, s in enumerate(statements, start=1):
+                await self._statement(s, local, n)
+        except _RuntimeError as err:
+            self._runtime_exception(f"{name or 'script'}: {err}", err.line)
+        except _ProgramHalted:
+            pass
+
+    def _value(self, v: Any, local: dict[str, Any], line: int) -> Any:
+        if isinstance(v, tuple) and len(v) == 2 and v[0] == "ref":
+            ref: str = v[1]
+            base, _, idx = ref.partition("[")
+            if base in local:
+                value = local[base]
+            elif base in self.variables:
+                value = self.variables[base]
+            else:
+                raise _RuntimeError(f"variable {base} is not defined", line)
+            if idx:
+                try:
+                    return value[int(idx.rstrip("]"))]
+                except (IndexError, TypeError):
+                    raise _RuntimeError(f"index out of range: {ref}", line) from None
+            return value
+        return v
+
+    async def _statement(self, s: prim.Statement, local: dict[str, Any], line: int) -> None:
+        args = [self._value(a, local, line) for a in s.args]
+        kw = {k: self._value(v, local, line) for k, v in s.kwargs.items()}
+        if s.kind == "assign":
+            value = args[0]
+            if s.name.startswith(self.options.installation_prefix):
+                self.variables[s.name] = value
+            else:
+                local[s.name] = value
+            return
+        f = s.name
+        try:
+            if f == "movej":
+                await self._movej(args[0], float(kw.get("a", 1.4)), float(kw.get("v", 1.05)),
+                                  line)
+            elif f == "stopj":
+                self.world.halt()
+            elif f == "write_output_integer_register":
+                self.int_out[int(args[0])] = int(args[1])
+            elif f == "write_output_float_register":
+                self.double_out[int(args[0])] = float(args[1])
+            elif f == "write_output_boolean_register":
+                self.bool_out[int(args[0])] = bool(args[1])
+            elif f == "set_standard_digital_out":
+                bit = 1 << int(args[0])
+                self.digital_out = (self.digital_out | bit) if args[1] else \
+                    (self.digital_out & ~bit)
+            elif f == "sleep":
+                await asyncio.sleep(float(args[0]) * self.options.time_scale)
+            elif f in ("sync", "textmsg"):
+                await asyncio.sleep(0)
+            else:
+                raise _RuntimeError(f"unknown function {f}", line)
+        except (IndexError, TypeError, ValueError) as err:
+            raise _RuntimeError(f"{f}: bad arguments ({err})", line) from err
+
+    async def _movej(self, q: Any, a: float, v: float, line: int) -> None:
+        world = self.world
+        target = [float(x) for x in q]
+        if len(target) != 6 or not world.within_limits(target[:world.dof]):
+            raise _RuntimeError(f"movej target {target} outside the joint limits", line)
+        if self.faults.fire("alarm"):
+            # A protective stop ends the program without a runtime exception; clients see it
+            # in the safety mode (RTDE, robot mode data) and the dashboard's safetystatus.
+            world.halt()
+            self.safety_mode = SafetyMode.PROTECTIVE_STOP
+            raise _ProgramHalted
+        v = max(1e-6, min(v, self.options.max_joint_speed_rad_s) * self.speed_slider)
+        dist = max(abs(t - c) for t, c in zip(target[:world.dof], world.q_cmd_rad, strict=True))
+        ramp = v / max(a, 1e-6)
+        duration = max(dist / v + ramp, self.options.min_motion_s) * self.options.time_scale
+        if duration <= 0.0:
+            world.move(target[:world.dof])
+            await asyncio.sleep(0)
+            return
+        motion = world.start_motion(target[:world.dof], duration)
+        await asyncio.sleep(duration)
+        world.finish_motion(motion)
+
+
+class _ProgramHalted(Exception):
+    """The program was ended by the controller (protective stop), without an exception."""
+
+
+class _RuntimeError(Exception):
+    def __init__(self, message: str, line: int) -> None:
+        super().__init__(message)
+        self.line = line
+
+
+def _zero(t: str) -> Any:
+    if t.startswith("VECTOR"):
+        return [0.0 if t.endswith("D") else 0] * (3 if t == "VECTOR3D" else 6)
+    if t == "DOUBLE":
+        return 0.0
+    if t == "BOOL":
+        return False
+    return 0

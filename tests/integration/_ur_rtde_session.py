@@ -1,0 +1,124 @@
+"""A realistic ur-rtde session against a UR controller; run as a separate process.
+
+ur-rtde's calls hold the GIL while they block on the socket, so the session cannot share a
+process with the asyncio simulator. Usage::
+
+    python _ur_rtde_session.py HOST EXPECTED_Q_JSON
+
+Prints one JSON line per step: ``{"step": ..., "ok": bool, "detail": ...}``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import dashboard_client
+import rtde_io
+import rtde_receive
+
+HOST = sys.argv[1]
+EXPECTED_Q = json.loads(sys.argv[2])
+
+
+def step(name: str, fn: Callable[[], Any], check: Callable[[Any], bool]) -> Any:
+    try:
+        value = fn()
+        ok = bool(check(value))
+        detail = repr(value)[:200]
+    except Exception as err:
+        value, ok, detail = None, False, f"{type(err).__name__}: {err}"
+    print(json.dumps({"step": name, "ok": ok, "detail": detail}), flush=True)
+    return value
+
+
+def near(q: list[float]) -> bool:
+    """``q`` is the expected pose within 1 mrad per joint."""
+    return len(q) == 6 and max(abs(a - b) for a, b in zip(q, EXPECTED_Q, strict=True)) < 1e-3
+
+
+def until(fn: Callable[[], Any], check: Callable[[Any], bool], timeout: float = 5.0) -> Any:
+    """Poll ``fn`` until ``check`` holds (bounded); return the last value."""
+    deadline = time.monotonic() + timeout
+    value = fn()
+    while not check(value) and time.monotonic() < deadline:
+        time.sleep(0.01)
+        value = fn()
+    return value
+
+
+d = dashboard_client.DashboardClient(HOST, 29999, False)
+step("dashboard.connect", d.connect, lambda v: d.isConnected())
+step("dashboard.polyscopeVersion", d.polyscopeVersion, lambda v: v.startswith("5."))
+step("dashboard.isInRemoteControl", d.isInRemoteControl, lambda v: v is True)
+step("dashboard.getRobotModel", d.getRobotModel, lambda v: v == "UR10")
+step("dashboard.robotmode (off)", d.robotmode, lambda v: v == "Robotmode: POWER_OFF")
+step("dashboard.powerOn", d.powerOn, lambda v: True)
+step("dashboard.robotmode (idle)", lambda: until(d.robotmode, lambda m: "IDLE" in m),
+     lambda v: v == "Robotmode: IDLE")
+step("dashboard.brakeRelease", d.brakeRelease, lambda v: True)
+step("dashboard.robotmode (running)", lambda: until(d.robotmode, lambda m: "RUNNING" in m),
+     lambda v: v == "Robotmode: RUNNING")
+step("dashboard.safetystatus", d.safetystatus, lambda v: v == "Safetystatus: NORMAL")
+step("dashboard.safetymode", d.safetymode, lambda v: v == "Safetymode: NORMAL")
+step("dashboard.loadURP", lambda: d.loadURP("calibration.urp"), lambda v: True)
+step("dashboard.getLoadedProgram", d.getLoadedProgram,
+     lambda v: v == "Loaded program: /programs/calibration.urp")
+step("dashboard.play", d.play, lambda v: True)
+step("dashboard.running (playing)", d.running, lambda v: v is True)
+step("dashboard.programState (playing)", d.programState,
+     lambda v: v.startswith("PLAYING calibration.urp"))
+step("dashboard.pause", d.pause, lambda v: True)
+step("dashboard.programState (paused)", d.programState, lambda v: v.startswith("PAUSED"))
+step("dashboard.stop", d.stop, lambda v: True)
+step("dashboard.running (stopped)", d.running, lambda v: v is False)
+
+r = step("rtde_receive.RTDEReceiveInterface", lambda: rtde_receive.RTDEReceiveInterface(HOST),
+         lambda v: v.isConnected())
+if r is not None:
+    step("rtde_receive.getActualQ", r.getActualQ,
+         near)
+    step("rtde_receive.getTargetQ", r.getTargetQ,
+         near)
+    step("rtde_receive.getRobotMode", r.getRobotMode, lambda v: v == 7)
+    step("rtde_receive.getSafetyMode", r.getSafetyMode, lambda v: v == 1)
+    step("rtde_receive.getRuntimeState", r.getRuntimeState, lambda v: v == 1)
+    step("rtde_receive.isProtectiveStopped", r.isProtectiveStopped, lambda v: v is False)
+    step("rtde_receive.isEmergencyStopped", r.isEmergencyStopped, lambda v: v is False)
+    step("rtde_receive.getRobotStatus", r.getRobotStatus, lambda v: v & 1 == 1)
+    step("rtde_receive.getOutputIntRegister", lambda: r.getOutputIntRegister(12),
+         lambda v: v == 4242)
+    step("rtde_receive.getOutputDoubleRegister", lambda: r.getOutputDoubleRegister(12),
+         lambda v: v == 2.5)
+    step("rtde_receive.getTimestamp", r.getTimestamp, lambda v: v > 0.0)
+
+io = step("rtde_io.RTDEIOInterface", lambda: rtde_io.RTDEIOInterface(HOST),
+          lambda v: v.isConnected())
+if io is not None and r is not None:
+    step("rtde_io.setStandardDigitalOut(3, True)", lambda: io.setStandardDigitalOut(3, True),
+         lambda v: v is True)
+    step("rtde_receive.getDigitalOutState(3) (on)",
+         lambda: until(lambda: r.getDigitalOutState(3), lambda s: s is True),
+         lambda v: v is True)
+    step("rtde_io.setStandardDigitalOut(3, False)", lambda: io.setStandardDigitalOut(3, False),
+         lambda v: v is True)
+    step("rtde_receive.getDigitalOutState(3) (off)",
+         lambda: until(lambda: r.getDigitalOutState(3), lambda s: s is False),
+         lambda v: v is False)
+    step("rtde_io.setInputIntRegister(18, 42)", lambda: io.setInputIntRegister(18, 42),
+         lambda v: v is True)
+    step("rtde_io.setInputDoubleRegister(19, 1.25)",
+         lambda: io.setInputDoubleRegister(19, 1.25), lambda v: v is True)
+    step("rtde_io.setSpeedSlider(0.5)", lambda: io.setSpeedSlider(0.5), lambda v: v is True)
+    step("rtde_receive.getSpeedScaling",
+         lambda: until(r.getSpeedScaling, lambda s: abs(s - 0.5) < 1e-9),
+         lambda v: abs(v - 0.5) < 1e-9)
+    io.disconnect()
+if r is not None:
+    r.disconnect()
+step("dashboard.powerOff", d.powerOff, lambda v: True)
+step("dashboard.robotmode (off again)", d.robotmode, lambda v: v == "Robotmode: POWER_OFF")
+d.disconnect()

@@ -1,0 +1,173 @@
+"""The UR simulator's wire rules, spoken to with raw sockets and robocal's codecs."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+
+import pytest
+
+from robocal.drivers.sim import SimCell, SimWorld, UrSimOptions, UrSimulator
+from robocal.protocols import ur_dashboard as dash
+from robocal.protocols import ur_primary as prim
+from robocal.protocols import ur_rtde as rtde
+from tests._waiting import eventually
+
+pytestmark = pytest.mark.timeout(30)
+
+
+@contextlib.asynccontextmanager
+async def ur_sim(**options: object) -> AsyncIterator[UrSimulator]:
+    opts = UrSimOptions(**{"time_scale": 0.0, "start_powered": True, **options})  # type: ignore[arg-type]
+    async with SimCell(world=SimWorld.create("ur10", seed=2), fanuc=False, modbus=False,
+                       ltp=False, ur=opts) as cell:
+        assert cell.ur_sim is not None
+        yield cell.ur_sim
+
+
+class Rtde:
+    """A minimal RTDE client for the tests."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.framer = rtde.RtdeFramer()
+
+    @classmethod
+    async def open(cls, sim: UrSimulator) -> Rtde:
+        return cls(*await asyncio.open_connection(sim.host, sim.ports["rtde"]))
+
+    async def ask(self, data: bytes, ptype: int) -> rtde.RtdePackage:
+        self.writer.write(data)
+        async with asyncio.timeout(5):
+            while True:
+                for pkg in self.framer.packages():
+                    if pkg.type == ptype:
+                        return pkg
+                self.framer.feed(await self.reader.read(65536))
+
+    async def close(self) -> None:
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            await self.writer.wait_closed()
+
+
+async def test_rtde_recipes_refuse_unknown_and_in_use_variables():
+    async with ur_sim() as sim:
+        a, b = await Rtde.open(sim), await Rtde.open(sim)
+        try:
+            ok = await a.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            assert ok.payload == b"\x01"
+            bad = await a.ask(rtde.setup_outputs(["actual_q", "no_such"], 125), rtde.SETUP_OUTPUTS)
+            assert rtde.parse_recipe_reply(bad.payload) == (0, ["VECTOR6D", "NOT_FOUND"])
+            # START without an output recipe is refused
+            assert (await a.ask(rtde.encode(rtde.START), rtde.START)).payload == b"\x00"
+            mine = await a.ask(rtde.setup_inputs(["input_int_register_30"]), rtde.SETUP_INPUTS)
+            assert rtde.parse_recipe_reply(mine.payload) == (1, ["INT32"])
+            await b.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            taken = await b.ask(rtde.setup_inputs(["input_int_register_30"]), rtde.SETUP_INPUTS)
+            assert rtde.parse_recipe_reply(taken.payload) == (0, ["IN_USE"])
+            a.writer.write(rtde.data_package(1, ["INT32"], [77]))
+            await eventually(lambda: sim.int_in[30] == 77, 5, what="input applied")
+        finally:
+            await a.close()
+            await b.close()
+        # the register is free again once its owner has gone
+        c = await Rtde.open(sim)
+        try:
+            await c.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            await eventually(lambda: not any(not s.closed for s in sim._input_owners.values()),
+                             5, what="owner released")
+            again = await c.ask(rtde.setup_inputs(["input_int_register_30"]), rtde.SETUP_INPUTS)
+            assert rtde.parse_recipe_reply(again.payload)[0] == 1
+        finally:
+            await c.close()
+
+
+async def test_rtde_streams_the_recipe_and_pause_stops_it():
+    async with ur_sim() as sim:
+        c = await Rtde.open(sim)
+        try:
+            await c.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            names = ["actual_q", "robot_mode", "runtime_state", "output_int_register_24"]
+            rep = await c.ask(rtde.setup_outputs(names, 250.0), rtde.SETUP_OUTPUTS)
+            rid, types = rtde.parse_recipe_reply(rep.payload)
+            sim.int_out[24] = -5
+            assert (await c.ask(rtde.encode(rtde.START), rtde.START)).payload == b"\x01"
+            data = await c.ask(b"", rtde.DATA_PACKAGE)
+            values = rtde.values_by_name(names, types, data.payload[1:])
+            assert data.payload[0] == rid == 1
+            assert values["robot_mode"] == 7 and values["runtime_state"] == 1
+            assert values["output_int_register_24"] == -5
+            assert (await c.ask(rtde.encode(rtde.PAUSE), rtde.PAUSE)).payload == b"\x01"
+        finally:
+            await c.close()
+
+
+async def test_dashboard_refuses_in_local_mode_and_answers_unknown_commands():
+    async with ur_sim(remote_control=False, start_powered=False) as sim:
+        reader, writer = await asyncio.open_connection(sim.host, sim.ports["dashboard"])
+        try:
+            async with asyncio.timeout(5):
+                assert (await reader.readline()).decode().strip() == dash.GREETING
+                for cmd, reply in (("power on", "Command is not allowed due to safety reasons"),
+                                   ("is in remote control", "false"),
+                                   ("fly", "could not understand: 'fly'"),
+                                   ("robotmode", "Robotmode: POWER_OFF")):
+                    writer.write(dash.encode(cmd))
+                    got = (await reader.readline()).decode().strip()
+                    assert got.startswith(reply), got
+        finally:
+            writer.close()
+
+
+async def test_primary_sends_version_then_state_and_runs_scripts():
+    async with ur_sim() as sim:
+        reader, writer = await asyncio.open_connection(sim.host, sim.ports["primary"])
+        framer = prim.PrimaryFramer()
+        seen: list[object] = []
+
+        async def until(pred: object) -> object:
+            async with asyncio.timeout(5):
+                while True:
+                    for mtype, body in framer.messages():
+                        msg = prim.decode_message(mtype, body)
+                        seen.append(msg)
+                        if pred(msg):  # type: ignore[operator]
+                            return msg
+                    framer.feed(await reader.read(65536))
+
+        try:
+            first = await until(lambda m: m is not None)
+            assert isinstance(first, prim.VersionMessage) and first.major == 5
+            state = await until(lambda m: isinstance(m, prim.RobotState))
+            assert isinstance(state, prim.RobotState) and state.kinematics == sim.kinematics()
+            # a secondary program may not move the arm
+            writer.write(b"sec s():\n  movej([0, 0, 0, 0, 0, 0], a=1, v=1)\nend\n")
+            exc = await until(lambda m: isinstance(m, prim.RuntimeException))
+            assert "may not move" in exc.text  # type: ignore[union-attr]
+            # a program replaces the running one; variables with the prefix persist
+            writer.write(b"def p():\n  rc_wp_0 = [1, 2, 3, 4, 5, 6]\n  x = 3\nend\n")
+            await eventually(lambda: sim.variables["rc_wp_0"] == [1.0, 2, 3, 4, 5, 6], 5,
+                             what="installation variable set")
+            assert "x" not in sim.variables
+            writer.write(b"write_output_float_register(30, x)\n")
+            exc = await until(lambda m: isinstance(m, prim.RuntimeException))
+            assert "not defined" in exc.text  # type: ignore[union-attr]
+        finally:
+            writer.close()
+
+
+async def test_an_unframeable_rtde_package_drops_only_that_client():
+    async with ur_sim() as sim:
+        bad = await Rtde.open(sim)
+        good = await Rtde.open(sim)
+        try:
+            bad.writer.write(b"\x00\x01V")  # size 1 < the 3-byte header
+            async with asyncio.timeout(5):
+                assert await bad.reader.read(100) == b""  # closed by the controller
+            ok = await good.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
+            assert ok.payload == b"\x01"
+        finally:
+            await bad.close()
+            await good.close()
