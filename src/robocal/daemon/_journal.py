@@ -24,7 +24,7 @@ from typing import Any
 
 from robocal.daemon.campaign import CampaignState, check_transition
 from robocal.daemon.store import Store, now_iso
-from robocal.errors import CampaignError, InvalidTransition
+from robocal.errors import CampaignError
 
 __all__ = ["JournalEntry", "PushJournal"]
 
@@ -161,8 +161,12 @@ class PushJournal:
                 db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
                            "VALUES(?,?,?,?,?)", (t, "push", e.table_id, e.campaign, actor))
                 if e.campaign is not None:
-                    self._to_pushed(db, e.campaign, actor,
-                                    f"{e.detail.get('kind', 'table')} {checksum[:12]} pushed")
+                    note = self._to_pushed(db, e.campaign, actor,
+                                           f"{e.detail.get('kind', 'table')} {checksum[:12]} "
+                                           "pushed")
+                    if note:
+                        outcome = f"{outcome}; {note}"
+                        detail["campaign_note"] = note
             else:
                 db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
                            "VALUES(?,?,?,?,?)", (t, "rollback", e.rolled_back_id, None, actor))
@@ -174,14 +178,19 @@ class PushJournal:
         return self.get(key)
 
     @staticmethod
-    def _to_pushed(db: sqlite3.Connection, cid: str, actor: str, reason: str) -> None:
+    def _to_pushed(db: sqlite3.Connection, cid: str, actor: str, reason: str) -> str | None:
+        """``approved -> pushed``; for a campaign no longer approved (aborted while its table
+        was written, by a daemon without the push lock) the state stays and a note says so:
+        the write happened and must be in the history, or nothing could roll it back."""
         row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
         if row is None:
             raise CampaignError(f"no campaign {cid!r}")
         src = CampaignState(row[0])
+        if src == CampaignState.PUSHED:
+            return None
         if src != CampaignState.APPROVED:
-            raise InvalidTransition(src.value, CampaignState.PUSHED.value,
-                                    "only an approved campaign is pushed")
+            return (f"campaign {cid} was {src.value} when its table was confirmed on the "
+                    "controller; the table is active (roll back to remove it)")
         check_transition(src, CampaignState.PUSHED)
         t = now_iso()
         db.execute("UPDATE campaigns SET state=?, reason=?, updated=? WHERE id=?",
@@ -189,6 +198,7 @@ class PushJournal:
         db.execute("INSERT INTO transitions(campaign, at, from_state, to_state, reason, actor) "
                    "VALUES(?,?,?,?,?,?)", (cid, t, src.value, CampaignState.PUSHED.value,
                                            reason, actor))
+        return None
 
     def abandon(self, key: str, *, actor: str, reason: str, what: str = "abandoned",
                 extra: dict[str, Any] | None = None) -> JournalEntry:

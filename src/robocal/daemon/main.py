@@ -105,6 +105,9 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
             # The robot stops before anything else winds down (the API may take a while).
             with contextlib.suppress(Exception):
                 await service.stop_motion(trigger="shutdown", reason="daemon stopping")
+            # A push or rollback being written finishes (read back, journaled) before the
+            # API, whose requests it runs in, is torn down.
+            await service.drain()
             service.events.close()
             await api.stop()
             await service.stop()

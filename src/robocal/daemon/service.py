@@ -95,6 +95,7 @@ class CalibrationService:
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
+        self._closing = False
 
     # --- lifecycle -------------------------------------------------------------------------
     async def start(self, *, connect: bool = True) -> None:
@@ -124,14 +125,28 @@ class CalibrationService:
         for key, _ in self.journal.open_verifications():
             self._spawn_verify(key)
 
+    async def drain(self, timeout: float = 30.0) -> None:
+        """Refuse new pushes and rollbacks and wait (at most ``timeout`` s) for the one in
+        progress to be read back and journaled, so shutdown never cuts a write in half.
+
+        A write still running after ``timeout`` stays ``intended`` in the journal and is
+        reconciled on the next start.
+        """
+        self._closing = True
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout), self._push_lock:
+                pass
+
     async def stop(self) -> None:
         """Stop work (campaign states stay as they are, to resume on restart); close all.
 
-        Motion stops first, at once (the driver's ``stop()``), before anything else closes.
+        Motion stops first, at once (the driver's ``stop()``), before anything else closes;
+        then a push or rollback in progress finishes (:meth:`drain`).
         """
         task = self._measure_task
         if not self._shutdown_stopped or (task is not None and not task[1].done()):
             await self.stop_motion(trigger="shutdown", reason="daemon stopping")
+        await self.drain()
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
@@ -355,12 +370,25 @@ class CalibrationService:
         """Abort from any non-final state (state and audit entry in one transaction); motion
         and fitting for it stop."""
         why = reason or "aborted by operator"
-        self._transition(cid, S.ABORTED, actor=actor, reason=why,
-                         audit=("campaign.abort", {"reason": reason}))
         task = self._measure_task
         if task is not None and task[0] == cid and not task[1].done():
+            # Measuring: the robot stops at once. No push or rollback runs while a campaign
+            # measures (both need the robot idle), so there is nothing to wait for.
+            self._transition(cid, S.ABORTED, actor=actor, reason=why,
+                             audit=("campaign.abort", {"reason": reason}))
             await self.stop_motion(trigger="abort", reason=why, actor=actor, cid=cid)
             await self.hub.reset("campaign aborted")
+        else:
+            # A push of this campaign may be writing: the abort waits until the table is
+            # read back and journaled (or undone), then applies to what is true by then.
+            async with self._push_lock:
+                if self.store.campaign(cid).state == S.PUSHED:
+                    raise InvalidTransition(
+                        S.PUSHED.value, S.ABORTED.value,
+                        "its table was pushed before the abort; robocal compensation "
+                        "rollback removes it")
+                self._transition(cid, S.ABORTED, actor=actor, reason=why,
+                                 audit=("campaign.abort", {"reason": reason}))
         fit = self._fit_tasks.get(cid)
         if fit is not None:
             fit.cancel()
@@ -617,17 +645,8 @@ class CalibrationService:
             If the read-back differs (the previous values are put back; the campaign stays
             ``approved``; see the audit log).
         """
-        if key is not None:
-            done = self.journal.find(key)
-            if done is not None:
-                if done.campaign != cid or done.action != "push":
-                    raise CampaignError(f"idempotency key {key!r} belongs to another action")
-                if done.state == "intended":
-                    await self.reconcile()
-                    done = self.journal.get(key)
-                if done.state == "completed":
-                    return self.status(cid)
-                raise CompensationError(f"push {key} was abandoned: {done.outcome}")
+        if key is not None and await self._retried(key, action="push", campaign=cid):
+            return self.status(cid)
         rec = self.store.campaign(cid)
         if rec.state == S.PUSHED:
             raise CampaignError(f"campaign {cid} was already pushed; robocal compensation "
@@ -647,6 +666,7 @@ class CalibrationService:
             raise CompensationError(f"push refused: {refusal}; an operator may force it "
                                     "(recorded in the audit log)")
         async with self._push_lock:
+            self._ensure_open()
             self._ensure_idle()
             await self._reconcile_locked()
             if self.journal.pending():
@@ -692,6 +712,33 @@ class CalibrationService:
         _log.info("compensation pushed", campaign=cid, key=key, **summary)
         self._spawn_verify(key)
         return self.status(cid)
+
+    def _ensure_open(self) -> None:
+        if self._closing:
+            raise CompensationError("the daemon is stopping; nothing written")
+
+    async def _retried(self, key: str, *, action: str, campaign: str | None) -> bool:
+        """True when ``key`` is a completed ``action`` (a retry: answer as the first time);
+        False when the key is new.
+
+        Raises
+        ------
+        CampaignError
+            If the key belongs to another action or campaign.
+        CompensationError
+            If that action was abandoned (nothing of it is on the controller).
+        """
+        done = self.journal.find(key)
+        if done is None:
+            return False
+        if done.campaign != campaign or done.action != action:
+            raise CampaignError(f"idempotency key {key!r} belongs to another action")
+        if done.state == "intended":
+            await self.reconcile()
+            done = self.journal.get(key)
+        if done.state == "completed":
+            return True
+        raise CompensationError(f"{action} {key} was abandoned: {done.outcome}")
 
     async def _undo(self, robot: object, key: str, actor: str, reason: str,
                     what: str = "failed") -> None:
@@ -765,7 +812,10 @@ class CalibrationService:
         CompensationError
             If there is no earlier table.
         """
+        if key is not None and await self._retried(key, action="rollback", campaign=None):
+            return self.compensation()
         async with self._push_lock:
+            self._ensure_open()
             self._ensure_idle()
             await self._reconcile_locked()
             if self.journal.pending():
