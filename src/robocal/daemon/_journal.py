@@ -12,7 +12,9 @@ A push or rollback is three transactions around the one controller write:
 A daemon killed between 1 and 3 leaves an ``intended`` row; on restart the service reads the
 controller and completes or abandons it (:meth:`CalibrationService.reconcile`), so nothing
 is ever written twice blindly and the history never misses a write. Verification runs
-(the pushed targets measured with the tracker) are kept per journal key.
+(the pushed targets measured with the tracker) are kept per journal key: ``pending`` from
+the completing transaction on, then ``measuring`` (with the child campaign that measures
+them), then ``done``, ``skipped`` or ``failed``.
 """
 
 from __future__ import annotations
@@ -175,6 +177,11 @@ class PushJournal:
             Store._audit(db, actor, f"compensation.{e.action}", e.campaign, checksum, detail)
             db.execute("UPDATE push_journal SET state='completed', finished_at=?, outcome=? "
                        "WHERE key=? AND state='intended'", (t, outcome, key))
+            # The verification run is owed from this commit on: a daemon killed the instant
+            # after it still finds the run to do on its next start.
+            db.execute("INSERT OR IGNORE INTO push_verifications(key, campaign, state, "
+                       "created, updated, result) VALUES(?,NULL,'pending',?,?,'{}')",
+                       (key, t, t))
         return self.get(key)
 
     @staticmethod
@@ -275,7 +282,9 @@ class PushJournal:
                 **json.loads(row["result"])}
 
     def open_verifications(self) -> list[tuple[str, str | None]]:
-        """``(key, campaign)`` of verification runs not finished yet."""
+        """``(key, campaign)`` of verification runs not finished yet (``pending``: owed since
+        the push completed, not started; ``measuring``), oldest first."""
         rows = self.store.db.execute(
-            "SELECT key, campaign FROM push_verifications WHERE state='measuring'").fetchall()
+            "SELECT key, campaign FROM push_verifications WHERE state IN ('pending', "
+            "'measuring') ORDER BY rowid").fetchall()
         return [(str(r[0]), r[1]) for r in rows]

@@ -63,6 +63,9 @@ class CampaignSummary(_Closed):
     plan_digest: str
     config_digest: str
     selected_model: str | None
+    verifies: str | None = Field(
+        default=None, description="journal key of the push or rollback this run verifies "
+                                  "(a verification run, a child of that push); else null")
 
 
 class Transition(_Closed):
@@ -108,7 +111,7 @@ class TargetError(_Closed):
 class Verification(_Closed):
     """The verification run of a push or rollback: its targets measured again."""
 
-    state: Literal["measuring", "done", "skipped", "failed"]
+    state: Literal["pending", "measuring", "done", "skipped", "failed"]
     campaign: str | None
     updated: str
     reason: str | None = None

@@ -143,6 +143,7 @@ class CalibrationService:
         Motion stops first, at once (the driver's ``stop()``), before anything else closes;
         then a push or rollback in progress finishes (:meth:`drain`).
         """
+        self._closing = True  # verification runs cut from here on stay open in the journal
         task = self._measure_task
         if not self._shutdown_stopped or (task is not None and not task[1].done()):
             await self.stop_motion(trigger="shutdown", reason="daemon stopping")
@@ -261,7 +262,8 @@ class CalibrationService:
 
     async def create(self, plan: Mapping[str, Any] | str | PlanDoc, *, actor: str,
                      name: str | None = None, start: bool = True,
-                     measure_only: bool = False) -> dict[str, Any]:
+                     measure_only: bool = False, parent: str | None = None
+                     ) -> dict[str, Any]:
         """Create a campaign from a plan (validated against limits) and, by default, start it.
 
         Raises
@@ -283,7 +285,7 @@ class CalibrationService:
         rec = self.store.create_campaign(
             name=name or f"campaign {time.strftime('%Y-%m-%d %H:%M')}", robot=self.robot.name,
             poses=doc.poses, plan_json=doc.text, plan_digest=doc.digest,
-            config_digest=self._digest, actor=actor, measure_only=measure_only)
+            config_digest=self._digest, actor=actor, measure_only=measure_only, parent=parent)
         self.events.emit("state", rec.id, state=rec.state.value, reason="created",
                          poses_measured=0, poses_total=rec.poses_total)
         _log.info("campaign created", campaign=rec.id, poses=rec.poses_total, actor=actor)
@@ -883,7 +885,7 @@ class CalibrationService:
     async def _verify(self, key: str) -> None:
         try:
             v = self.journal.verification(key)
-            if v is None:
+            if v is None or v["state"] == "pending":
                 if not await self._start_verification(key):
                     return
                 v = self.journal.verification(key)
@@ -892,10 +894,39 @@ class CalibrationService:
         except asyncio.CancelledError:
             raise
         except Exception as err:  # a verification bug must not take the daemon down
+            if self._closing:  # cut by shutdown: still open in the journal, resumed on start
+                _log.info("verification interrupted by shutdown", key=key, error=str(err))
+                return
             _log.exception("verification failed", key=key)
             with contextlib.suppress(Exception):
                 self.journal.set_verification(key, state="failed",
                                               result={"reason": f"{type(err).__name__}: {err}"})
+
+    async def _wait_idle(self) -> None:
+        """Wait until no campaign measures (the robot is one)."""
+        async with self.events.subscribe() as q:
+            while self._measure_task is not None and not self._measure_task[1].done():
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(0.5):
+                        if await q.get() is None:
+                            raise CampaignError("the service stopped")
+
+    async def _run_child(self, vcid: str) -> None:
+        """Make a verification run measure: after a restart it is ``running`` without a task
+        (never resumed as a campaign of its own) or still ``created``."""
+        task = self._measure_task
+        if task is not None and task[0] == vcid and not task[1].done():
+            return
+        state = self.store.campaign(vcid).state
+        if state not in (S.CREATED, S.RUNNING):
+            return
+        await self._wait_idle()
+        if self.store.campaign(vcid).state == S.CREATED:
+            await self.preflight()
+            await self.start_campaign(vcid, actor="daemon")
+        elif self.store.campaign(vcid).state == S.RUNNING:
+            _log.info("resuming verification run after restart", campaign=vcid)
+            self._spawn_measure(vcid)
 
     async def _start_verification(self, key: str) -> bool:
         e = self.journal.get(key)
@@ -925,15 +956,24 @@ class CalibrationService:
             purposes += ["verify-before", "verify-after"]
         doc = plan_from_poses(q_deg, purposes=purposes, robot=self.robot.name)
         model_campaign = e.campaign or e.detail.get("model_campaign")
-        try:
-            vst = await self.create(parse_plan(doc, source="verification", strict=False),
-                                    actor="daemon", name=f"verify {e.action} {key[:12]}",
-                                    measure_only=True)
-        except RobocalError as err:
-            self.journal.set_verification(key, state="skipped",
-                                          result={"reason": f"not measured: {err}"})
-            return False
-        self.journal.set_verification(key, state="measuring", campaign=vst["id"],
+        # a child created by a daemon that stopped before recording it is taken up again
+        earlier = [r for r in self.store.campaigns(parent=key) if r.state not in FINAL]
+        if earlier:
+            vcid = earlier[-1].id
+        else:
+            await self._wait_idle()
+            try:
+                vst = await self.create(parse_plan(doc, source="verification", strict=False),
+                                        actor="daemon", name=f"verify {e.action} {key[:12]}",
+                                        measure_only=True, parent=key)
+            except RobocalError as err:
+                if self._closing:
+                    raise
+                self.journal.set_verification(key, state="skipped",
+                                              result={"reason": f"not measured: {err}"})
+                return False
+            vcid = str(vst["id"])
+        self.journal.set_verification(key, state="measuring", campaign=vcid,
                                       result={"indices": idx, "model_campaign": model_campaign,
                                               "action": e.action})
         return True
@@ -943,6 +983,7 @@ class CalibrationService:
         if v is None or not v.get("campaign"):
             return
         vcid = str(v["campaign"])
+        await self._run_child(vcid)
         st = await self.wait(vcid, ["measured", "faulted"], timeout=24 * 3600.0)
         if st["state"] != "measured":
             self.journal.set_verification(

@@ -51,7 +51,8 @@ CREATE TABLE IF NOT EXISTS campaigns(
     plan_digest TEXT NOT NULL,
     config_digest TEXT NOT NULL,
     selected_model TEXT,
-    created_by TEXT NOT NULL
+    created_by TEXT NOT NULL,
+    parent TEXT
 );
 CREATE TABLE IF NOT EXISTS poses(
     campaign TEXT NOT NULL REFERENCES campaigns(id),
@@ -170,6 +171,9 @@ class CampaignRecord:
     config_digest: str
     selected_model: str | None
     created_by: str
+    #: The journal key of the push or rollback this run verifies (a child of it, not a
+    #: campaign of its own); None for an operator's campaign.
+    parent: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready summary (the API's campaign status)."""
@@ -188,6 +192,7 @@ class CampaignRecord:
             "plan_digest": self.plan_digest,
             "config_digest": self.config_digest,
             "selected_model": self.selected_model,
+            "verifies": self.parent,
         }
 
 
@@ -292,6 +297,8 @@ class Store:
         if "beam_losses" not in columns:  # stores written before beam losses were counted
             db.execute("ALTER TABLE measurements ADD COLUMN beam_losses INTEGER NOT NULL "
                        "DEFAULT 0")
+        if "parent" not in {r[1] for r in db.execute("PRAGMA table_info(campaigns)")}:
+            db.execute("ALTER TABLE campaigns ADD COLUMN parent TEXT")  # before child runs
         row = db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             db.execute("INSERT INTO meta(key, value) VALUES('schema', ?)", (str(SCHEMA_VERSION),))
@@ -389,21 +396,23 @@ class Store:
         config_digest: str,
         actor: str,
         measure_only: bool = False,
+        parent: str | None = None,
     ) -> CampaignRecord:
         """Insert a campaign in state ``created`` with its poses; return it.
 
-        ``poses_total`` counts the poses to measure (via-points excluded).
+        ``poses_total`` counts the poses to measure (via-points excluded). ``parent``: the
+        journal key of the push or rollback whose verification run this is.
         """
         cid = uuid.uuid4().hex[:12]
         t = now_iso()
         with self.transaction() as db:
             db.execute(
                 "INSERT INTO campaigns(id, name, created, updated, state, robot, poses_total, "
-                "measure_only, plan_json, plan_digest, config_digest, created_by) "
-                "VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
+                "measure_only, plan_json, plan_digest, config_digest, created_by, parent) "
+                "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (cid, name, t, t, CampaignState.CREATED.value, robot,
                  sum(1 for p in poses if p.measure),
-                 int(measure_only), plan_json, plan_digest, config_digest, actor),
+                 int(measure_only), plan_json, plan_digest, config_digest, actor, parent),
             )
             db.executemany(
                 "INSERT INTO poses(campaign, idx, purpose, measure, q_deg) VALUES(?,?,?,?,?)",
@@ -433,7 +442,7 @@ class Store:
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
-            created_by=row["created_by"],
+            created_by=row["created_by"], parent=row["parent"],
         )
 
     def campaign(self, cid: str) -> CampaignRecord:
@@ -443,9 +452,16 @@ class Store:
             raise UnknownCampaign(f"no campaign {cid!r}")
         return self._record(row)
 
-    def campaigns(self, *, states: Sequence[CampaignState] | None = None) -> list[CampaignRecord]:
-        """Return campaigns, oldest first, optionally only those in ``states``."""
-        rows = self.db.execute("SELECT * FROM campaigns ORDER BY created, rowid").fetchall()
+    def campaigns(self, *, states: Sequence[CampaignState] | None = None,
+                  parent: str | None = None) -> list[CampaignRecord]:
+        """Return the operators' campaigns, oldest first, optionally only those in ``states``;
+        with ``parent``, the verification runs of that journal key instead."""
+        if parent is None:
+            rows = self.db.execute("SELECT * FROM campaigns WHERE parent IS NULL "
+                                   "ORDER BY created, rowid").fetchall()
+        else:
+            rows = self.db.execute("SELECT * FROM campaigns WHERE parent=? "
+                                   "ORDER BY created, rowid", (parent,)).fetchall()
         recs = [self._record(r) for r in rows]
         if states is not None:
             recs = [r for r in recs if r.state in states]
