@@ -46,8 +46,13 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
         except BlockingIOError as err:
             raise ConfigError("another daemon uses this data directory",
                               source=str(data_dir)) from err
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        # the pid is for people; a full disk must not stop the daemon from starting (it then
+        # serves health and status with the storage fault instead of restarting in a loop)
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError as err:
+            _log.warning("pid not written to the lock file", error=str(err))
         yield
     finally:
         os.close(fd)

@@ -429,6 +429,13 @@ class CalibrationService:
         return None
 
     def _spawn_measure(self, cid: str) -> None:
+        """Start measuring ``cid`` (state ``running``) unless the store cannot write: then the
+        campaign pauses with the reason before anything moves (start, resume, restart)."""
+        fault = self.store.probe()
+        if fault is not None:
+            self._storage_pause(cid, StorageError(f"the store cannot write ({fault}); "
+                                                  "nothing moved"))
+            return
         task = asyncio.create_task(self._measure(cid), name=f"measure-{cid}")
         self._measure_task = (cid, task)
 

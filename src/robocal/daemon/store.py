@@ -377,6 +377,34 @@ class Store:
         """Campaign states known only in memory (their write hit a storage fault)."""
         return {cid: p[1] for cid, p in self._pending.items()}
 
+    def probe(self) -> str | None:
+        """Whether the store can write now: a synced page in a file next to the database and
+        a row in it. Return None when both succeeded, else the fault (also :attr:`fault`).
+
+        Called before any motion: a run whose measurements cannot be saved must not move the
+        robot (a committed WAL page can be reused; the page file tells whether the disk
+        itself still takes data).
+        """
+        page = b"\0" * 4096
+        try:
+            fd = os.open(self.path.parent / ".write-probe",
+                         os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+            try:
+                if os.write(fd, page) != len(page):
+                    raise OSError(28, "No space left on device (short write)")
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            with self.transaction() as db:
+                db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('write_probe', ?)",
+                           (now_iso(),))
+        except OSError as err:
+            self.fault = f"{type(err).__name__}: {err}"
+            return self.fault
+        except StorageError:
+            return self.fault
+        return None
+
     def flush_pending(self) -> bool:
         """Try to write the transitions held in memory; True when none is left."""
         if self._pending:
@@ -453,10 +481,13 @@ class Store:
         return self._record(row)
 
     def campaigns(self, *, states: Sequence[CampaignState] | None = None,
-                  parent: str | None = None) -> list[CampaignRecord]:
+                  parent: str | None = None, children: bool = False) -> list[CampaignRecord]:
         """Return the operators' campaigns, oldest first, optionally only those in ``states``;
-        with ``parent``, the verification runs of that journal key instead."""
-        if parent is None:
+        with ``parent``, the verification runs of that journal key instead; with
+        ``children``, both."""
+        if children:
+            rows = self.db.execute("SELECT * FROM campaigns ORDER BY created, rowid").fetchall()
+        elif parent is None:
             rows = self.db.execute("SELECT * FROM campaigns WHERE parent IS NULL "
                                    "ORDER BY created, rowid").fetchall()
         else:
