@@ -676,7 +676,7 @@ class CalibrationService:
                                     "(recorded in the audit log)")
         async with self._push_lock:
             self._ensure_open()
-            self._ensure_idle()
+            self._ensure_idle(self._verifying())
             await self._reconcile_locked()
             if self.journal.pending():
                 raise CompensationError("an earlier push could not be reconciled with the "
@@ -689,6 +689,8 @@ class CalibrationService:
                 table, self.config.limits, self.robot,
                 previous=previous if isinstance(previous, CompensationTable) else None,
                 seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
+            # checked and about to write: an earlier push's re-measurement ends here
+            await self._stop_verification_run("a new push was asked for")
             key = key or uuid.uuid4().hex
             detail = {**summary, "forced": refusal is not None, "refusal": refusal,
                       "reason": reason, "program_q_deg": desc["program_q_deg"]}
@@ -825,6 +827,7 @@ class CalibrationService:
             return self.compensation()
         async with self._push_lock:
             self._ensure_open()
+            await self._stop_verification_run("a rollback was asked for")
             self._ensure_idle()
             await self._reconcile_locked()
             if self.journal.pending():
@@ -908,6 +911,37 @@ class CalibrationService:
             with contextlib.suppress(Exception):
                 self.journal.set_verification(key, state="failed",
                                               result={"reason": f"{type(err).__name__}: {err}"})
+
+    def _verifying(self) -> str | None:
+        """The verification run measuring now (a child of a push), or None."""
+        task = self._measure_task
+        if task is None or task[1].done():
+            return None
+        return task[0] if self.store.campaign(task[0]).parent is not None else None
+
+    async def _stop_verification_run(self, why: str) -> None:
+        """Stop the verification run measuring now, if any (push lock held): a new push or a
+        rollback supersedes what it measures, so it ends (``skipped``, saying why) instead of
+        making the operator wait or refusing them."""
+        task = self._measure_task
+        if task is None or task[1].done():
+            return
+        rec = self.store.campaign(task[0])
+        if rec.parent is None:
+            return  # an operator's campaign: the caller refuses, naming it
+        key = rec.parent
+        verifying = self._verify_tasks.get(key)
+        if verifying is not None:
+            verifying.cancel()
+        reason = f"verification stopped: {why}"
+        self._transition(rec.id, S.ABORTED, actor="daemon", reason=reason)
+        await self.stop_motion(trigger="abort", reason=reason, cid=rec.id)
+        if verifying is not None:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await asyncio.wait_for(verifying, 10.0)
+        self.journal.set_verification(key, state="skipped",
+                                      result={"reason": f"stopped before the end: {why}"})
+        _log.info("verification run stopped", key=key, campaign=rec.id, reason=why)
 
     async def _wait_idle(self) -> None:
         """Wait until no campaign measures (the robot is one)."""

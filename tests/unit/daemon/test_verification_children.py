@@ -1,0 +1,59 @@
+"""Verification runs are children of their push (issue 32): not in the campaign list, and a
+rollback (or a new push) while one measures stops it instead of refusing, naming a campaign
+the operator never started."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from robocal.daemon.service import CalibrationService
+from tests._waiting import eventually
+from tests.unit.daemon.test_service import program_plan
+
+
+@pytest.fixture
+async def svc(make_config):
+    s = CalibrationService(make_config(limits={"max_joint_correction_deg": 5.0},
+                                       compensation={"verify_count": 8}))
+    await s.start()
+    yield s
+    await s.stop()
+
+
+async def test_rollback_while_the_push_is_remeasured_stops_the_run_and_rolls_back(svc):
+    st = await svc.create(program_plan(36, validation=10), actor="a")
+    cid = st["id"]
+    await svc.wait(cid, ["fitted"], timeout=60)
+    await svc.approve(cid, actor="a")
+    robot = await svc.hub.robot()
+    move = robot.move_to
+    slow = asyncio.Event()
+
+    async def slow_move(*args, **kwargs):  # type: ignore[no-untyped-def]
+        if slow.is_set():  # the re-measurement takes a while, as on a real robot
+            await asyncio.sleep(0.02)
+        return await move(*args, **kwargs)
+
+    robot.move_to = slow_move
+    slow.set()
+    key = (await svc.push(cid, actor="a"))["push"]["key"]
+    v = await eventually(lambda: (svc.journal.verification(key) or {}).get("state")
+                         == "measuring" and svc.journal.verification(key), 10)
+    child = str(v["campaign"])
+    await eventually(lambda: svc.health()["measuring"] == child, 10)
+    # the child is the push's, not a campaign of the list
+    assert [c["id"] for c in svc.list()] == [cid]
+    assert svc.status(child)["verifies"] == key
+    slow.clear()
+    out = await svc.rollback(actor="a", reason="wrong model")
+    assert out["active"]["kind"] == "snapshot"
+    v = svc.journal.verification(key)
+    assert v["state"] == "skipped" and "stopped before the end" in v["reason"]
+    assert svc.status(child)["state"] == "aborted"
+    rb = svc.journal.entries()[-1]
+    assert rb.action == "rollback"
+    done = await svc.wait_verification(rb.key, timeout=60)
+    assert done is not None and done["state"] == "done", done
+    assert [c["id"] for c in svc.list()] == [cid]
