@@ -132,9 +132,16 @@ def start(args: argparse.Namespace) -> int:
     return 0
 
 
+def _state_text(s: dict[str, Any]) -> str:
+    """The campaign's state; a pushed one with where its table is now (the daemon's
+    ``compensation_state``: active, superseded, rolled back)."""
+    where = s.get("compensation_state")
+    return f"{s['state']} ({where})" if where and where != "active" else str(s["state"])
+
+
 def _describe(s: dict[str, Any]) -> str:
     lines = [f"campaign {s['id']}  {s.get('name', '')}",
-             f"  state     {s['state']}" + (f"  ({s['reason']})" if s.get("reason") else ""),
+             f"  state     {_state_text(s)}" + (f"  ({s['reason']})" if s.get("reason") else ""),
              f"  poses     {s['poses_measured']}/{s['poses_total']} measured",
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
@@ -202,7 +209,7 @@ def list_(args: argparse.Namespace) -> int:
         emit(out)
         return 0
     for c in out:
-        sys.stdout.write(f"{c['id']}  {c['state']:9s} {c['poses_measured']:5d}/"
+        sys.stdout.write(f"{c['id']}  {_state_text(c):9s} {c['poses_measured']:5d}/"
                          f"{c['poses_total']:<5d} {c['created']}  {c['name']}\n")
     return 0
 
@@ -341,7 +348,7 @@ def _exit_code(state: str, measure_only: bool) -> int:
 def _summary(s: dict[str, Any], config: Path | None) -> str:
     """The closing lines: the state with its reason, RMS per model, report, next command."""
     state, cid = s["state"], s["id"]
-    lines = [f"{cid}: {state}" + (f": {s['reason']}" if s.get("reason") else "")]
+    lines = [f"{cid}: {_state_text(s)}" + (f": {s['reason']}" if s.get("reason") else "")]
     fits = s.get("fits") or {}
     parts = []
     for name, f in fits.items():

@@ -190,12 +190,42 @@ class CalibrationService:
         out["files"] = str(self._campaign_dir(cid))
         out["compensation"] = self.campaign_compensation(cid)
         out["push"] = self._push_summary(out["compensation"])
+        if out["push"] is not None:
+            out["compensation_state"] = self.push_states().get(out["push"]["key"])
+            out["push"]["compensation_state"] = out["compensation_state"]
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
     def list(self) -> list[dict[str, Any]]:
-        """Every campaign, oldest first."""
-        return [r.to_json() for r in self.store.campaigns()]
+        """Every campaign, oldest first (a pushed one with its table's state now)."""
+        states = self.push_states()
+        by_campaign = {e.campaign: states[e.key] for e in self.journal.entries()
+                       if e.key in states}
+        out = []
+        for r in self.store.campaigns():
+            d = r.to_json()
+            if r.id in by_campaign:
+                d["compensation_state"] = by_campaign[r.id]
+            out.append(d)
+        return out
+
+    def push_states(self) -> dict[str, str]:
+        """Journal key of every completed push -> its table now: ``active`` (on the
+        controller), ``superseded`` (a later push is on top; a rollback would bring it back)
+        or ``rolled back``. The one source status, list, the API and the report read."""
+        stack: builtins.list[str] = []
+        out: dict[str, str] = {}
+        for e in self.journal.entries():
+            if e.state != "completed":
+                continue
+            if e.action == "push":
+                stack.append(e.key)
+                out[e.key] = "active"
+            elif stack:  # a rollback takes the top push off (never the baseline below)
+                out[stack.pop()] = "rolled back"
+        for k in stack[:-1]:
+            out[k] = "superseded"
+        return out
 
     def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
         """Stored measurements of a campaign."""
@@ -1123,6 +1153,7 @@ class CalibrationService:
             else:
                 active["purpose"] = "the controller's own values from before robocal's first push"
         journal = self.journal.entries()
+        states = self.push_states()
         by_table: dict[tuple[str, int | None], JournalEntry] = {}
         for j in journal:
             if j.state == "completed":
@@ -1137,6 +1168,8 @@ class CalibrationService:
                                                       "nominal_residual_mm", "forced",
                                                       "refusal", "reason")},
                      "verification": self.journal.verification(hj.key)}
+                if hj.action == "push":
+                    h["compensation_state"] = states.get(hj.key)
             history.append(h)
         return {"active": active, "stack": stack, "history": history,
                 "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()

@@ -57,3 +57,55 @@ async def test_rollback_while_the_push_is_remeasured_stops_the_run_and_rolls_bac
     done = await svc.wait_verification(rb.key, timeout=60)
     assert done is not None and done["state"] == "done", done
     assert [c["id"] for c in svc.list()] == [cid]
+
+
+async def test_push_rollback_push_status_list_and_api_agree_at_every_step(make_config):
+    """One truth of where each push's table is (issue 32): active, superseded or rolled back,
+    the same in status, list, ``GET /compensation`` and the CLI's text."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from robocal.cli._campaign import _describe
+    from robocal.daemon.api import make_app
+    from tests.unit.daemon.test_push_abort_race import _approved_copy, _fitted
+
+    svc = CalibrationService(make_config(limits={"max_joint_correction_deg": 5.0},
+                                         compensation={"verify_count": 0}))
+    await svc.start()
+    try:
+        src = await _fitted(svc)
+        doc = program_plan(36, validation=6)
+        a, b, c = (_approved_copy(svc, src, doc) for _ in range(3))
+        async with TestClient(TestServer(make_app(svc))) as http:
+
+            async def agree(expected: dict[str, str | None]) -> None:
+                listed = {x["id"]: x for x in await (await http.get("/campaigns")).json()}
+                history = (await (await http.get("/compensation")).json())["history"]
+                by_campaign = {h["campaign"]: h.get("compensation_state")
+                               for h in history if h["action"] == "push"}
+                for cid, want in expected.items():
+                    st = await (await http.get(f"/campaigns/{cid}")).json()
+                    assert st.get("compensation_state") == want, (cid, st)
+                    assert listed[cid].get("compensation_state") == want
+                    assert by_campaign.get(cid) == want
+                    if want is not None:
+                        assert st["push"]["compensation_state"] == want
+                        shown = _describe(st).splitlines()[1]
+                        assert (f"pushed ({want})" in shown) == (want != "active"), shown
+
+            async def post(path: str) -> None:
+                r = await http.post(path, json={})
+                assert r.status == 200, await r.text()
+
+            await agree({a: None, b: None, c: None})
+            await post(f"/campaigns/{a}/push")
+            await agree({a: "active", b: None})
+            await post(f"/campaigns/{b}/push")
+            await agree({a: "superseded", b: "active"})
+            await post("/compensation/rollback")
+            await agree({a: "active", b: "rolled back"})
+            await post("/compensation/rollback")
+            await agree({a: "rolled back", b: "rolled back"})
+            await post(f"/campaigns/{c}/push")
+            await agree({a: "rolled back", b: "rolled back", c: "active"})
+    finally:
+        await svc.stop()
