@@ -155,3 +155,45 @@ async def test_a_push_confirmed_after_an_unlocked_abort_is_journaled_and_rolled_
     await _controller_agrees(svc)
     await svc.rollback(actor="op")
     assert await robot.read_compensation() is None
+
+
+async def test_shutdown_during_a_push_lets_the_write_finish_and_be_journaled(make_config):
+    """Shutdown is ordered with a push too: the table being written is read back and
+    journaled before drivers and store close; a push asked for after that is refused."""
+    from robocal.daemon.store import Store
+    from robocal.errors import CompensationError
+
+    cfg = make_config(limits={"max_joint_correction_deg": 5.0},
+                      compensation={"verify_count": 0})
+    svc = CalibrationService(cfg)
+    await svc.start()
+    src = await _fitted(svc)
+    doc = program_plan(36, validation=6)
+    cid, later = _approved_copy(svc, src, doc), _approved_copy(svc, src, doc)
+    robot = await svc.hub.robot()
+    write = robot.write_compensation
+    writing = asyncio.Event()
+
+    async def slow_write(table):  # type: ignore[no-untyped-def]
+        writing.set()
+        await asyncio.sleep(0.2)
+        await write(table)
+
+    robot.write_compensation = slow_write
+    push = asyncio.create_task(svc.push(cid, actor="op"))
+    async with asyncio.timeout(10):
+        await writing.wait()
+    stopping = asyncio.create_task(svc.stop())
+    await asyncio.sleep(0)  # stop() has begun: from here on nothing new is written
+    second = asyncio.create_task(svc.push(later, actor="op"))
+    st = await asyncio.wait_for(push, 10)
+    assert st["state"] == "pushed"
+    with pytest.raises(CompensationError, match="stopping"):
+        await asyncio.wait_for(second, 10)
+    await asyncio.wait_for(stopping, 30)
+    store = Store(cfg.db_path).open()
+    try:
+        rows = store.db.execute("SELECT state FROM push_journal").fetchall()
+        assert [r[0] for r in rows] == ["completed"]
+    finally:
+        store.close()
