@@ -4,7 +4,8 @@ Contract for scripts::
 
     robocal campaign start --plan PLAN.json [--json]   # prints the campaign id (or JSON)
     robocal campaign status ID --json                  # state, poses_total, poses_measured, ...
-    robocal campaign pause|resume|abort|approve|push ID [--json]
+    robocal campaign pause|resume|abort|approve ID [--json]
+    robocal campaign push ID [--json] [--no-wait]      # waits for the re-measurement
     robocal campaign list --json
     robocal campaign watch ID [--json]                 # progress bar, or JSON lines
 
@@ -20,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from robocal.cli._remeasure import add_wait_options, remeasured_text, wait_remeasured
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
@@ -96,6 +99,7 @@ def register(sub: Any) -> None:
             a.add_argument("--reason", default="", help="why (kept in the audit log)")
             a.add_argument("--key", help="idempotency key: a retry with the same key never "
                                          "writes the controller twice")
+            add_wait_options(a)
         add_client_options(a)
         a.set_defaults(handler=action, action=verb)
 
@@ -225,7 +229,13 @@ def action(args: argparse.Namespace) -> int:
         body["force"] = True
     if getattr(args, "key", None):
         body["key"] = args.key
-    out = client(args).request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
+    cli = client(args)
+    out = cli.request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
+    measured = None
+    if args.action == "push" and not args.no_wait and out.get("push"):
+        v = wait_remeasured(cli, out["push"]["key"], timeout=args.wait_timeout)
+        measured = remeasured_text(v)
+        out = cli.request("GET", f"/campaigns/{args.id}")
     if args.json:
         emit(out)
         return 0
@@ -235,6 +245,8 @@ def action(args: argparse.Namespace) -> int:
         text += f"; approved model {model} (held-out RMS {_held_out_rms(out, model)})"
     elif args.action == "push":
         text += _push_text(out)
+        if measured is not None:
+            text += "\n" + measured
     sys.stdout.write(text + "\n")
     return 0
 

@@ -109,3 +109,44 @@ async def test_push_rollback_push_status_list_and_api_agree_at_every_step(make_c
             await agree({a: "rolled back", b: "rolled back", c: "active"})
     finally:
         await svc.stop()
+
+
+async def test_cli_push_and_rollback_end_with_the_measured_before_and_after(make_config,
+                                                                             tmp_path, capsys):
+    """``campaign push`` and ``compensation rollback`` return once their re-measurement
+    ended, and print it (issue 32); ``--no-wait`` returns at once."""
+    from robocal.cli.main import main
+    from robocal.daemon.api import ApiServer
+
+    sock = tmp_path / "api.sock"
+    cfg = make_config(api={"socket": str(sock)}, robot={"options": {"move_time_s": 0.01}},
+                      limits={"max_joint_correction_deg": 5.0},
+                      compensation={"verify_count": 4})
+    svc = CalibrationService(cfg)
+    await svc.start()
+    api = ApiServer(svc, cfg)
+    await api.start()
+
+    async def cli(*argv: str) -> tuple[int, str]:
+        rc = await asyncio.wait_for(asyncio.to_thread(main, [*argv, "--socket", str(sock)]),
+                                    60)
+        return rc, capsys.readouterr().out
+
+    try:
+        st = await svc.create(program_plan(36, validation=10), actor="a")
+        cid = st["id"]
+        await svc.wait(cid, ["fitted"], timeout=60)
+        await svc.approve(cid, actor="a")
+        rc, out = await cli("campaign", "push", cid)
+        assert rc == 0, out
+        key = svc.journal.entries(campaign=cid)[-1].key
+        assert svc.journal.verification(key)["state"] == "done"  # finished when it returned
+        assert "mm before ->" in out and "mm after (RMS of 4 re-measured targets)" in out
+        rc, out = await cli("compensation", "rollback", "--reason", "test")
+        assert rc == 0, out
+        rb = svc.journal.entries()[-1]
+        assert rb.action == "rollback" and svc.journal.verification(rb.key)["state"] == "done"
+        assert "mm before ->" in out
+    finally:
+        await api.stop()
+        await svc.stop()
