@@ -37,19 +37,19 @@ def sims() -> Iterator[SimThread]:
         yield s
 
 
-def _recording(sims: SimThread) -> list[str]:
-    """Names of every command the simulated controller receives from now on."""
+def _recording(sims: SimThread) -> list[list[float]]:
+    """Joint targets (rad) of every motion the simulated controller starts from now on."""
     sim = sims.cell.fanuc_sim
     assert sim is not None
-    names: list[str] = []
-    original = sim.command
+    moves: list[list[float]] = []
+    original = sim.world.start_motion
 
-    def record(packet: Any, session: Any) -> dict[str, Any]:
-        names.append(str(packet.name))
-        return original(packet, session)
+    def record(q: list[float], duration: float) -> Any:
+        moves.append(list(q))
+        return original(q, duration)
 
-    sim.command = record  # type: ignore[method-assign]
-    return names
+    sim.world.start_motion = record  # type: ignore[method-assign]
+    return moves
 
 
 def _can_mount_tmpfs(where: Path) -> str | None:
@@ -61,12 +61,15 @@ def _can_mount_tmpfs(where: Path) -> str | None:
     return None if probe.returncode == 0 else probe.stderr.decode().strip()
 
 
-def _start_on_full_disk(daemon: Daemon, state: Path, snapshot: Path) -> None:
+def _start_on_full_disk(daemon: Daemon, state: Path, snapshot: Path, out: Path) -> None:
     """The daemon in a mount namespace where ``state`` is a full 4 MiB tmpfs holding a copy
-    of ``snapshot``."""
+    of ``snapshot``; when it has exited (SIGTERM is passed on), the tmpfs is copied to
+    ``out`` without the filler."""
     script = (f"mount -t tmpfs -o size=4m tmpfs '{state}' && cp -a '{snapshot}/.' '{state}/' "
               f"&& {{ cat /dev/zero > '{state}/filler' 2>/dev/null; true; }} "
-              f"&& exec '{PY}' -m robocal.daemon --config '{daemon.config}'")
+              f"&& {{ '{PY}' -m robocal.daemon --config '{daemon.config}' & pid=$!; "
+              f"trap 'kill -TERM $pid' TERM; wait $pid; wait $pid; rc=$?; "
+              f"rm -f '{state}/filler'; cp -a '{state}/.' '{out}/'; exit $rc; }}")
     daemon.starts += 1
     log = (daemon.tmp / f"daemon-{daemon.starts}.log").open("wb")
     daemon.proc = subprocess.Popen(["unshare", "-rm", "sh", "-c", script], stdout=log,
@@ -90,9 +93,11 @@ def test_restart_on_a_full_disk_moves_nothing_shows_the_pause_and_stays_up(tmp_p
         state = tmp_path / "state"
         snapshot = tmp_path / "snapshot"
         shutil.copytree(state, snapshot)
-        commands = _recording(sims)
+        moves = _recording(sims)  # motions started
 
-        _start_on_full_disk(daemon, state, snapshot)
+        out = tmp_path / "after-full-disk"
+        out.mkdir()
+        _start_on_full_disk(daemon, state, snapshot, out)
         health = wait_for(lambda: daemon._healthy() and daemon.client.request("GET", "/health"),
                           60, "the daemon on the full disk to answer")
         st = daemon.status(cid)
@@ -102,16 +107,29 @@ def test_restart_on_a_full_disk_moves_nothing_shows_the_pause_and_stays_up(tmp_p
         assert health["status"] == "degraded" and health["storage"] != "ok"
         assert health["measuring"] is None
         # the pause happened before anything could move: the controller got no motion
-        assert not [c for c in commands if "Motion" in c], commands
+        assert moves == [], moves
         # an operator's resume is refused while the disk is full; still nothing moves
         with pytest.raises(ApiError) as err:
             daemon.client.request("POST", f"/campaigns/{cid}/resume")
         assert err.value.status == 503
         assert daemon.status(cid)["state"] == "paused"
-        assert not [c for c in commands if "Motion" in c], commands
+        assert moves == [], moves
         # still up: serving, never exited
         assert daemon.proc is not None and daemon.proc.poll() is None
         daemon.proc.send_signal(signal.SIGTERM)
         assert daemon.proc.wait(30) == 0, daemon.log_tail()
+
+        # the disk is freed while the daemon is down: the pause is still a pause (kept in
+        # place on the full disk), not a campaign resumed on start without an operator
+        shutil.rmtree(state)
+        shutil.copytree(out, state)
+        daemon.start()
+        st = daemon.status(cid)
+        assert st["state"] == "paused" and "storage fault" in st["reason"], st["reason"]
+        assert moves == [], moves
+        wait_for(lambda: daemon.client.request("GET", "/health")["unsaved_states"] == {}, 30,
+                 "the held pause written to the store")
+        daemon.client.request("POST", f"/campaigns/{cid}/resume")  # the operator's call
+        wait_for(lambda: moves, 30, "the robot moving again")
     finally:
         daemon.stop()

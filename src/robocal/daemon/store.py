@@ -35,6 +35,10 @@ __all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "is_storage_f
 
 SCHEMA_VERSION = 1
 
+#: Size of the file that keeps states held by a storage fault across a restart; written in
+#: place, so a full disk still takes it (room for a few hundred held campaigns).
+HELD_BYTES = 65536
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS campaigns(
@@ -308,7 +312,69 @@ class Store:
                 source=str(self.path),
             )
         self._db = db
+        self._load_held()
+        self._prepare_held()
         return self
+
+    # --- states held by a storage fault, kept across a restart ----------------------------
+    @property
+    def held_path(self) -> Path:
+        """The file that keeps held states (next to the database)."""
+        return self.path.with_name(self.path.name + ".held")
+
+    def _prepare_held(self) -> None:
+        """Allocate the held-states file while the disk takes data (best effort)."""
+        with contextlib.suppress(OSError):
+            if not self.held_path.exists() or self.held_path.stat().st_size < HELD_BYTES:
+                fd = os.open(self.held_path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o600)
+                try:
+                    os.pwrite(fd, self._held_bytes(), 0)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+
+    def _held_bytes(self) -> bytes:
+        data = {cid: [p[0].value, p[1].value, p[2], p[3], p[4]]
+                for cid, p in self._pending.items()}
+        raw = json.dumps(data).encode()
+        while len(raw) > HELD_BYTES and data:  # never happens in practice; keep it valid
+            data.pop(next(iter(data)))
+            raw = json.dumps(data).encode()
+        return raw.ljust(HELD_BYTES)
+
+    def _write_held(self) -> None:
+        """Rewrite the held-states file in place (no new blocks: it works on a full disk)."""
+        try:
+            fd = os.open(self.held_path, os.O_WRONLY | os.O_CLOEXEC)
+        except OSError:
+            return
+        try:
+            os.pwrite(fd, self._held_bytes(), 0)
+            os.fsync(fd)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+
+    def _load_held(self) -> None:
+        """Hold again the states a daemon held when it stopped, where the database still has
+        the state they were held over (a pause on a full disk stays a pause after a restart,
+        even if the disk was freed meanwhile)."""
+        try:
+            data = json.loads(self.held_path.read_bytes().strip() or b"{}")
+        except (OSError, ValueError):
+            return
+        if not isinstance(data, dict):
+            return
+        for cid, item in data.items():
+            try:
+                src, to = CampaignState(item[0]), CampaignState(item[1])
+                row = self.db.execute("SELECT state FROM campaigns WHERE id=?",
+                                      (cid,)).fetchone()
+            except (ValueError, TypeError, IndexError, KeyError):
+                continue
+            if row is not None and row[0] == src.value:
+                self._pending[str(cid)] = (src, to, str(item[2]), str(item[3]), str(item[4]))
 
     def close(self) -> None:
         """Close the connection; idempotent."""
@@ -356,6 +422,8 @@ class Store:
                                "then resume") from err
         for cid in flushed:
             self._pending.pop(cid, None)
+        if flushed:
+            self._write_held()
         self.fault = None
 
     # --- storage faults --------------------------------------------------------------------
@@ -463,7 +531,7 @@ class Store:
         state, reason = CampaignState(row["state"]), row["reason"]
         held = self._pending.get(row["id"])
         if held is not None:
-            state, reason = held[1], f"{held[2]} (not yet saved: {self.fault})"
+            state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
         return CampaignRecord(
             id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
             state=state, reason=reason, robot=row["robot"],
@@ -546,6 +614,7 @@ class Store:
             held = self._pending.get(cid)
             on_disk = held[0] if held is not None else current
             self._pending[cid] = (on_disk, to, reason, actor, now_iso())
+            self._write_held()
             return self.campaign(cid)
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str,
