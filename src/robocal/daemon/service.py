@@ -327,6 +327,11 @@ class CalibrationService:
         if self._measure_task is not None and not self._measure_task[1].done():
             other = self._measure_task[0]
             if other != cid:
+                parent = self.store.campaign(other).parent
+                if parent is not None:  # not a campaign the operator started: say what it is
+                    raise CampaignError(f"the robot is re-measuring the targets of push or "
+                                        f"rollback {parent} (run {other}); wait for it, or "
+                                        "roll back / push again, which stops it")
                 raise CampaignError(f"campaign {other} is measuring; pause or abort it first")
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",

@@ -150,3 +150,25 @@ async def test_cli_push_and_rollback_end_with_the_measured_before_and_after(make
     finally:
         await api.stop()
         await svc.stop()
+
+
+async def test_a_campaign_refused_during_a_remeasurement_says_what_measures(svc):
+    from robocal.errors import CampaignError
+
+    st = await svc.create(program_plan(36, validation=10), actor="a")
+    cid = st["id"]
+    await svc.wait(cid, ["fitted"], timeout=60)
+    await svc.approve(cid, actor="a")
+    robot = await svc.hub.robot()
+    move = robot.move_to
+
+    async def slow_move(*args, **kwargs):  # type: ignore[no-untyped-def]
+        await asyncio.sleep(0.02)
+        return await move(*args, **kwargs)
+
+    robot.move_to = slow_move
+    key = (await svc.push(cid, actor="a"))["push"]["key"]
+    await eventually(lambda: svc._verifying() is not None, 10)
+    with pytest.raises(CampaignError, match=f"re-measuring the targets of push or rollback "
+                                            f"{key}"):
+        await svc.create(program_plan(20, seed=4, validation=5), actor="a")
