@@ -77,6 +77,7 @@ def _start_on_full_disk(daemon: Daemon, state: Path, snapshot: Path, out: Path) 
     log.close()
 
 
+@pytest.mark.slow
 def test_restart_on_a_full_disk_moves_nothing_shows_the_pause_and_stays_up(tmp_path, sims):
     why = _can_mount_tmpfs(tmp_path)
     if why is not None:
