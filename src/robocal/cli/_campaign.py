@@ -4,7 +4,8 @@ Contract for scripts::
 
     robocal campaign start --plan PLAN.json [--json]   # prints the campaign id (or JSON)
     robocal campaign status ID --json                  # state, poses_total, poses_measured, ...
-    robocal campaign pause|resume|abort|approve|push ID [--json]
+    robocal campaign pause|resume|abort|approve ID [--json]
+    robocal campaign push ID [--json] [--no-wait]      # waits for the re-measurement
     robocal campaign list --json
     robocal campaign watch ID [--json]                 # progress bar, or JSON lines
 
@@ -20,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from robocal.cli._remeasure import add_wait_options, remeasured_text, wait_remeasured
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
@@ -96,6 +99,7 @@ def register(sub: Any) -> None:
             a.add_argument("--reason", default="", help="why (kept in the audit log)")
             a.add_argument("--key", help="idempotency key: a retry with the same key never "
                                          "writes the controller twice")
+            add_wait_options(a)
         add_client_options(a)
         a.set_defaults(handler=action, action=verb)
 
@@ -132,9 +136,16 @@ def start(args: argparse.Namespace) -> int:
     return 0
 
 
+def _state_text(s: dict[str, Any]) -> str:
+    """The campaign's state; a pushed one with where its table is now (the daemon's
+    ``compensation_state``: active, superseded, rolled back)."""
+    where = s.get("compensation_state")
+    return f"{s['state']} ({where})" if where and where != "active" else str(s["state"])
+
+
 def _describe(s: dict[str, Any]) -> str:
     lines = [f"campaign {s['id']}  {s.get('name', '')}",
-             f"  state     {s['state']}" + (f"  ({s['reason']})" if s.get("reason") else ""),
+             f"  state     {_state_text(s)}" + (f"  ({s['reason']})" if s.get("reason") else ""),
              f"  poses     {s['poses_measured']}/{s['poses_total']} measured",
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
@@ -202,7 +213,7 @@ def list_(args: argparse.Namespace) -> int:
         emit(out)
         return 0
     for c in out:
-        sys.stdout.write(f"{c['id']}  {c['state']:9s} {c['poses_measured']:5d}/"
+        sys.stdout.write(f"{c['id']}  {_state_text(c):9s} {c['poses_measured']:5d}/"
                          f"{c['poses_total']:<5d} {c['created']}  {c['name']}\n")
     return 0
 
@@ -218,7 +229,13 @@ def action(args: argparse.Namespace) -> int:
         body["force"] = True
     if getattr(args, "key", None):
         body["key"] = args.key
-    out = client(args).request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
+    cli = client(args)
+    out = cli.request("POST", f"/campaigns/{args.id}/{args.action}", body or None)
+    measured = None
+    if args.action == "push" and not args.no_wait and out.get("push"):
+        v = wait_remeasured(cli, out["push"]["key"], timeout=args.wait_timeout)
+        measured = remeasured_text(v)
+        out = cli.request("GET", f"/campaigns/{args.id}")
     if args.json:
         emit(out)
         return 0
@@ -228,6 +245,8 @@ def action(args: argparse.Namespace) -> int:
         text += f"; approved model {model} (held-out RMS {_held_out_rms(out, model)})"
     elif args.action == "push":
         text += _push_text(out)
+        if measured is not None:
+            text += "\n" + measured
     sys.stdout.write(text + "\n")
     return 0
 
@@ -341,7 +360,7 @@ def _exit_code(state: str, measure_only: bool) -> int:
 def _summary(s: dict[str, Any], config: Path | None) -> str:
     """The closing lines: the state with its reason, RMS per model, report, next command."""
     state, cid = s["state"], s["id"]
-    lines = [f"{cid}: {state}" + (f": {s['reason']}" if s.get("reason") else "")]
+    lines = [f"{cid}: {_state_text(s)}" + (f": {s['reason']}" if s.get("reason") else "")]
     fits = s.get("fits") or {}
     parts = []
     for name, f in fits.items():

@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from robocal.cli._campaign import add_client_options, client, emit
+from robocal.cli._remeasure import add_wait_options, new_key, remeasured_text, wait_remeasured
 
 
 def register(sub: Any) -> None:
@@ -24,6 +25,9 @@ def register(sub: Any) -> None:
     rb = verbs.add_parser("rollback", help="restore the previous table")
     rb.add_argument("--reason", default="", help="why (kept in the audit log)")
     rb.add_argument("--json", action="store_true", help="print the result as JSON")
+    rb.add_argument("--key", help="idempotency key: a retry with the same key answers like "
+                                  "the first rollback and writes nothing (default: a new one)")
+    add_wait_options(rb)
     add_client_options(rb)
     rb.set_defaults(handler=rollback)
     au = verbs.add_parser("audit", help="show the audit log")
@@ -81,12 +85,20 @@ def list_(args: argparse.Namespace) -> int:
 
 def rollback(args: argparse.Namespace) -> int:
     """Restore the previous table."""
-    body = {"reason": args.reason} if args.reason else None
-    out = client(args).request("POST", "/compensation/rollback", body)
+    key = args.key or new_key()
+    body: dict[str, Any] = {"key": key, **({"reason": args.reason} if args.reason else {})}
+    cli = client(args)
+    out = cli.request("POST", "/compensation/rollback", body)
+    measured = None
+    if not args.no_wait:
+        measured = remeasured_text(wait_remeasured(cli, key, timeout=args.wait_timeout))
+        out = cli.request("GET", "/compensation")
     if args.json:
         emit(out)
     else:
         _print_state(out)
+        if measured is not None:
+            sys.stdout.write(measured + "\n")
     return 0
 
 

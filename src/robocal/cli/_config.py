@@ -32,8 +32,10 @@ def register(sub: Any) -> None:
 def check(args: argparse.Namespace) -> int:
     """Print every problem; exit 0 when all files are valid, 1 otherwise.
 
-    With ``--drivers`` the daemon's own start-up checks run too (:func:`preflight`: driver
-    options, fit options, token file), so a file that passes is one the daemon accepts.
+    The token file is always checked as the daemon checks it (readable, mode 0600, long
+    enough). With ``--drivers`` the daemon's other start-up checks run too
+    (:func:`preflight`: driver options, fit options), so a file that passes is one the
+    daemon accepts.
     Risky settings (a non-loopback TCP bind) are printed as warnings and do not fail.
     """
     from robocal.daemon.config import config_errors, config_warnings, load_config
@@ -50,6 +52,9 @@ def check(args: argparse.Namespace) -> int:
             try:
                 cfg = load_config(path)
                 warnings = config_warnings(cfg)
+                # the token file is the daemon's own start-up check and needs no device:
+                # a file the daemon refuses (mode 0644, too short) is an error here too
+                cfg.read_token()
                 if args.drivers or args.connect:
                     from robocal.daemon.main import preflight
 

@@ -12,7 +12,9 @@ A push or rollback is three transactions around the one controller write:
 A daemon killed between 1 and 3 leaves an ``intended`` row; on restart the service reads the
 controller and completes or abandons it (:meth:`CalibrationService.reconcile`), so nothing
 is ever written twice blindly and the history never misses a write. Verification runs
-(the pushed targets measured with the tracker) are kept per journal key.
+(the pushed targets measured with the tracker) are kept per journal key: ``pending`` from
+the completing transaction on, then ``measuring`` (with the child campaign that measures
+them), then ``done``, ``skipped`` or ``failed``.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Any
 
 from robocal.daemon.campaign import CampaignState, check_transition
 from robocal.daemon.store import Store, now_iso
-from robocal.errors import CampaignError, InvalidTransition
+from robocal.errors import CampaignError
 
 __all__ = ["JournalEntry", "PushJournal"]
 
@@ -161,8 +163,12 @@ class PushJournal:
                 db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
                            "VALUES(?,?,?,?,?)", (t, "push", e.table_id, e.campaign, actor))
                 if e.campaign is not None:
-                    self._to_pushed(db, e.campaign, actor,
-                                    f"{e.detail.get('kind', 'table')} {checksum[:12]} pushed")
+                    note = self._to_pushed(db, e.campaign, actor,
+                                           f"{e.detail.get('kind', 'table')} {checksum[:12]} "
+                                           "pushed")
+                    if note:
+                        outcome = f"{outcome}; {note}"
+                        detail["campaign_note"] = note
             else:
                 db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
                            "VALUES(?,?,?,?,?)", (t, "rollback", e.rolled_back_id, None, actor))
@@ -171,17 +177,27 @@ class PushJournal:
             Store._audit(db, actor, f"compensation.{e.action}", e.campaign, checksum, detail)
             db.execute("UPDATE push_journal SET state='completed', finished_at=?, outcome=? "
                        "WHERE key=? AND state='intended'", (t, outcome, key))
+            # The verification run is owed from this commit on: a daemon killed the instant
+            # after it still finds the run to do on its next start.
+            db.execute("INSERT OR IGNORE INTO push_verifications(key, campaign, state, "
+                       "created, updated, result) VALUES(?,NULL,'pending',?,?,'{}')",
+                       (key, t, t))
         return self.get(key)
 
     @staticmethod
-    def _to_pushed(db: sqlite3.Connection, cid: str, actor: str, reason: str) -> None:
+    def _to_pushed(db: sqlite3.Connection, cid: str, actor: str, reason: str) -> str | None:
+        """``approved -> pushed``; for a campaign no longer approved (aborted while its table
+        was written, by a daemon without the push lock) the state stays and a note says so:
+        the write happened and must be in the history, or nothing could roll it back."""
         row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
         if row is None:
             raise CampaignError(f"no campaign {cid!r}")
         src = CampaignState(row[0])
+        if src == CampaignState.PUSHED:
+            return None
         if src != CampaignState.APPROVED:
-            raise InvalidTransition(src.value, CampaignState.PUSHED.value,
-                                    "only an approved campaign is pushed")
+            return (f"campaign {cid} was {src.value} when its table was confirmed on the "
+                    "controller; the table is active (roll back to remove it)")
         check_transition(src, CampaignState.PUSHED)
         t = now_iso()
         db.execute("UPDATE campaigns SET state=?, reason=?, updated=? WHERE id=?",
@@ -189,6 +205,7 @@ class PushJournal:
         db.execute("INSERT INTO transitions(campaign, at, from_state, to_state, reason, actor) "
                    "VALUES(?,?,?,?,?,?)", (cid, t, src.value, CampaignState.PUSHED.value,
                                            reason, actor))
+        return None
 
     def abandon(self, key: str, *, actor: str, reason: str, what: str = "abandoned",
                 extra: dict[str, Any] | None = None) -> JournalEntry:
@@ -265,7 +282,9 @@ class PushJournal:
                 **json.loads(row["result"])}
 
     def open_verifications(self) -> list[tuple[str, str | None]]:
-        """``(key, campaign)`` of verification runs not finished yet."""
+        """``(key, campaign)`` of verification runs not finished yet (``pending``: owed since
+        the push completed, not started; ``measuring``), oldest first."""
         rows = self.store.db.execute(
-            "SELECT key, campaign FROM push_verifications WHERE state='measuring'").fetchall()
+            "SELECT key, campaign FROM push_verifications WHERE state IN ('pending', "
+            "'measuring') ORDER BY rowid").fetchall()
         return [(str(r[0]), r[1]) for r in rows]

@@ -633,7 +633,10 @@ class ApiServer:
              "url": None if self.tcp_port is None else
              f"http://{self.config.api.tcp_host}:{self.tcp_port}",
              "pid": os.getpid()}
-        atomic_write_text(self.config.data_dir / "api.json", json.dumps(d) + "\n")
+        try:
+            atomic_write_text(self.config.data_dir / "api.json", json.dumps(d) + "\n")
+        except OSError as err:  # a full disk: keep serving (health says why), never exit
+            _log.error("api.json not written", error=str(err))
 
     async def stop(self) -> None:
         """Stop serving; idempotent."""

@@ -46,8 +46,13 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
         except BlockingIOError as err:
             raise ConfigError("another daemon uses this data directory",
                               source=str(data_dir)) from err
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        # the pid is for people; a full disk must not stop the daemon from starting (it then
+        # serves health and status with the storage fault instead of restarting in a loop)
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError as err:
+            _log.warning("pid not written to the lock file", error=str(err))
         yield
     finally:
         os.close(fd)
@@ -105,6 +110,9 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
             # The robot stops before anything else winds down (the API may take a while).
             with contextlib.suppress(Exception):
                 await service.stop_motion(trigger="shutdown", reason="daemon stopping")
+            # A push or rollback being written finishes (read back, journaled) before the
+            # API, whose requests it runs in, is torn down.
+            await service.drain()
             service.events.close()
             await api.stop()
             await service.stop()

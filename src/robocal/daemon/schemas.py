@@ -46,6 +46,10 @@ class _Closed(BaseModel):
 
 
 # --- campaigns -------------------------------------------------------------------------------
+#: Where a push's table is now (one truth: :meth:`CalibrationService.push_states`).
+CompensationStateName = Literal["active", "superseded", "rolled back"]
+
+
 class CampaignSummary(_Closed):
     """One campaign (``GET /campaigns`` entries; the head of a campaign status)."""
 
@@ -63,6 +67,12 @@ class CampaignSummary(_Closed):
     plan_digest: str
     config_digest: str
     selected_model: str | None
+    compensation_state: CompensationStateName | None = Field(
+        default=None, description="a pushed campaign's table now: active, superseded by a "
+                                  "later push, or rolled back")
+    verifies: str | None = Field(
+        default=None, description="journal key of the push or rollback this run verifies "
+                                  "(a verification run, a child of that push); else null")
 
 
 class Transition(_Closed):
@@ -108,7 +118,7 @@ class TargetError(_Closed):
 class Verification(_Closed):
     """The verification run of a push or rollback: its targets measured again."""
 
-    state: Literal["measuring", "done", "skipped", "failed"]
+    state: Literal["pending", "measuring", "done", "skipped", "failed"]
     campaign: str | None
     updated: str
     reason: str | None = None
@@ -158,6 +168,7 @@ class PushSummary(_Closed):
     measured_before_rms_mm: float | None
     measured_after_rms_mm: float | None
     measured_n: int | None
+    compensation_state: CompensationStateName | None = None
 
 
 class CampaignStatus(CampaignSummary):
@@ -252,6 +263,8 @@ class PushHistoryEntry(_Closed):
     refusal: str | None = None
     reason: str | None = None
     verification: Verification | None = None
+    compensation_state: CompensationStateName | None = Field(
+        default=None, description="for a push: its table now (active, superseded, rolled back)")
 
 
 class JournalRow(_Closed):

@@ -95,6 +95,7 @@ class CalibrationService:
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
+        self._closing = False
 
     # --- lifecycle -------------------------------------------------------------------------
     async def start(self, *, connect: bool = True) -> None:
@@ -124,14 +125,29 @@ class CalibrationService:
         for key, _ in self.journal.open_verifications():
             self._spawn_verify(key)
 
+    async def drain(self, timeout: float = 30.0) -> None:
+        """Refuse new pushes and rollbacks and wait (at most ``timeout`` s) for the one in
+        progress to be read back and journaled, so shutdown never cuts a write in half.
+
+        A write still running after ``timeout`` stays ``intended`` in the journal and is
+        reconciled on the next start.
+        """
+        self._closing = True
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout), self._push_lock:
+                pass
+
     async def stop(self) -> None:
         """Stop work (campaign states stay as they are, to resume on restart); close all.
 
-        Motion stops first, at once (the driver's ``stop()``), before anything else closes.
+        Motion stops first, at once (the driver's ``stop()``), before anything else closes;
+        then a push or rollback in progress finishes (:meth:`drain`).
         """
+        self._closing = True  # verification runs cut from here on stay open in the journal
         task = self._measure_task
         if not self._shutdown_stopped or (task is not None and not task[1].done()):
             await self.stop_motion(trigger="shutdown", reason="daemon stopping")
+        await self.drain()
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
         tasks += [t for t in self._verify_tasks.values() if not t.done()]
@@ -174,12 +190,42 @@ class CalibrationService:
         out["files"] = str(self._campaign_dir(cid))
         out["compensation"] = self.campaign_compensation(cid)
         out["push"] = self._push_summary(out["compensation"])
+        if out["push"] is not None:
+            out["compensation_state"] = self.push_states().get(out["push"]["key"])
+            out["push"]["compensation_state"] = out["compensation_state"]
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
     def list(self) -> list[dict[str, Any]]:
-        """Every campaign, oldest first."""
-        return [r.to_json() for r in self.store.campaigns()]
+        """Every campaign, oldest first (a pushed one with its table's state now)."""
+        states = self.push_states()
+        by_campaign = {e.campaign: states[e.key] for e in self.journal.entries()
+                       if e.key in states}
+        out = []
+        for r in self.store.campaigns():
+            d = r.to_json()
+            if r.id in by_campaign:
+                d["compensation_state"] = by_campaign[r.id]
+            out.append(d)
+        return out
+
+    def push_states(self) -> dict[str, str]:
+        """Journal key of every completed push -> its table now: ``active`` (on the
+        controller), ``superseded`` (a later push is on top; a rollback would bring it back)
+        or ``rolled back``. The one source status, list, the API and the report read."""
+        stack: builtins.list[str] = []
+        out: dict[str, str] = {}
+        for e in self.journal.entries():
+            if e.state != "completed":
+                continue
+            if e.action == "push":
+                stack.append(e.key)
+                out[e.key] = "active"
+            elif stack:  # a rollback takes the top push off (never the baseline below)
+                out[stack.pop()] = "rolled back"
+        for k in stack[:-1]:
+            out[k] = "superseded"
+        return out
 
     def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
         """Stored measurements of a campaign."""
@@ -246,7 +292,8 @@ class CalibrationService:
 
     async def create(self, plan: Mapping[str, Any] | str | PlanDoc, *, actor: str,
                      name: str | None = None, start: bool = True,
-                     measure_only: bool = False) -> dict[str, Any]:
+                     measure_only: bool = False, parent: str | None = None
+                     ) -> dict[str, Any]:
         """Create a campaign from a plan (validated against limits) and, by default, start it.
 
         Raises
@@ -268,7 +315,7 @@ class CalibrationService:
         rec = self.store.create_campaign(
             name=name or f"campaign {time.strftime('%Y-%m-%d %H:%M')}", robot=self.robot.name,
             poses=doc.poses, plan_json=doc.text, plan_digest=doc.digest,
-            config_digest=self._digest, actor=actor, measure_only=measure_only)
+            config_digest=self._digest, actor=actor, measure_only=measure_only, parent=parent)
         self.events.emit("state", rec.id, state=rec.state.value, reason="created",
                          poses_measured=0, poses_total=rec.poses_total)
         _log.info("campaign created", campaign=rec.id, poses=rec.poses_total, actor=actor)
@@ -280,6 +327,11 @@ class CalibrationService:
         if self._measure_task is not None and not self._measure_task[1].done():
             other = self._measure_task[0]
             if other != cid:
+                parent = self.store.campaign(other).parent
+                if parent is not None:  # not a campaign the operator started: say what it is
+                    raise CampaignError(f"the robot is re-measuring the targets of push or "
+                                        f"rollback {parent} (run {other}); wait for it, or "
+                                        "roll back / push again, which stops it")
                 raise CampaignError(f"campaign {other} is measuring; pause or abort it first")
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",
@@ -355,12 +407,25 @@ class CalibrationService:
         """Abort from any non-final state (state and audit entry in one transaction); motion
         and fitting for it stop."""
         why = reason or "aborted by operator"
-        self._transition(cid, S.ABORTED, actor=actor, reason=why,
-                         audit=("campaign.abort", {"reason": reason}))
         task = self._measure_task
         if task is not None and task[0] == cid and not task[1].done():
+            # Measuring: the robot stops at once. No push or rollback runs while a campaign
+            # measures (both need the robot idle), so there is nothing to wait for.
+            self._transition(cid, S.ABORTED, actor=actor, reason=why,
+                             audit=("campaign.abort", {"reason": reason}))
             await self.stop_motion(trigger="abort", reason=why, actor=actor, cid=cid)
             await self.hub.reset("campaign aborted")
+        else:
+            # A push of this campaign may be writing: the abort waits until the table is
+            # read back and journaled (or undone), then applies to what is true by then.
+            async with self._push_lock:
+                if self.store.campaign(cid).state == S.PUSHED:
+                    raise InvalidTransition(
+                        S.PUSHED.value, S.ABORTED.value,
+                        "its table was pushed before the abort; robocal compensation "
+                        "rollback removes it")
+                self._transition(cid, S.ABORTED, actor=actor, reason=why,
+                                 audit=("campaign.abort", {"reason": reason}))
         fit = self._fit_tasks.get(cid)
         if fit is not None:
             fit.cancel()
@@ -399,6 +464,13 @@ class CalibrationService:
         return None
 
     def _spawn_measure(self, cid: str) -> None:
+        """Start measuring ``cid`` (state ``running``) unless the store cannot write: then the
+        campaign pauses with the reason before anything moves (start, resume, restart)."""
+        fault = self.store.probe()
+        if fault is not None:
+            self._storage_pause(cid, StorageError(f"the store cannot write ({fault}); "
+                                                  "nothing moved"))
+            return
         task = asyncio.create_task(self._measure(cid), name=f"measure-{cid}")
         self._measure_task = (cid, task)
 
@@ -617,17 +689,8 @@ class CalibrationService:
             If the read-back differs (the previous values are put back; the campaign stays
             ``approved``; see the audit log).
         """
-        if key is not None:
-            done = self.journal.find(key)
-            if done is not None:
-                if done.campaign != cid or done.action != "push":
-                    raise CampaignError(f"idempotency key {key!r} belongs to another action")
-                if done.state == "intended":
-                    await self.reconcile()
-                    done = self.journal.get(key)
-                if done.state == "completed":
-                    return self.status(cid)
-                raise CompensationError(f"push {key} was abandoned: {done.outcome}")
+        if key is not None and await self._retried(key, action="push", campaign=cid):
+            return self.status(cid)
         rec = self.store.campaign(cid)
         if rec.state == S.PUSHED:
             raise CampaignError(f"campaign {cid} was already pushed; robocal compensation "
@@ -647,7 +710,8 @@ class CalibrationService:
             raise CompensationError(f"push refused: {refusal}; an operator may force it "
                                     "(recorded in the audit log)")
         async with self._push_lock:
-            self._ensure_idle()
+            self._ensure_open()
+            self._ensure_idle(self._verifying())
             await self._reconcile_locked()
             if self.journal.pending():
                 raise CompensationError("an earlier push could not be reconciled with the "
@@ -660,6 +724,8 @@ class CalibrationService:
                 table, self.config.limits, self.robot,
                 previous=previous if isinstance(previous, CompensationTable) else None,
                 seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
+            # checked and about to write: an earlier push's re-measurement ends here
+            await self._stop_verification_run("a new push was asked for")
             key = key or uuid.uuid4().hex
             detail = {**summary, "forced": refusal is not None, "refusal": refusal,
                       "reason": reason, "program_q_deg": desc["program_q_deg"]}
@@ -692,6 +758,33 @@ class CalibrationService:
         _log.info("compensation pushed", campaign=cid, key=key, **summary)
         self._spawn_verify(key)
         return self.status(cid)
+
+    def _ensure_open(self) -> None:
+        if self._closing:
+            raise CompensationError("the daemon is stopping; nothing written")
+
+    async def _retried(self, key: str, *, action: str, campaign: str | None) -> bool:
+        """True when ``key`` is a completed ``action`` (a retry: answer as the first time);
+        False when the key is new.
+
+        Raises
+        ------
+        CampaignError
+            If the key belongs to another action or campaign.
+        CompensationError
+            If that action was abandoned (nothing of it is on the controller).
+        """
+        done = self.journal.find(key)
+        if done is None:
+            return False
+        if done.campaign != campaign or done.action != action:
+            raise CampaignError(f"idempotency key {key!r} belongs to another action")
+        if done.state == "intended":
+            await self.reconcile()
+            done = self.journal.get(key)
+        if done.state == "completed":
+            return True
+        raise CompensationError(f"{action} {key} was abandoned: {done.outcome}")
 
     async def _undo(self, robot: object, key: str, actor: str, reason: str,
                     what: str = "failed") -> None:
@@ -765,7 +858,11 @@ class CalibrationService:
         CompensationError
             If there is no earlier table.
         """
+        if key is not None and await self._retried(key, action="rollback", campaign=None):
+            return self.compensation()
         async with self._push_lock:
+            self._ensure_open()
+            await self._stop_verification_run("a rollback was asked for")
             self._ensure_idle()
             await self._reconcile_locked()
             if self.journal.pending():
@@ -833,7 +930,7 @@ class CalibrationService:
     async def _verify(self, key: str) -> None:
         try:
             v = self.journal.verification(key)
-            if v is None:
+            if v is None or v["state"] == "pending":
                 if not await self._start_verification(key):
                     return
                 v = self.journal.verification(key)
@@ -842,10 +939,70 @@ class CalibrationService:
         except asyncio.CancelledError:
             raise
         except Exception as err:  # a verification bug must not take the daemon down
+            if self._closing:  # cut by shutdown: still open in the journal, resumed on start
+                _log.info("verification interrupted by shutdown", key=key, error=str(err))
+                return
             _log.exception("verification failed", key=key)
             with contextlib.suppress(Exception):
                 self.journal.set_verification(key, state="failed",
                                               result={"reason": f"{type(err).__name__}: {err}"})
+
+    def _verifying(self) -> str | None:
+        """The verification run measuring now (a child of a push), or None."""
+        task = self._measure_task
+        if task is None or task[1].done():
+            return None
+        return task[0] if self.store.campaign(task[0]).parent is not None else None
+
+    async def _stop_verification_run(self, why: str) -> None:
+        """Stop the verification run measuring now, if any (push lock held): a new push or a
+        rollback supersedes what it measures, so it ends (``skipped``, saying why) instead of
+        making the operator wait or refusing them."""
+        task = self._measure_task
+        if task is None or task[1].done():
+            return
+        rec = self.store.campaign(task[0])
+        if rec.parent is None:
+            return  # an operator's campaign: the caller refuses, naming it
+        key = rec.parent
+        verifying = self._verify_tasks.get(key)
+        if verifying is not None:
+            verifying.cancel()
+        reason = f"verification stopped: {why}"
+        self._transition(rec.id, S.ABORTED, actor="daemon", reason=reason)
+        await self.stop_motion(trigger="abort", reason=reason, cid=rec.id)
+        if verifying is not None:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await asyncio.wait_for(verifying, 10.0)
+        self.journal.set_verification(key, state="skipped",
+                                      result={"reason": f"stopped before the end: {why}"})
+        _log.info("verification run stopped", key=key, campaign=rec.id, reason=why)
+
+    async def _wait_idle(self) -> None:
+        """Wait until no campaign measures (the robot is one)."""
+        async with self.events.subscribe() as q:
+            while self._measure_task is not None and not self._measure_task[1].done():
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(0.5):
+                        if await q.get() is None:
+                            raise CampaignError("the service stopped")
+
+    async def _run_child(self, vcid: str) -> None:
+        """Make a verification run measure: after a restart it is ``running`` without a task
+        (never resumed as a campaign of its own) or still ``created``."""
+        task = self._measure_task
+        if task is not None and task[0] == vcid and not task[1].done():
+            return
+        state = self.store.campaign(vcid).state
+        if state not in (S.CREATED, S.RUNNING):
+            return
+        await self._wait_idle()
+        if self.store.campaign(vcid).state == S.CREATED:
+            await self.preflight()
+            await self.start_campaign(vcid, actor="daemon")
+        elif self.store.campaign(vcid).state == S.RUNNING:
+            _log.info("resuming verification run after restart", campaign=vcid)
+            self._spawn_measure(vcid)
 
     async def _start_verification(self, key: str) -> bool:
         e = self.journal.get(key)
@@ -875,15 +1032,24 @@ class CalibrationService:
             purposes += ["verify-before", "verify-after"]
         doc = plan_from_poses(q_deg, purposes=purposes, robot=self.robot.name)
         model_campaign = e.campaign or e.detail.get("model_campaign")
-        try:
-            vst = await self.create(parse_plan(doc, source="verification", strict=False),
-                                    actor="daemon", name=f"verify {e.action} {key[:12]}",
-                                    measure_only=True)
-        except RobocalError as err:
-            self.journal.set_verification(key, state="skipped",
-                                          result={"reason": f"not measured: {err}"})
-            return False
-        self.journal.set_verification(key, state="measuring", campaign=vst["id"],
+        # a child created by a daemon that stopped before recording it is taken up again
+        earlier = [r for r in self.store.campaigns(parent=key) if r.state not in FINAL]
+        if earlier:
+            vcid = earlier[-1].id
+        else:
+            await self._wait_idle()
+            try:
+                vst = await self.create(parse_plan(doc, source="verification", strict=False),
+                                        actor="daemon", name=f"verify {e.action} {key[:12]}",
+                                        measure_only=True, parent=key)
+            except RobocalError as err:
+                if self._closing:
+                    raise
+                self.journal.set_verification(key, state="skipped",
+                                              result={"reason": f"not measured: {err}"})
+                return False
+            vcid = str(vst["id"])
+        self.journal.set_verification(key, state="measuring", campaign=vcid,
                                       result={"indices": idx, "model_campaign": model_campaign,
                                               "action": e.action})
         return True
@@ -893,6 +1059,7 @@ class CalibrationService:
         if v is None or not v.get("campaign"):
             return
         vcid = str(v["campaign"])
+        await self._run_child(vcid)
         st = await self.wait(vcid, ["measured", "faulted"], timeout=24 * 3600.0)
         if st["state"] != "measured":
             self.journal.set_verification(
@@ -991,6 +1158,7 @@ class CalibrationService:
             else:
                 active["purpose"] = "the controller's own values from before robocal's first push"
         journal = self.journal.entries()
+        states = self.push_states()
         by_table: dict[tuple[str, int | None], JournalEntry] = {}
         for j in journal:
             if j.state == "completed":
@@ -1005,6 +1173,8 @@ class CalibrationService:
                                                       "nominal_residual_mm", "forced",
                                                       "refusal", "reason")},
                      "verification": self.journal.verification(hj.key)}
+                if hj.action == "push":
+                    h["compensation_state"] = states.get(hj.key)
             history.append(h)
         return {"active": active, "stack": stack, "history": history,
                 "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()

@@ -35,6 +35,10 @@ __all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "is_storage_f
 
 SCHEMA_VERSION = 1
 
+#: Size of the file that keeps states held by a storage fault across a restart; written in
+#: place, so a full disk still takes it (room for a few hundred held campaigns).
+HELD_BYTES = 65536
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS campaigns(
@@ -51,7 +55,8 @@ CREATE TABLE IF NOT EXISTS campaigns(
     plan_digest TEXT NOT NULL,
     config_digest TEXT NOT NULL,
     selected_model TEXT,
-    created_by TEXT NOT NULL
+    created_by TEXT NOT NULL,
+    parent TEXT
 );
 CREATE TABLE IF NOT EXISTS poses(
     campaign TEXT NOT NULL REFERENCES campaigns(id),
@@ -170,6 +175,9 @@ class CampaignRecord:
     config_digest: str
     selected_model: str | None
     created_by: str
+    #: The journal key of the push or rollback this run verifies (a child of it, not a
+    #: campaign of its own); None for an operator's campaign.
+    parent: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready summary (the API's campaign status)."""
@@ -188,6 +196,7 @@ class CampaignRecord:
             "plan_digest": self.plan_digest,
             "config_digest": self.config_digest,
             "selected_model": self.selected_model,
+            "verifies": self.parent,
         }
 
 
@@ -292,6 +301,8 @@ class Store:
         if "beam_losses" not in columns:  # stores written before beam losses were counted
             db.execute("ALTER TABLE measurements ADD COLUMN beam_losses INTEGER NOT NULL "
                        "DEFAULT 0")
+        if "parent" not in {r[1] for r in db.execute("PRAGMA table_info(campaigns)")}:
+            db.execute("ALTER TABLE campaigns ADD COLUMN parent TEXT")  # before child runs
         row = db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             db.execute("INSERT INTO meta(key, value) VALUES('schema', ?)", (str(SCHEMA_VERSION),))
@@ -301,7 +312,69 @@ class Store:
                 source=str(self.path),
             )
         self._db = db
+        self._load_held()
+        self._prepare_held()
         return self
+
+    # --- states held by a storage fault, kept across a restart ----------------------------
+    @property
+    def held_path(self) -> Path:
+        """The file that keeps held states (next to the database)."""
+        return self.path.with_name(self.path.name + ".held")
+
+    def _prepare_held(self) -> None:
+        """Allocate the held-states file while the disk takes data (best effort)."""
+        with contextlib.suppress(OSError):
+            if not self.held_path.exists() or self.held_path.stat().st_size < HELD_BYTES:
+                fd = os.open(self.held_path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o600)
+                try:
+                    os.pwrite(fd, self._held_bytes(), 0)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+
+    def _held_bytes(self) -> bytes:
+        data = {cid: [p[0].value, p[1].value, p[2], p[3], p[4]]
+                for cid, p in self._pending.items()}
+        raw = json.dumps(data).encode()
+        while len(raw) > HELD_BYTES and data:  # never happens in practice; keep it valid
+            data.pop(next(iter(data)))
+            raw = json.dumps(data).encode()
+        return raw.ljust(HELD_BYTES)
+
+    def _write_held(self) -> None:
+        """Rewrite the held-states file in place (no new blocks: it works on a full disk)."""
+        try:
+            fd = os.open(self.held_path, os.O_WRONLY | os.O_CLOEXEC)
+        except OSError:
+            return
+        try:
+            os.pwrite(fd, self._held_bytes(), 0)
+            os.fsync(fd)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+
+    def _load_held(self) -> None:
+        """Hold again the states a daemon held when it stopped, where the database still has
+        the state they were held over (a pause on a full disk stays a pause after a restart,
+        even if the disk was freed meanwhile)."""
+        try:
+            data = json.loads(self.held_path.read_bytes().strip() or b"{}")
+        except (OSError, ValueError):
+            return
+        if not isinstance(data, dict):
+            return
+        for cid, item in data.items():
+            try:
+                src, to = CampaignState(item[0]), CampaignState(item[1])
+                row = self.db.execute("SELECT state FROM campaigns WHERE id=?",
+                                      (cid,)).fetchone()
+            except (ValueError, TypeError, IndexError, KeyError):
+                continue
+            if row is not None and row[0] == src.value:
+                self._pending[str(cid)] = (src, to, str(item[2]), str(item[3]), str(item[4]))
 
     def close(self) -> None:
         """Close the connection; idempotent."""
@@ -349,6 +422,8 @@ class Store:
                                "then resume") from err
         for cid in flushed:
             self._pending.pop(cid, None)
+        if flushed:
+            self._write_held()
         self.fault = None
 
     # --- storage faults --------------------------------------------------------------------
@@ -370,6 +445,34 @@ class Store:
         """Campaign states known only in memory (their write hit a storage fault)."""
         return {cid: p[1] for cid, p in self._pending.items()}
 
+    def probe(self) -> str | None:
+        """Whether the store can write now: a synced page in a file next to the database and
+        a row in it. Return None when both succeeded, else the fault (also :attr:`fault`).
+
+        Called before any motion: a run whose measurements cannot be saved must not move the
+        robot (a committed WAL page can be reused; the page file tells whether the disk
+        itself still takes data).
+        """
+        page = b"\0" * 4096
+        try:
+            fd = os.open(self.path.parent / ".write-probe",
+                         os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+            try:
+                if os.write(fd, page) != len(page):
+                    raise OSError(28, "No space left on device (short write)")
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            with self.transaction() as db:
+                db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('write_probe', ?)",
+                           (now_iso(),))
+        except OSError as err:
+            self.fault = f"{type(err).__name__}: {err}"
+            return self.fault
+        except StorageError:
+            return self.fault
+        return None
+
     def flush_pending(self) -> bool:
         """Try to write the transitions held in memory; True when none is left."""
         if self._pending:
@@ -389,21 +492,23 @@ class Store:
         config_digest: str,
         actor: str,
         measure_only: bool = False,
+        parent: str | None = None,
     ) -> CampaignRecord:
         """Insert a campaign in state ``created`` with its poses; return it.
 
-        ``poses_total`` counts the poses to measure (via-points excluded).
+        ``poses_total`` counts the poses to measure (via-points excluded). ``parent``: the
+        journal key of the push or rollback whose verification run this is.
         """
         cid = uuid.uuid4().hex[:12]
         t = now_iso()
         with self.transaction() as db:
             db.execute(
                 "INSERT INTO campaigns(id, name, created, updated, state, robot, poses_total, "
-                "measure_only, plan_json, plan_digest, config_digest, created_by) "
-                "VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
+                "measure_only, plan_json, plan_digest, config_digest, created_by, parent) "
+                "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (cid, name, t, t, CampaignState.CREATED.value, robot,
                  sum(1 for p in poses if p.measure),
-                 int(measure_only), plan_json, plan_digest, config_digest, actor),
+                 int(measure_only), plan_json, plan_digest, config_digest, actor, parent),
             )
             db.executemany(
                 "INSERT INTO poses(campaign, idx, purpose, measure, q_deg) VALUES(?,?,?,?,?)",
@@ -426,14 +531,14 @@ class Store:
         state, reason = CampaignState(row["state"]), row["reason"]
         held = self._pending.get(row["id"])
         if held is not None:
-            state, reason = held[1], f"{held[2]} (not yet saved: {self.fault})"
+            state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
         return CampaignRecord(
             id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
             state=state, reason=reason, robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
-            created_by=row["created_by"],
+            created_by=row["created_by"], parent=row["parent"],
         )
 
     def campaign(self, cid: str) -> CampaignRecord:
@@ -443,9 +548,19 @@ class Store:
             raise UnknownCampaign(f"no campaign {cid!r}")
         return self._record(row)
 
-    def campaigns(self, *, states: Sequence[CampaignState] | None = None) -> list[CampaignRecord]:
-        """Return campaigns, oldest first, optionally only those in ``states``."""
-        rows = self.db.execute("SELECT * FROM campaigns ORDER BY created, rowid").fetchall()
+    def campaigns(self, *, states: Sequence[CampaignState] | None = None,
+                  parent: str | None = None, children: bool = False) -> list[CampaignRecord]:
+        """Return the operators' campaigns, oldest first, optionally only those in ``states``;
+        with ``parent``, the verification runs of that journal key instead; with
+        ``children``, both."""
+        if children:
+            rows = self.db.execute("SELECT * FROM campaigns ORDER BY created, rowid").fetchall()
+        elif parent is None:
+            rows = self.db.execute("SELECT * FROM campaigns WHERE parent IS NULL "
+                                   "ORDER BY created, rowid").fetchall()
+        else:
+            rows = self.db.execute("SELECT * FROM campaigns WHERE parent=? "
+                                   "ORDER BY created, rowid", (parent,)).fetchall()
         recs = [self._record(r) for r in rows]
         if states is not None:
             recs = [r for r in recs if r.state in states]
@@ -499,6 +614,7 @@ class Store:
             held = self._pending.get(cid)
             on_disk = held[0] if held is not None else current
             self._pending[cid] = (on_disk, to, reason, actor, now_iso())
+            self._write_held()
             return self.campaign(cid)
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str,

@@ -145,3 +145,21 @@ def test_deeply_nested_toml_is_one_line(tmp_path, capsys):
     assert main(["daemon", "--config", str(p)]) == 2
     err = capsys.readouterr().err
     assert "not valid TOML" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(("mode", "needle"), [(0o644, "mode 0644"), (0o600, None)])
+def test_plain_config_check_refuses_a_token_file_the_daemon_refuses(tmp_path, capsys, mode,
+                                                                    needle):
+    """Without --drivers too: ``config check`` (the unit's ExecStartPre) says what the
+    daemon would say about the token file."""
+    tok = tmp_path / "tok"
+    tok.write_text(TOKEN)
+    tok.chmod(mode)
+    p = _write(tmp_path, f'[api]\ntcp_port = 0\ntoken_file = "{tok}"\n')
+    rc = main(["config", "check", str(p)])
+    out = capsys.readouterr().out
+    if needle is None:
+        assert rc == 0 and out.rstrip().endswith(": ok"), out
+    else:
+        assert rc == 1 and needle in out and "chmod 600" in out, out
+        assert not out.rstrip().endswith(": ok")

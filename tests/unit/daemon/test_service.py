@@ -375,6 +375,38 @@ async def test_a_push_retried_with_its_idempotency_key_never_writes_twice(servic
     assert len(writes) == 1
 
 
+async def test_a_rollback_retried_with_its_idempotency_key_answers_like_the_first(service):
+    """Like a retried push: the original success, not 409 "used before", nothing written."""
+    svc = await service(limits={"max_joint_correction_deg": 5.0},
+                        compensation={"verify_count": 0})
+    st = await svc.create(program_plan(36, validation=6), actor="a")
+    cid = st["id"]
+    await svc.wait(cid, ["fitted"], timeout=60)
+    await svc.approve(cid, actor="a")
+    await svc.push(cid, actor="a")
+    first = await svc.rollback(actor="a", key="rollback-key-01")
+    assert first["active"]["kind"] == "snapshot"
+    robot = await svc.hub.robot()
+    restores = []
+    original = robot.restore_snapshot
+
+    async def counting(snap):
+        restores.append(snap)
+        await original(snap)
+
+    robot.restore_snapshot = counting
+    again = await svc.rollback(actor="a", key="rollback-key-01")  # the reply was lost
+    assert again["active"] == first["active"] and again["stack"] == first["stack"]
+    assert restores == []
+    assert [a["action"] for a in svc.audit()].count("compensation.rollback") == 1
+    with pytest.raises(CampaignError, match="another action"):
+        await svc.rollback(actor="a", key=_push_key(svc, cid))
+
+
+def _push_key(svc, cid):
+    return svc.journal.entries(campaign=cid)[0].key
+
+
 async def test_a_push_that_fails_to_verify_puts_the_previous_values_back(service):
     svc = await service(robot={"options": {"corrupt_readback": True}},
                         limits={"max_joint_correction_deg": 5.0},

@@ -181,3 +181,28 @@ def test_a_real_full_filesystem(tmp_path):
     assert s["state_on_disk"] == "paused"
     assert s["final_state"] == "fitted" and s["measured"] == s["distinct"] == 30
     assert set(s["measured_at_pause"]) <= set(range(30)) and s["integrity"] == "ok"
+
+
+async def test_a_pause_held_by_a_full_disk_survives_a_restart_after_the_disk_is_freed(
+        make_config):
+    """Held in memory on the full disk, kept in place in the preallocated held-states file:
+    the next daemon, on a disk with room again, finds the campaign paused, not running."""
+    cfg = make_config(robot={"options": {"move_time_s": 0.005}})
+    svc = CalibrationService(cfg)
+    await svc.start()
+    cid = (await svc.create(random_plan(60), actor="op"))["id"]
+    await eventually(lambda: len(svc.store.measured_indices(cid)) >= 2, 30)
+    svc.store.fault_hook = _disk_full
+    await eventually(lambda: svc.store.campaign(cid).state == "paused", 30)
+    assert _state_on_disk(svc, cid)[0] == "running"
+    await svc.stop()  # still full: the pause is not in the database
+    assert _state_on_disk(svc, cid)[0] == "running"
+    again = CalibrationService(cfg)  # the disk was freed meanwhile
+    await again.start()
+    try:
+        st = again.status(cid)
+        assert st["state"] == "paused" and DISK_FULL in st["reason"], st
+        assert again.health()["measuring"] is None
+        await eventually(lambda: _state_on_disk(again, cid)[0] == "paused", 10)
+    finally:
+        await again.stop()
