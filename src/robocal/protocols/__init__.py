@@ -28,7 +28,9 @@ from robocal.protocols.transport import (
     TcpTransport,
     ThreadSerialTransport,
     Transport,
+    await_reply,
     open_transport,
+    poll_ready_io,
 )
 
 __all__ = [
@@ -39,5 +41,7 @@ __all__ = [
     "TcpTransport",
     "ThreadSerialTransport",
     "Transport",
+    "await_reply",
     "open_transport",
+    "poll_ready_io",
 ]
