@@ -215,29 +215,72 @@ async def test_oversized_headers_are_cut_off(api):
     w.close()
 
 
-async def test_connection_limits_and_the_unix_socket_is_separate(api):
-    held = [await asyncio.open_connection("127.0.0.1", api.tcp_port) for _ in range(4)]
-    # a fifth from the same client is reset on arrival, without waiting for any deadline
+async def _half_open(host: str, port: int, source: str = "127.0.0.1"
+                     ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """A connection from ``source`` that sent part of a request head and nothing more."""
+    r, w = await asyncio.open_connection(host, port, local_addr=(source, 0))
+    w.write(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+    await w.drain()
+    return r, w
+
+
+async def test_a_client_behind_a_proxy_is_not_locked_out_by_its_address(api):
+    """Four half-open connections from one address (the per-client cap here): a fifth, the
+    real client (a local reverse proxy shares the address), is served; the oldest is cut."""
+    gate = api.tcp_gate
+    assert gate is not None
+    held = [await _half_open("127.0.0.1", api.tcp_port) for _ in range(4)]
+    await eventually(lambda: gate.unauthenticated == 4)
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
-    assert await _closed_by_peer(r, 0.2)
+    assert await _get(r, w, "/health") == 200
+    assert await _closed_by_peer(held[0][0], 3.0)  # the oldest half-open one made room
+    assert gate.cut == 1 and gate.refused == 0
+    assert all([await _still_open(hr) for hr, _ in held[1:]])
     w.close()
-    assert api.tcp_gate is not None and api.tcp_gate.refused == 1
-    # the TCP listener's budget does not touch the Unix socket's
+    for _, hw in held:
+        hw.close()
+
+
+async def test_token_holders_have_their_own_budget_and_the_unix_socket_is_separate(api):
+    """Half-open connections from six addresses fill the unauthenticated pool (6 here): they
+    take nothing from the six authenticated slots; a seventh authenticated connection is
+    reset, the Unix socket's budget is untouched."""
+    gate = api.tcp_gate
+    assert gate is not None
+    held = [await _half_open("127.0.0.1", api.tcp_port, f"127.0.0.{i}") for i in range(2, 8)]
+    await eventually(lambda: gate.unauthenticated == 6)
+    clients = []
+    for _ in range(6):
+        r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+        assert await _get(r, w, "/health") == 200  # kept alive: holds an authenticated slot
+        clients.append((r, w))
+    assert gate.authenticated == 6
+    # each newcomer cut the oldest half-open connection of the address holding the most
+    assert gate.unauthenticated == 6 - gate.cut
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(_head("/health"))
+    await w.drain()
+    assert await _closed_by_peer(r, 3.0)
+    assert gate.refused == 1
+    w.close()
     ur, uw = await asyncio.open_unix_connection(str(api.socket_path))
     assert await _get(ur, uw, "/health", token="") == 200
     uw.close()
+    for _, cw in clients:
+        cw.close()
+    await eventually(lambda: gate.authenticated == 0)
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health") == 200  # and the slots are free again
+    w.close()
     for _, hw in held:
         hw.close()
-    # once the held ones go (closed here, or cut off by the deadline), clients get in again
-    async def admitted() -> bool:
-        cr, cw = await asyncio.open_connection("127.0.0.1", api.tcp_port)
-        try:
-            return await _get(cr, cw, "/health") == 200
-        except (ConnectionError, asyncio.IncompleteReadError, IndexError):
-            return False
-        finally:
-            cw.close()
 
-    async with asyncio.timeout(5):
-        while not await admitted():
-            await asyncio.sleep(0.02)
+
+async def test_a_wrong_token_does_not_authenticate(api):
+    gate = api.tcp_gate
+    assert gate is not None
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health", token="wrong-token-0123456789") == 401
+    assert gate.authenticated == 0 and gate.unauthenticated == 1
+    assert await _get(r, w, "/health") == 200  # the middleware still checks each request
+    w.close()
