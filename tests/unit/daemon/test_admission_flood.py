@@ -35,7 +35,9 @@ async def api(make_config, tmp_path):
                            "token_file": str(tok)})
     svc = CalibrationService(cfg)
     await svc.start()
-    server = ApiServer(svc, cfg)
+    # A pool smaller than the flood (the daemon sizes it from its descriptors, up to 4,096):
+    # every cut connection is reopened at once, so admission works under constant churn.
+    server = ApiServer(svc, cfg, max_unauthenticated=64)
     await server.start()
     yield server
     await server.stop()

@@ -34,7 +34,8 @@ async def api(make_config, tmp_path, clock):
                            "max_connections_per_client": 4})
     svc = CalibrationService(cfg)
     await svc.start()
-    server = ApiServer(svc, cfg, clock=clock)
+    # a pool of 6 unauthenticated connections (the daemon sizes it from its descriptors)
+    server = ApiServer(svc, cfg, clock=clock, max_unauthenticated=6)
     await server.start()
     yield server
     await server.stop()
@@ -256,7 +257,7 @@ async def test_token_holders_have_their_own_budget_and_the_unix_socket_is_separa
         clients.append((r, w))
     assert gate.authenticated == 6
     # each newcomer cut the oldest half-open connection of the address holding the most
-    assert gate.unauthenticated == 6 - gate.cut
+    assert gate.unauthenticated == 6 - gate.cut and gate.refused == 0
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     w.write(_head("/health"))
     await w.drain()
@@ -283,4 +284,21 @@ async def test_a_wrong_token_does_not_authenticate(api):
     assert await _get(r, w, "/health", token="wrong-token-0123456789") == 401
     assert gate.authenticated == 0 and gate.unauthenticated == 1
     assert await _get(r, w, "/health") == 200  # the middleware still checks each request
+    assert gate.authenticated == 1 and gate.unauthenticated == 0  # and now it has the token
     w.close()
+
+
+async def test_a_full_pool_cuts_the_address_holding_the_most(api):
+    """Pool of 6: four half-open from one address, two from another; a newcomer from a third
+    cuts the oldest of the four, never one of the two."""
+    gate = api.tcp_gate
+    assert gate is not None
+    heavy = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.2") for _ in range(4)]
+    light = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.3") for _ in range(2)]
+    await eventually(lambda: gate.unauthenticated == 6)
+    newcomer = await _half_open("127.0.0.1", api.tcp_port, "127.0.0.4")
+    assert await _closed_by_peer(heavy[0][0], 3.0)
+    assert gate.cut == 1 and gate.unauthenticated == 6
+    assert all([await _still_open(r) for r, _ in heavy[1:] + light + [newcomer]])
+    for _, w in heavy + light + [newcomer]:
+        w.close()
