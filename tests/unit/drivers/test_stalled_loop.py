@@ -22,11 +22,14 @@ import pytest
 from robocal.drivers.emscon import EmsconTracker
 from robocal.drivers.fanuc_rmi import FanucRmiRobot
 from robocal.drivers.ltp import LtpTracker
+from robocal.drivers.modbus_plc import ModbusPlcRobot
 from robocal.drivers.sim import (
     FanucRmiSimulator,
     FanucSimOptions,
     LtpSimOptions,
     LtpTrackerSimulator,
+    ModbusPlcSimulator,
+    ModbusSimOptions,
     SimWorld,
 )
 from robocal.drivers.sim.emscon import EmsconSimOptions, EmsconTrackerSimulator
@@ -188,6 +191,29 @@ def test_emscon_reply_waiting_after_stall(peer: PeerThread, world: SimWorld) -> 
             assert reading.point_id == "P1"
         finally:
             await t.close()
+
+    try:
+        assert run_stalled(body).stalls == 1
+    finally:
+        peer.run(sim.stop())
+
+
+def test_modbus_reply_waiting_after_stall(peer: PeerThread, world: SimWorld) -> None:
+    sim = ModbusPlcSimulator(world, ModbusSimOptions(time_scale=0.0))
+    peer.run(sim.start())
+
+    async def body(selector: StallingSelector) -> None:
+        robot = ModbusPlcRobot({"port": sim.port, "joint_limits_deg": world.joint_limits_deg,
+                                "register_map": sim.map.model_dump(), "poll_interval_s": 0.001,
+                                "request_timeout_s": 0.2, "heartbeat_period_s": 5.0,
+                                "heartbeat_timeout_s": 30.0})
+        await robot.connect(timeout=5)
+        try:
+            selector.arm()
+            reading = await robot.read_joints()
+            assert len(reading.q_rad) == world.dof
+        finally:
+            await robot.close()
 
     try:
         assert run_stalled(body).stalls == 1
