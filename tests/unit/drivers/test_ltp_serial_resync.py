@@ -13,10 +13,12 @@ import tty
 from collections.abc import AsyncIterator, Callable
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robocal.drivers.ltp import LtpTracker
-from robocal.errors import DriverTimeout
-from robocal.protocols import ltp
+from robocal.errors import DriverTimeout, TransportTimeout
+from robocal.protocols import LineStream, ltp
 
 HANDSHAKE = {
     "HELLO": "OK proto=LTP/1 vendor=script model=PTY serial=1 fw=1 bridge=script",
@@ -130,3 +132,77 @@ async def test_lost_reply_after_stop_and_stale_reply_discarded() -> None:
         reading = await asyncio.wait_for(t.measure(samples=1, timeout=0.2, point_id="P2"), 0.4)
         assert reading.point_id == "P2" and reading.position_m[0] == pytest.approx(1.0)
 
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.booleans(), st.lists(st.sampled_from(GARBAGE), max_size=2)),
+                min_size=1, max_size=6))
+def test_every_answered_measurement_succeeds_whatever_was_lost_before(plan) -> None:
+    """Property: MEAS replies lost at random, garbage before the others; every MEAS that is
+    answered succeeds with its own reading, every lost one is a DriverTimeout, and no lost
+    reply costs a later measurement."""
+
+    def reply(tag: str, verb: str) -> bytes:
+        if verb == "MEAS":
+            lost, junk = plan[int(t.point_id_sent[-1][1:])]
+            if lost:
+                return b""
+            return b"".join(j + b"\r\n" for j in junk) + (
+                f"{tag} OK id={t.point_id_sent[-1]} {POINT}\r\n".encode())
+        return f"{tag} {HANDSHAKE[verb]}\r\n".encode()
+
+    t = _ScriptedTracker(reply)
+
+    async def run() -> list[str]:
+        outcome = []
+        for i in range(len(plan)):
+            t.point_id_sent.append(f"P{i}")
+            try:
+                r = await t.measure(samples=1, timeout=0.02, point_id=f"P{i}")
+                outcome.append(r.point_id or "")
+            except DriverTimeout:
+                outcome.append("timeout")
+        return outcome
+
+    got = asyncio.run(run())
+    assert got == ["timeout" if lost else f"P{i}" for i, (lost, _) in enumerate(plan)]
+
+
+class _ScriptedTracker(LtpTracker):
+    """An LtpTracker already connected over an in-memory transport answering by script."""
+
+    def __init__(self, reply: Callable[[str, str], bytes]) -> None:
+        super().__init__({"url": "tcp://127.0.0.1:1", "request_timeout_s": 0.05,
+                          "reply_margin_s": 0.0})
+        self.point_id_sent: list[str] = []
+        self._stream = LineStream(_Scripted(reply))
+        self.state = "connected"
+
+
+class _Scripted:
+    """A transport that answers each request line written with ``reply(tag, verb)``."""
+
+    url = "scripted://"
+    is_open = True
+
+    def __init__(self, reply: Callable[[str, str], bytes]) -> None:
+        self.reply = reply
+        self.inbox = bytearray()
+
+    async def open(self, *, timeout: float) -> None:
+        return None
+
+    async def write(self, data: bytes) -> None:
+        tag, verb = data.decode().split()[:2]
+        self.inbox += self.reply(tag, verb)
+
+    async def read(self, max_bytes: int = 4096, *, timeout: float) -> bytes:
+        if not self.inbox:
+            await asyncio.sleep(min(timeout, 0.005))
+            raise TransportTimeout("nothing")
+        data = bytes(self.inbox[:max_bytes])
+        del self.inbox[:max_bytes]
+        return data
+
+    async def close(self) -> None:
+        self.is_open = False
