@@ -84,6 +84,10 @@ class ConnectionGate:
         self.authenticated = 0
         #: Unauthenticated connections per client address, oldest first.
         self.pool: dict[str, dict[_Guard, None]] = {}
+        #: Addresses by how many unauthenticated connections they hold, in the order they got
+        #: there; ``_top`` is the largest such count.
+        self._buckets: dict[int, dict[str, None]] = {}
+        self._top = 0
         self.unauthenticated = 0
         self.refused = 0
         self.cut = 0
@@ -109,19 +113,35 @@ class ConnectionGate:
             self._cut(next(iter(same)))
         elif self.unauthenticated >= self.max_unauthenticated:
             self._cut(self._victim(guard.client))
-        self.pool.setdefault(guard.client, {})[guard] = None
+        same = self.pool.setdefault(guard.client, {})
+        same[guard] = None
+        self._recount(guard.client, len(same) - 1, len(same))
         self.unauthenticated += 1
         guard.state = "pool"
         return True
 
     def _victim(self, newcomer: str) -> _Guard:
-        """The oldest unauthenticated connection of the address that holds the most (counting
-        the newcomer); ties go to the address whose oldest connection is oldest."""
-        def rank(item: tuple[str, dict[_Guard, None]]) -> tuple[int, int]:
-            address, guards = item
-            return len(guards) + (address == newcomer), -next(iter(guards)).order
-        _, guards = max(((a, g) for a, g in self.pool.items() if g), key=rank)
-        return next(iter(guards))
+        """The oldest unauthenticated connection of the address that holds the most, the
+        newcomer's own address counted with the newcomer; among equals, the address that got
+        to that count first. Constant time: addresses are kept in buckets by count."""
+        own = len(self.pool.get(newcomer, ()))
+        top = self._top
+        address = newcomer if own + 1 > top else next(iter(self._buckets[top]))
+        return next(iter(self.pool[address]))
+
+    def _recount(self, address: str, before: int, after: int) -> None:
+        """Move ``address`` from the bucket of ``before`` connections to that of ``after``."""
+        if before:
+            bucket = self._buckets[before]
+            del bucket[address]
+            if not bucket:
+                del self._buckets[before]
+        if after:
+            self._buckets.setdefault(after, {})[address] = None
+        if after > self._top:
+            self._top = after
+        while self._top and self._top not in self._buckets:
+            self._top -= 1
 
     def _cut(self, guard: _Guard) -> None:
         self.cut += 1
@@ -143,6 +163,7 @@ class ConnectionGate:
         if guard.state == "pool":
             same = self.pool[guard.client]
             del same[guard]
+            self._recount(guard.client, len(same) + 1, len(same))
             if not same:
                 del self.pool[guard.client]
             self.unauthenticated -= 1

@@ -8,7 +8,10 @@ import contextlib
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from robocal.daemon._gate import ConnectionGate, _Guard
 from robocal.daemon.api import ApiServer
 from robocal.daemon.service import CalibrationService
 from tests._clock import ManualClock
@@ -302,3 +305,38 @@ async def test_a_full_pool_cuts_the_address_holding_the_most(api):
     assert all([await _still_open(r) for r, _ in heavy[1:] + light + [newcomer]])
     for _, w in heavy + light + [newcomer]:
         w.close()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["arrive", "leave", "token"]), st.integers(0, 5),
+                          st.integers(0, 40)), max_size=120),
+       st.integers(1, 8), st.integers(1, 4))
+def test_gate_bookkeeping_stays_consistent(ops, pool, per_client):
+    """Random arrivals (from six addresses), departures and authentications: the pool never
+    exceeds its size or an address its share, the counts and buckets agree with the pool,
+    and a newcomer is always admitted."""
+    gate = ConnectionGate(max_connections=3, max_per_client=per_client, header_timeout_s=1.0,
+                          token="t" * 16, max_unauthenticated=pool)
+    live: list[_Guard] = []
+    for op, address, pick in ops:
+        if op == "arrive":
+            g = _Guard(gate, lambda: asyncio.Protocol())
+            g.client = f"127.0.0.{address + 2}"
+            assert gate._admit(g)
+            live.append(g)
+        elif live:
+            g = live[pick % len(live)]
+            if op == "leave":
+                gate._leave(g)
+                live.remove(g)
+            elif g.state == "pool":
+                gate._authenticate(g)
+        held = {a: len(gs) for a, gs in gate.pool.items()}
+        assert all(n > 0 for n in held.values())
+        assert gate.unauthenticated == sum(held.values()) <= pool
+        assert max(held.values(), default=0) <= per_client
+        assert gate._top == max(held.values(), default=0)
+        assert {n: set(b) for n, b in gate._buckets.items()} == {
+            n: {a for a, m in held.items() if m == n} for n in set(held.values())}
+        assert gate.authenticated == sum(g.state == "auth" for g in live) <= 3
+        assert all(g.state in ("pool", "auth", "gone") for g in live)
