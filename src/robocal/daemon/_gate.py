@@ -13,14 +13,16 @@ server's protocol factory and keeps two budgets per listener (ADR 0025):
   refuses a newcomer: it cuts the oldest unauthenticated connection of the address that holds
   the most (the newcomer's own address included), so a flood from many addresses cannot lock
   a real client out, and a client behind a local reverse proxy, whose address it shares with
-  half-open connections, displaces the oldest of them. ``max_per_client`` caps one address's
-  share of the pool the same way (its oldest is cut, the newcomer is admitted).
+  half-open connections, displaces the oldest of them. An address that holds
+  ``max_per_client`` or more loses its own oldest first. A pool with room cuts nothing.
 
 A connection whose request headers are not complete within ``header_timeout_s`` (or exceed
-``max_header_bytes``) is reset; the deadline never runs while a response is produced or
-streamed (Server-Sent Events, long polls). aiohttp's protocol object is created only once a
-connection sends its first byte, so a connection that sends nothing costs a socket and a
-timer only. Refusals and cuts are counted, not logged one by one. Deadlines run on the gate's
+``max_header_bytes``) is reset (while more unauthenticated connections are open than
+``max_connections``, within a random 50-100 % of it, so a flood is not cut all at once);
+the deadline never runs while a response is produced or streamed (Server-Sent Events, long
+polls). aiohttp's protocol object is created only once a connection's first request head is
+complete, so a half-open connection costs a socket, a timer and the bytes it sent. Refusals
+and cuts are counted, not logged one by one. Deadlines run on the gate's
 :class:`~robocal._core.clock.Clock` (tests advance a manual one).
 """
 
@@ -29,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import itertools
+import random
 from collections.abc import Callable
 from typing import Any
 
@@ -50,8 +53,8 @@ class ConnectionGate:
     max_connections : int
         Authenticated connections at most (more are reset when their token arrives).
     max_per_client : int or None
-        Unauthenticated connections per client address at most; a newcomer beyond it cuts
-        that address's oldest one (None: no per-address cap).
+        When the pool is full, a newcomer from an address holding this many unauthenticated
+        connections or more cuts that address's oldest one (None: the fair choice only).
     header_timeout_s : float
         Time from connection (or from the first byte of a later request) to the end of the
         request headers.
@@ -108,11 +111,14 @@ class ConnectionGate:
         """Take ``guard`` in: authenticated at once (no token), else into the pool."""
         if self._expected is None:
             return self._authenticate(guard)
-        same = self.pool.get(guard.client, {})
-        if self.max_per_client is not None and len(same) >= self.max_per_client:
-            self._cut(next(iter(same)))
-        elif self.unauthenticated >= self.max_unauthenticated:
-            self._cut(self._victim(guard.client))
+        if self.unauthenticated >= self.max_unauthenticated:
+            # Only a full pool cuts: a connection cut while there is room is reopened at
+            # once, and a flood that cycles keeps the accept queue full (ADR 0025).
+            same = self.pool.get(guard.client, {})
+            if self.max_per_client is not None and len(same) >= self.max_per_client:
+                self._cut(next(iter(same)))
+            else:
+                self._cut(self._victim(guard.client))
         same = self.pool.setdefault(guard.client, {})
         same[guard] = None
         self._recount(guard.client, len(same) - 1, len(same))
@@ -204,6 +210,8 @@ class _Guard(asyncio.Protocol):
         self.head = bytearray()
         self.mode = "head"  # head: reading request headers; body: its body; idle: neither
         self.body_left: int | None = 0  # bytes of the current body still to come; None: unknown
+        self.head_done = False  # the first request head is complete
+        self.early = bytearray()  # bytes received before it was (at most max_header_bytes)
 
     # -- admission ----------------------------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -232,7 +240,13 @@ class _Guard(asyncio.Protocol):
     def _arm(self) -> None:
         self._disarm()
         self.head = bytearray()
-        due = self.gate.clock.monotonic() + self.gate.header_timeout_s
+        gate = self.gate
+        timeout = gate.header_timeout_s
+        if self.state == "pool" and gate.unauthenticated > gate.max_connections:
+            # Under a flood, half-open connections are cut sooner and at spread-out times:
+            # a flood opened at once would otherwise be cut, and reopened, all at once.
+            timeout *= random.uniform(0.5, 1.0)  # timing only, not a secret
+        due = gate.clock.monotonic() + timeout
         self.timer = asyncio.get_running_loop().create_task(self._deadline(due))
         self.gate.awaiting_headers += 1
 
@@ -289,6 +303,7 @@ class _Guard(asyncio.Protocol):
                     and not self.gate._authenticate(self):
                 self._drop()
                 return
+            self.head_done = True
             self.body_left = _body_length(head)
             data = bytes(self.head[end + len(_END):])
             self.head = bytearray()
@@ -307,7 +322,12 @@ class _Guard(asyncio.Protocol):
         if self.transport is None or self.transport.is_closing() or self.state == "gone":
             return
         if self.inner is None:
-            # Created on the first byte: a connection that never sends costs no handler.
+            # aiohttp's handler is created once the first request head is complete: a
+            # half-open connection costs a socket, a timer and its bytes so far, no handler.
+            self.early += data
+            if not self.head_done:
+                return
+            data, self.early = bytes(self.early), bytearray()
             self.inner = self.make()
             self.inner.connection_made(self.transport)
         self.inner.data_received(data)
