@@ -235,13 +235,13 @@ async def test_a_client_behind_a_proxy_is_not_locked_out_by_its_address(api):
     gate = api.tcp_gate
     assert gate is not None
     held = [await _half_open("127.0.0.1", api.tcp_port) for _ in range(5)]
-    await eventually(lambda: gate.unauthenticated == 5)
+    await eventually(lambda: gate.open == 5)
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     assert await _get(r, w, "/health") == 200
     assert gate.cut == 0 and gate.refused == 0  # beyond the per-client 4, but room: no cut
     w.close()
     held.append(await _half_open("127.0.0.1", api.tcp_port))
-    await eventually(lambda: gate.unauthenticated == 6)  # full, all from one address
+    await eventually(lambda: gate.open == 6)  # the pool is full, all from one address
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
     assert await _get(r, w, "/health") == 200
     assert await _closed_by_peer(held[0][0], 3.0)  # the oldest half-open one made room
@@ -259,7 +259,7 @@ async def test_token_holders_have_their_own_budget_and_the_unix_socket_is_separa
     gate = api.tcp_gate
     assert gate is not None
     held = [await _half_open("127.0.0.1", api.tcp_port, f"127.0.0.{i}") for i in range(2, 8)]
-    await eventually(lambda: gate.unauthenticated == 6)
+    await eventually(lambda: gate.open == 6)
     clients = []
     for _ in range(6):
         r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
@@ -305,7 +305,7 @@ async def test_a_full_pool_cuts_the_address_holding_the_most(api):
     assert gate is not None
     heavy = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.2") for _ in range(4)]
     light = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.3") for _ in range(2)]
-    await eventually(lambda: gate.unauthenticated == 6)
+    await eventually(lambda: gate.open == 6)
     newcomer = await _half_open("127.0.0.1", api.tcp_port, "127.0.0.4")
     assert await _closed_by_peer(heavy[0][0], 3.0)
     assert gate.cut == 1 and gate.unauthenticated == 6
