@@ -6,8 +6,11 @@ The tracker PC runs a bridge (vendor SDK to LTP/1); this driver speaks only LTP/
 Exactly one request is outstanding at a time. A request whose reply did not come in time
 stays outstanding: before the next request the driver waits for that late reply (and
 discards it), so it never pipelines; the one exception is ``STOP``, which the protocol
-allows while a ``MEAS`` runs. If a late reply never comes the link is re-opened. Event
-lines (``* EVT ...``) are handled and skipped anywhere; garbage lines are logged and skipped.
+allows while a ``MEAS`` runs. If a late reply never comes the link is re-opened. A bridge
+answers in order, so a reply to a later request (other than ``ERR 14 BUSY``) settles every
+earlier one: a reply lost on a serial line (the MEAS before a STOP, typically) is no longer
+awaited, and costs no later request. Event lines (``* EVT ...``) are handled and skipped
+anywhere; garbage lines are logged and skipped.
 ``ERR 14 BUSY`` is retried with back-off until the request's deadline.
 
 After ``HELLO`` the driver sets ``INIT`` (if needed), ``SMR``, ``UNITS len=mm ang=deg`` and
