@@ -1,6 +1,7 @@
 """1,000 unauthenticated, half-sent TCP requests against a daemon process that is measuring a
-campaign against the simulators: the Unix-socket API keeps answering, the campaign
-completes, the TCP API serves a genuine client afterwards, and the log stays small."""
+campaign against the simulators: the Unix-socket API keeps answering, the TCP API serves a
+genuine client during the flood and afterwards, the campaign completes, and the log stays
+small."""
 
 from __future__ import annotations
 
@@ -80,11 +81,12 @@ def test_a_thousand_half_open_requests_do_not_starve_the_daemon(tmp_path):
             t0 = time.monotonic()
             socks = _open_partial(port, HOSTILE)
             opened_s = time.monotonic() - t0
-            # the daemon holds at most its per-client budget; the rest are reset as soon as it
-            # accepts them (the kernel's accept queue drains within moments), long before the
-            # 5 s header deadline
-            held = wait_for(lambda: (n := sum(_still_open(s) for s in socks)) <= 16 and n + 1,
-                            3.0, "the connections over the limit to be reset") - 1
+            # the daemon holds them in its unauthenticated pool (sized from its descriptors,
+            # ADR 0025) until the 5 s header deadline; a client with the token is served
+            # meanwhile over TCP, on its own budget
+            good = DaemonClient(url=url, token=TOKEN, timeout=10.0)
+            assert good.request("GET", "/health")["status"] == "ok"
+            held = sum(_still_open(s) for s in socks)
             reset_s = time.monotonic() - t0
             # while the flood lasts, the local API answers promptly and the robot measures
             before = daemon.status(cid)["poses_measured"]
@@ -102,7 +104,6 @@ def test_a_thousand_half_open_requests_do_not_starve_the_daemon(tmp_path):
             for s in socks:
                 s.close()
             socks = _open_partial(port, HOSTILE)
-            good = DaemonClient(url=url, token=TOKEN, timeout=10.0)
             for s in socks:
                 s.close()
             socks = []
@@ -117,8 +118,8 @@ def test_a_thousand_half_open_requests_do_not_starve_the_daemon(tmp_path):
             assert "Too many open files" not in log
             assert len(log.encode()) < 200_000, len(log)
             assert "Traceback" not in log
-            print(f"{HOSTILE} partial connections opened in {opened_s:.2f} s, all but {held} "
-                  f"reset within {reset_s:.2f} s; "
+            print(f"{HOSTILE} partial connections opened in {opened_s:.2f} s, {held} held "
+                  f"after {reset_s:.2f} s; "
                   f"worst /health {worst * 1e3:.1f} ms; daemon log {len(log)} bytes")
         finally:
             for s in socks:

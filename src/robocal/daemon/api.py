@@ -31,6 +31,7 @@ import json
 import os
 import pwd
 import re
+import resource
 import socket
 import sqlite3
 import struct
@@ -524,6 +525,29 @@ def openapi_spec() -> dict[str, Any]:
     }
 
 
+#: Unauthenticated TCP connections held at most, and file descriptors kept for everything else
+#: (drivers, store, fit workers, the Unix socket's connections).
+_POOL_MAX = 4096
+_FD_RESERVE = 256
+
+
+def unauthenticated_pool(max_connections: int) -> int:
+    """Size of the TCP listener's pool of unauthenticated connections: as many as the file
+    descriptors allow (``RLIMIT_NOFILE``, raised by the daemon at start), at most 4,096, at
+    least ``max_connections``.
+
+    A pool that holds a flood's half-open connections until their header deadline keeps the
+    flood from cycling: a connection cut at once is reopened at once, and a flood that cycles
+    keeps the kernel's accept queue full, so a real client's SYN is dropped and retried a
+    second later (ADR 0025).
+    """
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return _POOL_MAX
+    room = soft - _FD_RESERVE - 2 * max_connections
+    return max(max_connections, min(_POOL_MAX, room))
+
+
 def _socket_in_use(path: Path) -> bool:
     """True if a daemon is listening on ``path`` (a stale socket file is not in use)."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -548,13 +572,17 @@ class ApiServer:
         ``api`` section: socket path and mode, TCP host/port and token file.
     clock : Clock, optional
         Time source of the listeners' header deadlines (default: the system clock).
+    max_unauthenticated : int, optional
+        Size of the TCP listener's pool of unauthenticated connections (default:
+        :func:`unauthenticated_pool`).
     """
 
     def __init__(self, service: CalibrationService, config: AppConfig, *,
-                 clock: Clock = SYSTEM_CLOCK) -> None:
+                 clock: Clock = SYSTEM_CLOCK, max_unauthenticated: int | None = None) -> None:
         self.service = service
         self.config = config
         self.clock = clock
+        self.max_unauthenticated = max_unauthenticated
         self._runners: list[web.AppRunner] = []
         self.socket_path: Path | None = None
         self.tcp_port: int | None = None
@@ -579,10 +607,15 @@ class ApiServer:
                 runner = self._runner(token)
                 await runner.setup()
                 self._runners.append(runner)
+                # Token holders get max_connections slots of their own; everything else
+                # shares one pool, counted over all addresses (ADR 0025).
                 self.tcp_gate = ConnectionGate(
                     max_connections=api.max_connections,
                     max_per_client=api.max_connections_per_client,
-                    header_timeout_s=api.header_timeout_s, clock=self.clock)
+                    header_timeout_s=api.header_timeout_s, token=token,
+                    max_unauthenticated=self.max_unauthenticated
+                    or unauthenticated_pool(api.max_connections),
+                    clock=self.clock)
                 site = GatedTCPSite(runner, api.tcp_host, api.tcp_port, gate=self.tcp_gate)
                 await site.start()
                 self.tcp_port = site.port

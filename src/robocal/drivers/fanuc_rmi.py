@@ -57,12 +57,15 @@ from robocal.errors import (
     TransportTimeout,
     VerificationMismatch,
 )
-from robocal.protocols import LineStream, TcpTransport
+from robocal.protocols import LineStream, TcpTransport, await_reply
 from robocal.protocols import fanuc_rmi as rmi
 
 __all__ = ["FanucRmiOptions", "FanucRmiRobot"]
 
 MIN_MAJOR_VERSION = 6
+#: Packets still read (non-blocking) once a deadline has passed (a reply already waiting is
+#: taken; a controller that talks without end is not waited for).
+_LATE_PACKETS = 32
 _SEQUENCE_ERRORS = frozenset({rmi.rmit(24), rmi.rmit(28), rmi.rmit(29)})
 #: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
 #: connect timeout).
@@ -250,14 +253,20 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
 
     async def _read_packet(self, stream: LineStream, name: str, deadline: float) -> rmi.Packet:
         """Read until the packet ``name`` arrives, skipping garbage; bounded by ``deadline``."""
+        late = 0
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise DriverTimeout(f"no {name} reply in time", kind=self.kind)
+                # Past the deadline only packets already waiting are taken (non-blocking).
+                late += 1
+                if late > _LATE_PACKETS:
+                    raise DriverTimeout(f"no {name} reply in time", kind=self.kind)
             try:
-                packet = rmi.decode(await stream.read_line(timeout=remaining))
+                packet = rmi.decode(await stream.read_line(timeout=max(0.0, remaining)))
+            except TransportTimeout as err:
+                raise DriverTimeout(f"no {name} reply in time", kind=self.kind) from err
             except (FramingError, ProtocolError) as err:
-                if isinstance(err, TransportError | TransportTimeout):
+                if isinstance(err, TransportError):
                     raise
                 self.bad_packets += 1
                 self.log.warning("malformed RMI line ignored", error=str(err)[:120])
@@ -381,8 +390,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             try:
                 with self.translate_errors():
                     await stream.write_line(rmi.encode({"Command": name, **fields}))
-                async with asyncio.timeout(wait):
-                    packet = await fut
+                packet = await await_reply(fut, wait)
             except TimeoutError as err:
                 raise DriverTimeout(
                     f"no reply to {name} within {wait:.3g} s", kind=self.kind
@@ -430,8 +438,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                     raise
                 self._next_seq = rmi.next_sequence_id(seq)
             try:
-                async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
-                    return await fut
+                return await await_reply(fut, deadline - time.monotonic())
             except TimeoutError as err:
                 raise DriverTimeout(
                     f"instruction SequenceID {seq} not completed in time", kind=self.kind

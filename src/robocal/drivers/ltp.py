@@ -6,8 +6,11 @@ The tracker PC runs a bridge (vendor SDK to LTP/1); this driver speaks only LTP/
 Exactly one request is outstanding at a time. A request whose reply did not come in time
 stays outstanding: before the next request the driver waits for that late reply (and
 discards it), so it never pipelines; the one exception is ``STOP``, which the protocol
-allows while a ``MEAS`` runs. If a late reply never comes the link is re-opened. Event
-lines (``* EVT ...``) are handled and skipped anywhere; garbage lines are logged and skipped.
+allows while a ``MEAS`` runs. If a late reply never comes the link is re-opened. A bridge
+answers in order, so a reply to a later request (other than ``ERR 14 BUSY``) settles every
+earlier one: a reply lost on a serial line (the MEAS before a STOP, typically) is no longer
+awaited, and costs no later request. Event lines (``* EVT ...``) are handled and skipped
+anywhere; garbage lines are logged and skipped.
 ``ERR 14 BUSY`` is retried with back-off until the request's deadline.
 
 After ``HELLO`` the driver sets ``INIT`` (if needed), ``SMR``, ``UNITS len=mm ang=deg`` and
@@ -51,6 +54,9 @@ from robocal.protocols import LineStream, ltp, open_transport
 __all__ = ["LtpOptions", "LtpTracker", "decimal_text", "wire_point_id"]
 
 _TO_M = {"mm": 1e-3, "m": 1.0, "in": 0.0254}
+#: Lines still read (non-blocking) once a deadline has passed: a reply already waiting
+#: behind a few events is taken, a bridge that talks without end is not waited for.
+_LATE_LINES = 32
 
 
 class LtpOptions(DriverOptions):
@@ -295,17 +301,26 @@ class LtpTracker(DriverBase):
         owed: Sequence[str] = (),
     ) -> ltp.Ok | ltp.Err | None:
         """Read lines until the reply to ``tag`` arrives (or, tag None, every ``owed`` one)."""
+        overdue = 0
         while True:
             if tag is None and not any(t in self._pending for t in owed):
                 return None
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                # Past the deadline only lines already waiting are taken (non-blocking),
+                # a bounded number of them.
+                overdue += 1
+                if overdue > _LATE_LINES:
+                    raise TransportTimeout(
+                        f"no reply to {verb} in time", last_frames=stream.last_frames
+                    )
+            try:
+                msg = ltp.parse_message(await stream.read_line(timeout=max(0.0, remaining)))
+            except TransportTimeout as err:
                 raise TransportTimeout(
                     f"no reply to {verb} in time", last_frames=stream.last_frames
-                )
-            try:
-                msg = ltp.parse_message(await stream.read_line(timeout=remaining))
-            except (TransportError, TransportTimeout):
+                ) from err
+            except TransportError:
                 raise
             except FramingError as err:
                 self.bad_lines += 1
@@ -314,6 +329,8 @@ class LtpTracker(DriverBase):
             if isinstance(msg, ltp.Event):
                 self._on_event(msg)
                 continue
+            if msg.tag in self._pending:
+                self._settle_earlier(msg)
             late = self._pending.pop(msg.tag, None)
             if msg.tag == tag:
                 return msg
@@ -321,6 +338,23 @@ class LtpTracker(DriverBase):
                 self.log.info("late reply discarded", tag=msg.tag, verb=late)
             else:
                 self.log.warning("reply with unknown tag discarded", tag=msg.tag)
+
+    def _settle_earlier(self, msg: ltp.Ok | ltp.Err) -> None:
+        """Forget the requests sent before ``msg``'s: their replies were lost.
+
+        A bridge answers in order (a MEAS before the STOP that aborts it, section 5 of
+        ltp1.md), so once a later request is answered no earlier reply can still come; on a
+        serial line a garbled line is such a lost reply. ``ERR 14 BUSY`` is the exception: the
+        bridge is still running the earlier request, whose reply is still to come.
+        """
+        if isinstance(msg, ltp.Err) and msg.code == ltp.ErrorCode.BUSY:
+            return
+        for earlier, verb in list(self._pending.items()):
+            if earlier == msg.tag:
+                break
+            del self._pending[earlier]
+            self.log.warning("reply lost; request no longer awaited", tag=earlier, verb=verb,
+                             answered=msg.tag)
 
     def _on_event(self, event: ltp.Event) -> None:
         v = event.values

@@ -30,7 +30,9 @@ from robocal.protocols.transport import (
     TcpTransport,
     ThreadSerialTransport,
     Transport,
+    await_reply,
     open_transport,
+    poll_ready_io,
 )
 
 __all__ = [
@@ -41,5 +43,7 @@ __all__ = [
     "TcpTransport",
     "ThreadSerialTransport",
     "Transport",
+    "await_reply",
     "open_transport",
+    "poll_ready_io",
 ]

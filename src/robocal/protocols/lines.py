@@ -52,13 +52,17 @@ class LineStream:
             line = self.framer.next_line()
             if line is not None:
                 return line
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            # Past the deadline this is a last, non-blocking read: bytes already waiting
+            # still complete the line (the transport's read looks once more before it fails).
+            remaining = max(0.0, deadline - time.monotonic())
+            try:
+                data = await self.transport.read(4096, timeout=remaining)
+            except TransportTimeout as err:
                 raise TransportTimeout(
                     f"{self.transport.url}: no complete line within {timeout:.3g} s",
                     last_frames=self.last_frames,
-                )
-            self.framer.feed(await self.transport.read(4096, timeout=remaining))
+                ) from err
+            self.framer.feed(data)
 
     def reset(self) -> None:
         """Forget buffered input (after reconnecting)."""

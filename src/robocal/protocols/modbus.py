@@ -481,10 +481,26 @@ class ModbusClient:
             raise TransportError(f"{self.url}: not connected")
         task = asyncio.current_task()
         cancels = task.cancelling() if task is not None else 0
+        loop = asyncio.get_running_loop()
         async with self._lock:
             try:
-                async with asyncio.timeout(self.timeout + 1.0):
-                    rr = await fn(client)
+                for attempt in (1, 2):
+                    started = loop.time()
+                    try:
+                        async with asyncio.timeout(self.timeout + 1.0):
+                            rr = await fn(client)
+                        break
+                    except (TimeoutError, ModbusIOException):
+                        # A timeout that fired long after it was due means the process or
+                        # its loop stood still (SIGSTOP, a suspended VM): the reply may have
+                        # come meanwhile, and pymodbus dropped it with the request. Every
+                        # request here is idempotent (reads; writes of fixed values), so
+                        # it is asked once more (ADR 0025).
+                        overrun = loop.time() - started - self.timeout
+                        if attempt == 2 or overrun < max(0.05, 0.25 * self.timeout):
+                            raise
+                        _log.info("modbus request repeated after a stall", what=what,
+                                  stalled_s=round(overrun, 3))
                 if task is not None and task.cancelling() > cancels:
                     # pymodbus waits with asyncio.wait_for, which on Python 3.11 drops a
                     # cancellation that arrives together with the reply (CPython gh-86296):

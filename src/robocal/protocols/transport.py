@@ -17,6 +17,13 @@ Serial query parameters: ``baudrate``, ``bytesize``, ``parity`` (N/E/O/M/S), ``s
 A read never returns short data silently: it returns at least one byte, raises
 :class:`~robocal.errors.TransportTimeout` when nothing arrived in time and
 :class:`~robocal.errors.TransportError` when the peer closed the connection.
+
+No timeout fires while the answer is already readable. After the process was stopped
+(SIGSTOP/SIGCONT, a suspended VM, a long pause) every deadline is past when it runs again,
+and the event loop may run the expired timers before it has looked at the sockets: Linux
+interrupts ``epoll_wait`` on SIGCONT, and Python (PEP 475) does not poll again once the
+wait's own timeout is over. So before a read or a reply wait gives up it lets the loop poll
+once more without blocking (:func:`poll_ready_io`) and takes what that delivers.
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ import asyncio
 import contextlib
 import time
 import urllib.parse
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Callable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import serial
 import serial_asyncio_fast
@@ -38,10 +46,51 @@ __all__ = [
     "TcpTransport",
     "ThreadSerialTransport",
     "Transport",
+    "await_reply",
     "open_transport",
+    "poll_ready_io",
 ]
 
 _log = structlog.get_logger(__name__)
+_T = TypeVar("_T")
+
+#: Loop iterations a last look may take: one to poll the descriptors, a few more for what the
+#: delivery wakes (a reader task that parses the line and resolves a reply future).
+_LAST_LOOK_ROUNDS = 8
+
+
+async def poll_ready_io(done: Callable[[], bool]) -> bool:
+    """Let the event loop poll its descriptors without blocking and run what they deliver,
+    until ``done()`` is true or a few loop iterations have passed; return ``done()``.
+
+    Call it right before declaring a timeout: data that was already waiting is then
+    delivered instead of being reported as missing (see the module docstring).
+    """
+    for _ in range(_LAST_LOOK_ROUNDS):
+        if done():
+            return True
+        await asyncio.sleep(0)  # each yield is one loop iteration with a select(0)
+    return done()
+
+
+async def await_reply(fut: asyncio.Future[_T], timeout: float) -> _T:
+    """Return ``fut``'s result once it is resolved, within ``timeout`` seconds (monotonic).
+
+    ``fut`` is never cancelled by the wait, so a reply delivered at the last moment can still
+    resolve it; a reply that was readable when the time ran out is taken (a last look with
+    :func:`poll_ready_io`).
+
+    Raises
+    ------
+    TimeoutError
+        If ``fut`` is not resolved in time.
+    """
+    if not fut.done():
+        await asyncio.wait({fut}, timeout=max(0.0, timeout))
+    if not fut.done() and not await poll_ready_io(fut.done):
+        raise TimeoutError
+    return fut.result()
+
 
 #: pyserial URL schemes served without a file descriptor (they need the thread fallback).
 _THREAD_SCHEMES = frozenset({"loop", "rfc2217", "spy", "alt", "hwgrep", "cp2110"})
@@ -144,13 +193,13 @@ class _ProtocolTransport:
             proto.data_ready.clear()
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise TransportTimeout(f"{self.url}: no data within {timeout:.3g} s")
-            try:
+                # A last, non-blocking look: bytes that were waiting are not "no data".
+                if not await poll_ready_io(lambda: bool(proto.buffer) or proto.lost.done()):
+                    raise TransportTimeout(f"{self.url}: no data within {timeout:.3g} s")
+                continue
+            with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(remaining):
                     await proto.data_ready.wait()
-            except TimeoutError:
-                if not proto.buffer:
-                    raise TransportTimeout(f"{self.url}: no data within {timeout:.3g} s") from None
         data = bytes(proto.buffer[:max_bytes])
         del proto.buffer[:max_bytes]
         return data

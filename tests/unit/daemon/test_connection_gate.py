@@ -8,7 +8,10 @@ import contextlib
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from robocal.daemon._gate import ConnectionGate, _Guard
 from robocal.daemon.api import ApiServer
 from robocal.daemon.service import CalibrationService
 from tests._clock import ManualClock
@@ -34,7 +37,8 @@ async def api(make_config, tmp_path, clock):
                            "max_connections_per_client": 4})
     svc = CalibrationService(cfg)
     await svc.start()
-    server = ApiServer(svc, cfg, clock=clock)
+    # a pool of 6 unauthenticated connections (the daemon sizes it from its descriptors)
+    server = ApiServer(svc, cfg, clock=clock, max_unauthenticated=6)
     await server.start()
     yield server
     await server.stop()
@@ -215,29 +219,132 @@ async def test_oversized_headers_are_cut_off(api):
     w.close()
 
 
-async def test_connection_limits_and_the_unix_socket_is_separate(api):
-    held = [await asyncio.open_connection("127.0.0.1", api.tcp_port) for _ in range(4)]
-    # a fifth from the same client is reset on arrival, without waiting for any deadline
+async def _half_open(host: str, port: int, source: str = "127.0.0.1"
+                     ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """A connection from ``source`` that sent part of a request head and nothing more."""
+    r, w = await asyncio.open_connection(host, port, local_addr=(source, 0))
+    w.write(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+    await w.drain()
+    return r, w
+
+
+async def test_a_client_behind_a_proxy_is_not_locked_out_by_its_address(api):
+    """Half-open connections from one address (a local reverse proxy): with room in the pool
+    the real client on that address is simply served; with the pool full of that address's
+    half-open connections it displaces their oldest."""
+    gate = api.tcp_gate
+    assert gate is not None
+    held = [await _half_open("127.0.0.1", api.tcp_port) for _ in range(5)]
+    await eventually(lambda: gate.open == 5)
     r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
-    assert await _closed_by_peer(r, 0.2)
+    assert await _get(r, w, "/health") == 200
+    assert gate.cut == 0 and gate.refused == 0  # beyond the per-client 4, but room: no cut
     w.close()
-    assert api.tcp_gate is not None and api.tcp_gate.refused == 1
-    # the TCP listener's budget does not touch the Unix socket's
+    held.append(await _half_open("127.0.0.1", api.tcp_port))
+    await eventually(lambda: gate.open == 6)  # the pool is full, all from one address
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health") == 200
+    assert await _closed_by_peer(held[0][0], 3.0)  # the oldest half-open one made room
+    assert gate.cut == 1 and gate.refused == 0
+    assert all([await _still_open(hr) for hr, _ in held[1:]])
+    w.close()
+    for _, hw in held:
+        hw.close()
+
+
+async def test_token_holders_have_their_own_budget_and_the_unix_socket_is_separate(api):
+    """Half-open connections from six addresses fill the unauthenticated pool (6 here): they
+    take nothing from the six authenticated slots; a seventh authenticated connection is
+    reset, the Unix socket's budget is untouched."""
+    gate = api.tcp_gate
+    assert gate is not None
+    held = [await _half_open("127.0.0.1", api.tcp_port, f"127.0.0.{i}") for i in range(2, 8)]
+    await eventually(lambda: gate.open == 6)
+    clients = []
+    for _ in range(6):
+        r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+        assert await _get(r, w, "/health") == 200  # kept alive: holds an authenticated slot
+        clients.append((r, w))
+    assert gate.authenticated == 6
+    # each newcomer cut the oldest half-open connection of the address holding the most
+    assert gate.unauthenticated == 6 - gate.cut and gate.refused == 0
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    w.write(_head("/health"))
+    await w.drain()
+    assert await _closed_by_peer(r, 3.0)
+    assert gate.refused == 1
+    w.close()
     ur, uw = await asyncio.open_unix_connection(str(api.socket_path))
     assert await _get(ur, uw, "/health", token="") == 200
     uw.close()
+    for _, cw in clients:
+        cw.close()
+    await eventually(lambda: gate.authenticated == 0)
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health") == 200  # and the slots are free again
+    w.close()
     for _, hw in held:
         hw.close()
-    # once the held ones go (closed here, or cut off by the deadline), clients get in again
-    async def admitted() -> bool:
-        cr, cw = await asyncio.open_connection("127.0.0.1", api.tcp_port)
-        try:
-            return await _get(cr, cw, "/health") == 200
-        except (ConnectionError, asyncio.IncompleteReadError, IndexError):
-            return False
-        finally:
-            cw.close()
 
-    async with asyncio.timeout(5):
-        while not await admitted():
-            await asyncio.sleep(0.02)
+
+async def test_a_wrong_token_does_not_authenticate(api):
+    gate = api.tcp_gate
+    assert gate is not None
+    r, w = await asyncio.open_connection("127.0.0.1", api.tcp_port)
+    assert await _get(r, w, "/health", token="wrong-token-0123456789") == 401
+    assert gate.authenticated == 0 and gate.unauthenticated == 1
+    assert await _get(r, w, "/health") == 200  # the middleware still checks each request
+    assert gate.authenticated == 1 and gate.unauthenticated == 0  # and now it has the token
+    w.close()
+
+
+async def test_a_full_pool_cuts_the_address_holding_the_most(api):
+    """Pool of 6: four half-open from one address, two from another; a newcomer from a third
+    cuts the oldest of the four, never one of the two."""
+    gate = api.tcp_gate
+    assert gate is not None
+    heavy = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.2") for _ in range(4)]
+    light = [await _half_open("127.0.0.1", api.tcp_port, "127.0.0.3") for _ in range(2)]
+    await eventually(lambda: gate.open == 6)
+    newcomer = await _half_open("127.0.0.1", api.tcp_port, "127.0.0.4")
+    assert await _closed_by_peer(heavy[0][0], 3.0)
+    assert gate.cut == 1 and gate.unauthenticated == 6
+    assert all([await _still_open(r) for r, _ in heavy[1:] + light + [newcomer]])
+    for _, w in heavy + light + [newcomer]:
+        w.close()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["arrive", "leave", "token"]), st.integers(0, 5),
+                          st.integers(0, 40)), max_size=120),
+       st.integers(1, 8), st.integers(1, 4))
+def test_gate_bookkeeping_stays_consistent(ops, pool, per_client):
+    """Random arrivals (from six addresses), departures and authentications: the pool never
+    exceeds its size, the counts and buckets agree with the pool, a newcomer is always
+    admitted, and nothing is cut while there is room."""
+    gate = ConnectionGate(max_connections=3, max_per_client=per_client, header_timeout_s=1.0,
+                          token="t" * 16, max_unauthenticated=pool)
+    live: list[_Guard] = []
+    for op, address, pick in ops:
+        if op == "arrive":
+            g = _Guard(gate, lambda: asyncio.Protocol())
+            g.client = f"127.0.0.{address + 2}"
+            full, cut = gate.unauthenticated >= pool, gate.cut
+            assert gate._admit(g)
+            assert gate.cut == cut + full
+            live.append(g)
+        elif live:
+            g = live[pick % len(live)]
+            if op == "leave":
+                gate._leave(g)
+                live.remove(g)
+            elif g.state == "pool":
+                gate._authenticate(g)
+        held = {a: len(gs) for a, gs in gate.pool.items()}
+        assert all(n > 0 for n in held.values())
+        assert gate.unauthenticated == sum(held.values()) <= pool
+        assert gate._top == max(held.values(), default=0)
+        assert {n: set(b) for n, b in gate._buckets.items()} == {
+            n: {a for a, m in held.items() if m == n} for n in set(held.values())}
+        assert gate.authenticated == sum(g.state == "auth" for g in live) <= 3
+        assert all(g.state in ("pool", "auth", "gone") for g in live)
