@@ -77,9 +77,11 @@ class ApiConfig(_Model):
 
     A request body may have ``max_body_bytes`` (default 512 KiB, some 1,600 plan poses, five
     times a large campaign; parsing and storing a plan stalls the event loop for about
-    0.3 ms per pose, see docs/benchmarks.md). Each listener admits
-    ``max_connections`` connections (TCP: ``max_connections_per_client``
-    per address); more are reset on arrival. Request headers must arrive within
+    0.3 ms per pose, see docs/benchmarks.md). On TCP, connections that present the token have
+    ``max_connections`` slots of their own; all others share one pool counted over every
+    source address, and a full pool cuts the oldest unauthenticated connection of the address
+    holding the most (an address over ``max_connections_per_client`` loses its own oldest
+    first) instead of refusing the newcomer (ADR 0025). Request headers must arrive within
     ``header_timeout_s``, a body within ``body_timeout_s``; idle keep-alive connections close
     after ``keepalive_timeout_s``. A TCP flood therefore cannot starve the Unix socket.
     """
