@@ -20,7 +20,6 @@ LREAL (then compare by registers only).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import math
 import time
