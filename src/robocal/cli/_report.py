@@ -116,7 +116,7 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     """
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
-    from robocal.daemon.fitting import measurement_set
+    from robocal.daemon.fitting import measurement_set, rows_by_purpose
     from robocal.daemon.store import MeasurementRow, Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
@@ -154,14 +154,11 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     def mset(sel: list[MeasurementRow], *, commanded: bool = False) -> MeasurementSet | None:
         return measurement_set(sel, commanded=commanded) if sel else None
 
-    cal_rows = [r for r in rows if r.purpose == "calibration"]
-    if not cal_rows:
-        cal_rows = [r for r in rows if r.purpose not in ("validation",)
-                    and not r.purpose.startswith(("cpa-", "iso-"))]
-    cal = mset(cal_rows)
-    val = mset([r for r in rows if r.purpose == "validation"])
+    by_purpose = rows_by_purpose(rows)
+    cal = mset(by_purpose.calibration)
+    val = mset(by_purpose.validation)
     selected = rec.selected_model if rec.selected_model in models else None
-    iso_rows = [r for r in rows if r.purpose.lower().startswith("iso-")]
+    iso_rows = by_purpose.iso
     # commanded joints: AP compares with where the controller meant to go
     iso_set = mset(iso_rows, commanded=True)
     weather: list[dict[str, float]] = []
