@@ -1,6 +1,6 @@
 """``robocal report``: the calibration report of a model file or of a daemon campaign.
 
-    robocal report MODEL.json --out report.html [--data MEAS.csv] [--validate VAL.csv]
+    robocal report [--model] MODEL.json --out report.html [--data MEAS.csv] [--validate VAL.csv]
                    [--compare NAME=MODEL.json ...]
     robocal report CAMPAIGN_ID --out report.html [--config CONFIG.toml]
 
@@ -31,7 +31,10 @@ def register(sub: Any) -> None:
                     "it. SOURCE is a MODEL.json file (richer with --data/--validate) or the id "
                     "of a campaign in the daemon's store (found through --config). Exits 1 when "
                     "the verdict is 'failed'.")
-    p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID")
+    p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID", nargs="?",
+                   help="a model file or a campaign id (or give --model)")
+    p.add_argument("--model", metavar="MODEL.json",
+                   help="the model file to report on (as 'robocal fit --out' wrote it)")
     p.add_argument("--out", default="report.html", metavar="report.html",
                    help="output page (default report.html); the JSON goes beside it")
     p.add_argument("--data", metavar="MEAS.csv", help="calibration measurements")
@@ -47,6 +50,9 @@ def register(sub: Any) -> None:
     p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
     p.add_argument("--min-described", type=float, metavar="PERCENT",
                    help="acceptance: %% of the nominal error to describe (default 50)")
+    p.add_argument("--no-sanity", action="store_true",
+                   help="skip the unit plausibility checks of --data/--validate (joints in "
+                        "radians, positions in metres), as 'robocal fit --no-sanity'")
     p.add_argument("--title", help="page title")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
@@ -86,8 +92,8 @@ def _compare(items: Sequence[str]) -> dict[str, Any]:
 
 
 def input_from_model_file(path: str | Path, *, data: str | None = None,
-                          validate: str | None = None, compare: Sequence[str] = ()
-                          ) -> ReportInput:
+                          validate: str | None = None, compare: Sequence[str] = (),
+                          sanity: bool = True) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a MODEL.json (+ optional CSV files)."""
     from robocal._core.measurements import MeasurementSet
     from robocal.kinematics import CalibratedModel
@@ -99,6 +105,12 @@ def input_from_model_file(path: str | Path, *, data: str | None = None,
     models: dict[str, Any] = {**_compare(compare), name: cm}
     cal = MeasurementSet.read_csv(data, dof=dof) if data else None
     val = MeasurementSet.read_csv(validate, dof=dof) if validate else None
+    if sanity:  # the same refusal as 'robocal fit' (one line, exit 2)
+        from robocal.identification import sanity_check
+
+        for what, ms in ((data, cal), (validate, val)):
+            if ms is not None:
+                sanity_check(cm.robot, ms, what=str(what))
     notes = [f"model file: {Path(path).name}"]
     if cal is None and val is None:
         notes.append("made from the model file alone: accuracy figures are the metrics stored "
@@ -203,10 +215,15 @@ def run(args: argparse.Namespace) -> int:
     from robocal.errors import ConfigError
     from robocal.report import write_report
 
+    if (args.source is None) == (args.model is None):
+        raise ConfigError("give one source: MODEL.json (or --model MODEL.json) or a "
+                          "CAMPAIGN_ID")
+    if args.model is not None:
+        args.source = args.model
     src = Path(args.source)
-    if src.suffix.lower() == ".json" or src.exists():
+    if args.model is not None or src.suffix.lower() == ".json" or src.exists():
         inp = input_from_model_file(src, data=args.data, validate=args.validate,
-                                    compare=args.compare)
+                                    compare=args.compare, sanity=not args.no_sanity)
     else:
         if args.data or args.validate or args.compare:
             raise ConfigError("--data, --validate and --compare apply to a MODEL.json source, "
