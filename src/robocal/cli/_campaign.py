@@ -136,6 +136,7 @@ def _describe(s: dict[str, Any]) -> str:
     lines = [f"campaign {s['id']}  {s.get('name', '')}",
              f"  state     {s['state']}" + (f"  ({s['reason']})" if s.get("reason") else ""),
              f"  poses     {s['poses_measured']}/{s['poses_total']} measured",
+             *_fitting_line(s),
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
     fits = s.get("fits") or {}
@@ -168,6 +169,16 @@ def _describe(s: dict[str, Any]) -> str:
         elif p.get("verification"):
             lines.append(f"  measured  verification {p['verification']}")
     return "\n".join(lines) + "\n"
+
+
+def _fitting_line(s: dict[str, Any]) -> list[str]:
+    """``fitting   constant, high-order ... (running 12 s)`` while the daemon fits."""
+    f = s.get("fitting")
+    if not isinstance(f, dict):
+        return []
+    return [f"  fitting   {', '.join(str(m) for m in f.get('models', []))} (running "
+            f"{_clock(float(f.get('elapsed_s') or 0.0))}, since {f.get('started', '')}); "
+            "approve when it ends"]
 
 
 def _report_path(s: dict[str, Any]) -> Path | None:
