@@ -43,6 +43,12 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="calibration MEAS.csv to write")
     p.add_argument("--validation-out", type=Path,
                    help="validation CSV (default: OUT with '-val' before the suffix)")
+    p.add_argument("--targets-out", type=Path,
+                   help="TARGETS.csv of the validation poses: where the nominal robot puts "
+                        "the reflector (tracker frame), i.e. where a program written with "
+                        "nominal kinematics wants it, with the program's joints; "
+                        "'robocal compensate' corrects the joints towards it (default: OUT "
+                        "with '-targets' before the suffix)")
     p.set_defaults(handler=run)
 
 
@@ -81,6 +87,15 @@ def run(args: argparse.Namespace) -> int:
         ids = tuple(f"{tag}{i:04d}" for i in range(len(qq)))
         MeasurementSet(qq, p, s, ids).write_csv(path)
         written.append((path, len(qq), len(bad)))
+    if len(q_val):
+        from robocal.compensation import TargetSet
+
+        targets_out = args.targets_out or args.out.with_name(
+            f"{args.out.stem}-targets{args.out.suffix}")
+        ids = tuple(f"V{i:04d}" for i in range(len(q_val)))
+        TargetSet(p=cell.nominal_position(q_val), q_seed=q_val, labels=ids,
+                  id_column="pose_id").write_csv(targets_out)
+        written.append((targets_out, len(q_val), 0))
     for path, n, n_bad in written:
         extra = f", {n_bad} with planted glitches" if n_bad else ""
         sys.stdout.write(f"wrote {path} ({n} poses{extra})\n")
