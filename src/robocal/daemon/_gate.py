@@ -1,34 +1,20 @@
-"""Admission control in front of the HTTP server: connection budgets and a header deadline.
+"""Admission control in front of the HTTP server: connection limits and a header deadline.
 
 aiohttp bounds neither the number of connections nor the time a client may take to send its
-request headers, so a few hundred half-open requests (sent before any token check) could use
-up the daemon's file descriptors or every connection slot. :class:`ConnectionGate` wraps the
-server's protocol factory and keeps two budgets per listener (ADR 0025):
-
-* **Authenticated** connections (the request headers carried the listener's bearer token;
-  on the Unix socket, whose file mode is the access control, every connection) have
-  ``max_connections`` slots of their own. Nothing unauthenticated can take them.
-* **Unauthenticated** connections (no complete request head yet, or no valid token) share a
-  pool of ``max_unauthenticated`` slots, counted over all source addresses. A full pool never
-  refuses a newcomer: it cuts the oldest unauthenticated connection of the address that holds
-  the most (the newcomer's own address included), so a flood from many addresses cannot lock
-  a real client out, and a client behind a local reverse proxy, whose address it shares with
-  half-open connections, displaces the oldest of them. ``max_per_client`` caps one address's
-  share of the pool the same way (its oldest is cut, the newcomer is admitted).
-
-A connection whose request headers are not complete within ``header_timeout_s`` (or exceed
-``max_header_bytes``) is reset; the deadline never runs while a response is produced or
-streamed (Server-Sent Events, long polls). aiohttp's protocol object is created only once a
-connection sends its first byte, so a connection that sends nothing costs a socket and a
-timer only. Refusals and cuts are counted, not logged one by one. Deadlines run on the gate's
+request headers, so a few hundred half-open requests (sent before any token check) can use
+up the daemon's file descriptors. :class:`ConnectionGate` wraps the server's protocol
+factory: a connection over the listener's limit, or over the per-client limit (TCP: per
+address), is reset at once, before aiohttp allocates anything for it; a connection whose
+request headers are not complete within ``header_timeout_s`` (or exceed ``max_header_bytes``)
+is reset; the deadline never runs while a response is produced or streamed (Server-Sent
+Events, long polls). Refusals are counted, not logged one by one. Deadlines run on the gate's
 :class:`~robocal._core.clock.Clock` (tests advance a manual one).
 """
 
 from __future__ import annotations
 
 import asyncio
-import hmac
-import itertools
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -39,54 +25,39 @@ from robocal._core.clock import SYSTEM_CLOCK, Clock
 __all__ = ["ConnectionGate", "GatedTCPSite", "GatedUnixSite"]
 
 _END = b"\r\n\r\n"
-_ORDER = itertools.count()
 
 
 class ConnectionGate:
-    """Budgets shared by every connection of one listener.
+    """Limits shared by every connection of one listener.
 
     Parameters
     ----------
     max_connections : int
-        Authenticated connections at most (more are reset when their token arrives).
+        Open connections at most (others are reset on arrival).
     max_per_client : int or None
-        Unauthenticated connections per client address at most; a newcomer beyond it cuts
-        that address's oldest one (None: no per-address cap).
+        Open connections per client address at most (None: no per-client limit).
     header_timeout_s : float
-        Time from connection (or from the first byte of a later request) to the end of the
+        Time from connection (or from the end of the previous request) to the end of the
         request headers.
     max_header_bytes : int
         Size of the request line and headers at most.
-    token : str or None
-        Bearer token that authenticates a connection; None: every connection is authenticated
-        on arrival (the Unix socket).
-    max_unauthenticated : int or None
-        Size of the unauthenticated pool (default: ``max_connections``).
     clock : Clock, optional
         Time source of the header deadline (default: the system clock).
     """
 
     def __init__(self, *, max_connections: int, max_per_client: int | None,
                  header_timeout_s: float, max_header_bytes: int = 32 * 1024,
-                 token: str | None = None, max_unauthenticated: int | None = None,
                  clock: Clock = SYSTEM_CLOCK) -> None:
         self.max_connections = max_connections
         self.max_per_client = max_per_client
         self.header_timeout_s = header_timeout_s
         self.max_header_bytes = max_header_bytes
-        self.max_unauthenticated = (max_connections if max_unauthenticated is None
-                                    else max_unauthenticated)
         self.clock = clock
-        self._expected = None if token is None else f"Bearer {token}".encode()
         self.open = 0
         #: Connections whose header deadline is running (a request's headers still to come).
         self.awaiting_headers = 0
-        self.authenticated = 0
-        #: Unauthenticated connections per client address, oldest first.
-        self.pool: dict[str, dict[_Guard, None]] = {}
-        self.unauthenticated = 0
+        self.per_client: Counter[str] = Counter()
         self.refused = 0
-        self.cut = 0
         self.timed_out = 0
 
     def factory(self, make: Callable[[], asyncio.Protocol]) -> Callable[[], asyncio.Protocol]:
@@ -94,71 +65,8 @@ class ConnectionGate:
         return lambda: _Guard(self, make)
 
     def stats(self) -> dict[str, int]:
-        """Open connections, refusals and cuts so far."""
-        return {"open": self.open, "authenticated": self.authenticated,
-                "unauthenticated": self.unauthenticated, "refused": self.refused,
-                "cut": self.cut, "header_timeouts": self.timed_out}
-
-    # -- the two budgets ------------------------------------------------------------------------
-    def _admit(self, guard: _Guard) -> bool:
-        """Take ``guard`` in: authenticated at once (no token), else into the pool."""
-        if self._expected is None:
-            return self._authenticate(guard)
-        same = self.pool.get(guard.client, {})
-        if self.max_per_client is not None and len(same) >= self.max_per_client:
-            self._cut(next(iter(same)))
-        elif self.unauthenticated >= self.max_unauthenticated:
-            self._cut(self._victim(guard.client))
-        self.pool.setdefault(guard.client, {})[guard] = None
-        self.unauthenticated += 1
-        guard.state = "pool"
-        return True
-
-    def _victim(self, newcomer: str) -> _Guard:
-        """The oldest unauthenticated connection of the address that holds the most (counting
-        the newcomer); ties go to the address whose oldest connection is oldest."""
-        def rank(item: tuple[str, dict[_Guard, None]]) -> tuple[int, int]:
-            address, guards = item
-            return len(guards) + (address == newcomer), -next(iter(guards)).order
-        _, guards = max(((a, g) for a, g in self.pool.items() if g), key=rank)
-        return next(iter(guards))
-
-    def _cut(self, guard: _Guard) -> None:
-        self.cut += 1
-        self._leave(guard)
-        if guard.transport is not None:
-            guard.transport.abort()
-
-    def _authenticate(self, guard: _Guard) -> bool:
-        """Move ``guard`` to the authenticated budget; False (and reset) if that is full."""
-        self._leave(guard)
-        if self.authenticated >= self.max_connections:
-            self.refused += 1
-            return False
-        self.authenticated += 1
-        guard.state = "auth"
-        return True
-
-    def _leave(self, guard: _Guard) -> None:
-        if guard.state == "pool":
-            same = self.pool[guard.client]
-            del same[guard]
-            if not same:
-                del self.pool[guard.client]
-            self.unauthenticated -= 1
-        elif guard.state == "auth":
-            self.authenticated -= 1
-        guard.state = "gone"
-
-    def _check_token(self, head: str) -> bool:
-        expected = self._expected
-        if expected is None:
-            return True
-        for line in head.split("\r\n")[1:]:
-            name, _, value = line.partition(":")
-            if name.strip().lower() == "authorization":
-                return hmac.compare_digest(value.strip().encode("latin-1"), expected)
-        return False
+        """Open connections and refusals so far."""
+        return {"open": self.open, "refused": self.refused, "header_timeouts": self.timed_out}
 
 
 def _client(transport: asyncio.BaseTransport) -> str:
@@ -174,8 +82,6 @@ class _Guard(asyncio.Protocol):
     def __init__(self, gate: ConnectionGate, make: Callable[[], asyncio.Protocol]) -> None:
         self.gate = gate
         self.make = make
-        self.order = next(_ORDER)
-        self.state = "new"  # new, pool (unauthenticated), auth, gone
         self.inner: Any = None
         self.transport: asyncio.Transport | None = None
         self.client = ""
@@ -183,29 +89,43 @@ class _Guard(asyncio.Protocol):
         self.head = bytearray()
         self.mode = "head"  # head: reading request headers; body: its body; idle: neither
         self.body_left: int | None = 0  # bytes of the current body still to come; None: unknown
+        # Between requests no deadline runs: the response may stream for minutes (SSE,
+        # long-poll) and idle keep-alive is aiohttp's to close. The next request's first byte
+        # starts its header deadline.
+        self.between = False
 
     # -- admission ----------------------------------------------------------------------------
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
-        self.client = _client(transport)
-        self.transport = transport
-        self.gate.open += 1
-        if not self.gate._admit(self):
-            self.transport = None
-            self.gate.open -= 1
+        gate = self.gate
+        client = _client(transport)
+        if gate.open >= gate.max_connections or (
+                gate.max_per_client is not None and client
+                and gate.per_client[client] >= gate.max_per_client):
+            gate.refused += 1
             transport.abort()
             return
+        gate.open += 1
+        if client:
+            gate.per_client[client] += 1
+        self.client = client
+        self.transport = transport
         self._arm()
+        self.inner = self.make()
+        self.inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self.transport is None:
             return
         self._disarm()
-        self.gate._leave(self)
-        self.gate.open -= 1
+        gate = self.gate
+        gate.open -= 1
+        if self.client:
+            gate.per_client[self.client] -= 1
+            if gate.per_client[self.client] <= 0:
+                del gate.per_client[self.client]
         self.transport = None
-        if self.inner is not None:
-            self.inner.connection_lost(exc)
+        self.inner.connection_lost(exc)
 
     # -- header deadline ------------------------------------------------------------------------
     def _arm(self) -> None:
@@ -235,11 +155,14 @@ class _Guard(asyncio.Protocol):
             self.gate.timed_out += 1
             self.transport.abort()
 
+    def _request_done(self) -> None:
+        self._disarm()
+        self.between = True
+
     def _track(self, data: bytes) -> None:
         """Follow request boundaries: the deadline runs from a request's first byte (or the
         connection) to the end of its headers; never while a response is being produced or
-        streamed (idle keep-alive is aiohttp's ``keepalive_timeout``). The first complete
-        head with the token moves the connection to the authenticated budget."""
+        streamed (idle keep-alive is aiohttp's ``keepalive_timeout``)."""
         while data:
             if self.mode == "idle":
                 self.mode = "head"
@@ -263,33 +186,17 @@ class _Guard(asyncio.Protocol):
                 self._expire()
                 return
             self._disarm()
-            head = bytes(self.head[:end]).decode("latin-1")
-            if self.state == "pool" and self.gate._check_token(head) \
-                    and not self.gate._authenticate(self):
-                self._drop()
-                return
-            self.body_left = _body_length(head)
+            self.body_left = _body_length(bytes(self.head[:end]).decode("latin-1"))
             data = bytes(self.head[end + len(_END):])
             self.head = bytearray()
             self.mode = "idle" if self.body_left == 0 else "body"
 
-    def _drop(self) -> None:
-        """Reset a connection the authenticated budget has no room for."""
-        transport = self.transport
-        if transport is not None:
-            transport.abort()
-
     def data_received(self, data: bytes) -> None:
-        if self.transport is None or self.state == "gone":
+        if self.transport is None:
             return
         self._track(data)
-        if self.transport is None or self.transport.is_closing() or self.state == "gone":
-            return
-        if self.inner is None:
-            # Created on the first byte: a connection that never sends costs no handler.
-            self.inner = self.make()
-            self.inner.connection_made(self.transport)
-        self.inner.data_received(data)
+        if not self.transport.is_closing():
+            self.inner.data_received(data)
 
     # -- everything else goes straight through -----------------------------------------------------
     def eof_received(self) -> bool | None:
@@ -326,7 +233,7 @@ class GatedTCPSite(web.TCPSite):
     """``web.TCPSite`` whose connections pass a :class:`ConnectionGate` first."""
 
     def __init__(self, runner: web_runner.BaseRunner, host: str, port: int, *,
-                 gate: ConnectionGate, backlog: int = 1024) -> None:
+                 gate: ConnectionGate, backlog: int = 128) -> None:
         super().__init__(runner, host, port, backlog=backlog)
         self.gate = gate
 

@@ -579,12 +579,10 @@ class ApiServer:
                 runner = self._runner(token)
                 await runner.setup()
                 self._runners.append(runner)
-                # Token holders get max_connections slots of their own; everything else
-                # shares an equal pool, counted over all addresses (ADR 0025).
                 self.tcp_gate = ConnectionGate(
                     max_connections=api.max_connections,
                     max_per_client=api.max_connections_per_client,
-                    header_timeout_s=api.header_timeout_s, token=token, clock=self.clock)
+                    header_timeout_s=api.header_timeout_s, clock=self.clock)
                 site = GatedTCPSite(runner, api.tcp_host, api.tcp_port, gate=self.tcp_gate)
                 await site.start()
                 self.tcp_port = site.port
