@@ -75,9 +75,12 @@ def _summary(plan: Any, out: Path) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Plan, write the file atomically, print a summary; return the exit code."""
+    from robocal._core.robot_names import check_robot_spec
     from robocal.errors import ConfigError
-    from robocal.planning import plan_campaign
 
+    # the arguments are checked before the planner (numpy, scipy) is imported: a typo is
+    # answered at once
+    check_robot_spec(args.robot)
     out: Path = args.out
     parent = out.parent if str(out.parent) else Path(".")
     if not parent.is_dir():
@@ -85,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
     if out.is_dir():
         raise ConfigError("is a directory", source=str(out))
     validation = default_validation(args.count) if args.validation is None else args.validation
+    from robocal.planning import plan_campaign
+
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
                          validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
                          iso=not args.no_iso, iso_cycles=args.iso_cycles, seed=args.seed,

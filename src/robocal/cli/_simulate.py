@@ -54,6 +54,10 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate and write the files."""
+    from robocal._core.robot_names import check_robot_spec
+
+    if args.robot is not None:
+        check_robot_spec(args.robot)  # before numpy: a typo is answered at once
     import numpy as np
 
     from robocal._core.measurements import MeasurementSet
