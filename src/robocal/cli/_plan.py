@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
-from robocal.cli._defaults import VALIDATION_HELP, default_validation
+from robocal.cli._defaults import DEFAULT_SEED, VALIDATION_HELP, default_validation
 
 
 def register(sub: Any) -> None:
@@ -50,7 +50,8 @@ def register(sub: Any) -> None:
     p.add_argument("--no-iso", action="store_true", help="leave out the ISO 9283 cube poses")
     p.add_argument("--iso-cycles", type=int, default=30, metavar="N",
                    help="cycles through the ISO 9283 poses P1..P5 (the standard asks for 30)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"random seed (default {DEFAULT_SEED}, as simulate, demo and sim)")
     p.add_argument("--candidates", type=int, default=4096,
                    help="feasible candidates to choose from (default 4096)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -7,7 +7,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from robocal.cli._defaults import VALIDATION_HELP, default_validation
+from robocal.cli._defaults import (
+    DEFAULT_SEED,
+    SCENARIO_HELP,
+    VALIDATION_HELP,
+    default_validation,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -15,11 +20,6 @@ if TYPE_CHECKING:
 
     from robocal.kinematics import RobotDescription
     from robocal.planning import Plan
-
-SCENARIO_HELP = ("planted truth: nominal, constant, paper (constant + joint-dependent harmonics "
-                 "and pitch), strain-wave (paper + gear ripple), fine-map (fine joint-angle "
-                 "errors, gravity torsion)")
-
 
 def register(sub: Any) -> None:
     """Add the ``simulate`` subcommand."""
@@ -33,7 +33,9 @@ def register(sub: Any) -> None:
                    help="built-in name or robot TOML (default: the plan's robot with --plan, "
                         "else fanuc_lrmate200i); with --plan it must be the plan's robot")
     p.add_argument("--scenario", default="paper", help=SCENARIO_HELP)
-    p.add_argument("--seed", type=int, default=1, help="seed of the planted errors and noise")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"seed of the planted errors and noise (default {DEFAULT_SEED}, as "
+                        "plan, demo and sim)")
     p.add_argument("--plan", type=Path, help="PLAN.json whose poses to measure")
     p.add_argument("--poses", type=int, default=250, help="random poses when no --plan")
     p.add_argument("--validation", type=int, default=None,

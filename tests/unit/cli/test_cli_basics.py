@@ -202,3 +202,23 @@ def test_state_errors_are_plain_english() -> None:
         check_transition("measured", "approved")
     assert "a campaign that is measured cannot be approved" in str(info.value)
     assert "cannot go from" not in str(info.value)
+
+
+def test_sim_simulate_and_demo_agree_on_scenarios_and_seed(capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """One scenario list and one seed default; sim --help shows defaults and units."""
+    from robocal.simulation import SCENARIOS
+
+    with pytest.raises(SystemExit):
+        main(["sim", "--help"])
+    sim = " ".join(capsys.readouterr().out.split())
+    assert "1000x faster than real time" in sim and "(default: 0.001)" in sim
+    assert "(default: None)" not in sim and "(default: False)" not in sim
+    assert "{" + ",".join(SCENARIOS) + "}" in sim and "(default: 1)" in sim
+    for cmd in ("simulate", "demo", "plan"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "default 1, as" in text, cmd
+        if cmd != "plan":
+            assert all(s in text for s in SCENARIOS), cmd

@@ -32,6 +32,7 @@ from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
+from robocal.simulation import SCENARIOS
 
 __all__ = [
     "DEFAULT_ROBOT",
@@ -227,19 +228,35 @@ class SimCell:
 
 
 # --- process entry point -----------------------------------------------------------------------
+class _DefaultsShown(argparse.HelpFormatter):
+    """Every option's default in its help, unless it has none (None, a flag, "")."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (not action.option_strings or action.default in (None, "", argparse.SUPPRESS)
+                or isinstance(action.default, bool)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robocal sim",
-        description="Run protocol simulators on loopback until SIGTERM/SIGINT.",
+        description="Run protocol simulators on loopback until SIGTERM/SIGINT. The robot is "
+                    "the virtual robot of 'robocal simulate' and 'robocal demo' (same "
+                    "scenarios, same seed default).",
+        formatter_class=_DefaultsShown,
     )
     p.add_argument(
         "which",
         choices=["fanuc-rmi", "modbus-plc", "ltp-tracker", "emscon-tracker", "all", "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
-    p.add_argument("--scenario", default="paper", help="planted-error scenario")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                   help="planted errors of the virtual robot (see robocal simulate --help)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the planted errors, noise and faults (as plan, simulate, demo)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on")
     p.add_argument(
         "--port",
         type=int,
@@ -247,8 +264,12 @@ def _parser() -> argparse.ArgumentParser:
         help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
-    p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
-    p.add_argument("--time-scale", type=float, default=0.001, help="simulated time factor")
+    p.add_argument("--fault-rate", type=float, default=0.0,
+                   help="probability per tracker reading of a beam break or an unstable "
+                        "reading (0..1)")
+    p.add_argument("--time-scale", type=float, default=0.001,
+                   help="factor on the real duration of moves and waits: 1 = real time, "
+                        "0.001 = 1000x faster than real time, 0 = instantaneous")
     p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
     p.add_argument("--replay", type=Path, help="emscon-tracker: answer from this recording")
     p.add_argument("--listen", default="127.0.0.1:0", help="relay: HOST:PORT to listen on")
