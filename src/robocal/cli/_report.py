@@ -46,8 +46,12 @@ def register(sub: Any) -> None:
                    help="daemon configuration, for CAMPAIGN_ID (default $ROBOCAL_CONFIG, "
                         f"then {DEFAULT_CONFIG})")
     p.add_argument("--selected", metavar="NAME", help="model the verdict is about")
-    p.add_argument("--max-rms-mm", type=float, help="acceptance: held-out RMS limit (mm)")
-    p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
+    p.add_argument("--max-rms-mm", type=float, metavar="MM",
+                   help="acceptance: held-out RMS limit (default 0.5 mm for a robot whose "
+                        "link lengths |a|+|d| add up to at most 2 m, in proportion above, e.g. "
+                        "1.01 mm for the KUKA KR 210 R3100's 4.06 m)")
+    p.add_argument("--max-error-mm", type=float, metavar="MM",
+                   help="acceptance: held-out max-error limit (default: none)")
     p.add_argument("--min-described", type=float, metavar="PERCENT",
                    help="acceptance: %% of the nominal error to describe (default 50)")
     p.add_argument("--no-sanity", action="store_true",
@@ -68,9 +72,10 @@ def _model_name(kind: str) -> str:
 def _acceptance(args: argparse.Namespace, base: Acceptance | None = None) -> Acceptance:
     from robocal.report import Acceptance
 
-    kw: dict[str, float] = {}
+    kw: dict[str, Any] = {}
     if args.max_rms_mm is not None:
         kw["max_rms_mm"] = args.max_rms_mm
+        kw["scale_with_reach"] = False  # a limit given is the limit
     if args.max_error_mm is not None:
         kw["max_error_mm"] = args.max_error_mm
     if args.min_described is not None:
