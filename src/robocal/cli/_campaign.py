@@ -393,6 +393,10 @@ class _Progress:
         if kind == "state":
             self.state = str(ev.get("state"))
             self._leave_running(now)
+            if self.fit_since is not None and self.state != "measured":
+                # the state event can come before the fit's own "done" event
+                self.phase = f"fit took {_clock(now - self.fit_since)}"
+                self.fit_since = None
             if self.state == "running":
                 self.started = now if self.started is None else self.started
                 self.running_since = now

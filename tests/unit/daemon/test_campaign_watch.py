@@ -222,6 +222,9 @@ def test_progress_times_come_from_the_state_history():
     line = done.line(now=t0 + 34 * 60)
     # 40 poses in 3 min of measuring, not spread over the 34 min since the start
     assert "13.3 poses/min" in line and "| fitting auto 0:12" in line
+    done.update({"kind": "state", "state": "fitted"}, now=t0 + 34 * 60 + 8)
+    line = done.line(now=t0 + 35 * 60)
+    assert "| fit took 0:20" in line and "13.3 poses/min" in line
 
 
 def test_the_terminal_line_fits_the_terminal(monkeypatch):
