@@ -208,8 +208,20 @@ class InvalidTransition(CampaignError):
     def __init__(self, from_state: str, to_state: str, reason: str = ""):
         self.from_state = from_state
         self.to_state = to_state
-        msg = f"cannot go from {from_state!r} to {to_state!r}"
-        super().__init__(f"{msg}: {reason}" if reason else msg)
+        if from_state == to_state:
+            msg = f"the campaign is already {from_state}"
+        else:
+            done = _STATE_VERBS.get(to_state, f"moved to {to_state!r}")
+            msg = f"a campaign that is {from_state} cannot be {done}"
+        super().__init__(f"{msg} ({reason})" if reason else msg)
+
+
+#: What reaching a campaign state means to an operator ("cannot be <verb>").
+_STATE_VERBS = {
+    "running": "started or resumed", "paused": "paused", "faulted": "marked faulted",
+    "measured": "marked measured", "fitted": "marked fitted", "approved": "approved",
+    "pushed": "pushed", "aborted": "aborted", "created": "created again",
+}
 
 
 class UnknownCampaign(CampaignError, LookupError):

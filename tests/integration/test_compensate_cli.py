@@ -50,7 +50,10 @@ def test_compensate_writes_joints(files: dict[str, Path], capsys: pytest.Capture
     text = capsys.readouterr().out
     assert "12 ok" in text
     rows = _rows(out)
-    assert list(rows[0]) == ["q1", "q2", "q3", "q4", "q5", "q6", "status", "model_residual_mm"]
+    # the targets' label column comes first, so each row says which target it solves
+    assert list(rows[0]) == ["target_id", "q1", "q2", "q3", "q4", "q5", "q6", "status",
+                             "model_residual_mm"]
+    assert [r["target_id"] for r in rows] == [f"T{i:04d}" for i in range(12)]
     assert len(rows) == 12 and all(r["status"] == "ok" for r in rows)
     assert max(float(r["model_residual_mm"]) for r in rows) < 1e-3
     # the commands put the model's reflector on the targets

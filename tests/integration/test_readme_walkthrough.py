@@ -75,15 +75,22 @@ def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env.pop("ROBOCAL_CONFIG", None)
+    env["HOME"] = str(tmp_path / "home")  # sim.toml keeps the cell's state under ~
     _, offline, daemon = _using_blocks()
 
     out = _run(offline, tmp_path, env, timeout=600)
     assert out.returncode == 0, out.stdout[-4000:]
     try_dir = tmp_path / "try"
-    for name in ("plan.json", "meas.csv", "meas-val.csv", "model.json", "pred.csv",
-                 "joints.csv", "targets-table.json", "report.html", "report.json"):
+    for name in ("plan.json", "meas.csv", "meas-val.csv", "meas-targets.csv", "model.json",
+                 "pred.csv", "joints.csv", "targets-table.json", "report.html", "report.json"):
         assert (try_dir / name).is_file(), name
     assert "Calibration succeeded" in out.stdout
+    # a visible compensation: the nominal targets are about a millimetre from where the robot
+    # goes, the compensated joints close that gap; joints.csv keeps the targets' pose_id
+    nominal = re.search(r"; nominal (\d+\.\d+) mm", out.stdout)
+    assert nominal is not None and float(nominal.group(1)) > 0.2, out.stdout[-3000:]
+    joints = (try_dir / "joints.csv").read_text().splitlines()
+    assert joints[0].startswith("pose_id,q1,") and joints[1].startswith("V0000,")
 
     out = _run(daemon, tmp_path, env, timeout=900)
     log = (tmp_path / "cell" / "daemon.log")
@@ -93,5 +100,9 @@ def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
     assert re.search(r"held-out RMS: .*auto \d+\.\d+ mm", text), text[-3000:]
     assert "approved model auto" in text and "pushed model auto, kind targets" in text
     assert "rolled back" in text.lower() or "rollback" in text.lower(), text[-2000:]
+    # the daemon stopped first: its shutdown stop reached the simulated controller
+    assert not [ln for ln in log.read_text().splitlines()
+                if "motion stop" in ln and '"failed"' in ln]
+    assert (tmp_path / "home" / ".local" / "state" / "robocal-sim").is_dir()
     for port in SIM_PORTS:  # the block's own `kill` stopped the simulators and the daemon
         assert _port_free(port), f"port {port} still in use after the walkthrough"

@@ -60,30 +60,50 @@ def register(sub: Any) -> None:
                        description="Control calibration campaigns on a running daemon.")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
 
-    s = verbs.add_parser("start", help="create a campaign from a plan and start it")
+    s = verbs.add_parser("start", help="create a campaign from a plan and start it",
+                         description="Check that the robot and the tracker answer, create a "
+                                     "campaign from PLAN.json and start measuring; prints the "
+                                     "campaign id.")
     s.add_argument("--plan", required=True, type=Path, help="PLAN.json")
     s.add_argument("--name", help="a label for the campaign")
     s.add_argument("--json", action="store_true", help="print the status as JSON")
     add_client_options(s)
     s.set_defaults(handler=start)
 
-    st = verbs.add_parser("status", help="show a campaign")
+    st = verbs.add_parser("status", help="show a campaign",
+                          description="Show a campaign: state and why, poses measured, the "
+                                      "fit in progress or the fitted models with their "
+                                      "held-out RMS, the report, and the push with its "
+                                      "measured before/after.")
     st.add_argument("id", help="campaign id (see campaign list)")
     st.add_argument("--json", action="store_true", help="print the status as JSON")
     add_client_options(st)
     st.set_defaults(handler=status)
 
-    ls = verbs.add_parser("list", help="list campaigns")
+    ls = verbs.add_parser("list", help="list campaigns",
+                          description="List every campaign, oldest first: id, state, poses "
+                                      "measured/planned, when created, name.")
     ls.add_argument("--json", action="store_true", help="print the list as JSON")
     add_client_options(ls)
     ls.set_defaults(handler=list_)
 
-    for verb, text in (("pause", "pause: the robot stops now; resume continues"),
-                       ("resume", "resume a paused or faulted campaign"),
-                       ("abort", "abort a campaign"),
-                       ("approve", "approve the fit (required before push)"),
-                       ("push", "push the approved compensation to the robot")):
-        a = verbs.add_parser(verb, help=text)
+    for verb, text, about in (
+            ("pause", "pause: the robot stops now; resume continues",
+             "Stop the robot at once and pause the campaign; 'resume' moves to the unfinished "
+             "pose again and goes on. Nothing measured is lost."),
+            ("resume", "resume a paused or faulted campaign",
+             "Continue a paused or faulted campaign at its first unmeasured pose."),
+            ("abort", "abort a campaign",
+             "Stop the robot and end the campaign for good (its measurements stay stored)."),
+            ("approve", "approve the fit (required before push)",
+             "Approve the proposed model (or --model another fitted one) after reading the "
+             "report; only an approved campaign can be pushed. While the fit still runs, "
+             "approve when it ends ('campaign watch' waits for it)."),
+            ("push", "push the approved compensation to the robot",
+             "Solve the program targets with the approved model, write the compensation to "
+             "the controller, read it back, and re-measure the targets (status shows the "
+             "measured before/after).")):
+        a = verbs.add_parser(verb, help=text, description=about)
         a.add_argument("id", help="campaign id (see campaign list)")
         a.add_argument("--json", action="store_true",
                        help="print the campaign's status afterwards as JSON")
@@ -103,9 +123,30 @@ def register(sub: Any) -> None:
         add_client_options(a)
         a.set_defaults(handler=action, action=verb)
 
-    w = verbs.add_parser("watch", help="follow a campaign's progress")
+    ev = verbs.add_parser("events", help="a campaign's history: states and audit entries",
+                          description="Print a campaign's history, oldest first: every state "
+                                      "change with its reason and actor, and every audit entry "
+                                      "(approve, push, rollback, motion stops) naming it.")
+    ev.add_argument("id", help="campaign id (see campaign list)")
+    ev.add_argument("--json", action="store_true", help="print the entries as JSON")
+    add_client_options(ev)
+    ev.set_defaults(handler=events)
+
+    w = verbs.add_parser(
+        "watch", help="follow a campaign's progress",
+        description="Follow a campaign until the daemon needs the operator: measuring, then "
+                    "fitting. In a terminal one line is updated in place (poses, elapsed time "
+                    "since the campaign first ran, poses per minute of measuring time, ETA "
+                    "while running, retries, beam losses, the fit and how long it has run); "
+                    "piped, a plain line per state change. A paused campaign is waited on "
+                    "until it is resumed (--exit-on-pause: exit 3 at once). Exit codes: 0 "
+                    "fitted, approved, pushed or a measure-only run measured; 1 faulted or "
+                    "aborted (the reason is printed); 3 paused, with --exit-on-pause.")
     w.add_argument("id", help="campaign id (see campaign list)")
     w.add_argument("--json", action="store_true", help="JSON lines instead of a progress bar")
+    w.add_argument("--exit-on-pause", action="store_true",
+                   help="exit 3 when the campaign is (or becomes) paused instead of waiting "
+                        "for the resume")
     add_client_options(w)
     w.set_defaults(handler=watch)
 
@@ -147,6 +188,7 @@ def _describe(s: dict[str, Any]) -> str:
     lines = [f"campaign {s['id']}  {s.get('name', '')}",
              f"  state     {_state_text(s)}" + (f"  ({s['reason']})" if s.get("reason") else ""),
              f"  poses     {s['poses_measured']}/{s['poses_total']} measured",
+             *_fitting_line(s),
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
     fits = s.get("fits") or {}
@@ -181,6 +223,16 @@ def _describe(s: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _fitting_line(s: dict[str, Any]) -> list[str]:
+    """``fitting   constant, high-order ... (running 12 s)`` while the daemon fits."""
+    f = s.get("fitting")
+    if not isinstance(f, dict):
+        return []
+    return [f"  fitting   {', '.join(str(m) for m in f.get('models', []))} (running "
+            f"{_clock(float(f.get('elapsed_s') or 0.0))}, since {f.get('started', '')}); "
+            "approve when it ends"]
+
+
 def _report_path(s: dict[str, Any]) -> Path | None:
     """The campaign's HTML report, when the daemon has written one (same machine)."""
     if not s.get("files"):
@@ -203,6 +255,31 @@ def status(args: argparse.Namespace) -> int:
         emit(out)
     else:
         sys.stdout.write(_describe(out))
+    return 0
+
+
+def events(args: argparse.Namespace) -> int:
+    """Print a campaign's state changes and audit entries, oldest first."""
+    c = client(args)
+    s = c.request("GET", f"/campaigns/{args.id}")
+    entries: list[dict[str, Any]] = [
+        {"at": t["at"], "kind": "state", "actor": t["actor"],
+         "what": f"{t.get('from_state') or '-'} -> {t['to_state']}", "detail": t["reason"]}
+        for t in s.get("transitions", [])]
+    for a in c.request("GET", "/audit", query={"limit": 100_000}):
+        if a.get("campaign") == args.id:
+            detail = a.get("detail") or {}
+            text = ", ".join(f"{k} {v}" for k, v in detail.items()
+                             if isinstance(v, str | int | float) and not isinstance(v, bool))
+            entries.append({"at": a["at"], "kind": "audit", "actor": a["actor"],
+                            "what": a["action"], "detail": text})
+    entries.sort(key=lambda e: str(e["at"]))
+    if args.json:
+        emit(entries)
+        return 0
+    for e in entries:
+        sys.stdout.write(f"{e['at']}  {e['kind']:5s} {e['what']:28s} {e['actor']:16s} "
+                         f"{e['detail']}\n")
     return 0
 
 
@@ -277,25 +354,71 @@ def _push_text(s: dict[str, Any]) -> str:
 WATCH_DONE, WATCH_FAILED, WATCH_PAUSED = 0, 1, 3
 
 
-class _Progress:
-    """What ``campaign watch`` shows: counts, timing, retries, the fitting phase."""
+def _epoch(iso: str) -> float | None:
+    """Seconds since the epoch of an ISO 8601 time, None when unreadable."""
+    from datetime import datetime
 
-    def __init__(self, measured: int, total: int, state: str) -> None:
-        self.measured, self.total, self.state = measured, total, state
-        self.t0 = time.monotonic()
-        self.first_measured = measured
+    try:
+        return datetime.fromisoformat(iso).timestamp()
+    except (TypeError, ValueError):
+        return None
+
+
+class _Progress:
+    """What ``campaign watch`` shows: counts, timing, retries, the fitting phase.
+
+    Times come from the campaign's state history, so a watch started after a pause or a
+    daemon restart shows the campaign's elapsed time (since it first ran) and a rate over
+    the time spent measuring only (not paused, not fitting).
+    """
+
+    def __init__(self, status: dict[str, Any], *, now: float | None = None) -> None:
+        now = time.time() if now is None else now
+        self.measured = int(status["poses_measured"])
+        self.total = int(status["poses_total"])
+        self.state = str(status["state"])
         self.retries = 0
         self.beam_losses = 0
         self.phase = ""
+        self.started: float | None = None        # first time it ran (epoch s)
+        self.measuring_s = 0.0                   # closed running intervals
+        self.running_since: float | None = None  # open running interval
+        for t in status.get("transitions") or []:
+            at = _epoch(str(t.get("at", "")))
+            if at is None:
+                continue
+            self._leave_running(at)
+            if t.get("to_state") == "running":
+                self.started = at if self.started is None else self.started
+                self.running_since = at
+        self.fit_since: float | None = None
+        fitting = status.get("fitting")
+        if isinstance(fitting, dict):
+            self.fit_since = now - float(fitting.get("elapsed_s") or 0.0)
+            self.phase = "fitting " + ", ".join(str(m) for m in fitting.get("models", []))
 
-    def update(self, ev: dict[str, Any]) -> None:
+    def _leave_running(self, at: float) -> None:
+        if self.running_since is not None:
+            self.measuring_s += max(0.0, at - self.running_since)
+            self.running_since = None
+
+    def update(self, ev: dict[str, Any], *, now: float | None = None) -> None:
         """Fold one event into the display state."""
+        now = time.time() if now is None else now
         kind = ev.get("kind")
         if "poses_measured" in ev:
             self.measured = int(ev["poses_measured"])
             self.total = int(ev.get("poses_total", self.total))
         if kind == "state":
             self.state = str(ev.get("state"))
+            self._leave_running(now)
+            if self.fit_since is not None and self.state != "measured":
+                # the state event can come before the fit's own "done" event
+                self.phase = f"fit took {_clock(now - self.fit_since)}"
+                self.fit_since = None
+            if self.state == "running":
+                self.started = now if self.started is None else self.started
+                self.running_since = now
         elif kind == "retry":
             self.retries += 1
             if str(ev.get("problem", "")).startswith("BeamLost"):
@@ -304,26 +427,46 @@ class _Progress:
             phase = ev.get("phase")
             if phase == "started":
                 self.phase = "fitting " + ", ".join(str(m) for m in ev.get("models", []))
+                self.fit_since = now
             elif phase == "done":
                 self.phase = f"fitted; proposed {ev.get('selected')}"
+                self.fit_since = None
             elif phase == "failed":
                 self.phase = "fit failed"
+                self.fit_since = None
 
-    def line(self, width: int = 30) -> str:
-        """One progress line: bar, counts, elapsed, rate, ETA, retries, beam losses, phase."""
+    def line(self, width: int = 30, *, now: float | None = None) -> str:
+        """One progress line: bar, counts, elapsed, rate, ETA (while running), retries, beam
+        losses, the fit."""
+        now = time.time() if now is None else now
         frac = self.measured / self.total if self.total else 0.0
         filled = round(frac * width)
-        elapsed = time.monotonic() - self.t0
-        done_here = self.measured - self.first_measured
-        rate = done_here / elapsed if elapsed > 0 and done_here > 0 else 0.0
+        elapsed = now - self.started if self.started is not None else 0.0
+        measuring = self.measuring_s + (now - self.running_since
+                                        if self.running_since is not None else 0.0)
+        rate = self.measured / measuring if measuring > 0 and self.measured > 0 else 0.0
         left = self.total - self.measured
-        eta = _clock(left / rate) if rate > 0 and left > 0 else "--:--"
         text = (f"[{'#' * filled}{'.' * (width - filled)}] {self.measured}/{self.total} "
-                f"{self.state:9s} {_clock(elapsed)} elapsed, {rate * 60:5.1f} poses/min, "
-                f"ETA {eta}, {self.retries} retries, {self.beam_losses} beam losses")
-        if self.phase and self.state in ("measured", "faulted"):
+                f"{self.state} {_clock(elapsed)} elapsed, {rate * 60:.1f} poses/min")
+        if self.state == "running":
+            text += f", ETA {_clock(left / rate) if rate > 0 and left > 0 else '--:--'}"
+        text += f", {self.retries} retries, {self.beam_losses} beam losses"
+        if self.phase and self.state in ("measured", "faulted", "fitted"):
             text += f" | {self.phase}"
+            if self.fit_since is not None:
+                text += f" {_clock(now - self.fit_since)}"
         return text
+
+
+def _terminal_line(prog: _Progress) -> str:
+    """The progress line for a terminal: overwritten in place, never wider than it."""
+    import shutil
+
+    columns = shutil.get_terminal_size((80, 24)).columns
+    text = prog.line(width=12)
+    if len(text) > columns - 1:
+        text = text[:max(1, columns - 2)] + "~"
+    return "\r\033[K" + text
 
 
 _MAX_RECONNECTS = 100
@@ -336,12 +479,15 @@ def _clock(seconds: float) -> str:
     return f"{s // 60}:{s % 60:02d}"
 
 
-def _following(state: str, measure_only: bool) -> bool:
-    """True while the daemon works on the campaign by itself (the watch keeps following)."""
+def _following(state: str, measure_only: bool, exit_on_pause: bool = True) -> bool:
+    """True while the watch keeps following: the daemon works on the campaign by itself,
+    or it is paused and the watch waits for the resume (unless ``exit_on_pause``)."""
     from robocal.daemon.campaign import ACTIVE, CampaignState
 
     if state == CampaignState.MEASURED and measure_only:
         return False
+    if state == CampaignState.PAUSED:
+        return not exit_on_pause
     return state == CampaignState.CREATED or state in ACTIVE
 
 
@@ -389,7 +535,7 @@ def watch(args: argparse.Namespace) -> int:
 
     Exit code 0 when the campaign got where it was going (fitted, approved, pushed, or a
     measure-only run measured), 1 when it faulted or was aborted (the reason is printed), 3
-    when it is paused.
+    when it is paused and ``--exit-on-pause`` was given (else it waits for the resume).
     """
     from robocal.daemon.client import DaemonUnavailable
 
@@ -399,27 +545,36 @@ def watch(args: argparse.Namespace) -> int:
     after = int(c.request("GET", f"/events/poll?after={2**62}&timeout=0")["last_seq"])
     s = c.request("GET", f"/campaigns/{args.id}")
     measure_only = bool(s.get("measure_only"))
-    prog = _Progress(int(s["poses_measured"]), int(s["poses_total"]), str(s["state"]))
+    exit_on_pause = bool(getattr(args, "exit_on_pause", False))
+    prog = _Progress(s)
     tty = sys.stdout.isatty()
+
+    def show() -> None:
+        sys.stdout.write(_terminal_line(prog) if tty else prog.line() + "\n")
+
     if args.json:
         first = {"kind": "status", "campaign": args.id,
                  **{k: s.get(k) for k in ("state", "reason", "poses_total", "poses_measured")}}
         sys.stdout.write(json.dumps(first) + "\n")
     else:
-        sys.stdout.write(("\r" if tty else "") + prog.line() + ("" if tty else "\n"))
+        show()
+        if prog.state == "paused" and not exit_on_pause:
+            sys.stdout.write(("\n" if tty else "") + f"paused ({s.get('reason') or 'no reason'}"
+                             f"); waiting for 'robocal campaign resume {args.id}' (Ctrl-C or "
+                             "--exit-on-pause to stop watching)\n")
     sys.stdout.flush()
     reconnects = 0
-    while _following(prog.state, measure_only):
+    while _following(prog.state, measure_only, exit_on_pause):
         for ev in c.events(campaign=args.id, after=after):
             after = max(after, int(ev.get("seq", after)))
             prog.update(ev)
             if args.json:
                 sys.stdout.write(json.dumps(ev, default=str) + "\n")
             elif tty or ev.get("kind") in ("state", "fit"):
-                sys.stdout.write(("\r\033[K" if tty else "") + prog.line()
-                                 + ("" if tty else "\n"))
+                show()
             sys.stdout.flush()
-            if ev.get("kind") == "state" and not _following(prog.state, measure_only):
+            if ev.get("kind") == "state" and not _following(prog.state, measure_only,
+                                                            exit_on_pause):
                 break
         else:
             # The stream ended with the campaign still under way (a proxy, a daemon restart):
@@ -430,7 +585,10 @@ def watch(args: argparse.Namespace) -> int:
                                         f"see robocal campaign status {args.id}")
             time.sleep(0.5)
             now = c.request("GET", f"/campaigns/{args.id}")
-            prog.state = str(now["state"])
+            # the history is the truth after a gap in the stream; the counts carry on
+            counts = (prog.retries, prog.beam_losses)
+            prog = _Progress(now)
+            prog.retries, prog.beam_losses = counts
             last = int(c.request("GET", f"/events/poll?after={2**62}&timeout=0")["last_seq"])
             if last < after:  # the daemon restarted: its sequence numbers did too
                 after = 0

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     targets = read_targets_csv(args.targets, dof=cal.robot.dof)
     opts = {"start": args.start, "tol_m": args.tol_um * 1e-6, "max_iter": args.max_iter}
     res = compensate(cal, targets.p, targets.q_seed, R_targets=targets.R, **opts)
-    text = compensated_joints_csv_text(res)
+    text = compensated_joints_csv_text(res, targets)
     table = targets_table(cal, targets, res) if table_out is not None else None
     try:
         atomic_write_text(out, text)

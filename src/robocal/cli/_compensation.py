@@ -18,11 +18,17 @@ def register(sub: Any) -> None:
                                    "push history, and rollback to the previous table (written, "
                                    "read back and verified; recorded in the audit log).")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    ls = verbs.add_parser("list", help="active table and push history")
+    ls = verbs.add_parser("list", help="active table and push history",
+                          description="Show the table active on the controller and every "
+                                      "push and rollback: predicted and nominal residual, the "
+                                      "measured before/after of its re-measurement, who.")
     ls.add_argument("--json", action="store_true", help="print the tables and pushes as JSON")
     add_client_options(ls)
     ls.set_defaults(handler=list_)
-    rb = verbs.add_parser("rollback", help="restore the previous table")
+    rb = verbs.add_parser("rollback", help="restore the previous table",
+                          description="Write the table the controller held before the last "
+                                      "push back to it, read it back, verify it and re-measure "
+                                      "the targets (audited).")
     rb.add_argument("--reason", default="", help="why (kept in the audit log)")
     rb.add_argument("--json", action="store_true", help="print the result as JSON")
     rb.add_argument("--key", help="idempotency key: a retry with the same key answers like "
@@ -30,7 +36,10 @@ def register(sub: Any) -> None:
     add_wait_options(rb)
     add_client_options(rb)
     rb.set_defaults(handler=rollback)
-    au = verbs.add_parser("audit", help="show the audit log")
+    au = verbs.add_parser("audit", help="show the audit log",
+                          description="Print the newest entries of the daemon's append-only "
+                                      "audit log (every campaign; 'robocal campaign events ID' "
+                                      "shows one campaign's).")
     au.add_argument("--limit", type=int, default=50, help="newest entries to show")
     au.add_argument("--json", action="store_true", help="print the entries as JSON")
     add_client_options(au)

@@ -19,6 +19,12 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Validate the configuration and serve until SIGTERM."""
+    from robocal.errors import ConfigError
+
+    # before the daemon's imports (aiohttp, numpy, pydantic): a wrong path is answered at once
+    if not args.config.is_file():
+        raise ConfigError("file not found" if not args.config.exists() else "not a file",
+                          source=str(args.config))
     from robocal.daemon.config import load_config
     from robocal.daemon.main import run as run_daemon
 

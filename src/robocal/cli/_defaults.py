@@ -13,3 +13,12 @@ def default_validation(count: int) -> int:
 
 VALIDATION_HELP = "validation poses, held out from fitting (default: a fifth of the " \
                   "calibration poses, at least 10; 0 for none)"
+
+
+#: One seed default for plan, simulate and demo (and the simulators, robocal sim): the same
+#: seed names the same virtual robot and the same plan everywhere.
+DEFAULT_SEED = 1
+
+SCENARIO_HELP = ("planted truth: nominal, constant, paper (constant + joint-dependent harmonics "
+                 "and pitch), strain-wave (paper + gear ripple), fine-map (fine joint-angle "
+                 "errors, gravity torsion); default paper")

@@ -32,7 +32,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
-from robocal.cli._defaults import VALIDATION_HELP, default_validation
+from robocal.cli._defaults import (
+    DEFAULT_SEED,
+    SCENARIO_HELP,
+    VALIDATION_HELP,
+    default_validation,
+)
 
 
 def register(sub: Any) -> None:
@@ -48,9 +53,10 @@ def register(sub: Any) -> None:
                    help="calibration poses (default 250; the high-order model needs about 64)")
     p.add_argument("--validation", type=int, default=None,
                    help=VALIDATION_HELP)
-    p.add_argument("--seed", type=int, default=1, help="seed of the virtual robot and plan")
-    p.add_argument("--scenario", default="paper", choices=["paper", "strain-wave"],
-                   help="planted errors (default paper)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"seed of the virtual robot and plan (default {DEFAULT_SEED}, as plan, "
+                        "simulate and sim)")
+    p.add_argument("--scenario", default="paper", help=SCENARIO_HELP)
     p.add_argument("--fault-rate", type=float, default=0.03,
                    help="injected tracker fault rate per reading (default 0.03)")
     p.add_argument("--robot", default="fanuc_lrmate200i",

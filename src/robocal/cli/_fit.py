@@ -145,11 +145,53 @@ def run(args: argparse.Namespace) -> int:
     res.calibrated.save(out)
     summary = res.summary()
     summary["out"] = str(out)
+    summary["warnings"] = [*summary.get("warnings", []),
+                           *input_warnings(args, robot, data, previous is None)]
     if args.json:
         sys.stdout.write(json.dumps(summary, indent=1) + "\n")
     else:
         sys.stdout.write(format_summary(summary))
     return 0
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Same path or the same bytes (a copy of the training file is no held-out set)."""
+    import hashlib
+
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.resolve() == pb.resolve():
+            return True
+        if pa.stat().st_size != pb.stat().st_size:
+            return False
+        return hashlib.sha256(pa.read_bytes()).digest() == hashlib.sha256(
+            pb.read_bytes()).digest()
+    except OSError:
+        return False
+
+
+def input_warnings(args: argparse.Namespace, robot: Any, data: Any, fresh: bool) -> list[str]:
+    """Warnings about the inputs: the validation file is the training file; an auto fit on
+    fewer poses than the full auto model's identifiable parameters need."""
+    out: list[str] = []
+    if args.validate and _same_file(args.data, args.validate):
+        out.append(f"--validate {args.validate} holds the same data as --data {args.data}: "
+                   "its figures are training figures, not held-out accuracy")
+    if fresh and args.model == "auto":
+        import numpy as np
+
+        from robocal.planning import DesignSpace, model_spec
+
+        lim = robot.joint_limits
+        q = np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], (400, robot.dof))
+        ds = DesignSpace(robot, model_spec(robot, "auto"), q, np.asarray(robot.tool))
+        if len(data) < ds.min_poses:
+            out.append(f"{len(data)} poses are fewer than the {ds.min_poses} the auto model "
+                       f"needs ({ds.identifiable} identifiable parameters, 3 equations per "
+                       f"pose; {ds.recommended_poses} recommended): the auto selection is "
+                       "limited to what these poses carry; measure more poses (robocal plan "
+                       "--model auto) or fit --model constant")
+    return out
 
 
 def _f(v: Any, fmt: str = "{:.4f}") -> str:

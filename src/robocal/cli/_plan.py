@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
-from robocal.cli._defaults import VALIDATION_HELP, default_validation
+from robocal.cli._defaults import DEFAULT_SEED, VALIDATION_HELP, default_validation
 
 
 def register(sub: Any) -> None:
@@ -50,7 +50,8 @@ def register(sub: Any) -> None:
     p.add_argument("--no-iso", action="store_true", help="leave out the ISO 9283 cube poses")
     p.add_argument("--iso-cycles", type=int, default=30, metavar="N",
                    help="cycles through the ISO 9283 poses P1..P5 (the standard asks for 30)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"random seed (default {DEFAULT_SEED}, as simulate, demo and sim)")
     p.add_argument("--candidates", type=int, default=4096,
                    help="feasible candidates to choose from (default 4096)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -75,9 +76,12 @@ def _summary(plan: Any, out: Path) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Plan, write the file atomically, print a summary; return the exit code."""
+    from robocal._core.robot_names import check_robot_spec
     from robocal.errors import ConfigError
-    from robocal.planning import plan_campaign
 
+    # the arguments are checked before the planner (numpy, scipy) is imported: a typo is
+    # answered at once
+    check_robot_spec(args.robot)
     out: Path = args.out
     parent = out.parent if str(out.parent) else Path(".")
     if not parent.is_dir():
@@ -85,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
     if out.is_dir():
         raise ConfigError("is a directory", source=str(out))
     validation = default_validation(args.count) if args.validation is None else args.validation
+    from robocal.planning import plan_campaign
+
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
                          validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
                          iso=not args.no_iso, iso_cycles=args.iso_cycles, seed=args.seed,

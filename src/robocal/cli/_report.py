@@ -1,6 +1,6 @@
 """``robocal report``: the calibration report of a model file or of a daemon campaign.
 
-    robocal report MODEL.json --out report.html [--data MEAS.csv] [--validate VAL.csv]
+    robocal report [--model] MODEL.json --out report.html [--data MEAS.csv] [--validate VAL.csv]
                    [--compare NAME=MODEL.json ...]
     robocal report CAMPAIGN_ID --out report.html [--config CONFIG.toml]
 
@@ -31,7 +31,10 @@ def register(sub: Any) -> None:
                     "it. SOURCE is a MODEL.json file (richer with --data/--validate) or the id "
                     "of a campaign in the daemon's store (found through --config). Exits 1 when "
                     "the verdict is 'failed'.")
-    p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID")
+    p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID", nargs="?",
+                   help="a model file or a campaign id (or give --model)")
+    p.add_argument("--model", metavar="MODEL.json",
+                   help="the model file to report on (as 'robocal fit --out' wrote it)")
     p.add_argument("--out", default="report.html", metavar="report.html",
                    help="output page (default report.html); the JSON goes beside it")
     p.add_argument("--data", metavar="MEAS.csv", help="calibration measurements")
@@ -43,10 +46,17 @@ def register(sub: Any) -> None:
                    help="daemon configuration, for CAMPAIGN_ID (default $ROBOCAL_CONFIG, "
                         f"then {DEFAULT_CONFIG})")
     p.add_argument("--selected", metavar="NAME", help="model the verdict is about")
-    p.add_argument("--max-rms-mm", type=float, help="acceptance: held-out RMS limit (mm)")
-    p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
+    p.add_argument("--max-rms-mm", type=float, metavar="MM",
+                   help="acceptance: held-out RMS limit (default 0.5 mm for a robot whose "
+                        "link lengths |a|+|d| add up to at most 2 m, in proportion above, e.g. "
+                        "1.01 mm for the KUKA KR 210 R3100's 4.06 m)")
+    p.add_argument("--max-error-mm", type=float, metavar="MM",
+                   help="acceptance: held-out max-error limit (default: none)")
     p.add_argument("--min-described", type=float, metavar="PERCENT",
                    help="acceptance: %% of the nominal error to describe (default 50)")
+    p.add_argument("--no-sanity", action="store_true",
+                   help="skip the unit plausibility checks of --data/--validate (joints in "
+                        "radians, positions in metres), as 'robocal fit --no-sanity'")
     p.add_argument("--title", help="page title")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
@@ -62,9 +72,10 @@ def _model_name(kind: str) -> str:
 def _acceptance(args: argparse.Namespace, base: Acceptance | None = None) -> Acceptance:
     from robocal.report import Acceptance
 
-    kw: dict[str, float] = {}
+    kw: dict[str, Any] = {}
     if args.max_rms_mm is not None:
         kw["max_rms_mm"] = args.max_rms_mm
+        kw["scale_with_reach"] = False  # a limit given is the limit
     if args.max_error_mm is not None:
         kw["max_error_mm"] = args.max_error_mm
     if args.min_described is not None:
@@ -86,8 +97,8 @@ def _compare(items: Sequence[str]) -> dict[str, Any]:
 
 
 def input_from_model_file(path: str | Path, *, data: str | None = None,
-                          validate: str | None = None, compare: Sequence[str] = ()
-                          ) -> ReportInput:
+                          validate: str | None = None, compare: Sequence[str] = (),
+                          sanity: bool = True) -> ReportInput:
     """A :class:`~robocal.report.ReportInput` from a MODEL.json (+ optional CSV files)."""
     from robocal._core.measurements import MeasurementSet
     from robocal.kinematics import CalibratedModel
@@ -99,6 +110,12 @@ def input_from_model_file(path: str | Path, *, data: str | None = None,
     models: dict[str, Any] = {**_compare(compare), name: cm}
     cal = MeasurementSet.read_csv(data, dof=dof) if data else None
     val = MeasurementSet.read_csv(validate, dof=dof) if validate else None
+    if sanity:  # the same refusal as 'robocal fit' (one line, exit 2)
+        from robocal.identification import sanity_check
+
+        for what, ms in ((data, cal), (validate, val)):
+            if ms is not None:
+                sanity_check(cm.robot, ms, what=str(what))
     notes = [f"model file: {Path(path).name}"]
     if cal is None and val is None:
         notes.append("made from the model file alone: accuracy figures are the metrics stored "
@@ -116,7 +133,7 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     """
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
-    from robocal.daemon.fitting import measurement_set
+    from robocal.daemon.fitting import measurement_set, rows_by_purpose
     from robocal.daemon.store import MeasurementRow, Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
@@ -154,14 +171,11 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     def mset(sel: list[MeasurementRow], *, commanded: bool = False) -> MeasurementSet | None:
         return measurement_set(sel, commanded=commanded) if sel else None
 
-    cal_rows = [r for r in rows if r.purpose == "calibration"]
-    if not cal_rows:
-        cal_rows = [r for r in rows if r.purpose not in ("validation",)
-                    and not r.purpose.startswith(("cpa-", "iso-"))]
-    cal = mset(cal_rows)
-    val = mset([r for r in rows if r.purpose == "validation"])
+    by_purpose = rows_by_purpose(rows)
+    cal = mset(by_purpose.calibration)
+    val = mset(by_purpose.validation)
     selected = rec.selected_model if rec.selected_model in models else None
-    iso_rows = [r for r in rows if r.purpose.lower().startswith("iso-")]
+    iso_rows = by_purpose.iso
     # commanded joints: AP compares with where the controller meant to go
     iso_set = mset(iso_rows, commanded=True)
     weather: list[dict[str, float]] = []
@@ -206,10 +220,15 @@ def run(args: argparse.Namespace) -> int:
     from robocal.errors import ConfigError
     from robocal.report import write_report
 
+    if (args.source is None) == (args.model is None):
+        raise ConfigError("give one source: MODEL.json (or --model MODEL.json) or a "
+                          "CAMPAIGN_ID")
+    if args.model is not None:
+        args.source = args.model
     src = Path(args.source)
-    if src.suffix.lower() == ".json" or src.exists():
+    if args.model is not None or src.suffix.lower() == ".json" or src.exists():
         inp = input_from_model_file(src, data=args.data, validate=args.validate,
-                                    compare=args.compare)
+                                    compare=args.compare, sanity=not args.no_sanity)
     else:
         if args.data or args.validate or args.compare:
             raise ConfigError("--data, --validate and --compare apply to a MODEL.json source, "

@@ -47,7 +47,7 @@ class _HelpFormatter(argparse.HelpFormatter):
         default = action.default
         if (not action.option_strings or "default" in text or default is None
                 or default is argparse.SUPPRESS or isinstance(default, bool)
-                or default == []):
+                or default == [] or default == ""):
             return text
         return f"{text} (default: %(default)s)"
 
@@ -76,14 +76,31 @@ class _Version(argparse.Action):
         parser.exit()
 
 
-def _command_of(argv: Sequence[str]) -> str | None:
-    """The subcommand named in ``argv`` (top-level options take no values), or None."""
+def _first_word(argv: Sequence[str]) -> str | None:
+    """The first argument that is not an option (the command as typed), or None."""
     for a in argv:
         if a == "--":
             return None
         if not a.startswith("-"):
-            return a if a in COMMANDS else None
+            return a
     return None
+
+
+def _unknown_command(word: str) -> int:
+    """One line for a misspelt command, with the closest commands (exit 2)."""
+    import difflib
+
+    close = difflib.get_close_matches(word, COMMANDS, n=3, cutoff=0.6)
+    hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    sys.stderr.write(f"robocal: error: unknown command {word!r}{hint} (robocal --help lists "
+                     "the commands)\n")
+    return 2
+
+
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand named in ``argv`` (top-level options take no values), or None."""
+    word = _first_word(argv)
+    return word if word in COMMANDS else None
 
 
 def build_parser(only: str | None = None, *, lazy: bool = False) -> argparse.ArgumentParser:
@@ -115,6 +132,9 @@ def build_parser(only: str | None = None, *, lazy: bool = False) -> argparse.Arg
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    word = _first_word(argv)
+    if word is not None and word not in COMMANDS:
+        return _unknown_command(word)
     parser = build_parser(_command_of(argv), lazy=True)
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):

@@ -54,6 +54,8 @@ class TargetSet:
     q_seed: Array
     R: Array | None = None
     labels: tuple[str, ...] = field(default=())
+    #: the file's id column (``target_id`` or ``pose_id``), "" when it had none
+    id_column: str = ""
 
     def __post_init__(self) -> None:
         p = np.atleast_2d(np.asarray(self.p, dtype=float))
@@ -84,7 +86,8 @@ class TargetSet:
         """Render as TARGETS.csv text (mm, deg; full float precision)."""
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        head = ["target_id", "x", "y", "z", *(f"q{i + 1}" for i in range(self.dof))]
+        head = [self.id_column or "target_id", "x", "y", "z",
+                *(f"q{i + 1}" for i in range(self.dof))]
         if self.R is not None:
             head += list(ORIENTATION_COLUMNS)
         w.writerow(head)
@@ -131,28 +134,37 @@ def read_targets_csv(path: str | Path, *, dof: int | None = None) -> TargetSet:
         wpr = np.radians(numeric_columns(rows, header, list(ORIENTATION_COLUMNS), src))
         R = np.stack([wpr_to_matrix(*row) for row in wpr])
     labels: tuple[str, ...] = ()
-    if "target_id" in header:
-        k = header.index("target_id")
+    id_column = next((c for c in ("target_id", "pose_id") if c in header), "")
+    if id_column:
+        k = header.index(id_column)
         labels = tuple(r[k].strip() for r in rows)
-    return TargetSet(p=p, q_seed=q, R=R, labels=labels)
+    return TargetSet(p=p, q_seed=q, R=R, labels=labels, id_column=id_column)
 
 
-def compensated_joints_csv_text(result: CompensationResult) -> str:
-    """Render a compensation result as JOINTS.csv text."""
+def compensated_joints_csv_text(result: CompensationResult,
+                                targets: TargetSet | None = None) -> str:
+    """Render a compensation result as JOINTS.csv text; the targets' id column (``pose_id``
+    or ``target_id``), when their file had one, comes first."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     dof = result.q.shape[1]
-    w.writerow([*(f"q{i + 1}" for i in range(dof)), "status", "model_residual_mm"])
+    ids = targets.labels if targets is not None and targets.id_column else ()
+    if ids and len(ids) != len(result):
+        raise DataError("targets and compensation result differ in length")
+    head = [targets.id_column] if ids and targets is not None else []
+    w.writerow([*head, *(f"q{i + 1}" for i in range(dof)), "status", "model_residual_mm"])
     qd = np.degrees(result.q)
     for i in range(len(result)):
         ok = result.status[i] == "ok"
         cells = [f"{v:.9f}" for v in qd[i]] if ok else [""] * dof
-        w.writerow([*cells, str(result.status[i]), f"{result.residual_m[i] * 1e3:.6f}"])
+        w.writerow([*([ids[i]] if ids else []), *cells, str(result.status[i]),
+                    f"{result.residual_m[i] * 1e3:.6f}"])
     return buf.getvalue()
 
 
-def write_compensated_joints_csv(path: str | Path, result: CompensationResult) -> None:
+def write_compensated_joints_csv(path: str | Path, result: CompensationResult,
+                                 targets: TargetSet | None = None) -> None:
     """Write JOINTS.csv atomically (temporary file, then rename)."""
-    atomic_write_text(path, compensated_joints_csv_text(result))
+    atomic_write_text(path, compensated_joints_csv_text(result, targets))
 
 

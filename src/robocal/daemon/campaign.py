@@ -81,8 +81,10 @@ def check_transition(src: CampaignState | str, dst: CampaignState | str) -> None
     except ValueError as err:
         raise InvalidTransition(str(src), str(dst), "unknown state") from err
     if b not in TRANSITIONS[a]:
-        allowed = ", ".join(sorted(TRANSITIONS[a])) or "nothing (final state)"
-        raise InvalidTransition(a.value, b.value, f"allowed from {a.value}: {allowed}")
+        nxt = sorted(s.value for s in TRANSITIONS[a])
+        raise InvalidTransition(a.value, b.value,
+                                f"it can become {' or '.join(nxt)}" if nxt
+                                else "it is finished; start a new campaign")
 
 
 def transition_table_markdown() -> str:

@@ -2,8 +2,9 @@
 
 Every model forbids unknown keys, so a typo fails at start-up with the file and the key path
 (``robocal.toml: key 'measurement.sampels': Extra inputs are not permitted``) instead of being
-ignored. Relative paths are resolved against the configuration file's directory; ``data_dir``
-defaults to ``$STATE_DIRECTORY`` (set by systemd's ``StateDirectory=``) or ``/var/lib/robocal``.
+ignored. Relative paths are resolved against the configuration file's directory, ``~`` in
+``data_dir`` is the running user's home; ``data_dir`` defaults to ``$STATE_DIRECTORY`` (set
+by systemd's ``StateDirectory=``) or ``/var/lib/robocal``.
 
 Example (``deploy/config/robocal.example.toml`` is the annotated version)::
 
@@ -301,7 +302,9 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
         return value
 
     if "data_dir" in out:
-        out["data_dir"] = fix(out["data_dir"])
+        d = out["data_dir"]
+        # "~/..." is the running user's home: per-user state, e.g. for the simulated cell
+        out["data_dir"] = fix(os.path.expanduser(d) if isinstance(d, str) else d)
     api = out.get("api")
     if isinstance(api, dict):
         api = dict(api)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -34,7 +35,8 @@ from robocal.kinematics import CalibratedModel, RobotDescription
 if TYPE_CHECKING:  # imported where used: the daemon starts without identification
     from robocal.identification import Accuracy, CPAResult, FitOptions, FitResult
 
-__all__ = ["FitRunner", "build_fit_job", "measurement_set", "run_fit_job"]
+__all__ = ["FitRunner", "RowsByPurpose", "build_fit_job", "measurement_set", "rows_by_purpose",
+           "run_fit_job"]
 
 _log = structlog.get_logger(__name__)
 _CPA = re.compile(r"^cpa-j(\d+)$")
@@ -138,12 +140,48 @@ def _cpa_summary(res: CPAResult, seconds: float) -> tuple[dict[str, Any], str]:
                     details=res.summary())
 
 
-def _cpa_sets(rows: Sequence[MeasurementRow]) -> dict[int, MeasurementSet]:
-    by_joint: dict[int, list[MeasurementRow]] = {}
+@dataclasses.dataclass(frozen=True)
+class RowsByPurpose:
+    """A campaign's measurements by what they are for (plan purposes).
+
+    ``calibration`` trains the models: the rows marked ``calibration``, or, in a plan with
+    no such marks, every row that is not for validation, ISO 9283 or CPA. ``iso`` holds
+    ``iso-Pk`` rows, ``cpa`` the ``cpa-jK`` sweeps by K (1-based joint number).
+    """
+
+    calibration: list[MeasurementRow]
+    validation: list[MeasurementRow]
+    iso: list[MeasurementRow]
+    cpa: dict[int, list[MeasurementRow]]
+
+
+def rows_by_purpose(rows: Sequence[MeasurementRow]) -> RowsByPurpose:
+    """Split ``rows`` by purpose; the one reader of campaign data for fits and reports."""
+    calibration: list[MeasurementRow] = []
+    validation: list[MeasurementRow] = []
+    iso: list[MeasurementRow] = []
+    unmarked: list[MeasurementRow] = []
+    cpa: dict[int, list[MeasurementRow]] = {}
     for r in rows:
-        m = _CPA.match(r.purpose)
+        purpose = r.purpose.lower()
+        m = _CPA.match(purpose)
         if m:
-            by_joint.setdefault(int(m.group(1)), []).append(r)
+            cpa.setdefault(int(m.group(1)), []).append(r)
+        elif purpose == "calibration":
+            calibration.append(r)
+        elif purpose == "validation":
+            validation.append(r)
+        elif purpose.startswith("iso-"):
+            iso.append(r)
+        else:
+            unmarked.append(r)
+    # plans without purposes: whatever is not held out calibrates
+    return RowsByPurpose(calibration=calibration or unmarked, validation=validation, iso=iso,
+                         cpa=dict(sorted(cpa.items())))
+
+
+def _cpa_sets(by_purpose: RowsByPurpose) -> dict[int, MeasurementSet]:
+    by_joint = by_purpose.cpa
     # CPA's premise is that only the swept joint moves: use the commanded sweep (the actual
     # joints differ by the controller's repeatability in every joint).
     return {j: measurement_set(rs, commanded=True) for j, rs in sorted(by_joint.items())}
@@ -175,12 +213,9 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
 
     robot = RobotDescription.from_dict(job["robot"], source="fit job")
     rows = _rows(job)
-    train_rows = [r for r in rows if r.purpose == "calibration"]
-    val_rows = [r for r in rows if r.purpose == "validation"]
-    if not train_rows:  # plans without purposes: everything calibrates
-        train_rows = [r for r in rows if not _CPA.match(r.purpose)]
-    train = measurement_set(train_rows)
-    validation = measurement_set(val_rows) if val_rows else None
+    by_purpose = rows_by_purpose(rows)
+    train = measurement_set(by_purpose.calibration)
+    validation = measurement_set(by_purpose.validation) if by_purpose.validation else None
     opts = fit_options(job.get("options"))
     results: dict[str, FitResult | CPAResult | CalibratedModel] = {}
     fits: dict[str, tuple[dict[str, Any], str]] = {}
@@ -201,7 +236,7 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
             fits[NOMINAL] = _summary(
                 NOMINAL, nominal, 0.0, train=accuracy(nominal, train),
                 validation=None if validation is None else accuracy(nominal, validation))
-    sweeps = _cpa_sets(rows)
+    sweeps = _cpa_sets(by_purpose)
     if job.get("cpa") and sweeps:
         t0 = time.perf_counter()
         try:
@@ -242,7 +277,7 @@ def _write_report(job: Mapping[str, Any], robot: RobotDescription,
     from robocal.report import Acceptance, MeasurementLog, ReportInput, write_report
 
     try:
-        iso_rows = [r for r in _rows(job) if r.purpose.startswith("iso-")]
+        iso_rows = rows_by_purpose(_rows(job)).iso
         selected = job.get("selected")
         inp = ReportInput(
             models=results, calibration=train, validation=validation, robot=robot,

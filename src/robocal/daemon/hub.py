@@ -86,6 +86,7 @@ class DriverHub:
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._robot = drv
             _log.info("robot connected", driver=cfg.kind)
+            self._clear_error_when_connected()
         return self._robot
 
     async def tracker(self) -> TrackerDriver:
@@ -96,7 +97,14 @@ class DriverHub:
             await drv.connect(timeout=cfg.connect_timeout_s)
             self._tracker = drv
             _log.info("tracker connected", driver=cfg.kind)
+            self._clear_error_when_connected()
         return self._tracker
+
+    def _clear_error_when_connected(self) -> None:
+        """The last error is history once both drivers are connected again."""
+        if self._robot is not None and self._tracker is not None and self.last_error:
+            _log.info("drivers connected again", cleared_error=self.last_error)
+            self.last_error = ""
 
     async def stop_motion(
         self, reason: str, *, timeout: float = 5.0

@@ -108,8 +108,7 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
                 with contextlib.suppress(asyncio.CancelledError):
                     await watchdog
             # The robot stops before anything else winds down (the API may take a while).
-            with contextlib.suppress(Exception):
-                await service.stop_motion(trigger="shutdown", reason="daemon stopping")
+            await stop_robot_for_shutdown(service)
             # A push or rollback being written finishes (read back, journaled) before the
             # API, whose requests it runs in, is torn down.
             await service.drain()
@@ -120,6 +119,20 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
                 with contextlib.suppress(Exception):
                     loop.remove_signal_handler(sig)
             _log.info("daemon stopped")
+
+
+async def stop_robot_for_shutdown(service: CalibrationService) -> bool:
+    """Stop the robot as the daemon shuts down; a stop that fails or is not confirmed is
+    logged as an error (shutdown goes on). Returns True when the halt was confirmed."""
+    try:
+        ok = await service.stop_motion(trigger="shutdown", reason="daemon stopping")
+    except Exception as err:
+        _log.error("motion stop at shutdown failed; the robot may still be moving",
+                   error=repr(err))
+        return False
+    if not ok:
+        _log.error("motion stop at shutdown not confirmed by the controller")
+    return ok
 
 
 def raise_fd_limit(wanted: int = 65536) -> int:

@@ -171,6 +171,14 @@ class PushSummary(_Closed):
     compensation_state: CompensationStateName | None = None
 
 
+class FitProgress(_Closed):
+    """The fit the daemon is running for a measured campaign."""
+
+    models: list[str]
+    started: str = Field(description="when the fit started (ISO 8601, UTC)")
+    elapsed_s: float
+
+
 class CampaignStatus(CampaignSummary):
     """``GET /campaigns/{cid}`` and every campaign action's answer."""
 
@@ -180,6 +188,8 @@ class CampaignStatus(CampaignSummary):
     files: str = Field(description="directory of the campaign's report files")
     compensation: list[CampaignPush]
     push: PushSummary | None
+    fitting: FitProgress | None = Field(
+        default=None, description="the fit in progress (measured campaigns), else null")
 
 
 class Measurement(_Closed):

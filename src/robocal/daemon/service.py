@@ -40,7 +40,7 @@ from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margi
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options
 from robocal.daemon.hub import DriverHub
-from robocal.daemon.store import CampaignRecord, MeasurementRow, Store
+from robocal.daemon.store import CampaignRecord, MeasurementRow, Store, now_iso
 from robocal.drivers import ControllerSnapshot, check_joint_target
 from robocal.errors import (
     ApprovalRequired,
@@ -88,6 +88,7 @@ class CalibrationService:
         self._digest = config_digest(config)
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
+        self._fit_started: dict[str, tuple[str, float]] = {}  # ISO time, monotonic s
         self._push_lock = asyncio.Lock()
         self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
@@ -193,6 +194,11 @@ class CalibrationService:
         if out["push"] is not None:
             out["compensation_state"] = self.push_states().get(out["push"]["key"])
             out["push"]["compensation_state"] = out["compensation_state"]
+        started = (self._fit_started.get(cid)
+                   if cid in self._fit_tasks and rec.state == S.MEASURED else None)
+        out["fitting"] = None if started is None else {
+            "models": builtins.list(self.config.fit.models), "started": started[0],
+            "elapsed_s": round(time.monotonic() - started[1], 1)}
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
@@ -438,6 +444,9 @@ class CalibrationService:
         The state, the chosen model and the audit entry are one transaction.
         """
         rec = self.store.campaign(cid)
+        if rec.state == S.MEASURED and cid in self._fit_tasks:
+            raise CampaignError(f"the fit of campaign {cid} is still running; approve when it "
+                                f"ends ('robocal campaign watch {cid}' waits for it)")
         chosen = model or rec.selected_model
         fits = self.store.fits(cid)
         if chosen is None or chosen not in fits or self.store.model_json(cid, chosen) is None:
@@ -526,7 +535,9 @@ class CalibrationService:
             return
         task = asyncio.create_task(self._fit_guarded(cid), name=f"fit-{cid}")
         self._fit_tasks[cid] = task
-        task.add_done_callback(lambda _t: self._fit_tasks.pop(cid, None))
+        self._fit_started[cid] = (now_iso(), time.monotonic())
+        task.add_done_callback(lambda _t: (self._fit_tasks.pop(cid, None),
+                                           self._fit_started.pop(cid, None)))
 
     def _measurement_log(self, cid: str, rows: builtins.list[MeasurementRow]
                          ) -> dict[str, Any]:

@@ -278,8 +278,11 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
     async def _close_impl(self) -> None:
         stream = self._stream
         if stream is not None and stream.transport.is_open and self._lost is None:
-            with contextlib.suppress(Exception):
+            try:
                 await self._command("FRC_Abort", check=False, timeout=0.5)
+            except Exception as err:
+                self.log.error("FRC_Abort on close failed; the robot may still be moving",
+                               error=repr(err))
             with contextlib.suppress(Exception):
                 self._disconnected = asyncio.get_running_loop().create_future()
                 await stream.write_line(rmi.encode({"Communication": "FRC_Disconnect"}))

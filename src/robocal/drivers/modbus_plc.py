@@ -20,7 +20,6 @@ LREAL (then compare by registers only).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import math
 import time
@@ -179,9 +178,14 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
     async def _close_impl(self) -> None:
         if self._move_unacked and self._client is not None:
             # Like RMI's FRC_Abort on disconnect: never leave a PLC robot moving on its own.
-            with contextlib.suppress(Exception):
+            try:
                 async with asyncio.timeout(self.options.request_timeout_s * 2):
                     await self.stop()
+            except Exception as err:
+                # Closing goes on (the link is going away), but a robot that may still be
+                # moving must never be a silent outcome.
+                self.log.error("motion stop on close failed; the robot may still be moving",
+                               error=repr(err))
         await self._stop_heartbeat()
         if self._client is not None:
             await self._client.close()

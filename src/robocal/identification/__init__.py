@@ -25,7 +25,14 @@ from robocal.identification._cpa import (
     poe_positions,
 )
 from robocal.identification._engine import min_poses
-from robocal.identification._fit import MODELS, FitOptions, FitResult, fit, refit_frozen
+from robocal.identification._fit import (
+    MODELS,
+    FitOptions,
+    FitResult,
+    fit,
+    refit_frozen,
+    sanity_check,
+)
 from robocal.identification._metrics import (
     BASELINE_DESCRIPTION,
     Accuracy,
@@ -61,5 +68,6 @@ __all__ = [
     "min_poses",
     "poe_positions",
     "refit_frozen",
+    "sanity_check",
     "whitening",
 ]

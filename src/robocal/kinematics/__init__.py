@@ -1,12 +1,12 @@
 """Kinematics: robot descriptions, joint-dependent error model, FK, Jacobians (numpy only)."""
 
+from robocal._core.robot_names import builtin_robots
 from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
 from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
 from robocal.kinematics._model import ChainState, KinematicModel
 from robocal.kinematics._robot import (
     Joint,
     RobotDescription,
-    builtin_robots,
     load_robot,
     matrix_to_rpy,
     robot_to_toml,

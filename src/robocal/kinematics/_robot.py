@@ -51,6 +51,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.files import read_toml
+from robocal._core.robot_names import (
+    builtin_robot_key,
+    check_robot_spec,
+)
 from robocal.errors import ConfigError
 
 _JOINT_KEYS = {
@@ -264,6 +268,18 @@ class RobotDescription:
         return _parse(data, source)
 
 
+#: no length (mm), angle (deg), mass or speed of a robot description comes near this; larger
+#: numbers would only overflow the kinematics later
+_MAX_ABS = 1e6
+
+
+def _plausible(v: float) -> bool:
+    try:
+        return math.isfinite(v) and abs(v) <= _MAX_ABS
+    except OverflowError:  # an int too large for a float
+        return False
+
+
 def _num(d: dict[str, Any], key: str, src: str, default: float | None = None,
          *, required: bool = True) -> float | None:
     if key not in d:
@@ -271,8 +287,9 @@ def _num(d: dict[str, Any], key: str, src: str, default: float | None = None,
             raise ConfigError("required key is missing", source=src, key=key)
         return default
     v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ConfigError(f"must be a finite number, got {v!r}", source=src, key=key)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not _plausible(v):
+        raise ConfigError(f"must be a finite number within +-{_MAX_ABS:g}, got {v!r}",
+                          source=src, key=key)
     return float(v)
 
 
@@ -282,8 +299,9 @@ def _vec3(d: dict[str, Any], key: str, src: str) -> tuple[float, float, float] |
     v = d[key]
     if (not isinstance(v, list) or len(v) != 3
             or not all(isinstance(x, int | float) and not isinstance(x, bool)
-                       and math.isfinite(x) for x in v)):
-        raise ConfigError(f"must be a list of 3 finite numbers, got {v!r}", source=src, key=key)
+                       and _plausible(x) for x in v)):
+        raise ConfigError(f"must be a list of 3 finite numbers within +-{_MAX_ABS:g}, got "
+                          f"{v!r}", source=src, key=key)
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
@@ -410,19 +428,6 @@ def _parse(data: dict[str, Any], src: str) -> RobotDescription:
     )
 
 
-def builtin_robots() -> list[str]:
-    """Return the names under which built-in descriptions can be loaded."""
-    root = resources.files("robocal.data") / "robots"
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
-
-
-_ALIASES = {
-    "lrmate200id": "fanuc_lrmate200id", "lr-mate-200id": "fanuc_lrmate200id",
-    "lrmate200i": "fanuc_lrmate200i", "lr-mate-200i": "fanuc_lrmate200i",
-    "ur10-cb3": "ur10", "kr210": "kuka_kr210_r3100",
-}
-
-
 def load_robot(spec: str | Path) -> RobotDescription:
     """Load a robot by built-in name (see :func:`builtin_robots`), a TOML or a URDF file path.
 
@@ -438,16 +443,12 @@ def load_robot(spec: str | Path) -> RobotDescription:
         from robocal.kinematics._urdf import load_urdf
 
         return load_urdf(text_spec)
-    key = _ALIASES.get(text_spec.lower(), text_spec.lower())
-    if not text_spec.endswith(".toml") and key in builtin_robots():
+    key = builtin_robot_key(text_spec)
+    if key is not None:
         res = resources.files("robocal.data") / "robots" / f"{key}.toml"
         return _parse(read_toml(res), f"builtin:{key}")
-    path = Path(text_spec)
-    if not path.exists():
-        raise ConfigError(
-            f"no such file, and not a built-in robot (built-in: {', '.join(builtin_robots())})",
-            source=text_spec)
-    return _parse(read_toml(path), text_spec)
+    check_robot_spec(text_spec)
+    return _parse(read_toml(Path(text_spec)), text_spec)
 
 
 def _toml_value(v: Any) -> str:

@@ -25,9 +25,13 @@ Array = NDArray[np.float64]
 __all__ = ["Cell", "builtin_cells", "load_cell"]
 
 
+_MAX_ABS_MM = 1e6
+
+
 def _finite3(v: list[float], what: str = "value") -> list[float]:
-    if len(v) != 3 or not all(math.isfinite(x) for x in v):
-        raise ValueError(f"{what} must be 3 finite numbers")
+    # a bound well beyond any cell (1 km) keeps absurd numbers from overflowing later sums
+    if len(v) != 3 or not all(math.isfinite(x) and abs(x) <= _MAX_ABS_MM for x in v):
+        raise ValueError(f"{what} must be 3 finite numbers within +-{_MAX_ABS_MM:g} mm")
     return [float(x) for x in v]
 
 

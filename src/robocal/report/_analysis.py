@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -125,6 +125,9 @@ def analyse(inp: ReportInput) -> Analysis:
     sel_entry = entries.get(selected) if selected else None
     sel_cm = sel_entry.calibrated if sel_entry else None
     robot = _robot_of(inp, entries, sel_cm)
+    if robot is not None:  # the default RMS limit grows with the robot's reach
+        reach_m = sum(abs(j.a) + abs(j.d) for j in robot.joints)
+        inp = replace(inp, acceptance=inp.acceptance.for_reach(reach_m))
     data = {k: v for k, v in (("calibration", inp.calibration),
                               ("validation", inp.validation)) if v is not None}
     entries, baseline_note = _with_baseline(inp, entries, sel_cm)

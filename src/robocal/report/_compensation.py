@@ -23,6 +23,7 @@ from robocal.report._html import _fig, _table, esc, nice_date
 __all__ = ["add_compensation_section", "compensation_html"]
 
 _SECTION = re.compile(r'<section id="compensation">.*?</section>', re.DOTALL)
+_SUMMARY = re.compile(r'<div id="push-result"[^>]*>.*?</div>', re.DOTALL)
 
 
 def _plot(entry: Mapping[str, Any]) -> Plot | None:
@@ -105,6 +106,37 @@ def compensation_html(entries: Sequence[Mapping[str, Any]]) -> str:
     return "".join(out)
 
 
+def push_summary_html(entries: Sequence[Mapping[str, Any]]) -> str:
+    """One line under the verdict: the latest push and its measured before -> after."""
+    pushes = [e for e in entries if e.get("action") == "push"]
+    if not pushes:
+        return ""
+    e = pushes[-1]
+    v = e.get("verification") or {}
+    before, after = _rms(v.get("before")), _rms(v.get("after"))
+    if before is not None and after is not None:
+        n = (v.get("after") or {}).get("n")
+        what = (f"measured {before:.4f} mm before &rarr; {after:.4f} mm after on "
+                f"{esc(n)} re-measured targets")
+    else:
+        what = f"not measured after the push ({esc(v.get('reason') or v.get('state') or '-')})"
+    return (f'<div id="push-result" class="flag ok"><b>Pushed</b> {esc(e.get("kind"))} table '
+            f'{esc(str(e.get("checksum", ""))[:12])} ({esc(e.get("state"))}, '
+            f'{esc(nice_date(str(e.get("at", ""))))} by {esc(e.get("actor"))}): {what}. '
+            '<a href="#compensation">Details</a></div>')
+
+
+def _put_summary(page: str, summary: str) -> str:
+    """``page`` with the push summary right under the verdict (replacing an earlier one)."""
+    page = _SUMMARY.sub("", page, count=1)
+    start = page.find('<section id="verdict"')
+    end = page.find("</section>", start) if start >= 0 else -1
+    if not summary or end < 0:
+        return page
+    end += len("</section>")
+    return page[:end] + summary + page[end:]
+
+
 def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str, Any]]
                              ) -> None:
     """Add (or replace) the Compensation section of ``out_dir``'s report files.
@@ -128,4 +160,4 @@ def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str,
             page = page.replace("</main>", section + "</main>", 1)
         else:
             page = page.replace("</body>", section + "</body>", 1)
-        atomic_write_text(hpath, page)
+        atomic_write_text(hpath, _put_summary(page, push_summary_html(data)))

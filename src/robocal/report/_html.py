@@ -65,6 +65,7 @@ align-items:start}
 .flag{margin:10px 0;padding:9px 14px;border-radius:6px;border-left:7px solid #d93025;
 background:#fdecea;color:#5c1a14}
 .flag.ok{border-color:#1e8e3e;background:#e6f4ea;color:#14371f}
+.flag.info{border-color:#8a94a6;background:#f1f3f6;color:#2b3240}
 .flag b{font-weight:700}
 @media (max-width:900px){.first,.two{grid-template-columns:1fr}
 .cards{grid-template-columns:repeat(2,1fr)}}
@@ -201,9 +202,15 @@ def _first_screen(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str,
         thr.append(f"held-out max error ≤ {acc.max_error_mm:.3f} mm")
     cpa_flag = ""
     if an.cpa is not None and an.cpa.flag:
-        cpa_flag = (f'<div class="flag" data-flag="cpa-worse-than-nominal"><b>⚠ Circle Point '
-                    f"Analysis:</b> {esc(an.cpa.flag)} "
-                    '<a href="#cpa">Details</a></div>')
+        if _judges_cpa(an):  # the verdict is about CPA itself: an alarm
+            cpa_flag = (f'<div class="flag" data-flag="cpa-worse-than-nominal"><b>⚠ Circle '
+                        f"Point Analysis:</b> {esc(an.cpa.flag)} "
+                        '<a href="#cpa">Details</a></div>')
+        else:  # a reference method that does not apply here, under another model's verdict
+            cpa_flag = (f'<div class="flag info" data-flag="cpa-worse-than-nominal"><b>ℹ '
+                        "Circle Point Analysis, for reference only (not applicable here; the "
+                        f"verdict above is about {esc(an.selected or 'the selected model')}):"
+                        f"</b> {esc(an.cpa.flag)} <a href=\"#cpa\">Details</a></div>")
     left = (f'<div class="cards">{"".join(cards)}</div>'
             f'<div class="panel checks">{checks}<p class="note">Acceptance: '
             f'{esc("; ".join(thr))}.</p></div>{cpa_flag}')
@@ -225,6 +232,11 @@ def _first_screen(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str,
             f'<div class="badge">{_BADGE[v.outcome]}</div><p class="headline">'
             f"{esc(v.reason or v.headline)}</p>{plain}</section>"
             f'<div class="first"><div>{left}</div><div>{right}</div></div>')
+
+
+def _judges_cpa(an: Analysis) -> bool:
+    """Is the verdict about a CPA model (then CPA's shortfalls are alarms, else references)?"""
+    return bool(an.selected) and str(an.selected).startswith("cpa")
 
 
 def _toc(an: Analysis) -> str:
@@ -309,10 +321,17 @@ def _cpa(an: Analysis) -> str:
     if c is None:
         return ""
     out = ['<section id="cpa"><h2>Circle Point Analysis (CPA)</h2>']
+    alarm = _judges_cpa(an)
     if c.flag:
-        out.append(f'<div class="flag" data-flag="cpa-worse-than-nominal"><b>⚠</b> '
+        out.append(f'<div class="flag{"" if alarm else " info"}" '
+                   f'data-flag="cpa-worse-than-nominal"><b>{"⚠" if alarm else "ℹ"}</b> '
                    f"{esc(' '.join(r.sentence() for r in c.worse))}"
-                   "<br><b>Reasons:</b> " + esc("; ".join(c.reasons())) + ".</div>")
+                   "<br><b>Reasons:</b> " + esc("; ".join(c.reasons())) + "."
+                   + ("" if alarm else "<br>CPA is shown as a reference method: a CPA model "
+                      "worse than the nominal one (a difference above +100 % means it more "
+                      "than doubles the error) is not applicable to this robot and has no "
+                      "bearing on the verdict, which is about "
+                      + esc(an.selected or "the selected model") + ".") + "</div>")
     better = [r for r in c.rows if r.better]
     if better:
         out.append(f'<div class="flag ok">✔ {esc(" ".join(r.sentence() for r in better))}'
@@ -320,7 +339,8 @@ def _cpa(an: Analysis) -> str:
     rows = [[_swatch(r.name, i), esc(r.variant), esc(r.on), str(r.n), mm(r.rms_m),
              mm(r.nominal_rms_m), f"{r.diff_m * 1e3:+.3f}", f"{r.diff_percent:+.1f} %",
              '<span class="st pass">better</span>' if r.better
-             else '<span class="st fail">worse</span>']
+             else ('<span class="st fail">worse</span>' if alarm
+                   else '<span class="st info">worse: not applicable</span>')]
             for i, r in enumerate(c.rows)]
     if rows:
         out.append(_table(["model", "CPA", "poses", "n", "RMS (mm)", "nominal RMS (mm)",

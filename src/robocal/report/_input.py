@@ -44,14 +44,19 @@ SELECTION_ORDER = (*reversed(MODELS), CPA)
 BASELINE = NOMINAL
 
 
+#: The reach up to which the default RMS limit applies unscaled, m.
+REACH_REF_M = 2.0
+
+
 @dataclass(frozen=True)
 class Acceptance:
     """Thresholds of the verdict, applied to the held-out (validation) poses.
 
     ``min_percent_described``: RMS-based share of the nominal error the model must describe for
     "succeeded" (below it: "marginal"; zero or less: "failed"). ``max_rms_mm`` (default
-    0.5 mm, the accuracy a calibrated industrial arm of up to ~2 m reach is expected to reach;
-    set it per cell, ``None`` switches it off) and ``max_error_mm`` (optional): absolute
+    0.5 mm, the accuracy a calibrated industrial arm of up to ~2 m reach is expected to reach,
+    scaled in proportion for a longer reach unless given: see :meth:`for_reach`; set it per
+    cell, ``None`` switches it off) and ``max_error_mm`` (optional): absolute
     limits (exceeded: "failed"). A held-out RMS above ``implausible_rms_mm`` fails in any
     case: no calibrated robot is that far off, so the data or the robot description are
     wrong (joints in radians, positions in metres, another robot variant). Outlier fractions above
@@ -76,6 +81,16 @@ class Acceptance:
     max_overfit_ratio: float = 1.5
     overfit_floor_mm: float = 0.005
     validation_outlier_factor: float = 5.0
+    #: The default RMS limit grows with the robot: ``max_rms_mm`` per 2 m of reach (never
+    #: below it). False once a limit is given (CLI ``--max-rms-mm``, config ``max_rms_mm``).
+    scale_with_reach: bool = True
+
+    def for_reach(self, reach_m: float) -> Acceptance:
+        """This acceptance with the RMS limit scaled to a robot of ``reach_m`` (m) reach."""
+        if not self.scale_with_reach or self.max_rms_mm is None or not reach_m > REACH_REF_M:
+            return self
+        return replace(self, max_rms_mm=self.max_rms_mm * reach_m / REACH_REF_M,
+                       scale_with_reach=False)
 
     def __post_init__(self) -> None:
         for name in ("min_percent_described", "max_outlier_fraction", "fail_outlier_fraction",
@@ -99,7 +114,9 @@ class Acceptance:
             raise ConfigError(f"unknown key (allowed: {', '.join(sorted(allowed))})",
                               key=f"acceptance.{bad[0]}")
         # None is meant for the optional limits; __post_init__ checks the rest
-        kwargs: dict[str, Any] = {k: (None if v is None else float(v)) for k, v in d.items()}
+        kwargs: dict[str, Any] = {k: (None if v is None else float(v)) for k, v in d.items()
+                                  if k != "scale_with_reach"}
+        kwargs["scale_with_reach"] = bool(d.get("scale_with_reach", "max_rms_mm" not in d))
         return cls(**kwargs)
 
 

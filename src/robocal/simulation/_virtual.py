@@ -188,13 +188,18 @@ class VirtualCell:
         """True reflector positions (n, 3) m in the tracker frame."""
         return self.truth_model.positions(np.atleast_2d(q_actual), self.truth_params)
 
-    def nominal_error(self, q: Array) -> Array:
-        """Distance (n,) between truth and the nominal model with true base and reflector."""
+    def nominal_position(self, q: Array) -> Array:
+        """Where the nominal robot (true base and reflector) puts the reflector (n, 3) m,
+        tracker frame: where a program written with nominal kinematics expects it."""
         nominal = KinematicModel(self.robot, ErrorModelSpec(self.robot.dof, ()),
                                  self.T_tracker_base)
         x = nominal.nominal_params()
         x[ParameterLayout.TOOL] = self.truth_params[ParameterLayout.TOOL]
-        return np.linalg.norm(self.reflector_position(q) - nominal.positions(q, x), axis=1)
+        return nominal.positions(np.atleast_2d(q), x)
+
+    def nominal_error(self, q: Array) -> Array:
+        """Distance (n,) between truth and the nominal model with true base and reflector."""
+        return np.linalg.norm(self.reflector_position(q) - self.nominal_position(q), axis=1)
 
     def measure(self, q_actual: Array, rng: np.random.Generator) -> tuple[Array, Array]:
         """Noisy tracker readings (n, 3) m and their per-axis sigmas (n, 3) m."""

@@ -78,3 +78,57 @@ def test_predict_with_absurd_joints(model, tmp_path, capsys):
     assert main(["predict", "--model", str(model), "--joints", str(j), "--out",
                  str(tmp_path / "p.csv")]) == 2
     _one_line_error(capsys, "joints.csv", "plausible")
+
+
+@pytest.mark.parametrize("unit", ["radians", "metres"])
+def test_report_data_in_the_wrong_unit_is_refused_like_fit(meas, model, tmp_path, capsys, unit):
+    """Joints written in radians or positions in metres: report refuses as fit does."""
+    import numpy as np
+
+    from robocal._core.measurements import MeasurementSet
+
+    ms = MeasurementSet.read_csv(meas, dof=6)
+    # the file's numbers are degrees of q and mm of p: write radians / metres in their place
+    wrong = (MeasurementSet(np.radians(ms.q), ms.p, ms.sigma, ms.pose_id) if unit == "radians"
+             else MeasurementSet(ms.q, ms.p / 1000.0, ms.sigma, ms.pose_id))
+    bad = tmp_path / "bad.csv"
+    wrong.write_csv(bad)
+    assert main(["fit", "--robot", "fanuc_lrmate200i", "--data", str(bad), "--model",
+                 "constant", "--out", str(tmp_path / "M.json")]) == 2
+    _one_line_error(capsys, unit)
+    out = tmp_path / "r.html"
+    assert main(["report", "--model", str(model), "--data", str(bad), "--out", str(out)]) == 2
+    _one_line_error(capsys, "bad.csv", unit)
+    assert not out.exists()
+    assert main(["report", "--model", str(model), "--data", str(bad), "--no-sanity",
+                 "--out", str(out)]) in (0, 1)
+    assert out.exists()
+
+
+def test_report_takes_the_model_as_an_option_or_positional(meas, model, tmp_path, capsys):
+    assert main(["report", "--model", str(model), "--data", str(meas),
+                 "--out", str(tmp_path / "a.html")]) in (0, 1)
+    assert main(["report", str(model), "--out", str(tmp_path / "b.html")]) in (0, 1)
+    capsys.readouterr()
+    assert main(["report", str(model), "--model", str(model),
+                 "--out", str(tmp_path / "c.html")]) == 2
+    _one_line_error(capsys, "one source")
+
+
+def test_a_robot_or_cell_with_absurd_lengths_is_refused_before_any_arithmetic(tmp_path, capsys):
+    """a_mm = 1e300 or a tracker 1e300 mm away: the one-line error, no numpy warning first."""
+    from robocal.kinematics import load_robot, robot_to_toml
+
+    robot = tmp_path / "big.toml"
+    robot.write_text(robot_to_toml(load_robot("fanuc_lrmate200i")).replace(
+        "a_mm = 250.0", "a_mm = 1e300", 1))
+    assert "1e300" in robot.read_text()
+    assert main(["simulate", "--robot", str(robot), "--poses", "20",
+                 "--out", str(tmp_path / "m.csv")]) == 2
+    _one_line_error(capsys, "big.toml", "a_mm")
+    cell = tmp_path / "cell.toml"
+    cell.write_text('name = "big"\n[tracker]\nposition_mm = [1e300, 0.0, 500.0]\n')
+    assert main(["plan", "--robot", "fanuc_lrmate200i", "--cell", str(cell), "--count", "30",
+                 "--out", str(tmp_path / "p.json")]) == 2
+    _one_line_error(capsys, "cell.toml", "position_mm")
+    assert not (tmp_path / "m.csv").exists() and not (tmp_path / "p.json").exists()

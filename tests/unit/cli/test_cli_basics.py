@@ -169,3 +169,56 @@ def test_light_packages_leave_heavy_modules_unimported() -> None:
     out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_every_verb_has_a_description_and_no_empty_default_is_shown() -> None:
+    from robocal.cli.main import build_parser
+
+    for path, p in _parsers(build_parser()):
+        if len(path) >= 1:
+            assert p.description, f"robocal {' '.join(path)}: no description in --help"
+        assert "(default: )" not in p.format_help(), f"robocal {' '.join(path)}"
+
+
+@pytest.mark.parametrize(("typed", "meant"), [("fitt", "'fit'"), ("campaing", "'campaign'"),
+                                              ("simualte", "'simulate'")])
+def test_a_misspelt_command_gets_a_suggestion(capsys: pytest.CaptureFixture[str], typed: str,
+                                              meant: str) -> None:
+    assert main([typed, "--data", "x.csv"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"unknown command '{typed}'; did you mean {meant}" in err
+    assert main(["zzzz"]) == 2
+    assert "did you mean" not in capsys.readouterr().err
+
+
+def test_state_errors_are_plain_english() -> None:
+    from robocal.daemon.campaign import check_transition
+    from robocal.errors import InvalidTransition
+
+    with pytest.raises(InvalidTransition) as info:
+        check_transition("paused", "paused")
+    assert str(info.value).startswith("the campaign is already paused")
+    with pytest.raises(InvalidTransition) as info:
+        check_transition("measured", "approved")
+    assert "a campaign that is measured cannot be approved" in str(info.value)
+    assert "cannot go from" not in str(info.value)
+
+
+def test_sim_simulate_and_demo_agree_on_scenarios_and_seed(capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """One scenario list and one seed default; sim --help shows defaults and units."""
+    from robocal.simulation import SCENARIOS
+
+    with pytest.raises(SystemExit):
+        main(["sim", "--help"])
+    sim = " ".join(capsys.readouterr().out.split())
+    assert "1000x faster than real time" in sim and "(default: 0.001)" in sim
+    assert "(default: None)" not in sim and "(default: False)" not in sim
+    assert "{" + ",".join(SCENARIOS) + "}" in sim and "(default: 1)" in sim
+    for cmd in ("simulate", "demo", "plan"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "default 1, as" in text, cmd
+        if cmd != "plan":
+            assert all(s in text for s in SCENARIOS), cmd

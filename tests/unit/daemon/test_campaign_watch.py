@@ -1,7 +1,8 @@
 """``robocal campaign watch`` against an in-process daemon on a Unix socket (mock drivers).
 
 The watch follows only the run that is current when it starts, exits 0 when the campaign got
-where it was going, 1 on a fault or abort (printing the reason) and 3 when paused.
+where it was going, 1 on a fault or abort (printing the reason); on a paused campaign it waits
+for the resume (3 at once with --exit-on-pause).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import pytest
 from robocal.cli.main import main
 from robocal.daemon.api import ApiServer
 from robocal.daemon.service import CalibrationService
+from tests._waiting import eventually
 
 from .conftest import random_plan
 
@@ -45,9 +47,10 @@ async def test_watch_after_pause_and_resume_follows_the_current_run(make_config,
         st = await svc.create(random_plan(40, seed=3), actor="test")
         cid = st["id"]
         await svc.pause(cid, actor="test", reason="operator break")
-        rc, out = await _watch(sock, cid, capsys=capsys)
+        rc, out = await _watch(sock, cid, "--exit-on-pause", capsys=capsys)
         assert rc == 3, out
         assert "operator break" in out and "campaign resume" in out
+        assert "ETA" not in out  # a paused campaign has no time of arrival
         await svc.resume(cid, actor="test")
         # the earlier "paused" event is history: the watch must follow the run to its end
         rc, out = await _watch(sock, cid, capsys=capsys)
@@ -164,6 +167,104 @@ async def test_client_waits_for_a_daemon_that_is_starting(make_config, tmp_path)
     svc, api, _ = await _served(make_config, tmp_path)  # the daemon comes up late
     try:
         assert (await asyncio.wait_for(pending, 20))["status"] == "ok"
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+async def test_watch_of_a_paused_campaign_waits_for_the_resume(make_config, tmp_path, capsys):
+    svc, api, sock = await _served(
+        make_config, tmp_path, robot={"options": {"move_time_s": 0.01}})
+    try:
+        st = await svc.create(random_plan(30, seed=7), actor="test")
+        cid = st["id"]
+        await svc.pause(cid, actor="test", reason="coffee")
+        subscribers = len(svc.events._subscribers)
+        watch = asyncio.ensure_future(_watch(sock, cid, capsys=capsys))
+        # the watch is in the event stream, waiting: only then resume
+        await eventually(lambda: len(svc.events._subscribers) > subscribers, 30,
+                         what="the watch to subscribe")
+        assert not watch.done()
+        await svc.resume(cid, actor="test")
+        rc, out = await watch
+        assert rc == 0, out
+        assert "waiting for 'robocal campaign resume" in out and "30/30" in out
+        assert svc.status(cid)["state"] == "fitted"
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+def test_progress_times_come_from_the_state_history():
+    """Elapsed counts from the first run (not the watch's start); the rate counts measuring
+    time only; paused and aborted lines carry no ETA; the fit shows how long it has run."""
+    from robocal.cli._campaign import _Progress
+
+    status = {"poses_measured": 20, "poses_total": 40, "state": "running", "transitions": [
+        {"at": "2026-01-01T10:00:00+00:00", "to_state": "created"},
+        {"at": "2026-01-01T10:00:00+00:00", "to_state": "running"},
+        {"at": "2026-01-01T10:01:00+00:00", "to_state": "paused"},
+        {"at": "2026-01-01T10:31:00+00:00", "to_state": "running"}]}
+    t0 = 1767261600.0  # 2026-01-01T10:00:00Z
+    prog = _Progress(status, now=t0 + 32 * 60)
+    line = prog.line(now=t0 + 32 * 60)
+    # 32 min since it first ran; 20 poses in 2 min of measuring: 10 poses/min, 2 min left
+    assert "32:00 elapsed" in line and "10.0 poses/min" in line and "ETA 2:00" in line
+    prog.update({"kind": "state", "state": "paused"}, now=t0 + 33 * 60)
+    assert "ETA" not in prog.line(now=t0 + 40 * 60)
+    prog.update({"kind": "state", "state": "aborted"}, now=t0 + 41 * 60)
+    assert "ETA" not in prog.line(now=t0 + 41 * 60)
+    done = _Progress({**status, "poses_measured": 40, "state": "measured",
+                      "fitting": {"models": ["auto"], "elapsed_s": 12.0},
+                      "transitions": [*status["transitions"],
+                                      {"at": "2026-01-01T10:33:00+00:00",
+                                       "to_state": "measured"}]}, now=t0 + 34 * 60)
+    line = done.line(now=t0 + 34 * 60)
+    # 40 poses in 3 min of measuring, not spread over the 34 min since the start
+    assert "13.3 poses/min" in line and "| fitting auto 0:12" in line
+    done.update({"kind": "state", "state": "fitted"}, now=t0 + 34 * 60 + 8)
+    line = done.line(now=t0 + 35 * 60)
+    assert "| fit took 0:20" in line and "13.3 poses/min" in line
+
+
+def test_the_terminal_line_fits_the_terminal(monkeypatch):
+    import os
+
+    from robocal.cli._campaign import _Progress, _terminal_line
+
+    monkeypatch.setattr("shutil.get_terminal_size", lambda fallback=(80, 24): os.terminal_size(
+        (80, 24)))
+    prog = _Progress({"poses_measured": 123, "poses_total": 1250, "state": "running",
+                      "transitions": [{"at": "2026-01-01T10:00:00+00:00",
+                                       "to_state": "running"}]})
+    prog.retries, prog.beam_losses = 1234, 56
+    text = _terminal_line(prog)
+    assert text.startswith("\r\033[K") and "\n" not in text
+    assert len(text) - len("\r\033[K") <= 79
+
+
+async def test_campaign_events_lists_one_campaigns_history(make_config, tmp_path, capsys):
+    svc, api, sock = await _served(make_config, tmp_path)
+    try:
+        other = await svc.create(random_plan(10, seed=8), actor="test", start=False)
+        st = await svc.create(random_plan(10, seed=9), actor="alice", start=False)
+        await svc.abort(other["id"], actor="test", reason="not this one")
+        await svc.abort(st["id"], actor="alice", reason="wrong tool mounted")
+        rc = await asyncio.wait_for(asyncio.to_thread(
+            main, ["campaign", "events", st["id"], "--socket", str(sock)]), 30)
+        # the daemon's own log lines go to the same captured stdout: keep the command's
+        out = "\n".join(ln for ln in capsys.readouterr().out.splitlines()
+                        if "[info" not in ln and "[warning" not in ln)
+        assert rc == 0, out
+        assert "created -> aborted" in out and "wrong tool mounted" in out
+        assert "not this one" not in out
+        rc = await asyncio.wait_for(asyncio.to_thread(
+            main, ["campaign", "events", st["id"], "--json", "--socket", str(sock)]), 30)
+        text = capsys.readouterr().out
+        entries = json.loads("\n".join(ln for ln in text.splitlines()
+                                       if "[info" not in ln and "[warning" not in ln))
+        assert [e["at"] for e in entries] == sorted(e["at"] for e in entries)
+        assert any(e["kind"] == "audit" for e in entries), entries
     finally:
         await api.stop()
         await svc.stop()

@@ -155,3 +155,14 @@ def test_config_check_connect_is_a_preflight_of_the_cell(tmp_path, capsys):
     assert "the robot (fanuc_rmi) does not answer" in out
     assert main(["config", "check"]) == 2
     assert "--config FILE" in capsys.readouterr().err
+
+
+def test_the_simulated_cell_keeps_per_user_state_and_logs_json(monkeypatch, tmp_path):
+    """sim.toml: state in the running user's home (not a shared directory under /tmp),
+    JSON log lines as the README says; ``~`` in data_dir is the user's home."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    cfg = load_config(DEPLOY / "sim.toml")
+    assert cfg.data_dir == tmp_path / ".local" / "state" / "robocal-sim"
+    assert cfg.logging.format == "json"
+    gitignore = (REPO / ".gitignore").read_text().splitlines()
+    assert "/try/" in gitignore and "/cell/" in gitignore  # the README's scratch directories

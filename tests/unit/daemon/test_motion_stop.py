@@ -203,3 +203,22 @@ async def test_driver_fault_mid_move_on_rmi_stops_then_faults(tmp_path):
         assert stop["detail"]["trigger"] == "driver-fault"
         assert stop["detail"]["outcome"] == "stopped"
         assert world.halts == 1 and not world.moving
+
+
+async def test_a_shutdown_stop_that_raises_is_logged_not_swallowed(make_config, monkeypatch):
+    """The daemon's shutdown stop goes on past an unexpected failure, with an error line."""
+    from structlog.testing import capture_logs
+
+    from robocal.daemon import main as daemon_main
+    from robocal.daemon import service as service_mod
+
+    async def broken_halt(*args: Any, **kwargs: Any) -> bool:
+        raise RuntimeError("controller link in an unexpected state")
+
+    async with _mock_service(make_config) as (svc, _world):
+        monkeypatch.setattr(service_mod, "halt_motion", broken_halt)
+        with capture_logs() as logs:
+            assert await daemon_main.stop_robot_for_shutdown(svc) is False
+    errors = [e for e in logs if e["log_level"] == "error"]
+    assert errors and "may still be moving" in errors[0]["event"]
+    assert "unexpected state" in errors[0]["error"]

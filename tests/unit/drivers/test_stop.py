@@ -338,3 +338,41 @@ async def test_modbus_close_during_a_move_sends_abort(world):
         await robot.connect(timeout=5)
         await robot.close()
         assert [c for c, _ in sim.commands] == [mb.Cmd.MOVE_JOINT, mb.Cmd.ABORT]
+
+
+@pytest.mark.parametrize("kind", ["fanuc_rmi", "modbus_plc"])
+async def test_a_stop_that_fails_on_close_is_logged_as_an_error(kind, world):
+    """close() with a move in flight stops the robot; when the controller does not answer
+    the stop in time, closing goes on but says so loudly (structlog error)."""
+    from structlog.testing import capture_logs
+
+    from robocal.drivers.sim.faults import FaultConfig
+
+    sim: FanucRmiSimulator | ModbusPlcSimulator
+    if kind == "fanuc_rmi":
+        sim = FanucRmiSimulator(world, FanucSimOptions(time_scale=1.0))
+        await sim.start()
+        options: dict[str, Any] = {"connect_port": sim.connect_port, "reply_timeout_s": 2.0}
+    else:
+        sim = ModbusPlcSimulator(world, ModbusSimOptions(time_scale=1.0))
+        await sim.start()
+        options = {"port": sim.port, "poll_interval_s": 0.002, "request_timeout_s": 0.2}
+    robot = load_robot_driver(kind, {"joint_limits_deg": world.joint_limits_deg, **options})
+    try:
+        await robot.connect(timeout=5)
+        start = world.q_actual_rad
+        far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
+        move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=30))
+        await eventually(lambda: _max_diff(world.q_actual_rad, start) > 0.01)
+        move.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await move
+        sim.faults.config = FaultConfig(slow_rate=1.0, slow_s=2.0)
+        with capture_logs() as logs:
+            async with asyncio.timeout(5):
+                await robot.close()
+        errors = [e for e in logs if e["log_level"] == "error"]
+        assert errors and "may still be moving" in errors[0]["event"], logs
+    finally:
+        await robot.close()
+        await sim.stop()

@@ -105,3 +105,29 @@ def test_arbitrary_content_gives_config_error_or_robot(data: dict) -> None:  # t
         assert "fuzz.toml" in str(err)
     else:
         assert r.dof >= 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(key=st.sampled_from(["a_mm", "d_mm", "alpha_deg", "theta_offset_deg"]),
+       value=st.one_of(st.floats(allow_nan=False, allow_infinity=False),
+                       st.integers(-10**400, 10**400)))
+def test_a_number_of_any_size_is_a_robot_that_computes_or_a_config_error(
+        key: str, value: float) -> None:
+    """Property: a robot file with any number in a joint either loads and gives finite
+    positions without numpy warnings, or is refused as a ConfigError (no overflow later)."""
+    import warnings
+
+    from robocal.kinematics import ErrorModelSpec, KinematicModel
+
+    data = load_robot("fanuc_lrmate200i").to_dict()
+    data["joints"][1][key] = value
+    try:
+        robot = RobotDescription.from_dict(data, source="big.toml")
+    except ConfigError as err:
+        assert "big.toml" in str(err) and key in str(err)
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = KinematicModel(robot, ErrorModelSpec(robot.dof, ()))
+        p = m.positions(np.zeros((2, robot.dof)), m.nominal_params())
+    assert np.all(np.isfinite(p))

@@ -33,10 +33,15 @@ def test_section_is_added_once_and_replaced_with_the_measured_numbers(tmp_path):
     assert page.index('id="compensation"') < page.index("</main>")
     assert "0.0123" in page and "1.0500" in page and "1.0412" in page and "alice" in page
     assert "data:image/png;base64," in page  # the before/after plot
+    # the measured before -> after right under the verdict, not only at the end
+    top = page[:page.index('id="compensation"')]
+    assert page.index('<div id="push-result"') == page.index("</section>") + len("</section>")
+    assert "measured 1.0500 mm before &rarr; 0.0123 mm after on 3 re-measured targets" in top
     add_compensation_section(tmp_path, [_entry(0.0111)])
     page = (tmp_path / "report.html").read_text()
     assert page.count('<section id="compensation">') == 1
     assert "0.0111" in page and "0.0123" not in page
+    assert page.count('id="push-result"') == 1
     doc = json.loads((tmp_path / "report.json").read_text())
     assert doc["verdict"] == "ok"
     assert doc["compensation"][0]["verification"]["after"]["rms_mm"] == 0.0111

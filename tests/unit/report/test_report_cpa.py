@@ -141,3 +141,62 @@ def test_reasons_include_joint_dependent_errors() -> None:
     assert d["worse_than_nominal"] == ["cpa-classical"] and len(d["reasons"]) == 3
     none = CpaComparison([CpaRow("cpa", "polished", "validation", 5, 2e-3, 1e-3)])
     assert "no short arc, small radius or excess residual" in none.reasons()[0]
+
+
+def test_cpa_worse_than_nominal_under_another_models_verdict_is_a_reference_not_an_alarm(
+        campaign: Campaign, short_cpa: CPAResult, tmp_path: Path) -> None:
+    """No red CPA alarm right under the verdict about another model: a grey note that says
+    CPA is a reference and not applicable here; red only when the verdict is about CPA."""
+    inp = _input(campaign, short_cpa)
+    inp.selected = "constant"
+    h, _ = write_report(inp, tmp_path / "r.html")
+    page = h.read_text(encoding="utf-8")
+    first = page[:page.index('id="accuracy"')]
+    assert '<div class="flag info" data-flag="cpa-worse-than-nominal">' in first
+    assert '<div class="flag" data-flag="cpa-worse-than-nominal">' not in page
+    assert "for reference only (not applicable here; the verdict above is about constant)" \
+        in first
+    assert "worse: not applicable" in page and "more than doubles the error" in page
+    inp = _input(campaign, short_cpa)
+    inp.selected = "cpa"
+    h, _ = write_report(inp, tmp_path / "c.html")
+    page = h.read_text(encoding="utf-8")
+    assert page.count('<div class="flag" data-flag="cpa-worse-than-nominal">') == 2
+
+
+def test_the_default_rms_limit_grows_with_the_robots_reach() -> None:
+    from robocal.report import Acceptance
+
+    acc = Acceptance()
+    assert acc.for_reach(1.2).max_rms_mm == 0.5          # an LR Mate keeps 0.5 mm
+    assert acc.for_reach(4.056).max_rms_mm == pytest.approx(1.014)  # a KR 210 R3100
+    given = Acceptance.from_mapping({"max_rms_mm": 0.3})
+    assert given.for_reach(4.056).max_rms_mm == 0.3      # a limit given is kept
+    assert Acceptance.from_mapping({"min_percent_described": 60}).scale_with_reach
+
+
+def test_the_overview_uses_a_log_axis_when_bars_span_decades(campaign: Campaign,
+                                                             monkeypatch) -> None:
+    """0.009 mm next to 2.5 mm: the overview switches to a log axis (both bars visible)."""
+    from matplotlib.axes import Axes
+
+    from robocal.report._figures import needs_log_axis, summary_plot
+
+    assert needs_log_axis(np.array([2.5, 1.08, 0.009, np.nan]))
+    assert not needs_log_axis(np.array([0.5, 0.1, 0.05]))
+    scales: list[str] = []
+    real = Axes.set_xscale
+
+    def spy(self: Axes, value: str, **kw: object) -> None:
+        scales.append(value)
+        real(self, value, **kw)
+
+    monkeypatch.setattr(Axes, "set_xscale", spy)
+    an = analyse(ReportInput(models={"nominal": campaign.fits["nominal"].calibrated,
+                                     "high-order": campaign.fits["high-order"]},
+                             calibration=campaign.cal, validation=campaign.val,
+                             workspace_samples=50))
+    rms = [st.rms_m for m in an.models.values() for s in m.sets.values()
+           if (st := s.stats) is not None]
+    assert max(rms) / min(rms) > 20  # the premise: nominal vs high-order
+    assert summary_plot(an) is not None and scales == ["log"]

@@ -35,6 +35,7 @@ from robocal.drivers.sim.ltp_tracker import LtpSimOptions, LtpTrackerSimulator
 from robocal.drivers.sim.modbus_plc import ModbusPlcSimulator, ModbusSimOptions
 from robocal.drivers.sim.universal_robots import UrSimOptions, UrSimulator
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
+from robocal.simulation import SCENARIOS
 
 __all__ = [
     "DEFAULT_ROBOT",
@@ -309,10 +310,24 @@ class SimCell:
 
 
 # --- process entry point -----------------------------------------------------------------------
+class _DefaultsShown(argparse.HelpFormatter):
+    """Every option's default in its help, unless it has none (None, a flag, "")."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (not action.option_strings or action.default in (None, "", argparse.SUPPRESS)
+                or isinstance(action.default, bool)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robocal sim",
-        description="Run protocol simulators on loopback until SIGTERM/SIGINT.",
+        description="Run protocol simulators on loopback until SIGTERM/SIGINT. The robot is "
+                    "the virtual robot of 'robocal simulate' and 'robocal demo' (same "
+                    "scenarios, same seed default).",
+        formatter_class=_DefaultsShown,
     )
     p.add_argument(
         "which",
@@ -320,9 +335,11 @@ def _parser() -> argparse.ArgumentParser:
                  "all", "relay"],
     )
     p.add_argument("--robot", default=DEFAULT_ROBOT, help="built-in robot name")
-    p.add_argument("--scenario", default="paper", help="planted-error scenario")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                   help="planted errors of the virtual robot (see robocal simulate --help)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the planted errors, noise and faults (as plan, simulate, demo)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on")
     p.add_argument(
         "--port",
         type=int,
@@ -332,8 +349,12 @@ def _parser() -> argparse.ArgumentParser:
         "secondary P+3, RTDE P+5 (P=29999 gives the real ports)",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
-    p.add_argument("--fault-rate", type=float, default=0.0, help="beam-break+unstable rate")
-    p.add_argument("--time-scale", type=float, default=0.001, help="simulated time factor")
+    p.add_argument("--fault-rate", type=float, default=0.0,
+                   help="probability per tracker reading of a beam break or an unstable "
+                        "reading (0..1)")
+    p.add_argument("--time-scale", type=float, default=0.001,
+                   help="factor on the real duration of moves and waits: 1 = real time, "
+                        "0.001 = 1000x faster than real time, 0 = instantaneous")
     p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
     p.add_argument("--robotware", type=int, choices=[6, 7], default=6,
                    help="abb: RobotWare 6 (RWS 1.0, digest) or 7 (RWS 2.0, basic)")
