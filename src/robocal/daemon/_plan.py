@@ -240,7 +240,7 @@ def check_first_legs(robot: RobotDescription, cell: Cell | None,
     q_rad = np.radians(np.array([start, *(tuple(q) for _, q in stops)], dtype=float))
     checker = MotionChecker(robot, cell, limits=np.asarray(limits_rad, dtype=float))
     res = checker.check_moves(q_rad[:-1], q_rad[1:])
-    for k in np.flatnonzero(~res.safe):
+    for k in (int(i) for i in np.flatnonzero(~res.safe)):
         origin = "the actual start" if k == 0 else stops[k - 1][0]
         raise MotionRejected(
             f"{where}; the move from {origin} to {stops[k][0]} {_deg(stops[k][1])} deg is "
