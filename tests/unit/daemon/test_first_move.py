@@ -79,17 +79,15 @@ async def test_false_home_is_refused_before_the_first_move(service, real_plan) -
     assert st["state"] in ("measured", "fitted"), st["reason"]
 
 
-async def test_run_goes_home_first_and_checks_that_move(service, real_plan) -> None:
-    plan = copy.deepcopy(real_plan)
-    home = plan["poses"][0]["joints_deg"]
-    plan["motion"]["home_deg"] = home
-    svc = await service(measurement={"max_joint_deviation_deg": 0.5})
-    robot = await robot_at(svc, [0.0] * 6)             # safe to reach home from here
-    st = await svc.create(plan, actor="test", measure_only=True)
+async def test_a_fresh_run_moves_home_first(service, real_plan) -> None:
+    svc = await service()
+    # left at one of the plan's poses by an earlier run; home is all zeros
+    robot = await robot_at(svc, real_plan["poses"][3]["joints_deg"])
+    st = await svc.create(real_plan, actor="test", measure_only=True)
     st = await svc.wait(st["id"], ["measured", "faulted"], timeout=60.0)
     assert st["state"] == "measured", st["reason"]
-    # one move to home more than the plan has poses (via-points included)
-    assert robot.world.moves == len(plan["poses"]) + 2  # + the test's own placement
+    # the test's placement, one move to home, then one move per pose (via-points included)
+    assert robot.world.moves == 1 + 1 + len(real_plan["poses"])
 
 
 async def test_resume_checks_the_move_from_where_the_robot_stands(service, real_plan
