@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 
 from robocal.daemon._plan import parse_plan, plan_from_poses
+from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.mock import MockRobot
+from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
 from tests.unit.daemon.conftest import ROBOT
 
 # an LR Mate pose beside the pedestal of the demo cell: safe where it stands, but the straight
@@ -128,3 +130,35 @@ async def test_bare_plan_without_a_cell_checks_the_start_against_the_limits(serv
     assert stands_at(robot) in st["reason"]
     assert "outside the joint limits with margin: J1 at" in st["reason"]
 
+
+
+async def test_false_home_is_refused_over_the_rmi_wire(tmp_path, real_plan) -> None:
+    # the same refusal against the FANUC RMI and LTP/1 simulators over loopback TCP
+    plan = copy.deepcopy(real_plan)
+    plan["motion"]["home_deg"] = plan["poses"][0]["joints_deg"]
+    cell = SimCell(robot=ROBOT, seed=1, fanuc=FanucSimOptions(time_scale=0.0), modbus=False,
+                   ltp=LtpSimOptions(time_scale=0.0))
+    async with cell:
+        cell.world.move(np.radians(BESIDE_PEDESTAL))
+        moves, q_cmd = cell.world.moves, cell.world.q_cmd_rad.copy()
+        cfg = parse_config({
+            "data_dir": str(tmp_path / "state"), "robot_description": ROBOT,
+            "robot": {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")},
+            "tracker": {"kind": "ltp", "options": cell.tracker_options("tcp")},
+            "measurement": {"settle_s": 0.0, "samples": 3},
+            "fit": {"models": ["constant"], "select": "constant", "executor": "thread",
+                    "report": False},
+        }, source="test")
+        svc = CalibrationService(cfg)
+        await svc.start()
+        try:
+            st = await svc.create(plan, actor="test")
+            st = await svc.wait(st["id"], ["faulted", "measured"], timeout=30.0)
+            q = np.degrees(cell.world.q_actual_rad)
+            assert st["state"] == "faulted"
+            assert "stands at [" + ", ".join(f"{v:.2f}" for v in q) + "] deg" in st["reason"]
+            assert "pedestal" in st["reason"]
+            assert cell.world.moves == moves            # no motion command reached the robot
+            np.testing.assert_array_equal(cell.world.q_cmd_rad, q_cmd)
+        finally:
+            await svc.stop()
