@@ -497,10 +497,11 @@ class CalibrationService:
         fits = {name: (summ, mj) for name, (summ, mj) in result["fits"].items()}
         for name, msg in result["errors"].items():
             fits.setdefault(name, ({"model": name, "error": msg}, None))
-        self.store.save_fits(cid, sign_fits(fits, self._secret, self.robot))
+        fits = sign_fits(fits, self._secret, self.robot)
+        self.store.save_fits(cid, fits)
         select = self.config.fit.select
         chosen = result.get("selected_hint") if select == "best" else select
-        if chosen not in result["fits"] or result["fits"][chosen][1] is None:
+        if chosen not in result["fits"] or fits[str(chosen)][1] is None:
             errors = "; ".join(f"{k}: {v}" for k, v in result["errors"].items())
             self._fault_fit(cid, f"model {chosen!r} could not be fitted ({errors or 'no model'})")
             return

@@ -48,3 +48,20 @@ def test_a_readable_site_secret_is_refused(make_config, tmp_path: Path) -> None:
     secret.chmod(0o644)
     with pytest.raises(ConfigError, match="site secret file has mode 0644"):
         CalibrationService(make_config(site_secret_file=str(secret)))
+
+
+def test_an_implausible_fitted_model_is_not_signed() -> None:
+    from robocal.daemon.fitting import sign_fits
+    from robocal.kinematics import CalibratedModel, ErrorModelSpec, KinematicModel, load_robot
+
+    robot = load_robot("fanuc_lrmate200i")
+    model = KinematicModel(robot, ErrorModelSpec.constant(robot.dof))
+    good = CalibratedModel(model, model.nominal_params()).to_dict()
+    bad = json.loads(json.dumps(good))
+    bad["robot"]["joints"][1]["a_mm"] += 500.0
+    sha, _ = digests(bad)
+    bad["model_id"], bad["integrity"]["sha256"] = sha[:16], sha
+    out = sign_fits({"a": ({"model": "a"}, json.dumps(good)),
+                     "b": ({"model": "b"}, json.dumps(bad))}, b"a-long-enough-site-secret", robot)
+    assert json.loads(out["a"][1] or "{}")["integrity"]["hmac_sha256"]
+    assert out["b"][1] is None and "joints[2].a_mm" in out["b"][0]["error"]
