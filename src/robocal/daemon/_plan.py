@@ -9,6 +9,8 @@ strictly (:func:`plan_from_poses` writes it).
 
 Motion safety is recomputed here (:func:`unsafe_moves`): the flags a plan carries
 (``move_clear``, margins) are not trusted, and nothing in a plan can switch the check off.
+The first move of every run starts where the robot actually stands, never at the plan's
+declared home: :func:`check_first_legs` checks it from the joints read from the controller.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal.daemon.store import PoseRow
-from robocal.errors import ConfigError
+from robocal.errors import ConfigError, MotionRejected
 from robocal.kinematics import RobotDescription
 from robocal.planning import (
     PLAN_FORMAT,
@@ -34,7 +36,8 @@ from robocal.planning import (
     pydantic_config_error,
 )
 
-__all__ = ["PlanDoc", "parse_plan", "plan_from_poses", "unsafe_moves"]
+__all__ = ["PlanDoc", "check_first_legs", "first_stops", "parse_plan", "plan_from_poses",
+           "stored_plan", "unsafe_moves"]
 
 _PURPOSE: Final = r"^[a-z][a-z0-9-]*$"
 
@@ -149,7 +152,9 @@ def unsafe_moves(plan: PlanDoc, robot: RobotDescription, cell: Cell,
     """Every move of ``plan`` that is not safe for ``robot`` in ``cell``, along its swept path.
 
     The moves are home -> pose 0 -> pose 1 -> ... (home: the plan's ``motion.home_deg``; a
-    bare plan's first pose is checked on its own). Each is sampled finely enough for the link
+    bare plan's first pose is checked on its own). The move to home, or to the first pose,
+    starts where the robot stands: the engine checks it when the run starts
+    (:func:`check_first_legs`). Each is sampled finely enough for the link
     capsules and checked against ``limits_rad`` (dof pairs), the floor, the keep-out boxes
     and self-collision (:class:`robocal.planning.MotionChecker`); the plan's own flags are
     ignored.
@@ -166,6 +171,82 @@ def unsafe_moves(plan: PlanDoc, robot: RobotDescription, cell: Cell,
     checker = MotionChecker(robot, cell, limits=np.asarray(limits_rad, dtype=float))
     home = None if plan.home_deg is None else np.radians(np.asarray(plan.home_deg))
     return checker.check_sequence(q, home, [p.purpose for p in plan.poses])
+
+
+def stored_plan(text: str, *, source: str = "stored plan") -> PlanDoc:
+    """A campaign's stored plan document (full ``robocal.plan/1`` or the bare form) parsed
+    again."""
+    doc = json.loads(text)
+    return parse_plan(doc, source=source, strict=isinstance(doc, dict) and "motion" in doc)
+
+
+def first_stops(plan: PlanDoc, target: PoseRow, *, via_home: bool
+                ) -> list[tuple[str, tuple[float, ...]]]:
+    """Where a run's first moves go, as (label, joints deg): home first when ``via_home`` and
+    the plan has one (a fresh run), then ``target``, the first pose still to run."""
+    stops: list[tuple[str, tuple[float, ...]]] = []
+    if via_home and plan.home_deg is not None:
+        stops.append(("home (the plan's motion.home_deg)", plan.home_deg))
+    stops.append((f"pose {target.idx} ({target.purpose})", target.q_deg))
+    return stops
+
+
+def _deg(q_deg: Sequence[float]) -> str:
+    return "[" + ", ".join(f"{v:.2f}" for v in q_deg) + "]"
+
+
+def _outside(q_deg: Sequence[float], limits_rad: Sequence[tuple[float, float]]) -> str | None:
+    """The first joint of ``q_deg`` outside ``limits_rad`` in words, or None."""
+    for i, (v, (lo, hi)) in enumerate(zip(q_deg, np.degrees(limits_rad), strict=True)):
+        if not (np.isfinite(v) and lo <= v <= hi):
+            return f"J{i + 1} at {v:.2f} deg outside [{lo:.2f}, {hi:.2f}] deg"
+    return None
+
+
+def check_first_legs(robot: RobotDescription, cell: Cell | None,
+                     limits_rad: Sequence[tuple[float, float]], start_deg: Sequence[float],
+                     stops: Sequence[tuple[str, Sequence[float]]]) -> None:
+    """Check a run's first moves, from the joints the robot actually stands at.
+
+    ``start_deg`` (dof,) is what the controller reported; ``stops`` come from
+    :func:`first_stops`. The start and every stop must lie within ``limits_rad`` (a joint move
+    between two points inside the limits stays inside them); with a ``cell`` every move is
+    also checked along its swept path (floor, keep-out boxes, self-collision; the same
+    :class:`MotionChecker` as :func:`unsafe_moves`).
+
+    Raises
+    ------
+    MotionRejected
+        Naming the actual start pose (deg) and what is wrong; nothing may move then.
+    """
+    start = tuple(float(v) for v in start_deg)
+    where = (f"first move refused before any motion: the robot stands at {_deg(start)} deg "
+             "(joints read from the controller)")
+    if len(start) != robot.dof:
+        raise MotionRejected(f"{where}; the controller reports {len(start)} joints, robot "
+                             f"{robot.name!r} has {robot.dof}", kind="daemon")
+    bad = _outside(start, limits_rad)
+    if bad is not None:
+        raise MotionRejected(f"{where}; that start is outside the joint limits with margin: "
+                             f"{bad}. Jog the robot inside its limits, then resume",
+                             kind="daemon")
+    for label, q in stops:
+        bad = _outside(q, limits_rad)
+        if bad is not None:
+            raise MotionRejected(f"{where}; {label} is outside the joint limits: {bad}",
+                                 kind="daemon")
+    if cell is None:
+        return
+    q_rad = np.radians(np.array([start, *(tuple(q) for _, q in stops)], dtype=float))
+    checker = MotionChecker(robot, cell, limits=np.asarray(limits_rad, dtype=float))
+    res = checker.check_moves(q_rad[:-1], q_rad[1:])
+    for k in (int(i) for i in np.flatnonzero(~res.safe)):
+        origin = "the actual start" if k == 0 else stops[k - 1][0]
+        raise MotionRejected(
+            f"{where}; the move from {origin} to {stops[k][0]} {_deg(stops[k][1])} deg is "
+            f"unsafe in cell {cell.name!r}: {res.reasons[k]} at {100.0 * res.at[k]:.0f} % of "
+            f"the move, joints {_deg(np.degrees(res.q_bad[k]))} deg. Move the robot to a "
+            "safe start (e.g. the plan's home), then resume", kind="daemon")
 
 
 def plan_from_poses(q_deg: Sequence[Sequence[float]], *, purpose: str = "calibration",

@@ -240,6 +240,9 @@ class AppConfig(_Model):
     data_dir: Path = Field(default_factory=_default_data_dir)
     robot_description: str = Field(min_length=1)
     cell: str | None = None
+    #: a file (mode 0600) holding this site's secret; MODEL.json files the daemon stores are
+    #: signed with it (HMAC-SHA256) and only signed ones are loaded
+    site_secret_file: Path | None = None
     robot: DriverConfig
     tracker: DriverConfig
     api: ApiConfig = ApiConfig()
@@ -272,20 +275,34 @@ class AppConfig(_Model):
             fewer than 16 characters.
         """
         path = self.api.token_file
-        if path is None:
-            return None
-        try:
-            mode = stat.S_IMODE(path.stat().st_mode)
-            token = path.read_text(encoding="utf-8").strip()
-        except (OSError, UnicodeDecodeError) as err:
-            raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
-        if mode & 0o077:
-            raise ConfigError(f"token file has mode {mode:04o}: others could read or change the "
-                              "token; make it the daemon user's alone (chmod 600)",
-                              source=str(path))
-        if len(token) < 16:
-            raise ConfigError("token must have at least 16 characters", source=str(path))
-        return token
+        return None if path is None else _private_text(path, "token")
+
+    def read_site_secret(self) -> bytes | None:
+        """Return the site secret from ``site_secret_file`` (stripped, UTF-8), or None.
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`read_token`, for the secret file.
+        """
+        path = self.site_secret_file
+        return None if path is None else _private_text(path, "site secret").encode()
+
+
+def _private_text(path: Path, what: str) -> str:
+    """The stripped text of a secret file only its owner can read or change, >= 16 chars."""
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+        text = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read {what} file: {err}", source=str(path)) from err
+    if mode & 0o077:
+        raise ConfigError(f"{what} file has mode {mode:04o}: others could read or change the "
+                          f"{what}; make it the daemon user's alone (chmod 600)",
+                          source=str(path))
+    if len(text) < 16:
+        raise ConfigError(f"{what} must have at least 16 characters", source=str(path))
+    return text
 
 
 def _loc(loc: tuple[Any, ...]) -> str:
@@ -301,10 +318,11 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
             return str(base / value)
         return value
 
-    if "data_dir" in out:
-        d = out["data_dir"]
-        # "~/..." is the running user's home: per-user state, e.g. for the simulated cell
-        out["data_dir"] = fix(os.path.expanduser(d) if isinstance(d, str) else d)
+    for key in ("data_dir", "site_secret_file"):
+        if key in out:
+            d = out[key]
+            # "~/..." is the running user's home: per-user state, e.g. for the simulated cell
+            out[key] = fix(os.path.expanduser(d) if isinstance(d, str) else d)
     api = out.get("api")
     if isinstance(api, dict):
         api = dict(api)

@@ -1,5 +1,12 @@
 """The measuring executor: move, settle, read joints, measure, validate, persist — per pose.
 
+Before the first move of every run (new campaign, resume, verification run) the robot's
+actual joints are read and the run's first moves are checked from there (joint limits; swept
+path in the daemon's cell, else the plan's): a fresh run of a plan with a home moves to home
+first, then to pose 0; a resumed run moves straight to its next pose. The plan's declared home
+is never taken as the start. An unsafe first move faults the campaign before anything moves,
+naming the actual start pose.
+
 For every pose not yet in the store, in plan order:
 
 1. check the target against the joint limits shrunk by ``limits.joint_margin_deg``
@@ -30,6 +37,7 @@ import structlog
 from numpy.typing import NDArray
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
+from robocal.daemon._plan import check_first_legs, first_stops, stored_plan
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
@@ -52,6 +60,7 @@ from robocal.kinematics import (
     RobotDescription,
     rigid_fit,
 )
+from robocal.planning import load_cell
 
 __all__ = [
     "CampaignRunner",
@@ -226,12 +235,16 @@ class CampaignRunner:
                  resume_at=start)
         try:
             async with self.hub.lock:
+                first = True
                 for pose in todo:
                     _raise_if_cancelling()
                     state = self._state(cid)
                     if state != CampaignState.RUNNING:
                         log.info("stopped between poses", state=state.value)
                         return state
+                    if first:
+                        await self._checked_start(cid, pose, via_home=start == 0)
+                        first = False
                     t0 = time.perf_counter()
                     if not pose.measure:
                         await self._move(pose)
@@ -281,19 +294,59 @@ class CampaignRunner:
             return CampaignState.FAULTED
         return state  # paused or aborted meanwhile: the pose in progress is simply redone
 
+    async def _checked_start(self, cid: str, target: PoseRow, *, via_home: bool) -> None:
+        """Read where the robot stands, check the run's first moves from there (to home when
+        ``via_home`` and the plan has one, then to ``target``) and move to home.
+
+        Raises
+        ------
+        MotionRejected
+            An unsafe first move (nothing was moved), or the robot did not reach home.
+        """
+        robot = await self.hub.robot()
+        start_deg = [math.degrees(v) for v in (await robot.read_joints()).q_rad]
+        plan = stored_plan(self.store.plan_json(cid), source=f"campaign {cid} plan")
+        cell = load_cell(self.config.cell) if self.config.cell else plan.cell
+        stops = first_stops(plan, target, via_home=via_home)
+        _log.info("first move checked from the actual joints", campaign=cid,
+                  start_deg=[round(v, 4) for v in start_deg], via=[s[0] for s in stops],
+                  cell=None if cell is None else cell.name)
+        # the swept-path check takes milliseconds to a few tenths of a second: off the loop
+        await asyncio.to_thread(check_first_legs, self.robot, cell, self.limits, start_deg,
+                                stops)
+        if len(stops) == 1:
+            return
+        home = [math.radians(v) for v in stops[0][1]]
+        await self._move_to(home, "home")
+        # the next move was checked from home: make sure the robot is there
+        q_act = (await robot.read_joints()).q_rad
+        self._check_deviation("home", q_act, home)
+
+    def _check_deviation(self, what: str, q_act: Sequence[float],
+                         q_cmd: Sequence[float]) -> None:
+        dev = max(abs(a - b) for a, b in zip(q_act, q_cmd, strict=True))
+        limit = self.config.measurement.max_joint_deviation_deg
+        if math.degrees(dev) > limit:
+            raise MotionRejected(
+                f"{what}: robot stopped {math.degrees(dev):.3f} deg from the target "
+                f"(limit {limit} deg)", kind="daemon")
+
     async def _move(self, pose: PoseRow) -> list[float]:
         """Check the target against the limits, then move; return the target (rad)."""
         q_cmd = [math.radians(v) for v in pose.q_deg]
+        await self._move_to(q_cmd, f"pose {pose.idx}")
+        return q_cmd
+
+    async def _move_to(self, q_cmd: list[float], what: str) -> None:
         # Never send a target outside the limits (shrunk by the margin); the driver checks
         # its own limits again before anything goes on the wire.
         try:
             check_joint_target(q_cmd, self.limits, kind="daemon")
         except LimitViolation as err:
-            raise LimitViolation(f"pose {pose.idx}: {err}", kind="daemon") from err
+            raise LimitViolation(f"{what}: {err}", kind="daemon") from err
         robot = await self.hub.robot()
         await robot.move_to(q_cmd, speed_pct=self.config.limits.speed_pct,
                             timeout=self.config.measurement.move_timeout_s)
-        return q_cmd
 
     async def _measure_pose(self, cid: str, pose: PoseRow, predictor: Predictor
                             ) -> MeasurementRow:
@@ -305,11 +358,7 @@ class CampaignRunner:
             await self.clock.sleep(cfg.settle_s)
         joints = await robot.read_joints()
         q_act = list(joints.q_rad)
-        dev = max(abs(a - b) for a, b in zip(q_act, q_cmd, strict=True))
-        if math.degrees(dev) > cfg.max_joint_deviation_deg:
-            raise MotionRejected(
-                f"pose {pose.idx}: robot stopped {math.degrees(dev):.3f} deg from the target "
-                f"(limit {cfg.max_joint_deviation_deg} deg)", kind="daemon")
+        self._check_deviation(f"pose {pose.idx}", q_act, q_cmd)
         attempts = 0
         beam_losses = 0
 

@@ -42,6 +42,35 @@ _log = structlog.get_logger(__name__)
 _CPA = re.compile(r"^cpa-j(\d+)$")
 
 
+def load_model(text: str, *, source: str, secret: bytes | None,
+               nominal: RobotDescription | None) -> CalibratedModel:
+    """A stored MODEL.json verified: content hash, site signature (with ``secret``) and the
+    robot description against the daemon's ``nominal`` one (:meth:`CalibratedModel.from_dict`).
+    """
+    return CalibratedModel.from_dict(json.loads(text), source=source, secret=secret,
+                                     nominal=nominal)
+
+
+def sign_fits(fits: dict[str, tuple[dict[str, Any], str | None]], secret: bytes | None,
+              robot: RobotDescription) -> dict[str, tuple[dict[str, Any], str | None]]:
+    """Fitted models (summary, MODEL.json text) signed with the site ``secret`` (unchanged
+    without one); a model that does not verify is kept out with the error in its summary."""
+    if secret is None:
+        return fits
+    out: dict[str, tuple[dict[str, Any], str | None]] = {}
+    for name, (summary, text) in fits.items():
+        if text is None:
+            out[name] = (summary, None)
+            continue
+        try:
+            cal = load_model(text, source=f"fitted model {name!r}", secret=None, nominal=robot)
+        except ConfigError as err:
+            out[name] = ({**summary, "error": str(err)}, None)
+            continue
+        out[name] = (summary, json.dumps(cal.to_dict(secret=secret), default=json_default))
+    return out
+
+
 def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
                     ) -> MeasurementSet:
     """Stored rows (mm, deg) as a :class:`MeasurementSet` (SI), pose ids ``P<index>``.

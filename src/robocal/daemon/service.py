@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import builtins
 import contextlib
-import json
 import math
 import sqlite3
 import time
@@ -38,7 +37,7 @@ from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margin
 from robocal.daemon.events import EventBus
-from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options
+from robocal.daemon.fitting import FitRunner, build_fit_job, fit_options, load_model, sign_fits
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import CampaignRecord, MeasurementRow, Store, now_iso
 from robocal.drivers import ControllerSnapshot, check_joint_target
@@ -86,6 +85,7 @@ class CalibrationService:
         self.hub = DriverHub(config, self.robot)
         self.fitter = FitRunner(executor=config.fit.executor, timeout_s=config.fit.timeout_s)
         self._digest = config_digest(config)
+        self._secret = config.read_site_secret()   # signs and checks stored MODEL.json
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._fit_started: dict[str, tuple[str, float]] = {}  # ISO time, monotonic s
@@ -469,7 +469,8 @@ class CalibrationService:
             text = self.store.model_json(rec.id, rec.selected_model)
             if text:
                 with contextlib.suppress(RobocalError, ValueError, KeyError):
-                    return CalibratedModel.from_dict(json.loads(text))
+                    return load_model(text, source=f"campaign {rec.id}",
+                                      secret=self._secret, nominal=self.robot)
         return None
 
     def _spawn_measure(self, cid: str) -> None:
@@ -579,10 +580,11 @@ class CalibrationService:
         fits = {name: (summ, mj) for name, (summ, mj) in result["fits"].items()}
         for name, msg in result["errors"].items():
             fits.setdefault(name, ({"model": name, "error": msg}, None))
+        fits = sign_fits(fits, self._secret, self.robot)
         self.store.save_fits(cid, fits)
         select = self.config.fit.select
         chosen = result.get("selected_hint") if select == "best" else select
-        if chosen not in result["fits"] or result["fits"][chosen][1] is None:
+        if chosen not in result["fits"] or fits[str(chosen)][1] is None:
             errors = "; ".join(f"{k}: {v}" for k, v in result["errors"].items())
             self._fault_fit(cid, f"model {chosen!r} could not be fitted ({errors or 'no model'})")
             return
@@ -665,7 +667,8 @@ class CalibrationService:
         text = self.store.model_json(cid, model)
         if text is None:
             raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
-        cal = CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid}")
+        cal = load_model(text, source=f"campaign {cid}", secret=self._secret,
+                         nominal=self.robot)
         kind = self.config.compensation.kind
         program = self._program(cid)
         table = pushing.build_campaign_table(
@@ -1210,4 +1213,5 @@ class CalibrationService:
         text = self.store.model_json(cid, name)
         if text is None:
             raise IdentificationError(f"campaign {cid} has no fitted model {name!r}")
-        return CalibratedModel.from_dict(json.loads(text), source=f"campaign {cid}")
+        return load_model(text, source=f"campaign {cid}", secret=self._secret,
+                          nominal=self.robot)

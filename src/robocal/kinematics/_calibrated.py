@@ -5,6 +5,12 @@ the error-model terms, every parameter with its unit and standard deviation (mm,
 compliance in deg/(N m)), the tracker <- base reference, the joint range the data covered,
 an optional low-order fallback used outside that range, and free-form ``metrics``/``fit``/
 ``data`` sections written by identification.
+
+``model_id`` is the start of a SHA-256 over every section that changes predictions or limits
+(:data:`robocal.kinematics._integrity.HASHED`, the robot description included); the
+``integrity`` record holds the whole digest and, where the daemon has a site secret, an
+HMAC-SHA256 with it. Loading checks both, and that the robot description is physically the
+nominal robot (:func:`robocal.kinematics._integrity.check_robot`).
 """
 
 from __future__ import annotations
@@ -12,7 +18,6 @@ from __future__ import annotations
 import base64
 import binascii
 import datetime as _dt
-import hashlib
 import json
 import math
 import zlib
@@ -25,6 +30,14 @@ from numpy.typing import NDArray
 
 from robocal._core.files import atomic_write_text, json_default
 from robocal.errors import ConfigError
+from robocal.kinematics._integrity import (
+    HASHED,
+    SCHEME,
+    builtin_nominal,
+    check_robot,
+    check_seal,
+    digests,
+)
 from robocal.kinematics._model import KinematicModel
 from robocal.kinematics._robot import RobotDescription
 from robocal.kinematics._spec import ErrorModelSpec
@@ -56,6 +69,10 @@ class CalibratedModel:
     fit: dict[str, Any] = field(default_factory=dict)
     data: dict[str, Any] = field(default_factory=dict)
     created: str = ""
+    # the hashed sections exactly as a loaded file held them, with a fingerprint of the
+    # values they were read into (unit conversions do not round-trip bit for bit)
+    _raw: tuple[tuple[Any, ...], dict[str, Any]] | None = field(default=None, repr=False,
+                                                                compare=False)
 
     def __post_init__(self) -> None:
         self.params = np.asarray(self.params, dtype=float)
@@ -77,21 +94,47 @@ class CalibratedModel:
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
     def compute_id(self) -> str:
-        """Short content hash of structure and parameters.
+        """Short content hash (16 hex) of every section that changes predictions or limits.
 
-        Hashes the values as MODEL.json stores them and reads them back (SI -> file units
-        -> SI), so the id of a loaded file can be recomputed bit for bit and an edited file
-        is recognised.
+        Hashes the sections as MODEL.json holds them (a loaded model keeps the values it read),
+        so the id of a loaded file is recomputed bit for bit and an edited file is recognised.
         """
-        scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
-        params = (self.params * scale) / scale
+        return digests(self._sections())[0][:16]
+
+    def _fingerprint(self) -> tuple[Any, ...]:
+        cov = None if self.covariance is None else self.covariance.tobytes()
+        cover = None if self.coverage is None else self.coverage.tobytes()
+        return (id(self.model), self.params.tobytes(), cov, cover, id(self.fallback))
+
+    def _sections(self) -> dict[str, Any]:
+        """The hashed sections in file form (mm, deg)."""
+        if self._raw is not None and self._raw[0] == self._fingerprint():
+            return dict(self._raw[1])
+        sig = self.sigma
+        params = []
+        for k, (name, unit) in enumerate(zip(self.model.names, self.model.layout.units,
+                                             strict=True)):
+            f, u = _TO_FILE[unit]
+            params.append({"name": name, "value": float(self.params[k] * f), "unit": u,
+                           "sigma": None if sig is None else float(sig[k] * f)})
         T = self.model.T_ref.copy()
-        T[:3, 3] = (T[:3, 3] * 1e3) * 1e-3
-        h = hashlib.sha256()
-        h.update(json.dumps(self.model.spec.to_dict(), sort_keys=True).encode())
-        h.update(np.round(T, 12).tobytes())
-        h.update(np.round(params, 12).tobytes())
-        return h.hexdigest()[:16]
+        T[:3, 3] *= 1e3
+        cov = None
+        if self.covariance is not None:
+            scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
+            cov = _encode_covariance(self.covariance * np.outer(scale, scale))
+        out = {
+            "format": MODEL_FORMAT,
+            "robot": self.robot.to_dict(),
+            "error_model": self.model.spec.to_dict(),
+            "T_tracker_base_ref_mm": T.tolist(),
+            "parameters": params,
+            "coverage_deg": None if self.coverage is None else np.degrees(self.coverage).tolist(),
+            "covariance": cov,
+            "fallback": None if self.fallback is None else self.fallback.to_dict(),
+        }
+        # as the file will hold them: numpy scalars become plain numbers
+        return dict(json.loads(json.dumps(out, default=json_default)))
 
     def inside_coverage(self, q: Array) -> NDArray[np.bool_]:
         """Per pose: are all joints inside the covered range?"""
@@ -119,52 +162,45 @@ class CalibratedModel:
         return np.sqrt(np.clip(C, 0.0, None))
 
     # -- files ----------------------------------------------------------------------------
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (mm, deg)."""
-        sig = self.sigma
-        params = []
-        for k, (name, unit) in enumerate(zip(self.model.names, self.model.layout.units,
-                                             strict=True)):
-            f, u = _TO_FILE[unit]
-            params.append({"name": name, "value": float(self.params[k] * f), "unit": u,
-                           "sigma": None if sig is None else float(sig[k] * f)})
-        T = self.model.T_ref.copy()
-        T[:3, 3] *= 1e3
+    def to_dict(self, *, secret: bytes | None = None) -> dict[str, Any]:
+        """JSON-ready dict (mm, deg); ``secret`` (the site secret) adds an HMAC-SHA256 of the
+        hashed sections to the ``integrity`` record."""
+        sections = self._sections()
+        sha, mac = digests(sections, secret)
         out: dict[str, Any] = {
             "format": MODEL_FORMAT,
             "model_id": self.model_id,
             "kind": self.kind,
             "created": self.created,
-            "robot": self.robot.to_dict(),
-            "error_model": self.model.spec.to_dict(),
-            "T_tracker_base_ref_mm": T.tolist(),
-            "parameters": params,
-            "coverage_deg": None if self.coverage is None else np.degrees(self.coverage).tolist(),
+            **{k: v for k, v in sections.items() if k != "format"},
             "metrics": self.metrics,
             "fit": self.fit,
             "data": self.data,
+            "integrity": {"scheme": SCHEME, "covers": list(HASHED), "sha256": sha,
+                          **({} if mac is None else {"hmac_sha256": mac})},
         }
-        if self.covariance is not None:
-            scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
-            out["covariance"] = _encode_covariance(self.covariance * np.outer(scale, scale))
-        out["fallback"] = None if self.fallback is None else self.fallback.to_dict()
         return out
 
-    def save(self, path: str | Path) -> None:
-        """Write MODEL.json atomically."""
-        atomic_write_text(path, json.dumps(self.to_dict(), indent=1, default=json_default))
+    def save(self, path: str | Path, *, secret: bytes | None = None) -> None:
+        """Write MODEL.json atomically (signed with ``secret``, the site secret, when given)."""
+        atomic_write_text(path, json.dumps(self.to_dict(secret=secret), indent=1,
+                                           default=json_default))
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], *, source: str = "<model>",
-                  verify: bool = True) -> CalibratedModel:
+    def from_dict(cls, d: dict[str, Any], *, source: str = "<model>", verify: bool = True,
+                  secret: bytes | None = None, nominal: RobotDescription | None = None
+                  ) -> CalibratedModel:
         """Inverse of :meth:`to_dict`; raise :class:`ConfigError` naming the bad key.
 
-        With ``verify`` (the default) the content must match its ``model_id`` (an edited
-        file is refused) and every number must be finite and physically plausible
-        (:data:`BOUNDS`); any malformed part gives one :class:`ConfigError`.
+        With ``verify`` (the default) the content must match its ``model_id`` and
+        ``integrity`` record (an edited file is refused; with ``secret``, the site secret, the
+        file must also carry this site's HMAC), every number must be finite and physically
+        plausible (:data:`BOUNDS`, :data:`PARAMETER_BOUNDS`), and the robot description must
+        be the ``nominal`` one (default: the built-in robot it names, if any) within
+        tolerance; any malformed part gives one :class:`ConfigError`.
         """
         try:
-            return cls._from_dict(d, source=source, verify=verify)
+            return cls._from_dict(d, source=source, verify=verify, secret=secret, nominal=nominal)
         except ConfigError:
             raise
         except (KeyError, TypeError, ValueError, AttributeError, IndexError,
@@ -173,7 +209,9 @@ class CalibratedModel:
                               source=source) from err
 
     @classmethod
-    def _from_dict(cls, d: dict[str, Any], *, source: str, verify: bool) -> CalibratedModel:
+    def _from_dict(cls, d: dict[str, Any], *, source: str, verify: bool,
+                   secret: bytes | None = None, nominal: RobotDescription | None = None
+                   ) -> CalibratedModel:
         if not isinstance(d, dict):
             raise ConfigError("model file must hold a JSON object", source=source)
         if d.get("format") != MODEL_FORMAT:
@@ -183,6 +221,9 @@ class CalibratedModel:
             if key not in d:
                 raise ConfigError("required key is missing", source=source, key=key)
         robot = RobotDescription.from_dict(d["robot"], source=f"{source}#robot")
+        if verify:
+            check_robot(robot, nominal if nominal is not None else builtin_nominal(robot),
+                        source)
         try:
             spec = ErrorModelSpec.from_dict(d["error_model"])
         except ConfigError as err:
@@ -202,9 +243,6 @@ class CalibratedModel:
         if not isinstance(d["parameters"], list):
             raise ConfigError("must be a list of parameter entries", source=source,
                               key="parameters")
-        if verify and not d.get("model_id"):
-            raise ConfigError("required key is missing (the content hash)", source=source,
-                              key="model_id")
         byname = {}
         for i, p in enumerate(d["parameters"]):
             try:
@@ -227,9 +265,10 @@ class CalibratedModel:
         if verify:
             for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
                 f, fu = _TO_FILE[unit]
-                if abs(x[k] * f) > BOUNDS[fu]:
+                bound = PARAMETER_BOUNDS.get((name.split(".")[0], fu), BOUNDS[fu])
+                if abs(x[k] * f) > bound:
                     raise ConfigError(f"{x[k] * f:.6g} {fu} is not a plausible value (|v| <= "
-                                      f"{BOUNDS[fu]:g} {fu})", source=source,
+                                      f"{bound:g} {fu})", source=source,
                                       key=f"parameters.{name}")
         cov = None
         if d.get("covariance") is not None:
@@ -242,7 +281,9 @@ class CalibratedModel:
             cover = np.radians(_coverage(d["coverage_deg"], robot.dof, source))
         fb = None
         if d.get("fallback"):
-            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback", verify=verify)
+            # the parent's hash (and HMAC) covers the fallback section whole
+            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback", verify=verify,
+                               nominal=nominal)
         for key in ("metrics", "fit", "data"):
             if not isinstance(d.get(key) or {}, dict):
                 raise ConfigError("must be a JSON object", source=source, key=key)
@@ -250,17 +291,14 @@ class CalibratedModel:
                   model_id=str(d.get("model_id", "")), kind=str(d.get("kind", "custom")),
                   metrics=dict(d.get("metrics") or {}), fit=dict(d.get("fit") or {}),
                   data=dict(d.get("data") or {}), created=str(d.get("created", "")))
-        if verify:
-            content = out.compute_id()
-            if out.model_id != content:
-                raise ConfigError(
-                    f"the content does not match its model_id {out.model_id!r} (it hashes to "
-                    f"{content!r}): the file was edited or damaged after it was written; "
-                    "refit or restore the original", source=source, key="model_id")
+        if verify:  # last, so that a malformed or implausible part is named first
+            check_seal(d, source, secret)
+        out._raw = (out._fingerprint(), {k: d.get(k) for k in HASHED})
         return out
 
     @classmethod
-    def load(cls, path: str | Path, *, verify: bool = True) -> CalibratedModel:
+    def load(cls, path: str | Path, *, verify: bool = True, secret: bytes | None = None,
+             nominal: RobotDescription | None = None) -> CalibratedModel:
         """Read MODEL.json; raise :class:`ConfigError` naming the file and problem."""
         src = str(path)
         try:
@@ -275,13 +313,24 @@ class CalibratedModel:
             raise ConfigError(f"not valid JSON: {err}", source=src) from err
         except (RecursionError, ValueError) as err:  # nested too deeply; huge integers
             raise ConfigError(f"not valid JSON: {type(err).__name__}", source=src) from err
-        return cls.from_dict(d, source=src, verify=verify)
+        return cls.from_dict(d, source=src, verify=verify, secret=secret, nominal=nominal)
 
 
 #: Largest magnitude a MODEL.json number may have, by file unit: 100 m for lengths (the
 #: tracker <- base distance included), ten turns for angles, 10 deg/(N m) for compliance.
 #: Anything larger is a damaged or hand-edited file, not a robot.
 BOUNDS: dict[str, float] = {"mm": 1e5, "deg": 3600.0, "deg/(N m)": 10.0}
+
+#: Tighter bounds by parameter group and unit. The base terms correct the tracker <- base
+#: reference (itself bounded by :data:`TRACKER_RANGE_MM`), so they are small; no rotation
+#: needs more than half a turn.
+PARAMETER_BOUNDS: dict[tuple[str, str], float] = {("base", "mm"): 1000.0,
+                                                  ("base", "deg"): 180.0,
+                                                  ("tool", "mm"): 2000.0}
+
+#: Farthest a tracker measures (the largest laser trackers reach 80 m in radius): the
+#: tracker <- base reference cannot be farther.
+TRACKER_RANGE_MM = 80_000.0
 
 
 def _check_transform(T: Array, source: str) -> None:
@@ -294,8 +343,9 @@ def _check_transform(T: Array, source: str) -> None:
             or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0):
         raise ConfigError("not a rigid transform (rotation not orthonormal or last row not "
                           "0 0 0 1)", source=source, key=key)
-    if float(np.linalg.norm(T[:3, 3])) > BOUNDS["mm"]:
-        raise ConfigError(f"translation beyond {BOUNDS['mm']:g} mm", source=source, key=key)
+    if float(np.linalg.norm(T[:3, 3])) > TRACKER_RANGE_MM:
+        raise ConfigError(f"translation beyond {TRACKER_RANGE_MM:g} mm (the farthest a "
+                          "tracker measures)", source=source, key=key)
 
 
 def _coverage(value: Any, dof: int, source: str) -> Array:

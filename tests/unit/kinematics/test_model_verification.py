@@ -63,7 +63,7 @@ CORRUPTIONS: dict[str, tuple[Callable[[Doc], None], str]] = {
                       "error"),
     "T not rigid": (lambda d: d["T_tracker_base_ref_mm"][0].__setitem__(0, 2.0),
                     "rigid"),
-    "T far away": (lambda d: d["T_tracker_base_ref_mm"][0].__setitem__(3, 1e9), "100000"),
+    "T far away": (lambda d: d["T_tracker_base_ref_mm"][0].__setitem__(3, 1e9), "80000"),
     "metrics a list": (lambda d: d.__setitem__("metrics", [1, 2]), "metrics"),
     "fallback edited": (lambda d: _nudge_half_mm(d["fallback"]), "model_id"),
     "parameters not a list": (lambda d: d.__setitem__("parameters", 5), "parameter"),
