@@ -18,6 +18,16 @@ from robocal.errors import ConfigError
 from robocal.identification import CPA_MIN_ARC_DEG, CPA_MIN_RADIUS_MM, TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
 from robocal.planning._cell import Cell, builtin_cells, load_cell
+from robocal.planning._coverage import (
+    TARGET_MARGIN_DEG,
+    ensure_span,
+    excluded_families,
+    joint_coverage,
+    read_program_joints,
+    required_span,
+    widen_for_targets,
+    winding_ranges,
+)
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
     DESIGNS,
@@ -35,7 +45,9 @@ from robocal.planning._plan import (
     CandidateInfo,
     CpaInfo,
     DroppedTarget,
+    ExcludedFamily,
     IsoInfo,
+    JointCoverage,
     ModelInfo,
     MotionInfo,
     ObservabilityInfo,
@@ -65,7 +77,8 @@ def cpa_radius(robot: RobotDescription, joint: int, q: Array, reflector: Array) 
 
 @single_threaded
 def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
-                    max_draws: int = MAX_DRAWS) -> tuple[Array, Feasibility, dict[str, int]]:
+                    max_draws: int = MAX_DRAWS, collided: list[Array] | None = None
+                    ) -> tuple[Array, Feasibility, dict[str, int]]:
     """Draw scrambled Sobol candidates inside the working ranges until ``target`` are feasible.
 
     Points are drawn in power-of-two batches (doubling the total each time, which keeps the
@@ -81,6 +94,9 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
         Seed of the scrambling.
     max_draws
         Stop after this many points in total.
+    collided
+        When given, the screened candidates that fail a collision check (floor, keep-out,
+        self-collision) are appended to it, rad.
 
     Returns
     -------
@@ -115,6 +131,8 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
             rejected[k] = rejected.get(k, 0) + v
         qs.append(q[f.ok])
         fs.append(f.subset(f.ok))
+        if collided is not None:
+            collided.append(q[~f.collision_free])
         n_ok += int(f.ok.sum())
         if n_ok >= target or 2 * drawn > max_draws:
             break
@@ -411,6 +429,8 @@ def plan_campaign(
     max_draws: int = MAX_DRAWS,
     exchange_passes: int = 2,
     design: str = "stratified",
+    targets: str | Path | None = None,
+    target_margin_deg: float = TARGET_MARGIN_DEG,
 ) -> Plan:
     """Plan a calibration campaign for one robot in one cell.
 
@@ -447,6 +467,10 @@ def plan_campaign(
         within strata, so that the poses represent the workspace (a model that lacks some of
         the robot's errors then fits their average, not their extremes); ``"d-optimal"``: the
         most information for the model, no coverage (see docs/adr/0004).
+    targets
+        The production program (TARGETS.csv or JOINTS.csv, see docs/compensation-tables.md):
+        the working ranges are widened to its joint ranges plus ``target_margin_deg`` (within
+        the robot limits) and the calibration poses made to span them (ADR 0026).
 
     Returns
     -------
@@ -472,10 +496,21 @@ def plan_campaign(
                           f"is not safe: {motion.explain(home[None, :])[0]}",
                           source=f"cell {the_cell.name!r}", key="motion.home_deg")
     warnings: list[str] = []
+    margin = math.radians(target_margin_deg)
+    q_prog = None if targets is None else read_program_joints(targets, dof=rob.dof)
+    # checker.ranges and motion.limits are one array: narrowed or widened in place
+    ranges, notes = winding_ranges(motion, home, checker.ranges)
+    if q_prog is not None:
+        ranges, more = widen_for_targets(ranges, rob.joint_limits, q_prog, margin)
+        notes += more
+    checker.ranges[:] = ranges
+    warnings += notes
+    collided: list[Array] = []
     q_c, feas_c, counts = _feasible_candidates(checker, the_cell.name,
                                                target=max(candidates, 2 * (count + validation)),
                                                need=count + validation, seed=seed,
-                                               max_draws=max_draws)
+                                               max_draws=max_draws, collided=collided)
+    excluded = excluded_families(checker, np.vstack(collided), counts["screened"])
     ds = cell_design_space(checker, spec, q_c, feas_c)
     if count < ds.min_poses:
         raise ConfigError(
@@ -488,7 +523,7 @@ def plan_campaign(
     max_step = math.radians(the_cell.motion.max_joint_step_deg)
     cal, val = _choose_poses(ds, motion, home, max_step, count=count, validation=validation,
                              seed=seed, design=design, exchange_passes=exchange_passes,
-                             warnings=warnings)
+                             warnings=warnings, span=required_span(q_c, q_prog, margin))
     baseline = np.random.default_rng([seed, 2]).choice(len(q_c), size=count, replace=False)
     obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
                                random_baseline=_obs_info(ds.observability(baseline)))
@@ -515,6 +550,13 @@ def plan_campaign(
                         + ", ".join(f"{v} {k}" for k, v in kinds.items())
                         + "): see 'dropped' in the plan")
     poses = _planned_poses(q_all, purposes, final)
+    q_cal = q_all[np.array([p == "calibration" for p in purposes])]
+    coverage = joint_coverage(rob, checker.ranges, q_cal, q_prog, margin)
+    uncovered = [f"J{c['joint']}" for c in coverage if c["targets_covered"] is False]
+    if uncovered:
+        warnings.append(f"the calibration poses do not cover the program's range of "
+                        f"{', '.join(uncovered)} (plus {target_margin_deg:g} deg): no feasible, "
+                        "safely reachable pose there; see 'coverage' and 'excluded'")
     prev = np.vstack([home[None, :], q_all[:-1]])
     motion_info = MotionInfo(
         max_joint_step_deg=the_cell.motion.max_joint_step_deg,
@@ -541,7 +583,10 @@ def plan_campaign(
                      points=len(s.q), radius_mm=round(1e3 * cpa_radius(
                          rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
              for s in sweeps],
-        warnings=warnings, dropped=dropped, poses=poses)
+        warnings=warnings, dropped=dropped,
+        coverage=[JointCoverage.model_validate(c) for c in coverage],
+        targets_source=None if targets is None else str(targets),
+        excluded=[ExcludedFamily.model_validate(e) for e in excluded], poses=poses)
 
 
 def cell_design_space(checker: FeasibilityChecker, spec: ErrorModelSpec, q: Array,
@@ -590,12 +635,13 @@ def _check_arguments(*, iso_cycles: int, seed: int, count: int, validation: int,
 
 
 def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target: int,
-                         need: int, seed: int, max_draws: int
+                         need: int, seed: int, max_draws: int,
+                         collided: list[Array] | None = None
                          ) -> tuple[Array, Feasibility, dict[str, int]]:
     """Feasible candidates (see :func:`draw_candidates`); an error naming the checks that
     rejected the others when fewer than ``need`` are found."""
     q_c, feas_c, counts = draw_candidates(checker, target=target, seed=seed,
-                                          max_draws=max_draws)
+                                          max_draws=max_draws, collided=collided)
     if len(q_c) < need:
         why = ", ".join(f"{k} {v}" for k, v in counts.items()
                         if k not in ("drawn", "screened") and v)
@@ -611,13 +657,15 @@ def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target:
 
 def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step: float, *,
                   count: int, validation: int, seed: int, design: str, exchange_passes: int,
-                  warnings: list[str]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+                  warnings: list[str], span: Array | None = None
+                  ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Calibration poses by ``design`` and random validation poses, all reachable from home.
 
     A pose whose straight move from home is not safe (under the capsule model, e.g. the
     KR210's forearm folded over its shoulder) may lie in a pocket no route reaches. Only the
     chosen poses are checked (checking every candidate costs tens of seconds); unreachable
-    ones are excluded and the choice repeated.
+    ones are excluded and the choice repeated. With ``span`` (dof, 2) rad the calibration
+    poses are then made to span it (:func:`ensure_span`).
     """
     q_c = ds.q
     n_c = len(q_c)
@@ -638,6 +686,8 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
             cal = ds.select_stratified(count, allowed=allowed)
         else:
             cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
+        if span is not None:
+            cal = ensure_span(q_c, cal, allowed, span)
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
     rest = np.setdiff1d(np.arange(n_c), cal)
