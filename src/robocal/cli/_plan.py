@@ -125,6 +125,9 @@ def run(args: argparse.Namespace) -> int:
     m = plan.motion
     w(f"  moves: {m.move_time_s / 60:.1f} min at {m.speed_fraction:.0%} joint speed, "
       f"{m.via_points} via-points (max step {m.max_joint_step_deg:g} deg)\n")
+    if plan.capsules is not None:
+        w("  link capsules: " + ", ".join(f"{v:.0f}" for v in plan.capsules.link_radii_mm)
+          + f" mm ({plan.capsules.source})\n")
     _write_coverage(plan, w)
     for msg in plan.warnings:
         w(f"  warning: {msg}\n")

@@ -47,6 +47,9 @@ def register(sub: Any) -> None:
     p.add_argument("--max-error-mm", type=float, help="acceptance: held-out max-error limit")
     p.add_argument("--min-described", type=float, metavar="PERCENT",
                    help="acceptance: %% of the nominal error to describe (default 50)")
+    p.add_argument("--targets", metavar="FILE",
+                   help="the production program (TARGETS.csv or JOINTS.csv), overlaid on the "
+                        "per-joint coverage")
     p.add_argument("--title", help="page title")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
@@ -219,6 +222,13 @@ def run(args: argparse.Namespace) -> int:
         inp.selected = args.selected
     if args.title:
         inp.title = args.title
+    if args.targets:
+        from robocal.planning import read_program_joints
+
+        dof = inp.robot.dof if inp.robot is not None else None
+        if dof is None:
+            raise ConfigError("--targets needs a robot (a model file or campaign)")
+        inp.targets = read_program_joints(args.targets, dof=dof)
     inp.acceptance = _acceptance(args, inp.acceptance)
     html_path, json_path = write_report(inp, args.out)
     summary = json.loads(json_path.read_text(encoding="utf-8"))

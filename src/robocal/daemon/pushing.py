@@ -37,6 +37,7 @@ from robocal.drivers import (
 )
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
+from robocal.planning import targets_outside
 
 __all__ = [
     "FAULT_POINTS",
@@ -148,14 +149,8 @@ def outside_coverage(cal: CalibratedModel, q_program: Array, kind: str) -> dict[
     n = len(q)
     if kind == "frames" or cal.coverage is None or n == 0:
         return {"targets": n, "outside": 0, "share": 0.0, "names": []}
-    lo, hi = cal.coverage[:, 0], cal.coverage[:, 1]
-    out = np.flatnonzero(~cal.inside_coverage(q))
-    names = []
-    for i in out[:10]:
-        j = int(np.argmax(np.maximum(lo - q[i], q[i] - hi)))
-        names.append(f"target {int(i)}: J{j + 1} {math.degrees(q[i, j]):.1f} deg outside "
-                     f"[{math.degrees(lo[j]):.1f}, {math.degrees(hi[j]):.1f}]")
-    return {"targets": n, "outside": int(out.size), "share": round(out.size / n, 4),
+    out, names = targets_outside(np.asarray(cal.coverage), q)
+    return {"targets": n, "outside": int(out.sum()), "share": round(float(out.sum()) / n, 4),
             "names": names}
 
 

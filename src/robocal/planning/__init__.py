@@ -12,6 +12,7 @@ Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
 :func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
 """
 
+from robocal.kinematics import default_link_radii
 from robocal.planning._campaign import (
     cell_design_space,
     draw_candidates,
@@ -23,6 +24,7 @@ from robocal.planning._coverage import (
     excluded_families,
     joint_coverage,
     read_program_joints,
+    targets_outside,
     winding_ranges,
 )
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
@@ -43,7 +45,6 @@ from robocal.planning._feasibility import (
 )
 from robocal.planning._geometry import (
     CapsuleModel,
-    default_link_radii,
     link_frames,
     segment_box_distance,
     segment_distance,
@@ -105,6 +106,7 @@ __all__ = [
     "segment_distance",
     "solve_ik",
     "split_legs",
+    "targets_outside",
     "winding_ranges",
     "working_ranges",
 ]

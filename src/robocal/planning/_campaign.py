@@ -43,6 +43,7 @@ from robocal.planning._motion import MotionChecker
 from robocal.planning._order import move_times, order_poses, two_opt
 from robocal.planning._plan import (
     CandidateInfo,
+    CapsuleInfo,
     CpaInfo,
     DroppedTarget,
     ExcludedFamily,
@@ -586,6 +587,9 @@ def plan_campaign(
         warnings=warnings, dropped=dropped,
         coverage=[JointCoverage.model_validate(c) for c in coverage],
         targets_source=None if targets is None else str(targets),
+        capsules=CapsuleInfo(
+            link_radii_mm=[round(r * 1e3, 3) for r in checker.capsules.radii],
+            tool_radius_mm=the_cell.robot.tool_radius_mm, source=checker.radii_source),
         excluded=[ExcludedFamily.model_validate(e) for e in excluded], poses=poses)
 
 

@@ -26,11 +26,10 @@ from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
-from robocal.kinematics import RobotDescription
+from robocal.kinematics import RobotDescription, link_radii
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
     CapsuleModel,
-    default_link_radii,
     link_frames,
     segment_box_distance,
     segment_distance,
@@ -157,8 +156,9 @@ class FeasibilityChecker:
         self.robot = robot
         self.cell = cell
         radii_mm = cell.robot.link_radii_mm
-        radii = ([r * 1e-3 for r in radii_mm] if radii_mm is not None
-                 else default_link_radii(robot))
+        radii, self.radii_source = link_radii(robot)
+        if radii_mm is not None:
+            radii, self.radii_source = [r * 1e-3 for r in radii_mm], "cell robot.link_radii_mm"
         off = cell.reflector.offset_mm
         tool = tuple(v * 1e-3 for v in off) if off is not None else tuple(robot.tool)
         self.tool_offset: tuple[float, float, float] = (tool[0], tool[1], tool[2])

@@ -25,6 +25,7 @@ Layout (JSON object; lengths in mm, angles in degrees, robot base frame)::
                         against the robot limits, the planner's working range and the
                         production program's targets (``--targets``; null without)
     targets_source      the program file whose joint ranges the plan covers, or null
+    capsules            {link_radii_mm, tool_radius_mm, source}: the collision model used
     excluded            [{reason, candidates, of_screened, joint_ranges_deg}]: candidate
                         families the collision checks excluded, by cause (which capsules),
                         with the 5-95 % joint ranges of the excluded candidates
@@ -116,6 +117,14 @@ class ExcludedFamily(_Frozen):
     candidates: int = Field(ge=0)
     of_screened: int = Field(ge=0)
     joint_ranges_deg: list[list[float]]
+
+
+class CapsuleInfo(_Frozen):
+    """The capsule model the collision checks used, and where its radii come from."""
+
+    link_radii_mm: list[float]
+    tool_radius_mm: float = Field(gt=0.0)
+    source: str
 
 
 class RobotInfo(_Frozen):
@@ -222,6 +231,7 @@ class Plan(_Frozen):
     # plans written before ADR 0026 have no coverage record
     coverage: list[JointCoverage] = Field(default_factory=list)
     targets_source: str | None = None
+    capsules: CapsuleInfo | None = None
     excluded: list[ExcludedFamily] = Field(default_factory=list)
     poses: list[PlannedPose]
 
