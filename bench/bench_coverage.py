@@ -86,6 +86,10 @@ def main() -> None:
         vc = VirtualCell.create(robot, "paper", seed)
         cell = cell_for(vc)
         checker = FeasibilityChecker(robot, cell)
+        # random and held-out poses over the whole feasible range, whatever the planner's
+        # working ranges are (robot limits less the cell's margin)
+        margin = np.radians(cell.robot.joint_margin_deg)
+        checker.ranges = robot.joint_limits + np.array([margin, -margin])
         q_cand, _, _ = draw_candidates(checker, target=4096, seed=seed + 500)
         q_val, _, _ = draw_candidates(checker, target=400, seed=seed + 1000)
         rng = np.random.default_rng(seed + 7)

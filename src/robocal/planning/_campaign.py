@@ -204,16 +204,33 @@ def split_legs(q_from: Array, q_to: Array, max_step: float
 def _legs_safe(motion: MotionChecker, q_from: Array, q_to: Array, max_step: float,
                *, explain: bool = False) -> tuple[NDArray[np.bool_], list[str]]:
     """Whether each leg (with its via-points) is safe along its swept path, and why not
-    (reasons only with ``explain``)."""
-    starts, ends, owner = split_legs(q_from, q_to, max_step)
-    res = motion.check_moves(starts, ends, explain=explain)
-    n = len(np.atleast_2d(q_from))
-    ok = np.ones(n, dtype=bool)
-    ok[owner[~res.safe]] = False
-    why = [""] * n
-    for i in np.flatnonzero(~res.safe)[::-1]:       # keep the first failing move of a leg
-        why[int(owner[i])] = res.reasons[i]
-    return ok, why
+    (reasons only with ``explain``).
+
+    Verdicts are kept in ``motion.leg_verdicts``: ordering, reachability and routing check
+    many of the same legs, and each is swept once (an unsafe leg is checked again only when
+    its reason is wanted and was not recorded).
+    """
+    q_from = np.broadcast_to(np.atleast_2d(q_from), np.shape(np.atleast_2d(q_to)))
+    q_to = np.atleast_2d(q_to)
+    n = len(q_to)
+    step = np.float64(max_step).tobytes()
+    keys = [a.tobytes() + b.tobytes() + step for a, b in zip(q_from, q_to, strict=True)]
+    known = motion.leg_verdicts
+    todo = [i for i, k in enumerate(keys)
+            if k not in known or (explain and not known[k][0] and not known[k][1])]
+    if todo:
+        idx = np.array(todo, dtype=np.intp)
+        starts, ends, owner = split_legs(q_from[idx], q_to[idx], max_step)
+        res = motion.check_moves(starts, ends, explain=explain)
+        ok_t = np.ones(len(idx), dtype=bool)
+        ok_t[owner[~res.safe]] = False
+        why_t = [""] * len(idx)
+        for i in np.flatnonzero(~res.safe)[::-1]:   # keep the first failing move of a leg
+            why_t[int(owner[i])] = res.reasons[i]
+        for k, good, reason in zip(idx, ok_t, why_t, strict=True):
+            known[keys[int(k)]] = (bool(good), reason)
+    ok = np.array([known[k][0] for k in keys], dtype=bool).reshape(n)
+    return ok, [known[k][1] for k in keys]
 
 
 def _order_measured(motion: MotionChecker, q: Array, speed: Array, home: Array,
@@ -471,7 +488,8 @@ def plan_campaign(
     targets
         The production program (TARGETS.csv or JOINTS.csv, see docs/compensation-tables.md):
         the working ranges are widened to its joint ranges plus ``target_margin_deg`` (within
-        the robot limits) and the calibration poses made to span them (ADR 0026).
+        the robot limits; twice that while drawing candidates) and the calibration poses made
+        to span them (ADR 0026).
 
     Returns
     -------
@@ -502,7 +520,8 @@ def plan_campaign(
     # checker.ranges and motion.limits are one array: narrowed or widened in place
     ranges, notes = winding_ranges(motion, home, checker.ranges)
     if q_prog is not None:
-        ranges, more = widen_for_targets(ranges, rob.joint_limits, q_prog, margin)
+        # twice the margin: candidates beyond the targets' margin must exist to be chosen
+        ranges, more = widen_for_targets(ranges, rob.joint_limits, q_prog, 2.0 * margin)
         notes += more
     checker.ranges[:] = ranges
     warnings += notes
@@ -512,6 +531,9 @@ def plan_campaign(
                                                need=count + validation, seed=seed,
                                                max_draws=max_draws, collided=collided)
     excluded = excluded_families(checker, np.vstack(collided), counts["screened"])
+    # as the file holds them (1e-6 deg), so that the legs checked while choosing and ordering
+    # are the legs routed and written, and their verdicts are reused
+    q_c = _round_deg(q_c)
     ds = cell_design_space(checker, spec, q_c, feas_c)
     if count < ds.min_poses:
         raise ConfigError(

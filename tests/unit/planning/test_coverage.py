@@ -11,6 +11,7 @@ import pytest
 from robocal.kinematics import RobotDescription, load_robot
 from robocal.planning import (
     Cell,
+    load_cell,
     FeasibilityChecker,
     MotionChecker,
     Plan,
@@ -122,9 +123,11 @@ def test_excluded_families_name_the_capsules(checker: FeasibilityChecker) -> Non
     assert all(len(f["joint_ranges_deg"]) == 6 for f in fam)
 
 
-def test_plan_covers_j6_and_a_program_at_250_deg(tmp_path: Path) -> None:
-    prog = tmp_path / "JOINTS.csv"
-    prog.write_text("q1,q2,q3,q4,q5,q6\n10,20,10,0,-30,250\n-10,30,0,20,30,240\n")
+def test_plan_covers_j6_and_a_program_at_250_deg(tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    prog = tmp_path / "TARGETS.csv"
+    prog.write_text("x,y,z,q1,q2,q3,q4,q5,q6\n600,0,400,10,20,10,0,-30,250\n"
+                    "550,50,450,-10,30,0,20,30,240\n")
     robot = load_robot("fanuc_lrmate200i")
     d = robot.to_dict()
     d["joints"][5].update(min_deg=-300.0, max_deg=300.0)
@@ -138,3 +141,29 @@ def test_plan_covers_j6_and_a_program_at_250_deg(tmp_path: Path) -> None:
     assert plan.excluded and plan.excluded[0].candidates > 0
     again = Plan.from_json(plan.to_json())
     assert again.coverage == plan.coverage and again.excluded == plan.excluded
+    assert plan.capsules is not None and plan.capsules.source.startswith("default")
+    # one revolution asked for: the program at J6 = 250 deg widens it again, with a warning
+    cell = cell_with(load_cell("demo"), robot={"one_revolution": True})
+    cut = plan_campaign(tight, cell, count=30, model="constant", iso=False, seed=2,
+                        candidates=1024, targets=prog)
+    assert any("J6 working range [-180, 180] deg widened to [-180, 260] deg" in w
+               for w in cut.warnings)
+    j6 = cut.coverage[5]
+    assert j6.targets_covered and j6.planned_deg[0] > -181.0 and j6.planned_deg[1] >= 255.0
+
+
+def test_plan_cli_prints_coverage_and_exclusions(tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    from robocal.cli.main import main
+
+    prog = tmp_path / "JOINTS.csv"
+    prog.write_text("q1,q2,q3,q4,q5,q6\n10,20,10,0,-30,250\n")
+    rc = main(["plan", "--robot", "fanuc_lrmate200i", "--cell", "demo", "--model", "constant",
+               "--count", "30", "--no-iso", "--candidates", "512", "--targets", str(prog),
+               "--out", str(tmp_path / "PLAN.json")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert f"coverage of the calibration poses (deg), program {prog}:" in out
+    assert "J6: [" in out and "targets [250, 250] covered" in out
+    assert "excluded " in out and "candidates: self-collision of capsules" in out
+    assert "link capsules: 48, 48, 48, 30, 30, 30 mm (default" in out
