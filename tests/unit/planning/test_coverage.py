@@ -11,12 +11,12 @@ import pytest
 from robocal.kinematics import RobotDescription, load_robot
 from robocal.planning import (
     Cell,
-    load_cell,
     FeasibilityChecker,
     MotionChecker,
     Plan,
     excluded_families,
     joint_coverage,
+    load_cell,
     plan_campaign,
     read_program_joints,
     winding_ranges,
@@ -123,8 +123,7 @@ def test_excluded_families_name_the_capsules(checker: FeasibilityChecker) -> Non
     assert all(len(f["joint_ranges_deg"]) == 6 for f in fam)
 
 
-def test_plan_covers_j6_and_a_program_at_250_deg(tmp_path: Path,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_plan_covers_j6_and_a_program_at_250_deg(tmp_path: Path) -> None:
     prog = tmp_path / "TARGETS.csv"
     prog.write_text("x,y,z,q1,q2,q3,q4,q5,q6\n600,0,400,10,20,10,0,-30,250\n"
                     "550,50,450,-10,30,0,20,30,240\n")
