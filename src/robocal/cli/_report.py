@@ -179,8 +179,14 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
                          extra={"campaign state": rec.state.value,
                                 "campaign name": rec.name, "created by": rec.created_by})
     robot = next((m.calibrated.robot for m in models.values()), None)
+    targets = None
+    if robot is not None and cfg.compensation.targets_file is not None:
+        from robocal.planning import read_program_joints
+
+        # the program the push compensates, overlaid on the coverage
+        targets = read_program_joints(cfg.compensation.targets_file, dof=robot.dof)
     return ReportInput(models=models, calibration=cal, validation=val, robot=robot,
-                       selected=selected, iso_measurements=iso_set,
+                       selected=selected, iso_measurements=iso_set, targets=targets,
                        iso_purposes=[r.purpose for r in iso_rows], log=log, campaign_id=cid,
                        notes=[f"plan digest {rec.plan_digest}",
                               f"config digest {rec.config_digest}"])
