@@ -22,6 +22,10 @@ def test_builtin_ur10_carries_cited_radii_and_others_the_default() -> None:
     radii, source = link_radii(ur)
     assert [round(r * 1e3) for r in radii] == [78, 60, 43, 50, 46, 46]
     assert "Menagerie" in source
+    lrd = load_robot("fanuc_lrmate200id")
+    radii, source = link_radii(lrd)
+    assert [round(r * 1e3) for r in radii] == [128, 124, 112, 71, 29, 29]
+    assert "convex hulls" in source
     lr = load_robot("fanuc_lrmate200i")
     radii, source = link_radii(lr)
     assert lr.link_radii is None and radii == default_link_radii(lr)
