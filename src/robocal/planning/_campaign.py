@@ -22,6 +22,7 @@ from robocal.planning._coverage import (
     TARGET_MARGIN_DEG,
     ensure_span,
     excluded_families,
+    family,
     joint_coverage,
     read_program_joints,
     required_span,
@@ -544,9 +545,16 @@ def plan_campaign(
         warnings.append(f"{count} calibration poses are fewer than the {ds.recommended_poses} "
                         f"recommended for {ds.identifiable} identifiable parameters")
     max_step = math.radians(the_cell.motion.max_joint_step_deg)
+    unreachable: list[int] = []
     cal, val = _choose_poses(ds, motion, home, max_step, count=count, validation=validation,
                              seed=seed, design=design, exchange_passes=exchange_passes,
-                             warnings=warnings, span=required_span(q_c, q_prog, margin))
+                             warnings=warnings, span=required_span(q_c, q_prog, margin),
+                             unreachable=unreachable)
+    if unreachable:
+        # only the candidates the selection proposed were checked: a lower bound
+        excluded.append(family("feasible but no safe straight move from home (a pocket of "
+                               "the capsule model; among the candidates the selection "
+                               "proposed)", q_c[np.array(unreachable)], counts["screened"]))
     baseline = np.random.default_rng([seed, 2]).choice(len(q_c), size=count, replace=False)
     obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
                                random_baseline=_obs_info(ds.observability(baseline)))
@@ -683,7 +691,8 @@ def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target:
 
 def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step: float, *,
                   count: int, validation: int, seed: int, design: str, exchange_passes: int,
-                  warnings: list[str], span: Array | None = None
+                  warnings: list[str], span: Array | None = None,
+                  unreachable: list[int] | None = None
                   ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Calibration poses by ``design`` and random validation poses, all reachable from home.
 
@@ -691,7 +700,8 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
     KR210's forearm folded over its shoulder) may lie in a pocket no route reaches. Only the
     chosen poses are checked (checking every candidate costs tens of seconds); unreachable
     ones are excluded and the choice repeated. With ``span`` (dof, 2) rad the calibration
-    poses are then made to span it (:func:`ensure_span`).
+    poses are then made to span it (:func:`ensure_span`). The candidates found unreachable
+    are appended to ``unreachable``.
     """
     q_c = ds.q
     n_c = len(q_c)
@@ -705,6 +715,8 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
                                q_c[new], max_step)
             checked[new] = True
             allowed[new[~ok]] = False
+            if unreachable is not None:
+                unreachable.extend(int(i) for i in new[~ok])
         return idx[~allowed[idx]]
 
     for _ in range(30):

@@ -263,13 +263,15 @@ def excluded_families(checker: FeasibilityChecker, q: Array, screened: int, *,
         take(g[np.arange(n), k], names[k])
     limits = ~f.within_limits[bad]
     causes[limits & (causes == "")] = "outside the joint working range"
-    out: list[dict[str, object]] = []
-    for cause in sorted(set(causes.tolist()), key=lambda c: -int(np.sum(causes == c))):
-        sel = causes == cause
-        lo = np.degrees(np.percentile(q[sel], 5, axis=0))
-        hi = np.degrees(np.percentile(q[sel], 95, axis=0))
-        out.append({"reason": str(cause) or "collision", "candidates": int(sel.sum()),
-                    "of_screened": screened,
-                    "joint_ranges_deg": [[round(float(a), 1), round(float(b), 1)]
-                                         for a, b in zip(lo, hi, strict=True)]})
-    return out
+    return [family(str(cause) or "collision", q[causes == cause], screened)
+            for cause in sorted(set(causes.tolist()), key=lambda c: -int(np.sum(causes == c)))]
+
+
+def family(reason: str, q: Array, screened: int) -> dict[str, object]:
+    """The record of one excluded family: its ``reason``, the number of candidates ``q``
+    (n, dof) rad, of how many ``screened``, and their 5-95 % joint ranges, deg."""
+    lo = np.degrees(np.percentile(q, 5, axis=0))
+    hi = np.degrees(np.percentile(q, 95, axis=0))
+    return {"reason": reason, "candidates": len(q), "of_screened": screened,
+            "joint_ranges_deg": [[round(float(a), 1), round(float(b), 1)]
+                                 for a, b in zip(lo, hi, strict=True)]}

@@ -166,3 +166,24 @@ def test_plan_cli_prints_coverage_and_exclusions(tmp_path: Path,
     assert "J6: [" in out and "targets [250, 250] covered" in out
     assert "excluded " in out and "candidates: self-collision of capsules" in out
     assert "link capsules: 48, 48, 48, 30, 30, 30 mm (default" in out
+
+
+def test_candidates_unreachable_from_home_are_counted() -> None:
+    # the KR210's folded forearm: feasible poses in pockets no straight move from home reaches;
+    # plan_campaign reports them as an excluded family
+    from robocal.planning import cell_design_space, draw_candidates, model_spec
+    from robocal.planning._campaign import _choose_poses
+
+    robot = load_robot("kuka_kr210_r3100")
+    demo = load_cell("demo")
+    checker = FeasibilityChecker(robot, demo)
+    motion = MotionChecker(robot, demo, limits=checker.ranges)
+    q, f, _ = draw_candidates(checker, target=256, seed=0)
+    ds = cell_design_space(checker, model_spec(robot, "constant"), q, f)
+    unreachable: list[int] = []
+    cal, _ = _choose_poses(ds, motion, np.zeros(6), math.radians(90.0), count=15,
+                           validation=0, seed=0, design="stratified", exchange_passes=2,
+                           warnings=[], unreachable=unreachable)
+    assert unreachable and len(set(unreachable)) == len(unreachable) and len(cal) == 15
+    fresh = MotionChecker(robot, demo, limits=checker.ranges)     # no cached verdicts
+    assert not fresh.moves_safe(np.zeros((len(unreachable), 6)), q[unreachable]).any()
