@@ -3,7 +3,7 @@
     robocal plan --robot ROBOT --cell CELL.toml --model constant|high-order|auto --count N
                  --out PLAN.json [--design stratified|d-optimal] [--validation M] [--cpa]
                  [--cpa-points K] [--no-iso]
-                 [--seed S] [--candidates C] [--json]
+                 [--seed S] [--candidates C] [--targets TARGETS.csv] [--json]
 """
 
 from __future__ import annotations
@@ -54,6 +54,10 @@ def register(sub: Any) -> None:
                    help=f"random seed (default {DEFAULT_SEED}, as simulate, demo and sim)")
     p.add_argument("--candidates", type=int, default=4096,
                    help="feasible candidates to choose from (default 4096)")
+    p.add_argument("--targets", type=Path, default=None, metavar="FILE",
+                   help="the production program (TARGETS.csv or JOINTS.csv, see "
+                        "docs/compensation-tables.md): its joint ranges, plus a margin, are "
+                        "covered by the calibration poses")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
 
@@ -71,6 +75,8 @@ def _summary(plan: Any, out: Path) -> dict[str, Any]:
         "observability": o.model_dump(), "random_baseline": b.model_dump() if b else None,
         "move_time_s": plan.motion.move_time_s, "warnings": list(plan.warnings),
         "dropped": [d.model_dump() for d in plan.dropped],
+        "coverage": [c.model_dump() for c in plan.coverage],
+        "excluded": [e.model_dump() for e in plan.excluded],
     }
 
 
@@ -94,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     plan = plan_campaign(args.robot, args.cell, count=args.count, model=args.model,
                          validation=validation, cpa=args.cpa, cpa_points=args.cpa_points,
                          iso=not args.no_iso, iso_cycles=args.iso_cycles, seed=args.seed,
-                         candidates=args.candidates, design=args.design)
+                         candidates=args.candidates, design=args.design,
+                         targets=args.targets)
     plan.save(out)
     s = _summary(plan, out)
     if args.json:
@@ -124,6 +131,10 @@ def run(args: argparse.Namespace) -> int:
     m = plan.motion
     w(f"  moves: {m.move_time_s / 60:.1f} min at {m.speed_fraction:.0%} joint speed, "
       f"{m.via_points} via-points (max step {m.max_joint_step_deg:g} deg)\n")
+    if plan.capsules is not None:
+        w("  link capsules: " + ", ".join(f"{v:.0f}" for v in plan.capsules.link_radii_mm)
+          + f" mm ({plan.capsules.source})\n")
+    _write_coverage(plan, w)
     for msg in plan.warnings:
         w(f"  warning: {msg}\n")
     for d in plan.dropped:
@@ -132,3 +143,26 @@ def run(args: argparse.Namespace) -> int:
     if not math.isfinite(o.O1):  # pragma: no cover - defensive
         return 1
     return 0
+
+
+def _write_coverage(plan: Any, w: Any) -> None:
+    """Per joint: the calibrated range against limits and targets; the excluded families."""
+    tgt = plan.targets_source
+    w("  coverage of the calibration poses (deg)" + (f", program {tgt}" if tgt else "") + ":\n")
+    for c in plan.coverage:
+        line = (f"    J{c.joint}: [{c.planned_deg[0]:.0f}, {c.planned_deg[1]:.0f}] of limits "
+                f"[{c.limits_deg[0]:.0f}, {c.limits_deg[1]:.0f}] ({c.of_limits:.0%})")
+        if c.targets_deg is not None:
+            verdict = "covered" if c.targets_covered else "NOT covered"
+            line += (f", targets [{c.targets_deg[0]:.0f}, {c.targets_deg[1]:.0f}] {verdict}")
+        w(line + "\n")
+    work = [c.working_deg for c in plan.coverage]
+    for e in plan.excluded[:6]:
+        # name only the joints the family is confined to (under 70 % of the working range)
+        ranges = ", ".join(f"J{j + 1} {a:.0f}..{b:.0f}"
+                           for j, (a, b) in enumerate(e.joint_ranges_deg)
+                           if j < len(work) and b - a < 0.7 * (work[j][1] - work[j][0]))
+        w(f"  excluded {e.candidates} of {e.of_screened} candidates: {e.reason} ("
+          + (f"{ranges} deg" if ranges else "spread over the working ranges") + ")\n")
+    if len(plan.excluded) > 6:
+        w(f"  ... and {len(plan.excluded) - 6} more excluded families (see 'excluded')\n")

@@ -57,6 +57,9 @@ def register(sub: Any) -> None:
     p.add_argument("--no-sanity", action="store_true",
                    help="skip the unit plausibility checks of --data/--validate (joints in "
                         "radians, positions in metres), as 'robocal fit --no-sanity'")
+    p.add_argument("--targets", metavar="FILE",
+                   help="the production program (TARGETS.csv or JOINTS.csv), overlaid on the "
+                        "per-joint coverage")
     p.add_argument("--title", help="page title")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
@@ -190,8 +193,14 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
                          extra={"campaign state": rec.state.value,
                                 "campaign name": rec.name, "created by": rec.created_by})
     robot = next((m.calibrated.robot for m in models.values()), None)
+    targets = None
+    if robot is not None and cfg.compensation.targets_file is not None:
+        from robocal.planning import read_program_joints
+
+        # the program the push compensates, overlaid on the coverage
+        targets = read_program_joints(cfg.compensation.targets_file, dof=robot.dof)
     return ReportInput(models=models, calibration=cal, validation=val, robot=robot,
-                       selected=selected, iso_measurements=iso_set,
+                       selected=selected, iso_measurements=iso_set, targets=targets,
                        iso_purposes=[r.purpose for r in iso_rows], log=log, campaign_id=cid,
                        notes=[f"plan digest {rec.plan_digest}",
                               f"config digest {rec.config_digest}"])
@@ -238,6 +247,13 @@ def run(args: argparse.Namespace) -> int:
         inp.selected = args.selected
     if args.title:
         inp.title = args.title
+    if args.targets:
+        from robocal.planning import read_program_joints
+
+        dof = inp.robot.dof if inp.robot is not None else None
+        if dof is None:
+            raise ConfigError("--targets needs a robot (a model file or campaign)")
+        inp.targets = read_program_joints(args.targets, dof=dof)
     inp.acceptance = _acceptance(args, inp.acceptance)
     html_path, json_path = write_report(inp, args.out)
     summary = json.loads(json_path.read_text(encoding="utf-8"))

@@ -50,7 +50,7 @@ def _from_urdf(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Print the list or one description."""
-    from robocal.kinematics import builtin_robots, load_robot
+    from robocal.kinematics import builtin_robots, link_radii, load_robot
 
     if args.from_urdf:
         return _from_urdf(args)
@@ -78,4 +78,7 @@ def run(args: argparse.Namespace) -> int:
             f"  {i} {j.a * 1e3:8.2f} {j.d * 1e3:8.2f} {math.degrees(j.alpha):10.2f} "
             f"{math.degrees(j.theta_offset):10.2f} {math.degrees(j.q_min):10.1f} "
             f"{math.degrees(j.q_max):9.1f}  {j.gear_ratio or '-'}\n")
+    radii, source = link_radii(r)
+    sys.stdout.write("  link capsule radii [mm] (planner's collision model): "
+                     + ", ".join(f"{v * 1e3:.0f}" for v in radii) + f"\n    from {source}\n")
     return 0

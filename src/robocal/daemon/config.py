@@ -212,12 +212,16 @@ class CompensationConfig(_Model):
     verify_count
         Pushed targets measured again with the tracker after a push or rollback (spread over
         the targets; 0: no verification run).
+    max_outside_coverage
+        A push is refused, unless forced, when more than this share (0..1) of the program's
+        targets lies outside the joint ranges the model was calibrated on (ADR 0026).
     """
 
     kind: Literal["frames", "targets", "joint"] = "targets"
     targets_file: Path | None = None
     max_residual_ratio: float = Field(default=0.5, gt=0.0, le=1.0)
     verify_count: int = Field(default=10, ge=0, le=10000)
+    max_outside_coverage: float = Field(default=0.10, ge=0.0, le=1.0)
 
 
 class LoggingConfig(_Model):

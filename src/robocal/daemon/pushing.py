@@ -37,14 +37,17 @@ from robocal.drivers import (
 )
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
+from robocal.planning import targets_outside
 
 __all__ = [
     "FAULT_POINTS",
     "build_campaign_table",
     "check_bounds",
     "commanded_joints",
+    "coverage_refusal",
     "fault_point",
     "ideal_positions",
+    "outside_coverage",
     "read_like",
     "restore",
     "snapshot",
@@ -132,6 +135,38 @@ def build_campaign_table(cal: CalibratedModel, kind: str, *,
     else:
         raise CompensationError(f"unknown compensation table kind {kind!r}")
     return table if table.checksum else table.sealed()
+
+
+def outside_coverage(cal: CalibratedModel, q_program: Array, kind: str) -> dict[str, object]:
+    """Which program targets (n, dof) rad lie outside the model's calibrated joint coverage.
+
+    Returns ``{"targets", "outside", "share", "names"}``: the number of targets, how many lie
+    outside, their share, and up to ten of them named (``"target 12: J6 250.0 deg outside
+    [-180.0, 180.0]"``, first joint out). ``frames`` tables do not use the model at the
+    targets: nothing is counted then; nor for models without a coverage record.
+    """
+    q = np.atleast_2d(np.asarray(q_program, dtype=float))
+    n = len(q)
+    if kind == "frames" or cal.coverage is None or n == 0:
+        return {"targets": n, "outside": 0, "share": 0.0, "names": []}
+    out, names = targets_outside(np.asarray(cal.coverage), q)
+    return {"targets": n, "outside": int(out.sum()), "share": round(float(out.sum()) / n, 4),
+            "names": names}
+
+
+def coverage_refusal(coverage: dict[str, object], max_share: float) -> str | None:
+    """Why a push is refused for targets outside calibrated coverage (from
+    :func:`outside_coverage`), or None when at most ``max_share`` (0..1) of them lie outside."""
+    share = float(coverage["share"])  # type: ignore[arg-type]
+    if share <= max_share:
+        return None
+    names = coverage["names"]
+    assert isinstance(names, list)
+    more = int(coverage["outside"]) - len(names)  # type: ignore[call-overload]
+    return (f"{coverage['outside']} of {coverage['targets']} targets ({share:.0%}) lie outside "
+            f"the calibrated joint coverage (at most {max_share:.0%} allowed): "
+            + "; ".join(names) + (f"; and {more} more" if more > 0 else "")
+            + " (plan with 'robocal plan --targets' to cover the program)")
 
 
 def _frame_change(a: Frame, b: Frame) -> tuple[float, float]:

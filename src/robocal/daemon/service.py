@@ -679,7 +679,8 @@ class CalibrationService:
         desc.update(model=model, model_id=cal.model_id,
                     program_q_deg=np.round(np.degrees(program.q), 9).tolist(),
                     target_p_mm=None if program.p is None
-                    else np.round(program.p * 1e3, 6).tolist())
+                    else np.round(program.p * 1e3, 6).tolist(),
+                    coverage=pushing.outside_coverage(cal, program.q, table.kind))
         return table, desc
 
     async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
@@ -715,9 +716,11 @@ class CalibrationService:
                                    "pushed only after an operator approves the fit")
         table, desc = self.build_push_table(cid)
         refusal = improvement_refusal(table, self.config.compensation.max_residual_ratio)
+        refusal = refusal or pushing.coverage_refusal(
+            desc["coverage"], self.config.compensation.max_outside_coverage)
         summary = {k: desc[k] for k in ("kind", "purpose", "predicted_residual_mm",
                                          "nominal_residual_mm", "model_accuracy_mm", "ratio",
-                                         "warnings", "model", "model_id")}
+                                         "warnings", "model", "model_id", "coverage")}
         if refusal is not None and not force:
             self.store.audit(actor=actor, action="compensation.push-refused", campaign=cid,
                              checksum=table.checksum, detail={"refusal": refusal, **summary})

@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -49,7 +49,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
-from robocal.kinematics._robot import Joint, RobotDescription, matrix_to_rpy, transform
+from robocal.kinematics._robot import (
+    Joint,
+    RobotDescription,
+    default_link_radii,
+    matrix_to_rpy,
+    transform,
+)
 from robocal.kinematics._spec import ParameterLayout
 
 if TYPE_CHECKING:
@@ -344,12 +350,63 @@ def urdf_to_robot(text: str, *, source: str = "<urdf>", tip: str | None = None,
     bxyz, brpy = parts(T_base)
     fxyz, frpy = parts(T_flange)
     name = (root.get("name") or Path(source).stem or "robot").strip() or "robot"
-    return RobotDescription(
+    robot = RobotDescription(
         name=name, joints=tuple(joints),
         tool=(tool_mm[0] * 1e-3, tool_mm[1] * 1e-3, tool_mm[2] * 1e-3),
         source=f"urdf:{source}", base_xyz=bxyz, base_rpy=brpy, flange_xyz=fxyz,
         flange_rpy=frpy,
     )
+    return _with_collision_radii(robot, root, chain, source)
+
+
+def _collision_radius(link: ET.Element, source: str) -> float | None:
+    """Radius (m) of the capsule that encloses a link's primitive collision shapes about
+    their long axis: a cylinder's or sphere's radius, a box's half cross-section diagonal
+    (the two smaller sides); the largest over the link's shapes. None without primitives
+    (meshes only, or no <collision>)."""
+    best: float | None = None
+    where = f"link {link.get('name')!r} collision"
+    for geo in link.findall("collision/geometry"):
+        r: float | None = None
+        for kind in ("cylinder", "sphere", "capsule"):
+            el = geo.find(kind)
+            if el is not None:
+                r = _floats(el.get("radius"), 1, (math.nan,), where, source)[0]
+        box = geo.find("box")
+        if box is not None:
+            size = sorted(abs(v) for v in _floats(box.get("size"), 3, (math.nan,) * 3, where,
+                                                  source))
+            r = 0.5 * math.hypot(size[0], size[1])
+        if r is not None and math.isfinite(r) and r > 0:
+            best = r if best is None else max(best, r)
+    return best
+
+
+def _with_collision_radii(robot: RobotDescription, root: ET.Element, chain: list[_UJoint],
+                          source: str) -> RobotDescription:
+    """Capsule radii per joint body from the collision geometry of the links that body
+    carries (the child link of its joint and links fixed to it); bodies without primitive
+    shapes get the default (:func:`default_link_radii`). Unchanged when no body has any."""
+    shapes = {str(el.get("name")): _collision_radius(el, source) for el in root.findall("link")}
+    radii: list[float | None] = []
+    for j in chain:
+        if j.kind in _MOVABLE:
+            radii.append(None)
+        if radii:
+            r = shapes.get(j.child)
+            if r is not None:
+                radii[-1] = r if radii[-1] is None else max(radii[-1], r)
+    if all(r is None for r in radii):
+        return robot
+    default = default_link_radii(robot)
+    from_urdf = [i + 1 for i, r in enumerate(radii) if r is not None]
+    missing = [i + 1 for i, r in enumerate(radii) if r is None]
+    note = "URDF collision geometry (bodies " + ", ".join(map(str, from_urdf)) + ")"
+    if missing:
+        note += "; default radii for bodies " + ", ".join(map(str, missing))
+    return replace(robot, link_radii=tuple(d if r is None else r
+                                           for r, d in zip(radii, default, strict=True)),
+                   collision_source=note)
 
 
 def load_urdf(path: str | Path, *, tip: str | None = None) -> RobotDescription:

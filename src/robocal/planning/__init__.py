@@ -12,6 +12,7 @@ Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
 :func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
 """
 
+from robocal.kinematics import default_link_radii
 from robocal.planning._campaign import (
     cell_design_space,
     draw_candidates,
@@ -19,6 +20,13 @@ from robocal.planning._campaign import (
     split_legs,
 )
 from robocal.planning._cell import Cell, builtin_cells, load_cell, pydantic_config_error
+from robocal.planning._coverage import (
+    excluded_families,
+    joint_coverage,
+    read_program_joints,
+    targets_outside,
+    winding_ranges,
+)
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
     DESIGNS,
@@ -29,10 +37,14 @@ from robocal.planning._design import (
     model_spec,
     observability_indices,
 )
-from robocal.planning._feasibility import Feasibility, FeasibilityChecker, working_ranges
+from robocal.planning._feasibility import (
+    Feasibility,
+    FeasibilityChecker,
+    one_revolution,
+    working_ranges,
+)
 from robocal.planning._geometry import (
     CapsuleModel,
-    default_link_radii,
     link_frames,
     segment_box_distance,
     segment_distance,
@@ -40,7 +52,14 @@ from robocal.planning._geometry import (
 from robocal.planning._iso import IsoCube, iso_cube, solve_ik
 from robocal.planning._motion import SAMPLE_FRACTION, MotionChecker, MoveCheck, UnsafeMove
 from robocal.planning._order import insert_via_points, move_times, order_poses
-from robocal.planning._plan import PLAN_FORMAT, DroppedTarget, Plan, PlannedPose
+from robocal.planning._plan import (
+    PLAN_FORMAT,
+    DroppedTarget,
+    ExcludedFamily,
+    JointCoverage,
+    Plan,
+    PlannedPose,
+)
 
 __all__ = [
     "DESIGNS",
@@ -52,9 +71,11 @@ __all__ = [
     "CpaSweep",
     "DesignSpace",
     "DroppedTarget",
+    "ExcludedFamily",
     "Feasibility",
     "FeasibilityChecker",
     "IsoCube",
+    "JointCoverage",
     "MotionChecker",
     "MoveCheck",
     "Observability",
@@ -66,20 +87,26 @@ __all__ = [
     "cpa_sweeps",
     "default_link_radii",
     "draw_candidates",
+    "excluded_families",
     "identification_jacobian",
     "insert_via_points",
     "iso_cube",
+    "joint_coverage",
     "link_frames",
     "load_cell",
     "model_spec",
     "move_times",
     "observability_indices",
+    "one_revolution",
     "order_poses",
     "plan_campaign",
     "pydantic_config_error",
+    "read_program_joints",
     "segment_box_distance",
     "segment_distance",
     "solve_ik",
     "split_legs",
+    "targets_outside",
+    "winding_ranges",
     "working_ranges",
 ]

@@ -15,6 +15,17 @@ from robocal.errors import ConfigError
 from robocal.identification import CPA_MIN_ARC_DEG, CPA_MIN_RADIUS_MM, TrackerSigma, whitening
 from robocal.kinematics import ErrorModelSpec, RobotDescription, load_robot
 from robocal.planning._cell import Cell, builtin_cells, load_cell
+from robocal.planning._coverage import (
+    TARGET_MARGIN_DEG,
+    ensure_span,
+    excluded_families,
+    family,
+    joint_coverage,
+    read_program_joints,
+    required_span,
+    widen_for_targets,
+    winding_ranges,
+)
 from robocal.planning._cpa import CpaSweep, cpa_sweeps
 from robocal.planning._design import (
     DESIGNS,
@@ -30,9 +41,12 @@ from robocal.planning._motion import MotionChecker
 from robocal.planning._order import move_times, order_poses, two_opt
 from robocal.planning._plan import (
     CandidateInfo,
+    CapsuleInfo,
     CpaInfo,
     DroppedTarget,
+    ExcludedFamily,
     IsoInfo,
+    JointCoverage,
     ModelInfo,
     MotionInfo,
     ObservabilityInfo,
@@ -62,7 +76,8 @@ def cpa_radius(robot: RobotDescription, joint: int, q: Array, reflector: Array) 
 
 @single_threaded
 def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
-                    max_draws: int = MAX_DRAWS) -> tuple[Array, Feasibility, dict[str, int]]:
+                    max_draws: int = MAX_DRAWS, collided: list[Array] | None = None
+                    ) -> tuple[Array, Feasibility, dict[str, int]]:
     """Draw scrambled Sobol candidates inside the working ranges until ``target`` are feasible.
 
     Points are drawn in power-of-two batches (doubling the total each time, which keeps the
@@ -78,6 +93,9 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
         Seed of the scrambling.
     max_draws
         Stop after this many points in total.
+    collided
+        When given, the screened candidates that fail a collision check (floor, keep-out,
+        self-collision) are appended to it, rad.
 
     Returns
     -------
@@ -114,6 +132,8 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
             rejected[k] = rejected.get(k, 0) + v
         qs.append(q[f.ok])
         fs.append(f.subset(f.ok))
+        if collided is not None:
+            collided.append(q[~f.collision_free])
         n_ok += int(f.ok.sum())
         if n_ok >= target or 2 * drawn > max_draws:
             break
@@ -184,16 +204,33 @@ def split_legs(q_from: Array, q_to: Array, max_step: float
 def _legs_safe(motion: MotionChecker, q_from: Array, q_to: Array, max_step: float,
                *, explain: bool = False) -> tuple[NDArray[np.bool_], list[str]]:
     """Whether each leg (with its via-points) is safe along its swept path, and why not
-    (reasons only with ``explain``)."""
-    starts, ends, owner = split_legs(q_from, q_to, max_step)
-    res = motion.check_moves(starts, ends, explain=explain)
-    n = len(np.atleast_2d(q_from))
-    ok = np.ones(n, dtype=bool)
-    ok[owner[~res.safe]] = False
-    why = [""] * n
-    for i in np.flatnonzero(~res.safe)[::-1]:       # keep the first failing move of a leg
-        why[int(owner[i])] = res.reasons[i]
-    return ok, why
+    (reasons only with ``explain``).
+
+    Verdicts are kept in ``motion.leg_verdicts``: ordering, reachability and routing check
+    many of the same legs, and each is swept once (an unsafe leg is checked again only when
+    its reason is wanted and was not recorded).
+    """
+    q_from = np.broadcast_to(np.atleast_2d(q_from), np.shape(np.atleast_2d(q_to)))
+    q_to = np.atleast_2d(q_to)
+    n = len(q_to)
+    step = np.float64(max_step).tobytes()
+    keys = [a.tobytes() + b.tobytes() + step for a, b in zip(q_from, q_to, strict=True)]
+    known = motion.leg_verdicts
+    todo = [i for i, k in enumerate(keys)
+            if k not in known or (explain and not known[k][0] and not known[k][1])]
+    if todo:
+        idx = np.array(todo, dtype=np.intp)
+        starts, ends, owner = split_legs(q_from[idx], q_to[idx], max_step)
+        res = motion.check_moves(starts, ends, explain=explain)
+        ok_t = np.ones(len(idx), dtype=bool)
+        ok_t[owner[~res.safe]] = False
+        why_t = [""] * len(idx)
+        for i in np.flatnonzero(~res.safe)[::-1]:   # keep the first failing move of a leg
+            why_t[int(owner[i])] = res.reasons[i]
+        for k, good, reason in zip(idx, ok_t, why_t, strict=True):
+            known[keys[int(k)]] = (bool(good), reason)
+    ok = np.array([known[k][0] for k in keys], dtype=bool).reshape(n)
+    return ok, [known[k][1] for k in keys]
 
 
 def _order_measured(motion: MotionChecker, q: Array, speed: Array, home: Array,
@@ -415,6 +452,8 @@ def plan_campaign(
     max_draws: int = MAX_DRAWS,
     exchange_passes: int = 2,
     design: str = "stratified",
+    targets: str | Path | None = None,
+    target_margin_deg: float = TARGET_MARGIN_DEG,
 ) -> Plan:
     """Plan a calibration campaign for one robot in one cell.
 
@@ -451,6 +490,11 @@ def plan_campaign(
         within strata, so that the poses represent the workspace (a model that lacks some of
         the robot's errors then fits their average, not their extremes); ``"d-optimal"``: the
         most information for the model, no coverage (see docs/adr/0004).
+    targets
+        The production program (TARGETS.csv or JOINTS.csv, see docs/compensation-tables.md):
+        the working ranges are widened to its joint ranges plus ``target_margin_deg`` (within
+        the robot limits; twice that while drawing candidates) and the calibration poses made
+        to span them (ADR 0026).
 
     Returns
     -------
@@ -476,10 +520,25 @@ def plan_campaign(
                           f"is not safe: {motion.explain(home[None, :])[0]}",
                           source=f"cell {the_cell.name!r}", key="motion.home_deg")
     warnings: list[str] = []
+    margin = math.radians(target_margin_deg)
+    q_prog = None if targets is None else read_program_joints(targets, dof=rob.dof)
+    # checker.ranges and motion.limits are one array: narrowed or widened in place
+    ranges, notes = winding_ranges(motion, home, checker.ranges)
+    if q_prog is not None:
+        # twice the margin: candidates beyond the targets' margin must exist to be chosen
+        ranges, more = widen_for_targets(ranges, rob.joint_limits, q_prog, 2.0 * margin)
+        notes += more
+    checker.ranges[:] = ranges
+    warnings += notes
+    collided: list[Array] = []
     q_c, feas_c, counts = _feasible_candidates(checker, the_cell.name,
                                                target=max(candidates, 2 * (count + validation)),
                                                need=count + validation, seed=seed,
-                                               max_draws=max_draws)
+                                               max_draws=max_draws, collided=collided)
+    excluded = excluded_families(checker, np.vstack(collided), counts["screened"])
+    # as the file holds them (1e-6 deg), so that the legs checked while choosing and ordering
+    # are the legs routed and written, and their verdicts are reused
+    q_c = _round_deg(q_c)
     ds = cell_design_space(checker, spec, q_c, feas_c)
     if count < ds.min_poses:
         raise ConfigError(
@@ -490,9 +549,16 @@ def plan_campaign(
         warnings.append(f"{count} calibration poses are fewer than the {ds.recommended_poses} "
                         f"recommended for {ds.identifiable} identifiable parameters")
     max_step = math.radians(the_cell.motion.max_joint_step_deg)
+    unreachable: list[int] = []
     cal, val = _choose_poses(ds, motion, home, max_step, count=count, validation=validation,
                              seed=seed, design=design, exchange_passes=exchange_passes,
-                             warnings=warnings)
+                             warnings=warnings, span=required_span(q_c, q_prog, margin),
+                             unreachable=unreachable)
+    if unreachable:
+        # only the candidates the selection proposed were checked: a lower bound
+        excluded.append(family("feasible but no safe straight move from home (a pocket of "
+                               "the capsule model; among the candidates the selection "
+                               "proposed)", q_c[np.array(unreachable)], counts["screened"]))
     baseline = np.random.default_rng([seed, 2]).choice(len(q_c), size=count, replace=False)
     obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
                                random_baseline=_obs_info(ds.observability(baseline)))
@@ -519,6 +585,13 @@ def plan_campaign(
                         + ", ".join(f"{v} {k}" for k, v in kinds.items())
                         + "): see 'dropped' in the plan")
     poses = _planned_poses(q_all, purposes, final)
+    q_cal = q_all[np.array([p == "calibration" for p in purposes])]
+    coverage = joint_coverage(rob, checker.ranges, q_cal, q_prog, margin)
+    uncovered = [f"J{c['joint']}" for c in coverage if c["targets_covered"] is False]
+    if uncovered:
+        warnings.append(f"the calibration poses do not cover the program's range of "
+                        f"{', '.join(uncovered)} (plus {target_margin_deg:g} deg): no feasible, "
+                        "safely reachable pose there; see 'coverage' and 'excluded'")
     prev = np.vstack([home[None, :], q_all[:-1]])
     motion_info = MotionInfo(
         max_joint_step_deg=the_cell.motion.max_joint_step_deg,
@@ -545,7 +618,13 @@ def plan_campaign(
                      points=len(s.q), radius_mm=round(1e3 * cpa_radius(
                          rob, s.joint, s.q[0], s.feasibility.reflector[0]), 3))
              for s in sweeps],
-        warnings=warnings, dropped=dropped, poses=poses)
+        warnings=warnings, dropped=dropped,
+        coverage=[JointCoverage.model_validate(c) for c in coverage],
+        targets_source=None if targets is None else str(targets),
+        capsules=CapsuleInfo(
+            link_radii_mm=[round(r * 1e3, 3) for r in checker.capsules.radii],
+            tool_radius_mm=the_cell.robot.tool_radius_mm, source=checker.radii_source),
+        excluded=[ExcludedFamily.model_validate(e) for e in excluded], poses=poses)
 
 
 def cell_design_space(checker: FeasibilityChecker, spec: ErrorModelSpec, q: Array,
@@ -594,12 +673,13 @@ def _check_arguments(*, iso_cycles: int, seed: int, count: int, validation: int,
 
 
 def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target: int,
-                         need: int, seed: int, max_draws: int
+                         need: int, seed: int, max_draws: int,
+                         collided: list[Array] | None = None
                          ) -> tuple[Array, Feasibility, dict[str, int]]:
     """Feasible candidates (see :func:`draw_candidates`); an error naming the checks that
     rejected the others when fewer than ``need`` are found."""
     q_c, feas_c, counts = draw_candidates(checker, target=target, seed=seed,
-                                          max_draws=max_draws)
+                                          max_draws=max_draws, collided=collided)
     if len(q_c) < need:
         why = ", ".join(f"{k} {v}" for k, v in counts.items()
                         if k not in ("drawn", "screened") and v)
@@ -615,13 +695,17 @@ def _feasible_candidates(checker: FeasibilityChecker, cell_name: str, *, target:
 
 def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step: float, *,
                   count: int, validation: int, seed: int, design: str, exchange_passes: int,
-                  warnings: list[str]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+                  warnings: list[str], span: Array | None = None,
+                  unreachable: list[int] | None = None
+                  ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Calibration poses by ``design`` and random validation poses, all reachable from home.
 
     A pose whose straight move from home is not safe (under the capsule model, e.g. the
     KR210's forearm folded over its shoulder) may lie in a pocket no route reaches. Only the
     chosen poses are checked (checking every candidate costs tens of seconds); unreachable
-    ones are excluded and the choice repeated.
+    ones are excluded and the choice repeated. With ``span`` (dof, 2) rad the calibration
+    poses are then made to span it (:func:`ensure_span`). The candidates found unreachable
+    are appended to ``unreachable``.
     """
     q_c = ds.q
     n_c = len(q_c)
@@ -635,6 +719,8 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
                                q_c[new], max_step)
             checked[new] = True
             allowed[new[~ok]] = False
+            if unreachable is not None:
+                unreachable.extend(int(i) for i in new[~ok])
         return idx[~allowed[idx]]
 
     for _ in range(30):
@@ -642,6 +728,8 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
             cal = ds.select_stratified(count, allowed=allowed)
         else:
             cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
+        if span is not None:
+            cal = ensure_span(q_c, cal, allowed, span)
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
     rest = np.setdiff1d(np.arange(n_c), cal)

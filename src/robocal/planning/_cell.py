@@ -108,6 +108,11 @@ class RobotSection(_Strict):
     joint_ranges_deg: list[list[float]] | None = Field(
         default=None, description="optional working range [min, max] per joint, deg; "
                                   "intersected with the robot's limits")
+    one_revolution: bool = Field(
+        default=False,
+        description="cut every joint range wider than 360 deg to the revolution centred on "
+                    "motion.home_deg (the same positions, but joint errors that do not repeat "
+                    "after a turn are then not calibrated beyond it)")
 
     @field_validator("link_radii_mm")
     @classmethod

@@ -26,11 +26,10 @@ from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
 from robocal.errors import ConfigError
-from robocal.kinematics import RobotDescription
+from robocal.kinematics import RobotDescription, link_radii
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
     CapsuleModel,
-    default_link_radii,
     link_frames,
     segment_box_distance,
     segment_distance,
@@ -157,8 +156,9 @@ class FeasibilityChecker:
         self.robot = robot
         self.cell = cell
         radii_mm = cell.robot.link_radii_mm
-        radii = ([r * 1e-3 for r in radii_mm] if radii_mm is not None
-                 else default_link_radii(robot))
+        radii, self.radii_source = link_radii(robot)
+        if radii_mm is not None:
+            radii, self.radii_source = [r * 1e-3 for r in radii_mm], "cell robot.link_radii_mm"
         off = cell.reflector.offset_mm
         tool = tuple(v * 1e-3 for v in off) if off is not None else tuple(robot.tool)
         self.tool_offset: tuple[float, float, float] = (tool[0], tool[1], tool[2])
@@ -329,8 +329,11 @@ class FeasibilityChecker:
 
 def working_ranges(robot: RobotDescription, cell: Cell) -> Array:
     """Joint ranges (dof, 2) rad the planner may use: robot limits, intersected with the
-    cell's ``joint_ranges_deg``, shrunk by ``joint_margin_deg`` at both ends; a range wider
-    than one revolution is cut to the revolution centred on ``motion.home_deg`` (default 0).
+    cell's ``joint_ranges_deg``, shrunk by ``joint_margin_deg`` at both ends. A range wider
+    than one revolution is kept whole (a joint's errors need not repeat after a turn) unless
+    the cell sets ``robot.one_revolution``: then it is cut to the revolution centred on
+    ``motion.home_deg`` (default 0). :func:`robocal.planning.winding_ranges` narrows joints
+    that cannot turn a whole revolution safely.
 
     Raises
     ------
@@ -354,14 +357,25 @@ def working_ranges(robot: RobotDescription, cell: Cell) -> Array:
         raise ConfigError(f"joint {bad[0] + 1}: empty working range after the robot limits, "
                           f"joint_ranges_deg and joint_margin_deg", source=f"cell {cell.name!r}",
                           key="robot.joint_ranges_deg")
-    # A joint turning more than one revolution reaches every pose within one revolution: plan
-    # in the revolution centred on home, so that no move winds a joint round needlessly (the
-    # UR10's +-360 deg joints otherwise give moves that sweep the arm through the floor).
+    if cell.robot.one_revolution:
+        wide = lim[:, 1] - lim[:, 0] > 2.0 * math.pi
+        lim[wide] = one_revolution(lim, home_of(robot, cell))[wide]
+    return lim
+
+
+def home_of(robot: RobotDescription, cell: Cell) -> Array:
+    """The cell's ``motion.home_deg`` (dof,) rad, zeros when it is not given (or mis-sized)."""
     h = cell.motion.home_deg
-    centre = (np.radians(np.asarray(h, dtype=float)) if h is not None and len(h) == robot.dof
-              else np.zeros(robot.dof))
+    return (np.radians(np.asarray(h, dtype=float)) if h is not None and len(h) == robot.dof
+            else np.zeros(robot.dof))
+
+
+def one_revolution(lim: Array, centre: Array) -> Array:
+    """Ranges ``lim`` (dof, 2) rad cut to the revolution centred on ``centre`` (dof,) rad
+    (moved inside ``lim`` where needed); ranges of one revolution or less are unchanged."""
+    out = lim.copy()
     wide = lim[:, 1] - lim[:, 0] > 2.0 * math.pi
     c = np.clip(centre, lim[:, 0] + math.pi, lim[:, 1] - math.pi)
-    lim[wide, 0] = c[wide] - math.pi
-    lim[wide, 1] = c[wide] + math.pi
-    return lim
+    out[wide, 0] = c[wide] - math.pi
+    out[wide, 1] = c[wide] + math.pi
+    return out

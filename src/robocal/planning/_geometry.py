@@ -157,22 +157,6 @@ def segment_box_distance(P: Array, Q: Array, lo: Array, hi: Array, *, iterations
     return best, t
 
 
-def default_link_radii(robot: RobotDescription) -> list[float]:
-    """Default capsule radius per body, m: 4 % of the summed link lengths for bodies 1-3, 2.5 %
-    for the wrist bodies (a rough fit to industrial arms from 5 kg to 200 kg payload).
-
-    The last body (the flange) is capped at 60 % of the robot file's tool offset: the reflector
-    sits on the flange, so a flange capsule reaching past it would contradict the robot file
-    (the KR210's 2.5 % is 101 mm against a 100 mm tool offset).
-    """
-    reach = sum(abs(j.a) + abs(j.d) for j in robot.joints)
-    radii = [(0.04 if i < 3 else 0.025) * reach for i in range(robot.dof)]
-    tool = math.hypot(*robot.tool)
-    if tool > 0.0:
-        radii[-1] = min(radii[-1], 0.6 * tool)
-    return radii
-
-
 @dataclass(frozen=True)
 class CapsuleModel:
     """Capsules of a robot's links plus the reflector mount, with self-collision pairs.

@@ -153,6 +153,9 @@ class MotionChecker:
         self.lever = _levers(robot, cm.names, self.feasibility.tool_offset)
         self.lever[:, cm.static] = 0.0
         self._C_abs = np.abs(robot.coupling_matrix)
+        #: swept-path verdicts of legs the planner has checked: (start, end, max step) bytes
+        #: -> (safe, reason or "" when not explained); a leg is checked once per plan
+        self.leg_verdicts: dict[bytes, tuple[bool, str]] = {}
 
     # -- sampling --------------------------------------------------------------------------------
     def intervals(self, q_from: Array, q_to: Array) -> NDArray[np.int64]:

@@ -20,6 +20,15 @@ Layout (JSON object; lengths in mm, angles in degrees, robot base frame)::
     warnings            [str]
     dropped             [{purpose, joints_deg, reason}]: targets left out because no safe
                         route to them was found
+    coverage            [{joint, limits_deg, working_deg, planned_deg, of_limits, targets_deg,
+                        targets_covered}]: per joint, the range the calibration poses span
+                        against the robot limits, the planner's working range and the
+                        production program's targets (``--targets``; null without)
+    targets_source      the program file whose joint ranges the plan covers, or null
+    capsules            {link_radii_mm, tool_radius_mm, source}: the collision model used
+    excluded            [{reason, candidates, of_screened, joint_ranges_deg}]: candidate
+                        families the collision checks excluded, by cause (which capsules),
+                        with the 5-95 % joint ranges of the excluded candidates
     poses               ordered list, executed in this order:
         index               0, 1, 2, ...
         purpose             calibration | validation | via | cpa-jK | iso-P1 .. iso-P5
@@ -87,6 +96,35 @@ class DroppedTarget(_Frozen):
     purpose: Purpose
     joints_deg: list[float] = Field(min_length=1)
     reason: str
+
+
+class JointCoverage(_Frozen):
+    """Per joint: the range the calibration poses span against limits and targets, deg."""
+
+    joint: int = Field(ge=1)
+    limits_deg: list[float] = Field(min_length=2, max_length=2)
+    working_deg: list[float] = Field(min_length=2, max_length=2)
+    planned_deg: list[float] = Field(min_length=2, max_length=2)
+    of_limits: float = Field(ge=0.0)
+    targets_deg: list[float] | None = None
+    targets_covered: bool | None = None
+
+
+class ExcludedFamily(_Frozen):
+    """Candidates the collision checks excluded for one cause."""
+
+    reason: str
+    candidates: int = Field(ge=0)
+    of_screened: int = Field(ge=0)
+    joint_ranges_deg: list[list[float]]
+
+
+class CapsuleInfo(_Frozen):
+    """The capsule model the collision checks used, and where its radii come from."""
+
+    link_radii_mm: list[float]
+    tool_radius_mm: float = Field(gt=0.0)
+    source: str
 
 
 class RobotInfo(_Frozen):
@@ -190,6 +228,11 @@ class Plan(_Frozen):
     cpa: list[CpaInfo] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
     dropped: list[DroppedTarget] = Field(default_factory=list)
+    # plans written before ADR 0026 have no coverage record
+    coverage: list[JointCoverage] = Field(default_factory=list)
+    targets_source: str | None = None
+    capsules: CapsuleInfo | None = None
+    excluded: list[ExcludedFamily] = Field(default_factory=list)
     poses: list[PlannedPose]
 
     @model_validator(mode="after")

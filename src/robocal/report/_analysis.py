@@ -14,6 +14,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
 from robocal.identification import FitResult, extrapolation
 from robocal.kinematics import CalibratedModel, RobotDescription
+from robocal.report._coverage import Coverage, coverage
 from robocal.report._cpa import CpaComparison, compare, with_classical
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
 from robocal.report._metrics import (
@@ -89,6 +90,7 @@ class Analysis:
     hashes: dict[str, Any]
     iso_frame: str = "tracker"
     cpa: CpaComparison | None = None
+    coverage: Coverage | None = None
 
     @property
     def data(self) -> dict[str, MeasurementSet]:
@@ -141,10 +143,12 @@ def analyse(inp: ReportInput) -> Analysis:
     v = verdict(judged, inp.acceptance)
     joint_model, joints = _joint_curves(entries, selected)
     iso = _iso(inp, entries.get(BASELINE), sel_cm)
+    cover = None if robot is None else coverage(
+        robot, sel_cm, None if inp.calibration is None else inp.calibration.q, inp.targets)
     return Analysis(inp, robot, models, selected, baseline_note, outliers, val_glitches,
                     judged, v,
                     joint_model, joints, ident, work, iso, _hashes(data, entries),
-                    cpa=compare(models))
+                    cpa=compare(models), coverage=cover)
 
 
 def _robot_of(inp: ReportInput, entries: dict[str, ModelEntry],

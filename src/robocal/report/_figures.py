@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from robocal.report._analysis import SETS, Analysis
+from robocal.report._coverage import Coverage
 from robocal.report._metrics import IsoResult, JointCurves, Workspace
 
 if TYPE_CHECKING:
@@ -117,6 +118,8 @@ def render_all(an: Analysis) -> dict[str, Plot]:
             out["singular_values"] = singular_values(an)
         if an.work is not None:
             out["workspace"] = workspace_plot(an, an.work)
+        if an.coverage is not None:
+            out["coverage"] = coverage_plot(an.coverage)
         if an.iso:
             out["iso"] = iso_plot(an.iso)
     return out
@@ -360,6 +363,39 @@ def workspace_plot(an: Analysis, w: Workspace) -> Plot:
     fig.colorbar(sc, ax=axes[2], label="1σ (mm)")
     _style(fig)
     return _render("workspace", fig, "Predicted position uncertainty over the workspace")
+
+
+def coverage_plot(cov: Coverage) -> Plot:
+    """Per joint: robot limits (grey), calibrated range (blue), measured range (black line)
+    and the program's targets (orange ticks; red outside the calibrated range)."""
+    n = len(cov.rows)
+    fig = _new(WIDE, 0.36 * n + 0.9)
+    ax = fig.add_subplot()
+    for k, r in enumerate(cov.rows):
+        y = n - 1 - k
+        lo, hi = r.limits_deg
+        ax.barh(y, hi - lo, left=lo, height=0.7, color="#e0e0e0")
+        if r.calibrated_deg is not None:
+            c0, c1 = r.calibrated_deg
+            ax.barh(y, c1 - c0, left=c0, height=0.45, color="#1f77b4", alpha=0.7)
+        if r.measured_deg is not None:
+            ax.plot(r.measured_deg, [y, y], color="black", linewidth=1.2)
+        if cov.targets is not None:
+            t = np.degrees(cov.targets[:, k])
+            out = ((t < r.calibrated_deg[0]) | (t > r.calibrated_deg[1])
+                   if r.calibrated_deg is not None else np.zeros(t.size, dtype=bool))
+            ax.scatter(t[~out], np.full(int((~out).sum()), y), marker="|", s=60,
+                       color="#ff7f0e", linewidths=1.0)
+            ax.scatter(t[out], np.full(int(out.sum()), y), marker="|", s=80,
+                       color="#d62728", linewidths=1.4)
+    ax.set_yticks(range(n), [f"J{r.joint}" for r in reversed(cov.rows)])
+    ax.set_xlabel("joint value (deg)")
+    title = "grey: limits, blue: calibrated range, black: measured"
+    if cov.targets is not None:
+        title += f", ticks: {len(cov.targets)} program targets ({cov.outside} outside, red)"
+    ax.set_title(title, fontsize=9)
+    _style(fig)
+    return _render("coverage", fig, "Per-joint coverage with the program targets")
 
 
 def iso_plot(iso: list[IsoResult]) -> Plot:

@@ -131,7 +131,7 @@ def render(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str, Any]) 
     """The whole page."""
     parts = [_head(an), "<main>", _first_screen(an, plots, summary), _toc(an),
              _accuracy(an, plots), _cpa(an), _joints(an, plots), _ident(an, plots),
-             _iso(an, plots),
+             _iso(an, plots), _coverage(an, plots),
              _workspace(an, plots), _log(an), "</main>", _footer(an), "</body></html>"]
     return "\n".join(p for p in parts if p)
 
@@ -244,6 +244,7 @@ def _toc(an: Analysis) -> str:
              *([("cpa", "Circle Point Analysis")] if an.cpa is not None else []),
              ("joints", "Joint-dependent errors"),
              ("identifiability", "Identifiability"), ("iso", "ISO 9283"),
+             *([("coverage", "Joint coverage")] if an.coverage is not None else []),
              ("workspace", "Predicted accuracy"), ("log", "Measurements & provenance")]
     return '<nav class="toc">' + "".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in links) \
         + "</nav>"
@@ -520,6 +521,39 @@ def _workspace(an: Analysis, plots: Mapping[str, Plot]) -> str:
                "unmodelled errors or tracker noise.</p>")
     out.append(_fig(plots.get("workspace"), "Predicted 1σ position uncertainty: histogram "
                     "and maps in the robot base frame."))
+    out.append("</section>")
+    return "\n".join(out)
+
+
+def _coverage(an: Analysis, plots: Mapping[str, Plot]) -> str:
+    """Per-joint coverage: limits, calibrated and measured ranges, the program's targets."""
+    cov = an.coverage
+    if cov is None:
+        return ""
+
+    def rng(v: tuple[float, float] | None) -> str:
+        return "–" if v is None else f"{v[0]:.1f} … {v[1]:.1f}"
+
+    has_t = cov.targets is not None
+    head = ["joint", "limits (deg)", "calibrated (deg)", "measured (deg)"]
+    if has_t:
+        head += ["targets (deg)", "targets outside"]
+    rows = []
+    for r in cov.rows:
+        row = [f"J{r.joint}", rng(r.limits_deg), rng(r.calibrated_deg), rng(r.measured_deg)]
+        if has_t:
+            row += [rng(r.targets_deg), str(r.targets_outside)]
+        rows.append(row)
+    out = ['<section id="coverage"><h2>Joint coverage</h2>', _table(head, rows)]
+    note = ("Calibrated: the joint ranges inside which the model's corrections are trusted "
+            "(its coverage); outside them the joint-dependent terms are not used. Measured: "
+            "the range the calibration poses spanned.")
+    if has_t and cov.targets is not None:
+        note += (f" {cov.outside} of {len(cov.targets)} program targets lie outside the "
+                 "calibrated range" + (": " + "; ".join(cov.names) if cov.names else "") + ".")
+    out.append(f'<p class="note">{esc(note)}</p>')
+    out.append(_fig(plots.get("coverage"), "Per-joint coverage: limits, calibrated range, "
+                    "measured range and program targets."))
     out.append("</section>")
     return "\n".join(out)
 

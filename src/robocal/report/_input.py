@@ -378,6 +378,9 @@ class ReportInput:
         judged model.
     log
         Measurement statistics (retries, beam losses, weather...).
+    targets
+        The production program's joint values (n, dof) rad, overlaid on the per-joint
+        coverage (ADR 0026).
     acceptance
         Verdict thresholds.
     """
@@ -398,6 +401,7 @@ class ReportInput:
     notes: Sequence[str] = ()
     workspace_samples: int = 1000
     seed: int = 0
+    targets: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         if not self.created:

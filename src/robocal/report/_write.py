@@ -92,6 +92,7 @@ def summary(an: Analysis) -> dict[str, Any]:
         "cpa": None if an.cpa is None else an.cpa.to_dict(),
         "iso9283": [r.to_dict() for r in an.iso],
         "workspace": None if an.work is None else an.work.to_dict(),
+        "coverage": None if an.coverage is None else an.coverage.to_dict(),
         "measurement_log": log,
         "provenance": an.hashes,
         "notes": list(inp.notes),

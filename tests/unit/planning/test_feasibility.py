@@ -179,13 +179,10 @@ def test_reflector_inside_its_own_link_is_a_config_error(robot: RobotDescription
 
 def test_working_ranges(robot: RobotDescription, demo: Cell) -> None:
     r = working_ranges(robot, demo)
-    # J4 (+-185 deg after the margin) and J6 (+-355) turn more than a revolution: planned
-    # within the revolution centred on home (0)
+    # J4 (+-185 deg after the margin) and J6 (+-355) turn more than a revolution: kept whole
+    # (ADR 0026; test_coverage.py covers the one_revolution option)
     expect = robot.joint_limits + np.radians([5.0, -5.0])
-    expect[[3, 5]] = np.radians([-180.0, 180.0])
     np.testing.assert_allclose(r, expect)
-    homed = cell_with(demo, motion={"home_deg": [0, 0, 0, 0, 0, 300]})
-    np.testing.assert_allclose(working_ranges(robot, homed)[5], np.radians([-5.0, 355.0]))
     narrow = cell_with(demo, robot={"joint_ranges_deg": [[-30, 30]] * 6, "joint_margin_deg": 0})
     np.testing.assert_allclose(working_ranges(robot, narrow), np.radians([[-30, 30]] * 6))
     with pytest.raises(ConfigError, match="needs 6 entries"):

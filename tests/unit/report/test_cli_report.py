@@ -79,8 +79,11 @@ def test_campaign_from_the_store(campaign: Campaign, tmp_path: Path,
     from robocal.daemon.store import MeasurementRow, PoseRow, Store
 
     cfg = tmp_path / "c.toml"
+    prog = tmp_path / "JOINTS.csv"
+    prog.write_text("q1,q2,q3,q4,q5,q6\n0,10,0,0,30,45\n5,20,-10,0,-30,90\n")
     cfg.write_text(f'data_dir = "{tmp_path}"\nrobot_description = "fanuc_lrmate200i"\n'
-                   '[robot]\nkind = "mock"\n[tracker]\nkind = "mock"\n')
+                   '[robot]\nkind = "mock"\n[tracker]\nkind = "mock"\n'
+                   f'[compensation]\ntargets_file = "{prog}"\n')
     store = Store(tmp_path / "robocal.sqlite3").open()
     rows: list[tuple[str, np.ndarray, np.ndarray]] = []
     # a slice of the campaign keeps the per-measurement fsyncs of the store cheap
@@ -122,5 +125,8 @@ def test_campaign_from_the_store(campaign: Campaign, tmp_path: Path,
     assert sorted(s["outliers"]) == out_ids
     assert s["measurement_log"]["retries"] == 1
     assert [r["pose"] for r in s["iso9283"]] == ["P1"] and s["iso9283"][0]["n"] == 10
+    # the program the daemon pushes is overlaid on the coverage (ADR 0026)
+    assert s["coverage"]["targets"] == 2
+    assert s["coverage"]["joints"][5]["targets_deg"] == [45.0, 90.0]
     page = out.read_text(encoding="utf-8")
     assert rec.id in page and "20.0–" in page

@@ -120,7 +120,7 @@ def test_plots_are_embedded_pngs(full: Written) -> None:
     assert len(imgs) == full.html.count("<img")
     keys = full.summary["figures"]
     assert set(keys) == {"summary", "histograms", "per_pose", "singular_values", "workspace",
-                         "iso", *(f"joint{j}" for j in range(1, 7))}
+                         "iso", "coverage", *(f"joint{j}" for j in range(1, 7))}
     assert len(imgs) == len(keys)
     for b64, w, h, alt in imgs:
         im = Image.open(io.BytesIO(base64.b64decode(b64)))
