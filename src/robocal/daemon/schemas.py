@@ -160,6 +160,20 @@ class PushSummary(_Closed):
     measured_n: int | None
 
 
+class ControllerCalibrationRecord(_Closed):
+    """What the controller applied of its own calibration when the campaign started
+    (ADR 0033)."""
+
+    state: Literal["read", "unavailable"]
+    read_at: str
+    fingerprint: str | None
+    absolute_accuracy: bool | None = Field(
+        description="a vendor absolute-accuracy option was active (None: not shown)")
+    source: str | None
+    facts: dict[str, Any] = Field(description="the values as read, vendor units")
+    reason: str = Field(description="why it is unavailable")
+
+
 class CampaignStatus(CampaignSummary):
     """``GET /campaigns/{cid}`` and every campaign action's answer."""
 
@@ -169,6 +183,7 @@ class CampaignStatus(CampaignSummary):
     files: str = Field(description="directory of the campaign's report files")
     compensation: list[CampaignPush]
     push: PushSummary | None
+    controller_calibration: ControllerCalibrationRecord | None = None
 
 
 class Measurement(_Closed):
