@@ -92,7 +92,9 @@ def register(sub: Any) -> None:
         if verb == "push":
             a.add_argument("--force", action="store_true",
                            help="push even if the table does not clearly improve on the "
-                                "nominal residual (recorded in the audit log)")
+                                "nominal residual, the controller's own calibration changed "
+                                "since the campaign, or a vendor absolute-accuracy option is "
+                                "active (recorded in the audit log)")
             a.add_argument("--reason", default="", help="why (kept in the audit log)")
             a.add_argument("--key", help="idempotency key: a retry with the same key never "
                                          "writes the controller twice")
