@@ -9,15 +9,18 @@ active, is refused with nothing written, and goes through when forced (audited).
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
 import pytest
+from aiohttp.test_utils import TestClient, TestServer
 from tests.integration.test_ur_campaign import service as ur_service
 from tests.integration.test_ur_campaign import ur_plan
 from tests.unit.daemon.conftest import ROBOT, base_config
 from tests.unit.daemon.test_service import program_plan
 
+from robocal.daemon.api import make_app
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import AbbSimOptions, KukaSimOptions, LtpSimOptions, SimCell
@@ -73,19 +76,27 @@ async def test_kuka_remastered_after_the_campaign_refuses_the_push_unless_forced
                 assert doc["data"]["controller_calibration"]["fingerprint"] == rec["fingerprint"]
 
             sim.calibration_vars["$MAMES[2]"] = "-90.0125"  # axis 2 mastered again
-            with pytest.raises(CompensationError, match=r"changed since campaign .*MAMES\[2\]"):
-                await svc.push(cid, actor="a")
-            assert sim.read("RC_COMP_N") == ("0", True)  # nothing written
-            assert svc.status(cid)["state"] == "approved"
-            refused = [a for a in _actions(svc, cid)
-                       if a["action"] == "compensation.push-refused"]
-            assert len(refused) == 1 and "MAMES" in refused[0]["detail"]["refusal"]
+            # through the HTTP API, as `robocal campaign push [--force]` sends it
+            async with TestClient(TestServer(make_app(svc))) as http:
+                r = await http.get(f"/campaigns/{cid}")  # the status schema holds the record
+                assert (await r.json())["controller_calibration"] == rec
+                r = await http.post(f"/campaigns/{cid}/push")
+                err = (await r.json())["error"]
+                assert r.status == 422 and err["type"] == "CompensationError"
+                assert re.search(r"changed since campaign .*MAMES\[2\]", err["message"])
+                assert sim.read("RC_COMP_N") == ("0", True)  # nothing written
+                assert svc.status(cid)["state"] == "approved"
+                refused = [a for a in _actions(svc, cid)
+                           if a["action"] == "compensation.push-refused"]
+                assert len(refused) == 1 and "MAMES" in refused[0]["detail"]["refusal"]
 
-            st = await svc.push(cid, actor="boss", force=True)
-            assert st["state"] == "pushed" and int(sim.read("RC_COMP_N")[0]) > 0
+                r = await http.post(f"/campaigns/{cid}/push", json={"force": True},
+                                    headers={"X-Robocal-Actor": "boss"})
+                assert r.status == 200 and (await r.json())["state"] == "pushed"
+            assert int(sim.read("RC_COMP_N")[0]) > 0
             check = [a for a in _actions(svc, cid)
                      if a["action"] == "controller.calibration-checked"][-1]
-            assert check["actor"] == "boss" and check["detail"]["forced"] is True
+            assert check["actor"].startswith("boss") and check["detail"]["forced"] is True
             assert check["detail"]["campaign_fingerprint"] == rec["fingerprint"]
             assert check["detail"]["controller_fingerprint"] != rec["fingerprint"]
         finally:
