@@ -174,3 +174,18 @@ async def service_mock(tmp_path):
         yield svc
     finally:
         await svc.stop()
+
+
+def test_campaign_status_text_names_the_controller_calibration():
+    from robocal.cli._campaign import _describe
+
+    base = {"id": "c1", "state": "fitted", "poses_measured": 5, "poses_total": 5}
+    read = {"state": "read", "fingerprint": "0123456789abcdef", "source": "abb-rws-cfg-moc",
+            "absolute_accuracy": True, "reason": ""}
+    text = _describe({**base, "controller_calibration": read})
+    assert ("controller calibration 0123456789abcdef (abb-rws-cfg-moc; vendor absolute "
+            "accuracy ON)") in text
+    text = _describe({**base, "controller_calibration": {"state": "unavailable",
+                                                         "reason": "RMI shows none"}})
+    assert "controller calibration unavailable (RMI shows none)" in text
+    assert "controller calibration" not in _describe(base)

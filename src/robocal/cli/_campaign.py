@@ -140,6 +140,9 @@ def _describe(s: dict[str, Any]) -> str:
              f"  poses     {s['poses_measured']}/{s['poses_total']} measured",
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
+    cal = s.get("controller_calibration")
+    if cal:
+        lines.append(_describe_calibration(cal))
     fits = s.get("fits") or {}
     if fits:
         lines.append("  fits      model        held-out RMS   % described")
@@ -170,6 +173,15 @@ def _describe(s: dict[str, Any]) -> str:
         elif p.get("verification"):
             lines.append(f"  measured  verification {p['verification']}")
     return "\n".join(lines) + "\n"
+
+
+def _describe_calibration(cal: dict[str, Any]) -> str:
+    """The controller's own calibration recorded at campaign start, in one line."""
+    if cal.get("state") != "read":
+        return f"  controller calibration unavailable ({cal.get('reason', '')})"
+    aa = {True: "vendor absolute accuracy ON", False: "no vendor absolute accuracy",
+          None: "absolute accuracy not shown"}[cal.get("absolute_accuracy")]
+    return f"  controller calibration {cal.get('fingerprint')} ({cal.get('source')}; {aa})"
 
 
 def _report_path(s: dict[str, Any]) -> Path | None:

@@ -345,3 +345,19 @@ def test_cfg_instances_parse_and_refuse_malformed_items():
                                   "attrib": ["not an object"]}])
     with pytest.raises(ValueError, match="configuration name"):
         rws.cfg_instances("rws1", "MOC", "ROBOT", "../x")
+
+
+async def test_cfg_instance_in_xhtml_nests_its_attributes(world):
+    async with abb_sim(world, robotware=6) as sim, aiohttp.ClientSession() as http:
+        path = "/rw/cfg/MOC/ROBOT/instances/ROB_1"
+        async with http.get(sim.base_url + path) as r:
+            challenge = rws.parse_challenge(r.headers["WWW-Authenticate"])
+        auth = rws.digest_authorization(challenge, username="Default User", password="robotics",
+                                        method="GET", uri=path, nc=1, cnonce="abc")
+        async with http.get(sim.base_url + path, headers={"Authorization": auth}) as r:
+            assert r.status == 200 and r.headers["Content-Type"] == rws.XHTML
+            page = (await r.read()).decode()
+        assert re.search(r'<li class="cfg-dt-instance-li" title="ROB_1"><span class="rdonly">'
+                         r'false</span><ul><li class="cfg-ia-t-li" title="name">.*<li '
+                         r'class="cfg-ia-t-li" title="use_robot_calib"><span class="value">'
+                         r"r1_uncalib</span></li></ul></li>", page)

@@ -389,12 +389,7 @@ class AbbRwsSimulator:
             # exactly "application/json": abb-robot-client compares the whole header value
             return web.Response(body=json.dumps(doc).encode(),
                                 headers={"Content-Type": rws.JSON_RWS1})
-        lis = []
-        for item in items:
-            spans = "".join(f'<span class="{escape(k)}">{escape(str(v))}</span>'
-                            for k, v in item.items() if not k.startswith("_"))
-            lis.append(f'<li class="{escape(item.get("_type", ""))}" '
-                       f'title="{escape(item.get("_title", ""))}">{spans}</li>')
+        lis = [_xhtml_item(item) for item in items]
         page = ('<?xml version="1.0" encoding="utf-8"?><html xmlns="http://www.w3.org/1999/xhtml">'
                 f'<head><base href="http://{escape(host)}{escape(base)}"/></head><body>'
                 f'<div class="state"><ul>{"".join(lis)}</ul></div></body></html>')
@@ -750,6 +745,17 @@ class AbbRwsSimulator:
         for c in "abcdef":
             item[f"eax{c}"] = "9E+09"
         return "/rw/motionsystem/", [item]
+
+
+def _xhtml_item(item: dict[str, Any]) -> str:
+    """One state item as ``<li class=type title=...>``: fields as spans, a list-valued field
+    (a configuration instance's attributes) as a nested ``<ul>`` of items."""
+    spans = "".join(f'<span class="{escape(k)}">{escape(str(v))}</span>'
+                    for k, v in item.items() if not k.startswith("_") and not isinstance(v, list))
+    nested = "".join("<ul>" + "".join(_xhtml_item(x) for x in v) + "</ul>"
+                     for v in item.values() if isinstance(v, list))
+    return (f'<li class="{escape(item.get("_type", ""))}" '
+            f'title="{escape(item.get("_title", ""))}">{spans}{nested}</li>')
 
 
 class _MotionError(Exception):
