@@ -131,6 +131,10 @@ async def test_abb_absolute_accuracy_active_refuses_the_push_unless_forced(tmp_p
                      if a["action"] == "controller.calibration-checked"][-1]
             assert check["detail"]["forced"] is True and check["detail"]["absolute_accuracy"]
             assert check["detail"]["controller_fingerprint"] == rec["fingerprint"]
+            # the push record says it was forced, and over what
+            assert st["push"]["forced"] is True
+            pushed = st["compensation"][-1]["controller_calibration"]
+            assert pushed["forced"] and "absolute-accuracy" in pushed["refusals"][0]
         finally:
             await svc.stop()
 
@@ -152,7 +156,7 @@ async def test_ur_kinematics_changed_after_the_campaign_refuses_the_push(tmp_pat
             await svc.push(cid, actor="a")
         assert svc.status(cid)["state"] == "approved"
         st = await svc.push(cid, actor="a", force=True)
-        assert st["state"] == "pushed"
+        assert st["state"] == "pushed" and st["push"]["forced"] is True
 
 
 async def test_a_driver_that_shows_nothing_records_unavailable_and_pushes(service_mock):
@@ -162,7 +166,8 @@ async def test_a_driver_that_shows_nothing_records_unavailable_and_pushes(servic
     assert rec["state"] == "unavailable" and "does not show" in rec["reason"]
     assert rec["fingerprint"] is None
     st = await svc.push(st["id"], actor="a")
-    assert st["state"] == "pushed"
+    assert st["state"] == "pushed" and st["push"]["forced"] is False
+    assert st["compensation"][-1]["controller_calibration"]["state"] == "unavailable"
 
 
 @pytest.fixture

@@ -649,7 +649,8 @@ class CalibrationService:
                              checksum=table.checksum, detail={"refusal": refusal, **summary})
             raise CompensationError(f"push refused: {refusal}; an operator may force it "
                                     "(recorded in the audit log)")
-        await _fingerprint.check_push(self.hub, self.store, cid, force=force, actor=actor)
+        calibration = await _fingerprint.check_push(self.hub, self.store, cid, force=force,
+                                                    actor=actor)
         async with self._push_lock:
             self._ensure_idle()
             await self._reconcile_locked()
@@ -665,8 +666,9 @@ class CalibrationService:
                 previous=previous if isinstance(previous, CompensationTable) else None,
                 seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
             key = key or uuid.uuid4().hex
-            detail = {**summary, "forced": refusal is not None, "refusal": refusal,
-                      "reason": reason, "program_q_deg": desc["program_q_deg"]}
+            detail = {**summary, "forced": refusal is not None or calibration["forced"],
+                      "refusal": refusal, "reason": reason, "controller_calibration": calibration,
+                      "program_q_deg": desc["program_q_deg"]}
             try:
                 async with self.hub.lock:
                     robot = await self.hub.robot()
