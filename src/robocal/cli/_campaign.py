@@ -115,7 +115,9 @@ def register(sub: Any) -> None:
         if verb == "push":
             a.add_argument("--force", action="store_true",
                            help="push even if the table does not clearly improve on the "
-                                "nominal residual (recorded in the audit log)")
+                                "nominal residual, the controller's own calibration changed "
+                                "since the campaign, or a vendor absolute-accuracy option is "
+                                "active (recorded in the audit log)")
             a.add_argument("--reason", default="", help="why (kept in the audit log)")
             a.add_argument("--key", help="idempotency key: a retry with the same key never "
                                          "writes the controller twice")
@@ -191,6 +193,9 @@ def _describe(s: dict[str, Any]) -> str:
              *_fitting_line(s),
              f"  robot     {s.get('robot', '')}",
              f"  created   {s.get('created', '')} by {s.get('created_by', '')}"]
+    cal = s.get("controller_calibration")
+    if cal:
+        lines.append(_describe_calibration(cal))
     fits = s.get("fits") or {}
     if fits:
         lines.append("  fits      model        held-out RMS   % described")
@@ -231,6 +236,15 @@ def _fitting_line(s: dict[str, Any]) -> list[str]:
     return [f"  fitting   {', '.join(str(m) for m in f.get('models', []))} (running "
             f"{_clock(float(f.get('elapsed_s') or 0.0))}, since {f.get('started', '')}); "
             "approve when it ends"]
+
+
+def _describe_calibration(cal: dict[str, Any]) -> str:
+    """The controller's own calibration recorded at campaign start, in one line."""
+    if cal.get("state") != "read":
+        return f"  controller calibration unavailable ({cal.get('reason', '')})"
+    aa = {True: "vendor absolute accuracy ON", False: "no vendor absolute accuracy",
+          None: "absolute accuracy not shown"}[cal.get("absolute_accuracy")]
+    return f"  controller calibration {cal.get('fingerprint')} ({cal.get('source')}; {aa})"
 
 
 def _report_path(s: dict[str, Any]) -> Path | None:

@@ -105,7 +105,10 @@ class ActionRequest(_Request):
     model: str | None = Field(default=None, max_length=64,
                               description="approve: the fitted model to approve")
     force: bool = Field(default=False, description="push: push a table that does not clearly "
-                                                   "improve on nominal (audited)")
+                                                   "improve on nominal, onto a controller "
+                                                   "whose own calibration changed since the "
+                                                   "campaign or with a vendor absolute-"
+                                                   "accuracy option active (audited)")
     key: str | None = Field(default=None, min_length=8, max_length=64,
                             pattern=r"^[A-Za-z0-9_.:-]+$",
                             description="push: idempotency key (a retry with the same key "

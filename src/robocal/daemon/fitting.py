@@ -110,9 +110,12 @@ def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Meas
                   models: Sequence[str], cpa: bool, out_dir: Path | None, report: bool,
                   log: Mapping[str, Any] | None = None,
                   options: Mapping[str, Any] | None = None,
-                  acceptance: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Plain-data description of one campaign's fit (picklable)."""
+                  acceptance: Mapping[str, Any] | None = None,
+                  model_data: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Plain-data description of one campaign's fit (picklable); ``model_data`` goes into
+    every MODEL.json's ``data`` section (provenance, outside the content hash)."""
     return {
+        "model_data": dict(model_data or {}),
         "acceptance": dict(acceptance or {}),
         "options": dict(options or {}),
         "campaign": campaign,
@@ -283,6 +286,9 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         rms = v.get("rms_mm")
         if isinstance(rms, int | float) and rms < best_rms:
             best, best_rms = name, float(rms)
+    if job.get("model_data"):
+        fits = {name: (summ, _with_data(mj, job["model_data"]))
+                for name, (summ, mj) in fits.items()}
     out: dict[str, Any] = {"fits": fits, "errors": errors, "selected_hint": best,
                            "report": None}
     out_dir = job.get("out_dir")
@@ -295,6 +301,13 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
             out["report"] = _write_report(job, robot, results, train, validation, d)
     out["seconds"] = round(time.perf_counter() - t_start, 3)
     return out
+
+
+def _with_data(text: str, extra: Mapping[str, Any]) -> str:
+    """A MODEL.json text with ``extra`` added to its ``data`` section (not hashed)."""
+    doc = json.loads(text)
+    doc["data"] = {**(doc.get("data") or {}), **extra}
+    return json.dumps(doc, default=json_default)
 
 
 def _write_report(job: Mapping[str, Any], robot: RobotDescription,

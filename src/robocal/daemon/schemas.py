@@ -179,6 +179,20 @@ class FitProgress(_Closed):
     elapsed_s: float
 
 
+class ControllerCalibrationRecord(_Closed):
+    """What the controller applied of its own calibration when the campaign started
+    (ADR 0033)."""
+
+    state: Literal["read", "unavailable"]
+    read_at: str
+    fingerprint: str | None
+    absolute_accuracy: bool | None = Field(
+        description="a vendor absolute-accuracy option was active (None: not shown)")
+    source: str | None
+    facts: dict[str, Any] = Field(description="the values as read, vendor units")
+    reason: str = Field(description="why it is unavailable")
+
+
 class CampaignStatus(CampaignSummary):
     """``GET /campaigns/{cid}`` and every campaign action's answer."""
 
@@ -190,6 +204,7 @@ class CampaignStatus(CampaignSummary):
     push: PushSummary | None
     fitting: FitProgress | None = Field(
         default=None, description="the fit in progress (measured campaigns), else null")
+    controller_calibration: ControllerCalibrationRecord | None = None
 
 
 class Measurement(_Closed):

@@ -30,7 +30,7 @@ from robocal import __version__
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
-from robocal.daemon import pushing
+from robocal.daemon import _fingerprint, pushing
 from robocal.daemon._journal import JournalEntry, PushJournal
 from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses, unsafe_moves
 from robocal.daemon.campaign import FINAL, CampaignState
@@ -199,6 +199,7 @@ class CalibrationService:
         out["fitting"] = None if started is None else {
             "models": builtins.list(self.config.fit.models), "started": started[0],
             "elapsed_s": round(time.monotonic() - started[1], 1)}
+        out["controller_calibration"] = _fingerprint.campaign_calibration(self.store, cid)
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
@@ -356,6 +357,7 @@ class CalibrationService:
     async def start_campaign(self, cid: str, *, actor: str) -> dict[str, Any]:
         """``created -> running``."""
         self._ensure_idle(cid)
+        await _fingerprint.record_campaign_start(self.hub, self.store, cid, actor=actor)
         self._transition(cid, S.RUNNING, actor=actor, reason="started",
                          only_from=[S.CREATED])
         self._spawn_measure(cid)
@@ -559,7 +561,8 @@ class CalibrationService:
                             out_dir=out_dir, report=self.config.fit.report,
                             log=self._measurement_log(cid, rows),
                             options=self.config.fit.options,
-                            acceptance=self.config.fit.acceptance)
+                            acceptance=self.config.fit.acceptance,
+                            model_data=_fingerprint.model_data(self.store, cid))
         if self.config.fit.select != "best":
             job["selected"] = self.config.fit.select
         self.events.emit("fit", cid, phase="started", models=list(self.config.fit.models))
@@ -726,6 +729,8 @@ class CalibrationService:
                              checksum=table.checksum, detail={"refusal": refusal, **summary})
             raise CompensationError(f"push refused: {refusal}; an operator may force it "
                                     "(recorded in the audit log)")
+        calibration = await _fingerprint.check_push(self.hub, self.store, cid, force=force,
+                                                    actor=actor)
         async with self._push_lock:
             self._ensure_open()
             self._ensure_idle(self._verifying())
@@ -744,8 +749,9 @@ class CalibrationService:
             # checked and about to write: an earlier push's re-measurement ends here
             await self._stop_verification_run("a new push was asked for")
             key = key or uuid.uuid4().hex
-            detail = {**summary, "forced": refusal is not None, "refusal": refusal,
-                      "reason": reason, "program_q_deg": desc["program_q_deg"]}
+            detail = {**summary, "forced": refusal is not None or calibration["forced"],
+                      "refusal": refusal, "reason": reason, "controller_calibration": calibration,
+                      "program_q_deg": desc["program_q_deg"]}
             try:
                 async with self.hub.lock:
                     robot = await self.hub.robot()

@@ -19,6 +19,11 @@ MotionStopped.
 Compensation: ``targets`` and ``joint`` tables go to the persistent jointtarget array
 ``rc_comp`` (layout in the protocol document), with ``rc_comp_n``, ``rc_comp_kind`` and the
 table's checksum in ``rc_comp_sum``; everything is read back and compared.
+
+Controller calibration (ADR 0033): the motion configuration's robot instance
+(``/rw/cfg/MOC/ROBOT/instances/<cfg_robot>``; its ``use_robot_calib`` names the robot
+calibration in use, ``r1_uncalib`` without Absolute Accuracy) and the motor calibration
+offsets (``/rw/cfg/MOC/MOTOR_CALIB/instances``).
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
     CompensationSnapshots,
+    ControllerCalibration,
+    ControllerCalibrationReadable,
     JointReading,
     check_joint_target,
 )
@@ -100,6 +107,9 @@ class AbbRwsOptions(RobotOptions):
         Length of the ``rc_comp`` array as declared in the module.
     verify_tol
         Read-back tolerance, mm and degrees.
+    cfg_robot
+        Instance of the motion configuration's ``ROBOT`` type read for the controller's own
+        calibration.
     """
 
     host: str = "127.0.0.1"
@@ -118,9 +128,11 @@ class AbbRwsOptions(RobotOptions):
     motors_on: bool = True
     comp_size: int = Field(default=500, ge=1, le=5000)
     verify_tol: float = Field(default=1e-3, ge=0.0)
+    cfg_robot: str = Field(default="ROB_1", pattern=r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 
 
-class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
+class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots,
+                  ControllerCalibrationReadable):
     """ABB controller through Robot Web Services and the RobocalServer RAPID module.
 
     Parameters
@@ -237,6 +249,29 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
 
     async def _field(self, req: rws.Request, name: str) -> str:
         return rws.single(await self._get(req), name)
+
+    # --- controller calibration ----------------------------------------------------------------
+    async def _cfg(self, cfg_type: str, instance: str | None = None
+                   ) -> dict[str, dict[str, str]] | None:
+        """Configuration instances (None when the controller has no such resource)."""
+        try:
+            items = await self._get(rws.cfg_instances(self.dialect, "MOC", cfg_type, instance))
+        except RwsRequestError as err:
+            if err.status == 404:
+                return None
+            raise
+        return rws.parse_cfg_instances(items)
+
+    async def controller_calibration(self) -> ControllerCalibration:
+        """The MOC robot instance and motor calibration offsets; Absolute Accuracy is active
+        when the robot's ``use_robot_calib`` names a calibration other than ``*uncalib``."""
+        robot = await self._cfg("ROBOT", self.options.cfg_robot)
+        attrs = None if robot is None else robot.get(self.options.cfg_robot)
+        calib = None if attrs is None else attrs.get("use_robot_calib")
+        facts = {f"MOC/ROBOT/{self.options.cfg_robot}": attrs,
+                 "MOC/MOTOR_CALIB": await self._cfg("MOTOR_CALIB")}
+        active = None if calib is None else not calib.lower().endswith("uncalib")
+        return ControllerCalibration("abb-rws-cfg-moc", facts, absolute_accuracy=active)
 
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:

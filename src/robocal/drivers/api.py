@@ -2,7 +2,9 @@
 
 A robot driver is whatever satisfies :class:`Connectable`, :class:`JointMover`,
 :class:`JointReader` and :class:`Stoppable` (optionally :class:`CompensationSink`, and with it
-:class:`CompensationSlots` and :class:`CompensationSnapshots`); a tracker driver satisfies
+:class:`CompensationSlots` and :class:`CompensationSnapshots`, and
+:class:`ControllerCalibrationReadable` where the interface shows the controller's own
+calibration); a tracker driver satisfies
 :class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked
 with ``isinstance`` (the protocols are ``runtime_checkable``) or all at once with
 :func:`require`.
@@ -26,10 +28,12 @@ wire                   ProtocolError: FramingError, UnexpectedReply, TransportEr
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 from robocal.errors import DriverError, LimitViolation
 
@@ -42,6 +46,8 @@ __all__ = [
     "CompensationSlots",
     "CompensationSnapshots",
     "Connectable",
+    "ControllerCalibration",
+    "ControllerCalibrationReadable",
     "JointMover",
     "JointReader",
     "JointReading",
@@ -51,6 +57,7 @@ __all__ = [
     "TrackerDriver",
     "TrackerReading",
     "TrackerStatus",
+    "calibration_fingerprint",
     "check_joint_target",
     "require",
 ]
@@ -218,6 +225,60 @@ class CompensationSnapshots(Protocol):
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
         """Write ``snapshot`` back, read it again and compare; raise VerificationMismatch."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerCalibration:
+    """What the controller says about the kinematic calibration it already applies (ADR 0033).
+
+    Attributes
+    ----------
+    source : str
+        What was read, e.g. ``"ur-kinematics-info"``, ``"abb-rws-cfg-moc"``,
+        ``"kuka-kvp-system-variables"``.
+    facts : mapping
+        The values as read (JSON-ready; vendor units and spellings kept; None for a value the
+        controller does not know).
+    absolute_accuracy : bool or None
+        A vendor absolute-accuracy option (ABB Absolute Accuracy, KUKA positionally accurate
+        robot model) is active; None when the interface does not say.
+    fingerprint : str
+        :func:`calibration_fingerprint` of ``source`` and ``facts``: equal fingerprints, same
+        controller calibration.
+    """
+
+    source: str
+    facts: Mapping[str, Any]
+    absolute_accuracy: bool | None
+    fingerprint: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.fingerprint:
+            object.__setattr__(self, "fingerprint",
+                               calibration_fingerprint(self.source, self.facts))
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {"source": self.source, "fingerprint": self.fingerprint,
+                "absolute_accuracy": self.absolute_accuracy,
+                "facts": json.loads(json.dumps(self.facts, sort_keys=True))}
+
+
+def calibration_fingerprint(source: str, facts: Mapping[str, Any]) -> str:
+    """SHA-256 (first 16 hex digits) of ``source`` and ``facts`` as canonical JSON."""
+    text = json.dumps({"source": source, "facts": facts}, sort_keys=True,
+                      separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@runtime_checkable
+class ControllerCalibrationReadable(Protocol):
+    """Reading what the controller applies of its own calibration (kinematics, mastering,
+    a vendor absolute-accuracy option), fresh from the controller on every call."""
+
+    async def controller_calibration(self) -> ControllerCalibration:
+        """Read it now; raise ConnectFailed or DriverTimeout when the controller cannot say."""
         ...
 
 

@@ -34,6 +34,8 @@ from robocal.compensation import (
 from robocal.drivers._compensation import table_diff
 from robocal.drivers.api import (
     CompensationSink,
+    ControllerCalibration,
+    ControllerCalibrationReadable,
     JointReading,
     RobotDriver,
     Stoppable,
@@ -426,6 +428,27 @@ async def check_robot_compensation(rut: RobotUnderTest) -> None:
         _expect(not diff, f"{rut.name}: table read back differs: {diff[:3]}")
 
 
+async def check_robot_controller_calibration(rut: RobotUnderTest) -> None:
+    """Check a ControllerCalibrationReadable reads the same fingerprint twice, a hash of JSON
+    facts, and says True/False/None about absolute accuracy."""
+    robot: RobotDriver
+    async with _connected(rut.make, rut.connect_timeout) as robot:
+        if not isinstance(robot, ControllerCalibrationReadable):
+            return
+        first = await robot.controller_calibration()
+        second = await robot.controller_calibration()
+        _expect(isinstance(first, ControllerCalibration),
+                f"{rut.name}: expected ControllerCalibration, got {type(first)}")
+        _expect(first.fingerprint == second.fingerprint,
+                f"{rut.name}: fingerprint differs between two reads of an unchanged controller")
+        again = ControllerCalibration(first.source, first.to_json()["facts"],
+                                      first.absolute_accuracy)
+        _expect(again.fingerprint == first.fingerprint,
+                f"{rut.name}: facts are not plain JSON (the fingerprint does not survive)")
+        _expect(first.absolute_accuracy in (True, False, None),
+                f"{rut.name}: absolute_accuracy must be True, False or None")
+
+
 # --- tracker checks --------------------------------------------------------------------------
 async def check_tracker_declaration(tut: TrackerUnderTest) -> None:
     """Driver class declares ``kind`` and a frozen, strict ``Options``; satisfies TrackerDriver."""
@@ -503,6 +526,7 @@ def robot_checks() -> list[RobotCheck]:
         check_robot_stop_idle,
         check_robot_stop_mid_move,
         check_robot_compensation,
+        check_robot_controller_calibration,
     ]
 
 

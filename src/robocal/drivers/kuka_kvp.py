@@ -16,6 +16,11 @@ gets through.
 Compensation: ``targets`` tables, row ``i`` (its corrected joints) in ``RC_COMP[i+1]``
 (a global E6AXIS array), ``RC_COMP_N`` rows, ``RC_COMP_ID[]`` the table's checksum; all read
 back and compared.
+
+Controller calibration (ADR 0033): ``$ABS_ACCUR`` (the positionally accurate robot model,
+KUKA's absolute-accuracy option), the mastering offsets ``$MAMES[1..dof]`` and the kinematic
+machine data named in ``calibration_variables``, as KRL text; a variable the controller does
+not know is recorded as None.
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
     CompensationSnapshots,
+    ControllerCalibration,
+    ControllerCalibrationReadable,
     JointReading,
     check_joint_target,
 )
@@ -79,6 +86,9 @@ class KukaKvpOptions(RobotOptions):
         Length of ``RC_COMP`` as declared in robocal_loop.dat.
     verify_tol
         Read-back tolerance, degrees (KRL REAL is a 32-bit float).
+    calibration_variables
+        System variables and machine data read (with ``$ABS_ACCUR`` and ``$MAMES[i]``) as
+        the controller's own calibration.
     """
 
     host: str = "127.0.0.1"
@@ -88,9 +98,17 @@ class KukaKvpOptions(RobotOptions):
     stop_timeout_s: float = Field(default=2.0, gt=0.0)
     comp_size: int = Field(default=100, ge=1)
     verify_tol: float = Field(default=1e-3, ge=0.0)
+    calibration_variables: tuple[str, ...] = ("$LENGTH_A", "$LENGTH_B", "$TIRORO", "$TFLWP",
+                                              "$TX3P3")
 
 
-class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
+#: ``$ABS_ACCUR`` texts meaning the positionally accurate model is in use (KSS 8: ENUM; KSS 5:
+#: BOOL).
+_ABS_ACTIVE = frozenset({"#ACTIVATED", "TRUE"})
+
+
+class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots,
+                   ControllerCalibrationReadable):
     """KUKA KRC4/KRC5 running robocal_loop, through KUKAVARPROXY.
 
     Parameters
@@ -202,6 +220,20 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         if self._transport is not None:
             await self._transport.close()
         self._transport = None
+
+    # --- controller calibration ----------------------------------------------------------------
+    async def controller_calibration(self) -> ControllerCalibration:
+        """``$ABS_ACCUR``, ``$MAMES[i]`` and the machine data as KRL text (None: unknown)."""
+        names = ["$ABS_ACCUR", *(f"$MAMES[{i}]" for i in range(1, self.dof + 1)),
+                 *self.options.calibration_variables]
+        facts: dict[str, str | None] = {}
+        for name in names:
+            reply = await self._request(name)
+            facts[name] = reply.value.strip() if reply.ok else None
+        abs_accur = facts["$ABS_ACCUR"]
+        return ControllerCalibration(
+            "kuka-kvp-system-variables", facts,
+            absolute_accuracy=None if abs_accur is None else abs_accur.upper() in _ABS_ACTIVE)
 
     # --- robot API -----------------------------------------------------------------------------
     def _next_seq(self) -> int:

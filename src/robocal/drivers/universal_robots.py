@@ -44,6 +44,8 @@ from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
     CompensationSnapshots,
+    ControllerCalibration,
+    ControllerCalibrationReadable,
     JointReading,
     check_joint_target,
 )
@@ -132,7 +134,7 @@ class _ProgramFailed(Exception):
 
 
 class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
-                           CompensationSnapshots):
+                           CompensationSnapshots, ControllerCalibrationReadable):
     """A UR e-Series or CB3 arm (PolyScope 3.x/5.x) through its network interfaces.
 
     Parameters
@@ -573,15 +575,25 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self.log.info("stopped")
 
     # --- controller calibration ----------------------------------------------------------------
-    def controller_calibration(self) -> dict[str, Any]:
-        """The controller's own kinematic calibration: fingerprint and DH table (SI)."""
-        k = self.kinematics
-        if k is None:
+    async def controller_calibration(self) -> ControllerCalibration:
+        """The controller's own kinematic calibration (the kinematics info: its DH table, SI,
+        per-joint checksums and calibration status); UR has no absolute-accuracy option.
+
+        Waits (at most ``reply_timeout_s``) for a kinematics info newer than the call; a
+        controller that sends it only when a client connects gives the one of this session
+        (a new calibration takes effect after a reboot, which ends the session).
+        """
+        if self.kinematics is None or self._lost is not None:
             raise ConnectFailed("no kinematics info received; connect first", kind=self.kind)
-        return {"kind": "ur-kinematics-info", "fingerprint": k.fingerprint(),
-                "calibration_status": k.calibration_status,
-                "dh": {"theta": list(k.dh_theta), "a": list(k.dh_a), "d": list(k.dh_d),
-                       "alpha": list(k.dh_alpha)}}
+        self._kin_event.clear()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.options.reply_timeout_s):
+                await self._kin_event.wait()
+        k = self.kinematics
+        facts = {"checksums": k.fingerprint(), "calibration_status": k.calibration_status,
+                 "dh_theta_rad": list(k.dh_theta), "dh_a_m": list(k.dh_a),
+                 "dh_d_m": list(k.dh_d), "dh_alpha_rad": list(k.dh_alpha)}
+        return ControllerCalibration("ur-kinematics-info", facts, absolute_accuracy=False)
 
     # --- compensation --------------------------------------------------------------------------
     def _slots(self, table: CompensationTable) -> dict[str, int]:

@@ -57,6 +57,7 @@ __all__ = [
     "RobTarget",
     "RwsError",
     "basic_authorization",
+    "cfg_instances",
     "ctrlstate",
     "digest_authorization",
     "digest_response",
@@ -73,6 +74,7 @@ __all__ = [
     "opmode",
     "parse_authorization",
     "parse_basic",
+    "parse_cfg_instances",
     "parse_challenge",
     "parse_error",
     "parse_jointtarget",
@@ -249,6 +251,46 @@ def robtarget(dialect: Dialect, mechunit: str = "ROB_1", *, tool: str = "tool0",
 def elog(dialect: Dialect, domain: int = 0) -> Request:
     """GET the event-log messages of ``domain`` (newest first; fields ``code``, ``title``)."""
     return _request(dialect, "GET", f"/rw/elog/{int(domain)}", [("lang", "en")])
+
+
+_CFG_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
+
+
+def cfg_instances(dialect: Dialect, domain: str, cfg_type: str,
+                  instance: str | None = None) -> Request:
+    """GET the instances of configuration type ``cfg_type`` in ``domain`` (``MOC``, ``SYS``,
+    ...), or the one named ``instance``: items ``cfg-dt-instance-li`` titled with the
+    instance's name, its attributes in ``attrib`` (:func:`parse_cfg_instances`)."""
+    names = [domain, cfg_type] + ([] if instance is None else [instance])
+    for n in names:
+        if not _CFG_NAME.match(n):
+            raise ValueError(f"{n!r} is not a configuration name")
+    path = f"/rw/cfg/{domain}/{cfg_type}/instances"
+    return _request(dialect, "GET", path if instance is None else f"{path}/{instance}")
+
+
+def parse_cfg_instances(items: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, str]]:
+    """Instance name -> attribute name -> value text, from :func:`cfg_instances` items.
+
+    Raises
+    ------
+    UnexpectedReply
+        An instance item without a name or with malformed attributes.
+    """
+    out: dict[str, dict[str, str]] = {}
+    for item in items:
+        if item.get("_type") != "cfg-dt-instance-li":
+            continue
+        name, attrib = item.get("_title"), item.get("attrib", [])
+        if not isinstance(name, str) or not isinstance(attrib, list):
+            raise UnexpectedReply(f"malformed configuration instance: {dict(item)!r}"[:300])
+        attrs: dict[str, str] = {}
+        for a in attrib:
+            if not isinstance(a, dict) or not isinstance(a.get("_title"), str):
+                raise UnexpectedReply(f"malformed configuration attribute: {a!r}"[:300])
+            attrs[a["_title"]] = str(a.get("value", ""))
+        out[name] = attrs
+    return out
 
 
 def logout(dialect: Dialect) -> Request:

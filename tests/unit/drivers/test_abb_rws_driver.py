@@ -23,7 +23,13 @@ import trustme
 from robocal.compensation import CompensationTable, TargetRow
 from robocal.drivers import load_robot_driver
 from robocal.drivers.sim import AbbRwsSimulator, AbbSimOptions, SimWorld
-from robocal.errors import CompensationError, ConnectFailed, LimitViolation, MotionRejected
+from robocal.errors import (
+    CompensationError,
+    ConnectFailed,
+    LimitViolation,
+    MotionRejected,
+    UnexpectedReply,
+)
 from robocal.protocols import abb_rws as rws
 from tests._waiting import eventually
 
@@ -300,3 +306,58 @@ async def test_robotware7_over_https_checks_the_certificate(world, tmp_path):
                 await robot.close()
     finally:
         await sim.stop()
+
+
+@pytest.mark.parametrize("robotware", [6, 7])
+async def test_controller_calibration_reads_the_motion_configuration(world, robotware):
+    async with abb_sim(world, robotware=robotware, motors_on=True) as sim:
+        robot = load_robot_driver("abb_rws", driver_options(sim, world))
+        await robot.connect(timeout=5)
+        try:
+            first = await robot.controller_calibration()
+            assert first.absolute_accuracy is False
+            assert first.facts["MOC/ROBOT/ROB_1"]["use_robot_calib"] == "r1_uncalib"
+            assert first.facts["MOC/MOTOR_CALIB"]["rob1_2"]["cal_offset"] == "5.602300"
+            assert await robot.controller_calibration() == first
+            # a fine calibration of axis 2 changes the fingerprint
+            sim.cfg["MOC"]["MOTOR_CALIB"]["rob1_2"]["cal_offset"] = "5.602410"
+            second = await robot.controller_calibration()
+            assert second.fingerprint != first.fingerprint
+            # Absolute Accuracy loaded
+            sim.cfg["MOC"]["ROBOT"]["ROB_1"]["use_robot_calib"] = "r1_calib"
+            assert (await robot.controller_calibration()).absolute_accuracy is True
+            # a controller without the resource: nothing to say, not a failure
+            del sim.cfg["MOC"]["ROBOT"]
+            third = await robot.controller_calibration()
+            assert third.absolute_accuracy is None and third.facts["MOC/ROBOT/ROB_1"] is None
+        finally:
+            await robot.close()
+
+
+def test_cfg_instances_parse_and_refuse_malformed_items():
+    items = [{"_type": "cfg-dt-instance-li", "_title": "ROB_1",
+              "attrib": [{"_type": "cfg-ia-t-li", "_title": "use_robot_calib",
+                          "value": "r1_calib"}]},
+             {"_type": "something-else", "_title": "x"}]
+    assert rws.parse_cfg_instances(items) == {"ROB_1": {"use_robot_calib": "r1_calib"}}
+    with pytest.raises(UnexpectedReply, match="malformed configuration attribute"):
+        rws.parse_cfg_instances([{"_type": "cfg-dt-instance-li", "_title": "R",
+                                  "attrib": ["not an object"]}])
+    with pytest.raises(ValueError, match="configuration name"):
+        rws.cfg_instances("rws1", "MOC", "ROBOT", "../x")
+
+
+async def test_cfg_instance_in_xhtml_nests_its_attributes(world):
+    async with abb_sim(world, robotware=6) as sim, aiohttp.ClientSession() as http:
+        path = "/rw/cfg/MOC/ROBOT/instances/ROB_1"
+        async with http.get(sim.base_url + path) as r:
+            challenge = rws.parse_challenge(r.headers["WWW-Authenticate"])
+        auth = rws.digest_authorization(challenge, username="Default User", password="robotics",
+                                        method="GET", uri=path, nc=1, cnonce="abc")
+        async with http.get(sim.base_url + path, headers={"Authorization": auth}) as r:
+            assert r.status == 200 and r.headers["Content-Type"] == rws.XHTML
+            page = (await r.read()).decode()
+        assert re.search(r'<li class="cfg-dt-instance-li" title="ROB_1"><span class="rdonly">'
+                         r'false</span><ul><li class="cfg-ia-t-li" title="name">.*<li '
+                         r'class="cfg-ia-t-li" title="use_robot_calib"><span class="value">'
+                         r"r1_uncalib</span></li></ul></li>", page)

@@ -126,3 +126,27 @@ async def test_lost_proxy_and_options(world):
         await robot.close()
     with pytest.raises(ConfigError):
         KukaKvpRobot({"joint_limits_deg": [[-1.0, 1.0]] * 6, "colour": "orange"})
+
+
+async def test_controller_calibration_reads_abs_accur_mastering_and_machine_data(world):
+    async with kuka(world) as (sim, options):
+        robot = load_robot_driver("kuka_kvp", options)
+        await robot.connect(timeout=2)
+        try:
+            first = await robot.controller_calibration()
+            assert first.absolute_accuracy is False
+            assert first.facts["$ABS_ACCUR"] == "#NONE"
+            assert first.facts["$MAMES[2]"] == "-90.0"
+            assert first.facts["$TIRORO"].startswith("{FRAME:")
+            assert await robot.controller_calibration() == first
+            sim.calibration_vars["$MAMES[2]"] = "-90.0012"  # mastered again
+            second = await robot.controller_calibration()
+            assert second.fingerprint != first.fingerprint
+            sim.calibration_vars["$ABS_ACCUR"] = "#ACTIVATED"
+            assert (await robot.controller_calibration()).absolute_accuracy is True
+            # a controller that does not know a variable (KSS 5 has no ENUM $ABS_ACCUR ...)
+            del sim.calibration_vars["$ABS_ACCUR"]
+            third = await robot.controller_calibration()
+            assert third.facts["$ABS_ACCUR"] is None and third.absolute_accuracy is None
+        finally:
+            await robot.close()

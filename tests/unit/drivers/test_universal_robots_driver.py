@@ -134,18 +134,19 @@ async def test_kinematics_fingerprint_follows_the_controller_calibration():
     async with ur_cell(start_powered=True) as (cell, sim):
         r = robot(cell)
         await r.connect(timeout=5)
-        first = r.controller_calibration()
-        await r.close()
-        k = sim.kinematics()
-        assert first["dh"]["a"] == list(k.dh_a)
-        sim.set_kinematics(k.dh_theta, [a + 1e-4 for a in k.dh_a], k.dh_d, k.dh_alpha)
-        r = robot(cell)
-        await r.connect(timeout=5)
         try:
-            second = r.controller_calibration()
+            first = await r.controller_calibration()
+            k = sim.kinematics()
+            assert first.facts["dh_a_m"] == list(k.dh_a)
+            assert first.facts["checksums"] == k.fingerprint()
+            assert first.absolute_accuracy is False
+            sim.set_kinematics(k.dh_theta, [a + 1e-4 for a in k.dh_a], k.dh_d, k.dh_alpha)
+            # read again in the same session: the next kinematics info shows the change
+            second = await r.controller_calibration()
         finally:
             await r.close()
-        assert second["fingerprint"] != first["fingerprint"]
+        assert second.fingerprint != first.fingerprint
+        assert second.facts["checksums"] == sim.kinematics().fingerprint()
 
 
 async def test_a_program_stopped_from_the_dashboard_fails_the_move():

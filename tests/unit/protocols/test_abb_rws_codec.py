@@ -197,3 +197,43 @@ def test_auth_parsers_raise_only_framing_errors(text):
 def test_single_precision_is_ieee_single():
     v = 123.456789
     assert rws.single_precision(v) == struct.unpack("<f", struct.pack("<f", v))[0]
+
+
+_cfg_name = st.from_regex(r"[A-Za-z][A-Za-z0-9_]{0,20}", fullmatch=True)
+
+
+@given(st.dictionaries(_cfg_name, st.dictionaries(_cfg_name, st.text(max_size=40), max_size=6),
+                       max_size=5),
+       st.sampled_from(["rws1", "rws2"]))
+def test_cfg_instances_round_trip_through_both_json_dialects(instances, dialect):
+    items = [{"_type": "cfg-dt-instance-li", "_title": n, "rdonly": "false",
+              "attrib": [{"_type": "cfg-ia-t-li", "_title": k, "value": v}
+                         for k, v in attrs.items()]} for n, attrs in instances.items()]
+    if dialect == "rws1":
+        body, ctype = json.dumps({"_embedded": {"_state": items}}), rws.JSON_RWS1
+    else:
+        body, ctype = json.dumps({"state": items}), rws.JSON_RWS2
+    assert rws.parse_cfg_instances(rws.parse_states(body.encode(), ctype)) == instances
+
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.text(max_size=10),
+                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=8), c,
+                                                                         max_size=4),
+                     max_leaves=20)
+
+
+@given(st.lists(st.dictionaries(st.sampled_from(["_type", "_title", "attrib", "value"]),
+                                _json | st.just("cfg-dt-instance-li"), max_size=4),
+                max_size=4))
+def test_cfg_instances_refuse_malformed_items_with_unexpected_reply(items):
+    with contextlib.suppress(UnexpectedReply):
+        out = rws.parse_cfg_instances(items)
+        assert all(isinstance(v, dict) for v in out.values())
+
+
+def test_cfg_instances_request_paths():
+    assert rws.cfg_instances("rws1", "MOC", "ROBOT", "ROB_1").target == \
+        "/rw/cfg/MOC/ROBOT/instances/ROB_1?json=1"
+    req = rws.cfg_instances("rws2", "MOC", "MOTOR_CALIB")
+    assert req.target == "/rw/cfg/MOC/MOTOR_CALIB/instances"
+    assert ("Accept", rws.JSON_RWS2) in req.headers

@@ -64,7 +64,9 @@ class AbbSimOptions(BaseModel):
     ``max_joint_speed_deg_s`` is the joint speed at 100 % ``rc_speed`` and 100 % speed ratio.
     ``comp_size`` is the length of the ``rc_comp`` array (as declared in the module).
     ``max_sessions`` sessions are held at once (503 beyond); one unused for
-    ``session_idle_s`` seconds ends.
+    ``session_idle_s`` seconds ends. ``absolute_accuracy`` loads the robot calibration
+    ``r1_calib`` (the Absolute Accuracy data) instead of ``r1_uncalib``; ``cal_offset_rad``
+    are the motors' calibration offsets (``MOTOR_CALIB``), radians.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -82,6 +84,8 @@ class AbbSimOptions(BaseModel):
     comp_size: int = Field(default=500, ge=1, le=5000)
     task: str = "T_ROB1"
     module: str = "RobocalServer"
+    absolute_accuracy: bool = False
+    cal_offset_rad: tuple[float, ...] = (0.3175, 5.6023, 2.1234, 4.9871, 1.0296, 3.3389)
 
     @property
     def user(self) -> str:
@@ -198,6 +202,16 @@ class AbbRwsSimulator:
         self.execstate = "stopped"
         self.speedratio = 100
         self.symbols = _server_symbols(o.module, o.comp_size)
+        #: the configuration database: domain -> type -> instance -> attribute -> value text
+        self.cfg: dict[str, dict[str, dict[str, dict[str, str]]]] = {"MOC": {
+            "ROBOT": {"ROB_1": {
+                "name": "ROB_1", "use_robot_serial_number": "rob_1",
+                "use_robot_type": "ROB1_SIM", "use_joint_0": "rob1_1",
+                "use_robot_calib": "r1_calib" if o.absolute_accuracy else "r1_uncalib"}},
+            "MOTOR_CALIB": {f"rob1_{i}": {
+                "name": f"rob1_{i}", "cal_offset": f"{v:.6f}", "valid_cal_offset": "TRUE",
+                "com_offset": "1.570796", "valid_com_offset": "TRUE"}
+                for i, v in enumerate(o.cal_offset_rad, 1)}}}
         self.requests = 0
         self.received: deque[tuple[str, str]] = deque(maxlen=1000)
         self.elog: list[ElogEntry] = []
@@ -375,12 +389,7 @@ class AbbRwsSimulator:
             # exactly "application/json": abb-robot-client compares the whole header value
             return web.Response(body=json.dumps(doc).encode(),
                                 headers={"Content-Type": rws.JSON_RWS1})
-        lis = []
-        for item in items:
-            spans = "".join(f'<span class="{escape(k)}">{escape(str(v))}</span>'
-                            for k, v in item.items() if not k.startswith("_"))
-            lis.append(f'<li class="{escape(item.get("_type", ""))}" '
-                       f'title="{escape(item.get("_title", ""))}">{spans}</li>')
+        lis = [_xhtml_item(item) for item in items]
         page = ('<?xml version="1.0" encoding="utf-8"?><html xmlns="http://www.w3.org/1999/xhtml">'
                 f'<head><base href="http://{escape(host)}{escape(base)}"/></head><body>'
                 f'<div class="state"><ul>{"".join(lis)}</ul></div></body></html>')
@@ -416,6 +425,8 @@ class AbbRwsSimulator:
             return None
         if path.startswith("/rw/rapid/symbol/"):
             return self._symbol(path, post, action, form)
+        if path.startswith("/rw/cfg/") and not post:
+            return self._get_cfg(path)
         handler = self._routes().get((request.method, self._action_path(path, action)))
         if handler is None:
             raise _Fail(404, ERR_NOT_FOUND, f"no resource {request.method} {request.path}")
@@ -692,6 +703,20 @@ class AbbRwsSimulator:
         return None
 
     # --- motion system ---------------------------------------------------------------------------
+    def _get_cfg(self, path: str) -> tuple[str, list[dict[str, Any]]]:
+        """``/rw/cfg/{domain}/{type}/instances[/{name}]``, read only."""
+        parts = path.split("/")[3:]
+        if len(parts) not in (3, 4) or parts[2] != "instances":
+            raise _Fail(404, ERR_NOT_FOUND, f"no configuration resource {path}")
+        instances = self.cfg.get(parts[0], {}).get(parts[1])
+        if instances is None or (len(parts) == 4 and parts[3] not in instances):
+            raise _Fail(404, ERR_NOT_FOUND, f"no configuration {'/'.join(parts)}")
+        names = [parts[3]] if len(parts) == 4 else list(instances)
+        items = [{"_type": "cfg-dt-instance-li", "_title": n, "rdonly": "false",
+                  "attrib": [{"_type": "cfg-ia-t-li", "_title": k, "value": v}
+                             for k, v in instances[n].items()]} for n in names]
+        return "/rw/cfg/", items
+
     def _get_jointtarget(self, request: web.Request, form: Mapping[str, str]
                          ) -> tuple[str, list[dict[str, Any]]]:
         q = np.degrees(self.world.q_actual_rad)
@@ -720,6 +745,17 @@ class AbbRwsSimulator:
         for c in "abcdef":
             item[f"eax{c}"] = "9E+09"
         return "/rw/motionsystem/", [item]
+
+
+def _xhtml_item(item: dict[str, Any]) -> str:
+    """One state item as ``<li class=type title=...>``: fields as spans, a list-valued field
+    (a configuration instance's attributes) as a nested ``<ul>`` of items."""
+    spans = "".join(f'<span class="{escape(k)}">{escape(str(v))}</span>'
+                    for k, v in item.items() if not k.startswith("_") and not isinstance(v, list))
+    nested = "".join("<ul>" + "".join(_xhtml_item(x) for x in v) + "</ul>"
+                     for v in item.values() if isinstance(v, list))
+    return (f'<li class="{escape(item.get("_type", ""))}" '
+            f'title="{escape(item.get("_title", ""))}">{spans}{nested}</li>')
 
 
 class _MotionError(Exception):

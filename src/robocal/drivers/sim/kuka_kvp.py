@@ -3,13 +3,15 @@
 The proxy side answers KVP reads and writes (:mod:`robocal.protocols.kuka_kvp`) of the
 global variables of ``deploy/kuka/robocal_loop.dat`` and of a few system variables
 (``$AXIS_ACT``, ``$POS_ACT``, ``$ROBNAME[]``, ``$PRO_STATE1``, ``$MODE_OP``, ``$OV_PRO``,
-``$SOFTN_END[i]``, ``$SOFTP_END[i]``). REAL values are kept as 32-bit floats, as KRL keeps
-them. The robot side reproduces ``deploy/kuka/robocal_loop.src``: when ``RC_CMD_SEQ`` differs
-from ``RC_ACK_SEQ`` it checks ``RC_SPEED`` and the software limits, moves to ``RC_TARGET``
-(simulated time), sets ``RC_STATUS`` and copies the sequence number to ``RC_ACK_SEQ``;
-``RC_STOP=TRUE`` runs the stop interrupt at once (halt where the robot is, ``RC_STATUS`` 4,
-acknowledge every command written so far, ``RC_STOP=FALSE``). Protocol and loop:
-docs/protocols/kuka-kvp.md.
+``$SOFTN_END[i]``, ``$SOFTP_END[i]``) and of what the controller applies of its own
+calibration (``$ABS_ACCUR``, ``$MAMES[i]`` and kinematic machine data, in
+:attr:`KukaKvpSimulator.calibration_vars`, which tests change). REAL values are kept as
+32-bit floats, as KRL keeps them. The robot side reproduces
+``deploy/kuka/robocal_loop.src``: when ``RC_CMD_SEQ`` differs from ``RC_ACK_SEQ`` it checks
+``RC_SPEED`` and the software limits, moves to ``RC_TARGET`` (simulated time), sets
+``RC_STATUS`` and copies the sequence number to ``RC_ACK_SEQ``; ``RC_STOP=TRUE`` runs the
+stop interrupt at once (halt where the robot is, ``RC_STATUS`` 4, acknowledge every command
+written so far, ``RC_STOP=FALSE``). Protocol and loop: docs/protocols/kuka-kvp.md.
 """
 
 from __future__ import annotations
@@ -53,7 +55,10 @@ class KukaSimOptions(BaseModel):
     ``program_running`` False leaves robocal_loop unselected: ``$PRO_STATE1`` reads
     ``#P_STOP`` and nothing serves the handshake. ``comp_size`` is the length of ``RC_COMP``;
     ``robot_name`` what ``$ROBNAME[]`` reads. ``joint_limits_deg`` overrides the world's
-    limits as the software limits ``$SOFTN_END``/``$SOFTP_END``.
+    limits as the software limits ``$SOFTN_END``/``$SOFTP_END``. ``abs_accur`` is what
+    ``$ABS_ACCUR`` reads (KSS 8: the positionally accurate robot model is ``#ACTIVATED``,
+    ``#SUPPRESSED`` or there is ``#NONE``), ``mames_deg`` the mastering offsets ``$MAMES[i]``
+    and ``machine_data`` further read-only machine data (KRL text by name).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -65,6 +70,13 @@ class KukaSimOptions(BaseModel):
     comp_size: int = Field(default=100, ge=1, le=10000)
     robot_name: str = "KR6 R900-2"
     joint_limits_deg: tuple[tuple[float, float], ...] | None = None
+    abs_accur: Literal["#ACTIVATED", "#SUPPRESSED", "#NONE"] = "#NONE"
+    mames_deg: tuple[float, ...] = (0.0, -90.0, 90.0, 0.0, 0.0, 0.0)
+    machine_data: dict[str, str] = Field(default_factory=lambda: {
+        "$LENGTH_A": "25.0", "$LENGTH_B": "35.0",
+        "$TIRORO": "{FRAME: X 0.0, Y 0.0, Z 400.0, A 0.0, B 0.0, C 0.0}",
+        "$TFLWP": "{FRAME: X 0.0, Y 0.0, Z 80.0, A 0.0, B 0.0, C 0.0}",
+        "$TX3P3": "{FRAME: X 420.0, Y 0.0, Z 35.0, A 0.0, B 0.0, C 0.0}"})
 
 
 @dataclass
@@ -147,6 +159,11 @@ class KukaKvpSimulator(SimServer):
         self._loop = _Loop()
         self.moves = 0
         self.stops = 0
+        o = self.options
+        #: read-only calibration variables by access text (``$MAMES[2]``) -> KRL text
+        self.calibration_vars: dict[str, str] = {"$ABS_ACCUR": o.abs_accur, **{
+            f"$MAMES[{i}]": kvp.format_real(_f32(v), 4) for i, v in enumerate(o.mames_deg, 1)},
+            **o.machine_data}
 
     # --- lifecycle -----------------------------------------------------------------------------
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
@@ -173,6 +190,9 @@ class KukaKvpSimulator(SimServer):
     def _system(self, name: str, index: str | None) -> str | None:
         """Text of a read-only system variable, or None when ``name`` is none of them."""
         dof = self.world.dof
+        access = name if index is None else f"{name}[{index}]"
+        if access in self.calibration_vars:
+            return self.calibration_vars[access]
         if name == "$AXIS_ACT" and index is None:
             return kvp.format_e6axis(_e6axis(np.degrees(self.world.q_actual_rad)), 4)
         if name == "$POS_ACT" and index is None:
