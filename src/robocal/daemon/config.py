@@ -74,6 +74,8 @@ class ApiConfig(_Model):
     ``socket`` (default ``robocal.sock`` in ``data_dir``) is a Unix socket whose file mode
     (``socket_mode``, default 0660) is the access control. TCP is off unless ``tcp_port`` is
     set, and then ``token_file`` (a file holding the bearer token) is required.
+    ``viewer_token_file`` (optional) holds a second token that signs in to the operator's
+    station (and reads the API) with the viewer role: read only.
 
     A request body may have ``max_body_bytes`` (default 512 KiB, some 1,600 plan poses, five
     times a large campaign; parsing and storing a plan stalls the event loop for about
@@ -89,6 +91,7 @@ class ApiConfig(_Model):
     tcp_host: str = "127.0.0.1"
     tcp_port: int | None = Field(default=None, ge=0, le=65535)
     token_file: Path | None = None
+    viewer_token_file: Path | None = None
     max_body_bytes: int = Field(default=512 * 1024, ge=1024, le=64 * 1024 * 1024)
     max_connections: int = Field(default=64, ge=1, le=4096)
     max_connections_per_client: int = Field(default=8, ge=1, le=4096)
@@ -100,6 +103,8 @@ class ApiConfig(_Model):
     def _check(self) -> ApiConfig:
         if self.tcp_port is not None and self.token_file is None:
             raise ValueError("tcp_port needs token_file: the TCP API always requires a token")
+        if self.viewer_token_file is not None and self.token_file is None:
+            raise ValueError("viewer_token_file needs token_file (the operator's token)")
         if self.socket is None and self.tcp_port is None:
             raise ValueError("the API needs a socket or a tcp_port")
         return self
@@ -268,21 +273,38 @@ class AppConfig(_Model):
             If the file cannot be read, is readable or writable by group or others, or holds
             fewer than 16 characters.
         """
-        path = self.api.token_file
-        if path is None:
-            return None
-        try:
-            mode = stat.S_IMODE(path.stat().st_mode)
-            token = path.read_text(encoding="utf-8").strip()
-        except (OSError, UnicodeDecodeError) as err:
-            raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
-        if mode & 0o077:
-            raise ConfigError(f"token file has mode {mode:04o}: others could read or change the "
-                              "token; make it the daemon user's alone (chmod 600)",
-                              source=str(path))
-        if len(token) < 16:
-            raise ConfigError("token must have at least 16 characters", source=str(path))
-        return token
+        return _read_secret(self.api.token_file)
+
+    def read_viewer_token(self) -> str | None:
+        """Return the station's read-only token from ``api.viewer_token_file``, or None.
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`read_token`, or if it equals the operator's token.
+        """
+        viewer = _read_secret(self.api.viewer_token_file)
+        if viewer is not None and viewer == self.read_token():
+            raise ConfigError("the viewer token must differ from the operator's token",
+                              source=str(self.api.viewer_token_file))
+        return viewer
+
+
+def _read_secret(path: Path | None) -> str | None:
+    if path is None:
+        return None
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+        token = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
+    if mode & 0o077:
+        raise ConfigError(f"token file has mode {mode:04o}: others could read or change the "
+                          "token; make it the daemon user's alone (chmod 600)",
+                          source=str(path))
+    if len(token) < 16:
+        raise ConfigError("token must have at least 16 characters", source=str(path))
+    return token
 
 
 def _loc(loc: tuple[Any, ...]) -> str:
@@ -303,8 +325,9 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
     api = out.get("api")
     if isinstance(api, dict):
         api = dict(api)
-        if "token_file" in api:
-            api["token_file"] = fix(api["token_file"])
+        for key in ("token_file", "viewer_token_file"):
+            if key in api:
+                api[key] = fix(api[key])
         out["api"] = api
     comp = out.get("compensation")
     if isinstance(comp, dict) and "targets_file" in comp:
