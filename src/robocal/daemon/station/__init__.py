@@ -71,7 +71,8 @@ _REPORT_CSP = ("sandbox allow-scripts; default-src 'none'; img-src data:; "
 def _headers(resp: web.StreamResponse, csp: str = _PAGE_CSP) -> web.StreamResponse:
     resp.headers["Content-Security-Policy"] = csp
     resp.headers["X-Content-Type-Options"] = "nosniff"
-    resp.headers["Referrer-Policy"] = "no-referrer"
+    # same-origin, not no-referrer: with no-referrer a form POST says "Origin: null"
+    resp.headers["Referrer-Policy"] = "same-origin"
     resp.headers["Cache-Control"] = "no-store"
     return resp
 
@@ -223,8 +224,9 @@ async def campaign_view(request: web.Request) -> web.StreamResponse:
     comp = svc.compensation()
     live = _campaign_live(svc, st, s, comp)
     if request.query.get("fragment") == "live":
-        resp: web.StreamResponse = web.json_response({"live": live,
-                                                      "banner": _banner(svc, comp)})
+        resp: web.StreamResponse = web.json_response({
+            "live": live, "banner": _banner(svc, comp),
+            "report": _pages.report_box(st["id"], _report_path(st).is_file())})
         return _finish(_headers(resp), s, new)
     page = _pages.campaign_page(st, live, session=s, banner_html=_banner(svc, comp),
                                 has_report=_report_path(st).is_file())

@@ -12,7 +12,8 @@ from typing import Any
 from robocal.daemon.station._auth import Session
 from robocal.daemon.station._facts import Progress, Step
 
-__all__ = ["campaign_live", "campaign_page", "layout", "list_page", "list_rows", "login_page"]
+__all__ = ["campaign_live", "campaign_page", "layout", "list_page", "list_rows", "login_page",
+           "report_box"]
 
 
 def e(x: object) -> str:
@@ -325,15 +326,20 @@ def campaign_live(st: dict[str, Any], *, session: Session, steps: list[Step], pr
         "</div></section></div>")
 
 
+def report_box(cid: str, has_report: bool) -> str:
+    """The embedded report (empty until the fit wrote it)."""
+    if not has_report:
+        return ""
+    return ("<section class=\"card\" aria-labelledby=\"rep-h\"><h2 id=\"rep-h\">Report"
+            "</h2><iframe class=\"report\" title=\"calibration report\" "
+            f"src=\"/campaigns/{e(cid)}/report\"></iframe></section>")
+
+
 def campaign_page(st: dict[str, Any], live_html: str, *, session: Session, banner_html: str,
                   has_report: bool) -> str:
     """The campaign page: head, ``#live`` (steps, progress, fits, actions), plot, report."""
     cid = st["id"]
-    report = ""
-    if has_report:
-        report = ("<section class=\"card\" aria-labelledby=\"rep-h\"><h2 id=\"rep-h\">Report"
-                  "</h2><iframe class=\"report\" title=\"calibration report\" "
-                  f"src=\"/campaigns/{e(cid)}/report\"></iframe></section>")
+    report = f"<div id=\"reportbox\">{report_box(cid, has_report)}</div>"
     body = (
         f"<h1>{e(st.get('name') or cid)} <small>{e(cid)} · {e(st['robot'])}</small></h1>"
         f"<div id=\"live\">{live_html}</div>"

@@ -30,6 +30,9 @@
         const box = document.getElementById("bannerbox");
         if (box && d.banner !== undefined && box.innerHTML !== d.banner) box.innerHTML = d.banner;
         if (live && live.innerHTML !== d.live) swap(live, d.live);
+        // the report appears once, when the fit has written it (not reloaded on every event)
+        const rep = document.getElementById("reportbox");
+        if (rep && d.report && !rep.firstElementChild) rep.innerHTML = d.report;
         if (body.dataset.page === "campaign") plot();
       }
     } catch (e) { /* the daemon restarting: the next event or reconnect retries */ }
