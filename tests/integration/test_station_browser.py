@@ -21,12 +21,12 @@ from typing import Any
 
 import pytest
 from playwright.async_api import Dialog, Page, async_playwright
+from tests.unit.daemon.conftest import ROBOT, base_config
 
 from robocal.daemon.api import ApiServer
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
-from tests.unit.daemon.conftest import ROBOT, base_config
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 TOKEN = "station-e2e-token-0123456789"
@@ -220,6 +220,8 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     rms = st["fits"]["constant"]["validation"]["rms_mm"]
     assert f"{rms:.4f} mm" in await page.inner_text("#live")
     assert await page.is_visible("iframe.report")
+    # the embedded report renders (sandboxed, its own inline styles and data: images)
+    await page.frame_locator("iframe.report").locator("#verdict").wait_for(timeout=WAIT_MS)
     report = await page.request.get(f"{url}/campaigns/{cid}/report")
     assert report.status == 200 and "<html" in (await report.text()).lower()
 
