@@ -112,7 +112,7 @@
     svg.appendChild(el("line", { class: "axis", x1: L, y1: H - B, x2: W - R, y2: H - B }));
     svg.appendChild(el("line", { class: "axis", x1: L, y1: T, x2: L, y2: H - B }));
     for (let k = lo; k <= hi; k++) {
-      svg.appendChild(el("text", { x: 4, y: y(10 ** k) + 4 }, (10 ** k).toPrecision(1) + " mm"));
+      svg.appendChild(el("text", { x: 4, y: y(10 ** k) + 4 }, String(+(10 ** k).toPrecision(1)) + " mm"));
     }
     svg.appendChild(el("text", { x: W / 2, y: H - 6 }, "pose index (0 – " + xmax + ")"));
     let lx = L + 10;
@@ -120,7 +120,7 @@
       if (!s.pts.length) continue;
       // one path per series: fast with 10,000 poses
       let dpath = "";
-      for (const p of s.pts) dpath += `M${x(p[0]).toFixed(1)} ${y(p[1]).toFixed(1)}h3v3h-3z`;
+      for (const p of s.pts) dpath += `M${x(p[0]).toFixed(1)} ${y(p[1]).toFixed(1)}h4v4h-4z`;
       svg.appendChild(el("path", { class: s.cls, d: dpath }));
       svg.appendChild(el("rect", { class: s.cls, x: lx, y: 8, width: 8, height: 8 }));
       svg.appendChild(el("text", { x: lx + 12, y: 16 }, s.label));
