@@ -277,6 +277,14 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     row = await page.inner_text(f'tr[data-campaign="{cid}"]')
     assert "pushed" in row and "rolled back" in row and f"{rms:.4f} mm" in row
     await _screens(page, shots, "campaigns")
+    # what the CLI does shows up on the open page within a second, without a reload
+    await page.evaluate("() => { window.__noReload = 2; }")
+    await page.wait_for_function("() => document.body.dataset.sse === 'open'",
+                                 timeout=WAIT_MS)
+    other = await svc.create(json.loads(plan_file.read_text()), actor="cli", name="from cli",
+                             start=False)
+    await page.wait_for_selector(f'tr[data-campaign="{other["id"]}"]', timeout=1000)
+    assert await page.evaluate("() => window.__noReload") == 2
     # the audit log names the actor of every action
     actors = {a["action"]: a["actor"] for a in svc.audit()}
     for action in ("campaign.approve", "compensation.push", "compensation.rollback"):
@@ -284,4 +292,3 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     # offline: nothing was fetched from anywhere but the daemon
     assert all(u.startswith(url) or u.startswith("data:") for u in requests), \
         sorted({u for u in requests if not u.startswith(url)})
-    json.dumps(requests)  # a plain list of strings

@@ -156,3 +156,48 @@ async def test_campaign_page_shows_fits_steps_and_plot_data(client, svc):
 @pytest.fixture(autouse=True)
 def _quiet_aiohttp() -> None:
     logging.getLogger("aiohttp.access").setLevel(logging.WARNING)
+
+
+async def test_on_the_unix_socket_no_token_but_csrf_still_checked(svc):
+    async with TestClient(TestServer(make_app(svc))) as c:
+        st = await svc.create(random_plan(2000, validation=100), actor="t")
+        cid = st["id"]
+        url = f"/station/campaigns/{cid}"
+        page = await (await c.get(url)).text()
+        assert "local · operator" in page and "act-pause" in page
+        r = await c.post(f"{url}/pause", data={"reason": "x"})
+        assert r.status == 403 and svc.status(cid)["state"] == "running"
+        r = await c.post(f"{url}/pause", data={"csrf": _csrf(page), "reason": "fixture bump"})
+        assert r.status == 200
+        page = await r.text()
+        assert "Paused: fixture bump" in page and "act-resume" in page
+        assert svc.status(cid)["state"] == "paused"
+        r = await c.post(f"{url}/abort", data={"csrf": _csrf(page), "reason": "done"})
+        assert r.status == 200 and svc.status(cid)["state"] == "aborted"
+        abort = [a for a in svc.audit() if a["action"] == "campaign.abort"][-1]
+        assert abort["actor"].startswith("local (operator) via station")
+        pause = [t for t in svc.store.transitions(cid) if t["to_state"] == "paused"][-1]
+        assert pause["actor"] == abort["actor"] and pause["reason"] == "fixture bump"
+
+
+async def test_repeated_failed_sign_ins_are_refused_for_a_while(client):
+    form = await (await client.get("/station/login")).text()
+    for _ in range(10):
+        r = await client.post("/station/login", data={"csrf": _csrf(form), "token": "bad"})
+        assert r.status == 401
+    r = await client.post("/station/login", data={"csrf": _csrf(form), "token": TOKEN})
+    assert r.status == 429
+
+
+def test_viewer_token_file_needs_the_operator_token_and_must_differ(make_config, tmp_path):
+    from robocal.errors import ConfigError
+
+    with pytest.raises(ValueError, match="viewer_token_file needs token_file"):
+        make_config(api={"viewer_token_file": str(tmp_path / "v")})
+    same = tmp_path / "same"
+    same.write_text(TOKEN)
+    same.chmod(0o600)
+    cfg = make_config(api={"tcp_port": 0, "token_file": str(same),
+                           "viewer_token_file": str(same)})
+    with pytest.raises(ConfigError, match="must differ"):
+        cfg.read_viewer_token()
