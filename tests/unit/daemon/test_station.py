@@ -201,3 +201,12 @@ def test_viewer_token_file_needs_the_operator_token_and_must_differ(make_config,
                            "viewer_token_file": str(same)})
     with pytest.raises(ConfigError, match="must differ"):
         cfg.read_viewer_token()
+
+
+async def test_light_measurement_columns_refuse_anything_else(svc):
+    cid = await _fitted(svc)
+    rows = svc.store.measurement_columns(cid, ("pose_idx", "attempts"))
+    assert [r[0] for r in rows] == [m.pose_idx for m in svc.measurements(cid)]
+    for bad in (("pose_idx", "campaign; DROP TABLE measurements"), ("weather",), ()):
+        with pytest.raises(ValueError, match="not readable"):
+            svc.store.measurement_columns(cid, bad)

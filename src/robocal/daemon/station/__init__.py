@@ -56,6 +56,7 @@ _PEER: web.AppKey[Callable[[web.Request], str]] = web.AppKey("station_peer")
 _RESIDUALS: web.AppKey[dict[tuple[str, str], list[list[float]]]] = web.AppKey(
     "station_residuals", dict)
 _LOGIN_COOKIE = "robocal_login"
+_BEFORE_FIT = ("created", "running", "paused", "measured")
 _STATIC = {"station.css": "text/css", "station.js": "text/javascript"}
 _ACTIONS = ("start", "pause", "resume", "abort", "approve", "push", "rollback")
 _MAX_PLAN_BYTES = 8 * 1024 * 1024
@@ -165,7 +166,11 @@ def _list_rows(svc: CalibrationService, comp: dict[str, Any]) -> list[dict[str, 
     origin = (comp.get("active") or {}).get("origin")
     rows = []
     for c in svc.list():
-        st = svc.status(c["id"])
+        # only what the row shows: a full status per campaign would make a long list slow
+        unfitted = c["state"] in _BEFORE_FIT
+        st = {**c, "fits": {} if unfitted else svc.store.fits(c["id"]),
+              "compensation": ([] if unfitted or c["state"] == "fitted"
+                               else svc.campaign_compensation(c["id"]))}
         rows.append({"id": c["id"], "name": c["name"], "state": c["state"],
                      "robot": c["robot"], "created": c["created"],
                      "measured": c["poses_measured"], "total": c["poses_total"],
@@ -188,8 +193,7 @@ async def list_view(request: web.Request) -> web.StreamResponse:
         resp: web.StreamResponse = web.json_response(
             {"live": _pages.list_rows(rows), "banner": _banner(svc, comp)})
         return _finish(_headers(resp), s, new)
-    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp),
-                            plan_dir=str(svc.config.data_dir))
+    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp))
     return _finish(_html(page.replace("data-live=", f'data-seq="{svc.events.last_seq}" '
                                                     "data-live=", 1)), s, new)
 
@@ -200,7 +204,7 @@ def _report_path(st: dict[str, Any]) -> Path:
 
 def _campaign_live(svc: CalibrationService, st: dict[str, Any], s: Session,
                    comp: dict[str, Any]) -> str:
-    rows = svc.measurements(st["id"])
+    rows = svc.store.measurement_columns(st["id"], ("attempts", "beam_losses", "measured_at"))
     rolled = _facts.rolled_back_at(st, comp)
     active = comp.get("active") or {}
     active_here = active.get("campaign") == st["id"] and active.get("origin") != "controller"
@@ -234,20 +238,22 @@ async def campaign_view(request: web.Request) -> web.StreamResponse:
                                                     "data-live=", 1)), s, new)
 
 
-def _residuals(request: web.Request, cid: str, model: str, rows: list[Any]
-               ) -> list[list[float]] | None:
+def _residuals(request: web.Request, cid: str, model: str) -> list[list[float]] | None:
     """|measured - predicted| (mm) per pose for a fitted model; cached (a fit never changes)."""
     cache = request.app[_RESIDUALS]
     key = (cid, model)
     if key not in cache:
+        svc = request.app[_SERVICE]
         try:
-            m = request.app[_SERVICE].fitted_model(cid, model)
+            m = svc.fitted_model(cid, model)
         except RobocalError:
             return None
-        q = np.radians(np.array([r.q_act_deg for r in rows], dtype=float))
-        p = np.array([r.p_mm for r in rows], dtype=float)
+        rows = svc.store.measurement_columns(cid, ("pose_idx", "q_act_deg", "x_mm", "y_mm",
+                                                   "z_mm"))
+        q = np.radians(np.array([json.loads(r[1]) for r in rows], dtype=float))
+        p = np.array([r[2:5] for r in rows], dtype=float)
         d = np.linalg.norm(p - 1000.0 * m.predict(q), axis=1)
-        cache[key] = [[r.pose_idx, round(float(x), 5)] for r, x in zip(rows, d, strict=True)]
+        cache[key] = [[r[0], round(float(x), 5)] for r, x in zip(rows, d, strict=True)]
     return cache[key]
 
 
@@ -258,13 +264,14 @@ async def points(request: web.Request) -> web.StreamResponse:
     svc = request.app[_SERVICE]
     cid = request.match_info["cid"]
     st = svc.status(cid)
-    rows = svc.measurements(cid)
-    spread = [[r.pose_idx, r.rms_mm, 0 if r.purpose == "calibration" else 1] for r in rows]
+    rows = svc.store.measurement_columns(cid, ("pose_idx", "rms_mm", "purpose"))
+    spread = [[i, None if r is None else round(r, 5), 0 if p == "calibration" else 1]
+              for i, r, p in rows]
     models: dict[str, list[list[float]]] = {}
-    if st["state"] not in ("created", "running", "paused", "measured") and rows:
+    if st["state"] not in _BEFORE_FIT and rows:
         names = ["nominal", st.get("selected_model")]
         for name in dict.fromkeys(n for n in names if n and n in (st.get("fits") or {})):
-            res = _residuals(request, cid, name, rows)
+            res = _residuals(request, cid, name)
             if res is not None:
                 models[name] = res
     resp = web.json_response({"spread": spread, "models": models,

@@ -111,20 +111,21 @@ def _t(iso: str) -> float:
     return datetime.fromisoformat(iso).timestamp()
 
 
-def progress(status: dict[str, Any], rows: list[Any], *, window: int = 20) -> Progress:
+def progress(status: dict[str, Any], rows: list[tuple[int, int, str]], *, window: int = 20
+             ) -> Progress:
     """Poses measured, rate over the last ``window`` poses, ETA while running, retries and
-    beam losses summed over the stored measurements (``MeasurementRow``s)."""
+    beam losses, from ``(attempts, beam_losses, measured_at)`` per stored measurement."""
     n, total = int(status["poses_measured"]), int(status["poses_total"])
-    retries = sum(max(0, r.attempts - 1) for r in rows)
-    losses = sum(r.beam_losses for r in rows)
+    retries = sum(max(0, r[0] - 1) for r in rows)
+    losses = sum(r[1] for r in rows)
     rate = eta = elapsed = None
     if len(rows) >= 2:
-        times = sorted(_t(r.measured_at) for r in rows)
-        recent = times[-window:]
+        stamps = sorted(r[2] for r in rows)  # ISO 8601 UTC strings sort by time
+        recent = [_t(x) for x in stamps[-window:]]
         span = recent[-1] - recent[0]
         if span > 0:
             rate = 60.0 * (len(recent) - 1) / span
-        elapsed = times[-1] - times[0]
+        elapsed = recent[-1] - _t(stamps[0])
     if rate and status["state"] == "running":
         eta = max(0.0, (total - n) / rate * 60.0)
     return Progress(n, total, rate, eta, retries, losses, elapsed)

@@ -146,8 +146,7 @@ def list_rows(rows: list[dict[str, Any]]) -> str:
     return "".join(out)
 
 
-def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str,
-              plan_dir: str) -> str:
+def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str) -> str:
     """The campaigns list with, for an operator, the form that starts a campaign."""
     start = ""
     if session.role == "operator":
@@ -159,8 +158,8 @@ def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str,
             "the tracker will measure each one.\">"
             f"<input type=\"hidden\" name=\"csrf\" value=\"{e(session.csrf)}\">"
             "<label for=\"plan\">Plan file on this cell PC (PLAN.json)</label>"
-            f"<input id=\"plan\" name=\"plan\" type=\"text\" required "
-            f"placeholder=\"{e(plan_dir)}/PLAN.json\">"
+            "<input id=\"plan\" name=\"plan\" type=\"text\" required "
+            "placeholder=\"full path, e.g. /srv/robocal/plans/PLAN.json\">"
             "<label for=\"cname\">Campaign name (optional)</label>"
             "<input id=\"cname\" name=\"name\" type=\"text\" maxlength=\"200\">"
             "<button type=\"submit\" id=\"start\">Start campaign</button></form></section>")
