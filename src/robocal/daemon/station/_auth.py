@@ -21,6 +21,7 @@ from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Literal
+from urllib.parse import urlsplit
 
 import structlog
 from aiohttp import web
@@ -141,7 +142,8 @@ def check_same_origin(request: web.Request) -> None:
         If ``Origin`` names another origin or ``Sec-Fetch-Site`` says cross-site.
     """
     origin = request.headers.get("Origin")
-    if origin is not None and origin != f"{request.scheme}://{request.host}":
+    # host:port only: behind a TLS proxy the browser says https while the daemon sees http
+    if origin is not None and urlsplit(origin).netloc != request.host:
         raise web.HTTPForbidden(reason="cross-site request refused (Origin)")
     site = request.headers.get("Sec-Fetch-Site")
     if site is not None and site not in ("same-origin", "none"):
