@@ -19,6 +19,7 @@ read with its session cookie. Authentication, roles and CSRF: :mod:`._auth` and 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hmac
 import json
@@ -238,8 +239,20 @@ async def campaign_view(request: web.Request) -> web.StreamResponse:
                                                     "data-live=", 1)), s, new)
 
 
-def _residuals(request: web.Request, cid: str, model: str) -> list[list[float]] | None:
-    """|measured - predicted| (mm) per pose for a fitted model; cached (a fit never changes)."""
+def _distances(model: Any, rows: list[tuple[Any, ...]]) -> list[list[float]]:
+    """``[pose, |measured - predicted| mm]`` from ``(pose, q_act_deg JSON, x, y, z)`` rows."""
+    q = np.radians(np.array([json.loads(r[1]) for r in rows], dtype=float))
+    p = np.array([r[2:5] for r in rows], dtype=float)
+    d = np.linalg.norm(p - 1000.0 * model.predict(q), axis=1)
+    return [[r[0], round(float(x), 5)] for r, x in zip(rows, d, strict=True)]
+
+
+async def _residuals(request: web.Request, cid: str, model: str) -> list[list[float]] | None:
+    """|measured - predicted| (mm) per pose for a fitted model; cached (a fit never changes).
+
+    The store is read on the loop (its connection belongs to this thread); the decoding and
+    the kinematics of 10,000 poses run in a thread, so live updates keep flowing meanwhile.
+    """
     cache = request.app[_RESIDUALS]
     key = (cid, model)
     if key not in cache:
@@ -250,10 +263,7 @@ def _residuals(request: web.Request, cid: str, model: str) -> list[list[float]] 
             return None
         rows = svc.store.measurement_columns(cid, ("pose_idx", "q_act_deg", "x_mm", "y_mm",
                                                    "z_mm"))
-        q = np.radians(np.array([json.loads(r[1]) for r in rows], dtype=float))
-        p = np.array([r[2:5] for r in rows], dtype=float)
-        d = np.linalg.norm(p - 1000.0 * m.predict(q), axis=1)
-        cache[key] = [[r[0], round(float(x), 5)] for r, x in zip(rows, d, strict=True)]
+        cache[key] = await asyncio.to_thread(_distances, m, rows)
     return cache[key]
 
 
@@ -271,7 +281,7 @@ async def points(request: web.Request) -> web.StreamResponse:
     if st["state"] not in _BEFORE_FIT and rows:
         names = ["nominal", st.get("selected_model")]
         for name in dict.fromkeys(n for n in names if n and n in (st.get("fits") or {})):
-            res = _residuals(request, cid, name)
+            res = await _residuals(request, cid, name)
             if res is not None:
                 models[name] = res
     resp = web.json_response({"spread": spread, "models": models,
