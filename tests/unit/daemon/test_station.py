@@ -7,13 +7,17 @@ from __future__ import annotations
 
 import logging
 import re
+from urllib.parse import urlsplit
 
 import pytest
 import structlog
 from aiohttp.test_utils import TestClient, TestServer
+from hypothesis import given
+from hypothesis import strategies as hs
 
 from robocal.daemon.api import make_app
 from robocal.daemon.service import CalibrationService
+from robocal.daemon.station import next_url
 from tests.unit.daemon.conftest import random_plan
 
 TOKEN = "operator-token-0123456789abcdef"
@@ -211,3 +215,14 @@ async def test_light_measurement_columns_refuse_anything_else(svc):
     for bad in (("pose_idx", "campaign; DROP TABLE measurements"), ("weather",), ()):
         with pytest.raises(ValueError, match="not readable"):
             svc.store.measurement_columns(cid, bad)
+
+
+@given(hs.text(max_size=60) | hs.sampled_from(["//evil", "/\\evil", "http://evil/", "/ok",
+                                               "/\t/evil", "https:evil", "/station/x?y=1"]))
+def test_after_sign_in_the_browser_stays_on_this_daemon(url):
+    out = next_url(url)
+    assert out == "/station/" or out == url
+    parts = urlsplit(out)
+    assert not parts.scheme and not parts.netloc and out.startswith("/")
+    assert not out.startswith("//") and "\\" not in out
+    assert all(ord(c) >= 0x21 and c != "\x7f" for c in out)

@@ -46,7 +46,7 @@ from robocal.daemon.station._auth import (
 )
 from robocal.errors import RobocalError
 
-__all__ = ["SessionStore", "auth_middleware", "register"]
+__all__ = ["SessionStore", "auth_middleware", "next_url", "register"]
 
 _log = structlog.get_logger(__name__)
 _SERVICE: web.AppKey[CalibrationService] = web.AppKey("station_service", CalibrationService)
@@ -313,9 +313,12 @@ async def static(request: web.Request) -> web.StreamResponse:
 
 
 # --- sign-in ------------------------------------------------------------------------------
-def _next(url: str) -> str:
+def next_url(url: str) -> str:
+    """Where to go after signing in: a path on this daemon, never another site (browsers
+    read ``/\\host`` as ``//host``; control characters are dropped by them)."""
     parts = urlsplit(url)
-    if parts.scheme or parts.netloc or not url.startswith("/") or url.startswith("//"):
+    if (parts.scheme or parts.netloc or not url.startswith("/") or url.startswith("//")
+            or "\\" in url or any(ord(c) < 0x21 or c == "\x7f" for c in url)):
         return "/station/"
     return url
 
@@ -328,7 +331,7 @@ async def login_form(request: web.Request) -> web.StreamResponse:
         raise web.HTTPSeeOther("/station/")  # the socket's permissions already let you in
     nonce = secrets.token_urlsafe(24)
     resp = _html(_pages.login_page(login_csrf=nonce,
-                                   next_url=_next(request.query.get("next", "/station/"))))
+                                   next_url=next_url(request.query.get("next", "/station/"))))
     _set_cookie(resp, _LOGIN_COOKIE, nonce, max_age=3600)
     return resp
 
@@ -356,11 +359,11 @@ async def login(request: web.Request) -> web.StreamResponse:
         n = store.failed(peer)
         _log.warning("station sign-in failed", peer=peer, failures_last_minute=n)
         resp = _html(_pages.login_page(login_csrf=nonce, error="That token is not valid.",
-                                       next_url=_next(_fields(form, "next"))), status=401)
+                                       next_url=next_url(_fields(form, "next"))), status=401)
         return resp
     s = store.new(role, name=name, peer=peer)
     _log.info("station sign-in", actor=s.actor, role=role)
-    resp = _redirect(_next(_fields(form, "next") or "/station/"))
+    resp = _redirect(next_url(_fields(form, "next") or "/station/"))
     _set_cookie(resp, COOKIE, s.id, max_age=None)
     resp.del_cookie(_LOGIN_COOKIE, path="/")
     return resp
