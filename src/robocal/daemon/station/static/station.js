@@ -75,10 +75,19 @@
     if (text !== undefined) n.textContent = text;
     return n;
   }
+  // At most one plot fetch a second (a 10,000-pose campaign sends every pose an event),
+  // and always one after the last event.
+  let plotLast = 0, plotTimer = null;
   async function plot() {
     const box = document.getElementById("plot");
-    if (!box || plotBusy) return;
+    if (!box) return;
+    const wait = plotLast + 1000 - Date.now();
+    if (plotBusy || wait > 0) {
+      if (!plotTimer) plotTimer = setTimeout(() => { plotTimer = null; plot(); }, Math.max(wait, 200));
+      return;
+    }
     plotBusy = true;
+    plotLast = Date.now();
     try {
       const r = await fetch(box.dataset.points, { credentials: "same-origin", cache: "no-store" });
       if (r.ok) draw(box, await r.json());
