@@ -226,3 +226,11 @@ def test_after_sign_in_the_browser_stays_on_this_daemon(url):
     assert not parts.scheme and not parts.netloc and out.startswith("/")
     assert not out.startswith("//") and "\\" not in out
     assert all(ord(c) >= 0x21 and c != "\x7f" for c in out)
+
+
+async def test_signing_out_ends_the_session(client):
+    page = await _sign_in(client, TOKEN)
+    r = await client.post("/station/logout", data={"csrf": _csrf(page)})
+    assert r.status == 200 and r.url.path == "/station/login"
+    r = await client.get("/station/", allow_redirects=False)
+    assert r.status == 303 and r.headers["Location"] == "/station/login"
