@@ -30,6 +30,7 @@ from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 TOKEN = "station-e2e-token-0123456789"
+VIEWER = "station-e2e-viewer-9876543210"
 WAIT_MS = 60_000
 
 # WCAG relative luminance and contrast ratio of every visible text against its background.
@@ -136,12 +137,16 @@ async def test_a_campaign_from_sign_in_to_rollback_through_the_pages(
     tok = tmp_path / "token"
     tok.write_text(TOKEN + "\n")
     tok.chmod(0o600)
+    vtok = tmp_path / "viewer-token"
+    vtok.write_text(VIEWER + "\n")
+    vtok.chmod(0o600)
     async with cell:
         cfg: dict[str, Any] = base_config(
             tmp_path, limits={"max_joint_correction_deg": 5.0},
             compensation={"verify_count": 4},
             fit={"report": True},
-            api={"socket": None, "tcp_port": 0, "token_file": str(tok)})
+            api={"socket": None, "tcp_port": 0, "token_file": str(tok),
+                 "viewer_token_file": str(vtok)})
         cfg["robot"] = {"kind": "fanuc_rmi", "options": cell.robot_options("fanuc_rmi")}
         cfg["tracker"] = {"kind": "ltp",
                           "options": {**cell.tracker_options("tcp"), "stab_ms": 10}}
@@ -157,7 +162,9 @@ async def test_a_campaign_from_sign_in_to_rollback_through_the_pages(
                                                    args=["--no-sandbox", "--disable-gpu"])
                 try:
                     page = await browser.new_page(viewport={"width": 1280, "height": 900})
-                    await _run(page, url, svc, plan_file, shots)
+                    cid = await _run(page, url, svc, plan_file, shots)
+                    viewer = await browser.new_page(viewport={"width": 1024, "height": 768})
+                    await _viewer(viewer, url, cid)
                 finally:
                     await browser.close()
         finally:
@@ -165,11 +172,27 @@ async def test_a_campaign_from_sign_in_to_rollback_through_the_pages(
             await svc.stop()
     out, err = capfd.readouterr()
     assert "station sign-in" in out + err  # the daemon's log lines were captured ...
-    assert TOKEN not in out + err          # ... and none holds the token
+    assert TOKEN not in out + err          # ... and none holds a token
+    assert VIEWER not in out + err
+
+
+async def _viewer(page: Page, url: str, cid: str) -> None:
+    """The viewer token signs in read only: the same page, no action."""
+    await page.goto(f"{url}/station/campaigns/{cid}")
+    assert page.url.endswith("/station/login")
+    await page.fill("#token", VIEWER)
+    await page.fill("#name", "vic")
+    async with page.expect_navigation():
+        await page.click("button[type=submit]")
+    await page.goto(f"{url}/station/campaigns/{cid}")
+    assert "vic · viewer" in await page.inner_text("header")
+    assert "original values" in await page.inner_text("#controller")
+    assert await page.locator("#actions form").count() == 0
+    assert "read only" in await page.inner_text("#actions")
 
 
 async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
-               shots: Path) -> None:
+               shots: Path) -> str:
     requests: list[str] = []
     page.on("request", lambda r: requests.append(r.url))
 
@@ -292,3 +315,4 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     # offline: nothing was fetched from anywhere but the daemon
     assert all(u.startswith(url) or u.startswith("data:") for u in requests), \
         sorted({u for u in requests if not u.startswith(url)})
+    return cid
