@@ -289,6 +289,14 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     await _act(page, "#act-rollback", "returns to what it held before this push")
     await page.wait_for_selector("#rolled-back", timeout=WAIT_MS)
     assert "original values, rolled back at" in await page.inner_text("#controller")
+    # the rollback is measured again, and the banner says how it came out
+    await page.wait_for_function(
+        "() => document.getElementById('controller').textContent.includes('after')",
+        timeout=WAIT_MS)
+    last = svc.compensation()["history"][-1]
+    assert last["action"] == "rollback" and last["verification"]["state"] == "done"
+    assert (f"{last['verification']['after']['rms_mm']:.4f} mm after"
+            in await page.inner_text("#controller"))
     assert svc.compensation()["active"]["origin"] == "controller"
     assert "rolled back" in await page.eval_on_selector_all(
         "li.step", "els => els.map(e => e.textContent)")

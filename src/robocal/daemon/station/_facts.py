@@ -144,8 +144,10 @@ def controller_banner(compensation: dict[str, Any],
     if active is None or active.get("origin") == "controller" or not active.get("campaign"):
         out: dict[str, Any] = {"kind": "original"}
         if last is not None and last.get("action") == "rollback":
-            out["rolled_back_at"] = last.get("at")
-            out["by"] = last.get("actor")
+            v = last.get("verification") or {}
+            out.update(rolled_back_at=last.get("at"), by=last.get("actor"),
+                       verification=v.get("state"),
+                       before_mm=_dig(v, "before", "rms_mm"), after_mm=_dig(v, "after", "rms_mm"))
         return out
     cid = str(active["campaign"])
     push = push_of.get(cid) or {}

@@ -42,12 +42,22 @@ def _duration(s: float | None) -> str:
     return f"{s} s"
 
 
+def _measured(b: dict[str, Any]) -> str:
+    """``; measured X mm before → Y mm after`` of the last write's verification run."""
+    if b.get("before_mm") is not None and b.get("after_mm") is not None:
+        return f"; measured {b['before_mm']:.4f} mm before → {b['after_mm']:.4f} mm after"
+    if b.get("verification"):
+        return f"; verification {e(b['verification'])}"
+    return ""
+
+
 def banner(b: dict[str, Any]) -> str:
     """The controller banner (``role="status"``: screen readers announce changes)."""
     if b["kind"] == "original":
         text = "Controller holds its <strong>original values</strong>"
         if b.get("rolled_back_at"):
             text += f", rolled back at {_when(b['rolled_back_at'])} by {e(b.get('by'))}"
+            text += _measured(b)
         else:
             text += " (robocal has not changed them)"
         cls = "banner original"
@@ -58,11 +68,7 @@ def banner(b: dict[str, Any]) -> str:
                 f" ({e(b.get('table'))} table {e(str(b.get('checksum'))[:12])}), "
                 f"{'pushed' if b.get('action') != 'rollback' else 'restored'} at "
                 f"{_when(b.get('at'))} by {e(b.get('by'))}")
-        if b.get("before_mm") is not None and b.get("after_mm") is not None:
-            text += (f"; measured {b['before_mm']:.4f} mm before → "
-                     f"{b['after_mm']:.4f} mm after")
-        elif b.get("verification"):
-            text += f"; verification {e(b['verification'])}"
+        text += _measured(b)
         cls = "banner pushed"
     return f'<div id="controller" class="{cls}" role="status">{text}</div>'
 
