@@ -20,13 +20,16 @@ Routes::
     GET  /compensation                 active table and push history
     POST /compensation/rollback        restore the previous table
     GET  /audit                        append-only audit log
+
+The operator's station (HTML pages under ``/station/``, ``/campaigns/{id}/report``, sign-in,
+sessions and CSRF) is :mod:`robocal.daemon.station`; on TCP a station session cookie may
+read every route above but change nothing through them.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 import json
 import os
 import pwd
@@ -62,6 +65,7 @@ from robocal.daemon.schemas import (
     Measurement,
 )
 from robocal.daemon.service import CalibrationService
+from robocal.daemon.station import SessionStore, auth_middleware, register
 from robocal.daemon.store import UnknownCampaign, is_storage_fault
 from robocal.errors import (
     CampaignError,
@@ -170,21 +174,6 @@ async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
         return _error(500, "InternalError", f"{type(err).__name__}: {err}")
 
 
-def _auth(token: str) -> Callable[[web.Request, Handler], Awaitable[web.StreamResponse]]:
-    expected = f"Bearer {token}".encode()
-
-    @web.middleware
-    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
-        got = request.headers.get("Authorization", "").encode()
-        if not hmac.compare_digest(got, expected):
-            resp = _error(401, "Unauthorized", "a valid bearer token is required")
-            resp.headers["WWW-Authenticate"] = 'Bearer realm="robocal"'
-            return resp
-        return await handler(request)
-
-    return middleware
-
-
 def _peer(request: web.Request) -> str:
     """``uid=N(name)`` of a Unix-socket client (SO_PEERCRED), else ``token``/``unknown``."""
     if request.app[_TOKEN_AUTH]:
@@ -201,6 +190,11 @@ def _peer(request: web.Request) -> str:
                 name = "?"
             return f"uid={uid}({name})"
     return "unknown"
+
+
+def _remote(request: web.Request) -> str:
+    """The TCP client's address (the station's sessions record it with the actor)."""
+    return request.remote or "unknown"
 
 
 def _actor(request: web.Request) -> str:
@@ -447,18 +441,28 @@ ROUTES: tuple[Route, ...] = (
 
 
 def make_app(service: CalibrationService, *, token: str | None = None,
-             max_body_bytes: int = 512 * 1024,
+             viewer_token: str | None = None, max_body_bytes: int = 512 * 1024,
              body_timeout_s: float = 60.0) -> web.Application:
-    """The aiohttp application; with ``token``, every request must carry it (TCP)."""
+    """The aiohttp application with the operator's station (:mod:`robocal.daemon.station`).
+
+    With ``token`` (TCP), every request must carry it as a bearer, or a station session
+    cookie obtained by signing in with it (or with ``viewer_token``: read only).
+    """
     middlewares: list[Any] = [_errors]
+    sessions = SessionStore()
     if token is not None:
-        middlewares.append(_auth(token))
+        middlewares.append(auth_middleware(sessions, token=token, viewer_token=viewer_token))
     app = web.Application(middlewares=middlewares, client_max_size=max_body_bytes)
     app[_SERVICE] = service
     app[_TOKEN_AUTH] = token is not None
     app[_BODY_TIMEOUT] = body_timeout_s
     for route in ROUTES:
         app.router.add_route(route.method, route.path, route.handler)
+    tokens = {} if token is None else {"operator": token}
+    if token is not None and viewer_token is not None:
+        tokens["viewer"] = viewer_token
+    register(app, service, sessions, local=token is None, tokens=tokens,
+             peer=_peer if token is None else _remote)
     return app
 
 
@@ -657,8 +661,9 @@ class ApiServer:
 
     def _runner(self, token: str | None) -> web.AppRunner:
         api = self.config.api
-        app = make_app(self.service, token=token, max_body_bytes=api.max_body_bytes,
-                       body_timeout_s=api.body_timeout_s)
+        viewer = None if token is None else self.config.read_viewer_token()
+        app = make_app(self.service, token=token, viewer_token=viewer,
+                       max_body_bytes=api.max_body_bytes, body_timeout_s=api.body_timeout_s)
         # lingering_time: after an error mid-body, read what is left for at most 1 s, not 10
         return web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
                              keepalive_timeout=api.keepalive_timeout_s, lingering_time=1.0)

@@ -75,6 +75,8 @@ class ApiConfig(_Model):
     ``socket`` (default ``robocal.sock`` in ``data_dir``) is a Unix socket whose file mode
     (``socket_mode``, default 0660) is the access control. TCP is off unless ``tcp_port`` is
     set, and then ``token_file`` (a file holding the bearer token) is required.
+    ``viewer_token_file`` (optional) holds a second token that signs in to the operator's
+    station (and reads the API) with the viewer role: read only.
 
     A request body may have ``max_body_bytes`` (default 512 KiB, some 1,600 plan poses, five
     times a large campaign; parsing and storing a plan stalls the event loop for about
@@ -92,6 +94,7 @@ class ApiConfig(_Model):
     tcp_host: str = "127.0.0.1"
     tcp_port: int | None = Field(default=None, ge=0, le=65535)
     token_file: Path | None = None
+    viewer_token_file: Path | None = None
     max_body_bytes: int = Field(default=512 * 1024, ge=1024, le=64 * 1024 * 1024)
     max_connections: int = Field(default=64, ge=1, le=4096)
     max_connections_per_client: int = Field(default=8, ge=1, le=4096)
@@ -103,6 +106,8 @@ class ApiConfig(_Model):
     def _check(self) -> ApiConfig:
         if self.tcp_port is not None and self.token_file is None:
             raise ValueError("tcp_port needs token_file: the TCP API always requires a token")
+        if self.viewer_token_file is not None and self.token_file is None:
+            raise ValueError("viewer_token_file needs token_file (the operator's token)")
         if self.socket is None and self.tcp_port is None:
             raise ValueError("the API needs a socket or a tcp_port")
         return self
@@ -281,6 +286,21 @@ class AppConfig(_Model):
         path = self.api.token_file
         return None if path is None else _private_text(path, "token")
 
+    def read_viewer_token(self) -> str | None:
+        """Return the station's read-only token from ``api.viewer_token_file``, or None.
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`read_token`, or if it equals the operator's token.
+        """
+        path = self.api.viewer_token_file
+        viewer = None if path is None else _private_text(path, "token")
+        if viewer is not None and viewer == self.read_token():
+            raise ConfigError("the viewer token must differ from the operator's token",
+                              source=str(self.api.viewer_token_file))
+        return viewer
+
     def read_site_secret(self) -> bytes | None:
         """Return the site secret from ``site_secret_file`` (stripped, UTF-8), or None.
 
@@ -330,8 +350,9 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
     api = out.get("api")
     if isinstance(api, dict):
         api = dict(api)
-        if "token_file" in api:
-            api["token_file"] = fix(api["token_file"])
+        for key in ("token_file", "viewer_token_file"):
+            if key in api:
+                api[key] = fix(api[key])
         out["api"] = api
     comp = out.get("compensation")
     if isinstance(comp, dict) and "targets_file" in comp:
