@@ -160,6 +160,8 @@ class CalibrationService:
         for t in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await t
+        with contextlib.suppress(TimeoutError):  # a report being rewritten gets finished
+            await self.reports.settled(10.0)
         await self.reports.close()
         self.fitter.shutdown()
         await self.hub.close()
@@ -1118,6 +1120,15 @@ class CalibrationService:
                          before_rms_mm=before.get("rms_mm"), after_rms_mm=after.get("rms_mm"))
         _log.info("compensation verified", key=key, before_rms_mm=before.get("rms_mm"),
                   after_rms_mm=after.get("rms_mm"))
+
+    async def report_file(self, cid: str, name: str) -> Path | None:
+        """The campaign's report file ``name`` (``report.html``, ``report.json``) as it is
+        once a rewrite pending after an action has ended (at most 30 s); None if absent."""
+        self.store.campaign(cid)
+        with contextlib.suppress(TimeoutError):
+            await self.reports.settled(30.0)
+        path = self._campaign_dir(cid) / name
+        return path if path.is_file() else None
 
     def report_records(self) -> dict[str, dict[str, Any]]:
         """Campaign id -> what its report's Compensation section shows: its approval and its

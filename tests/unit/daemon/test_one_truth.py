@@ -25,13 +25,17 @@ def _config(make_config: Any, sock: Path) -> Any:
                        compensation={"verify_count": 4}, fit={"report": True})
 
 
+def _cut(page: str) -> str:
+    """The Compensation section of a report page."""
+    start = page.index('<section id="compensation">')
+    return page[start:page.index("</section>", start)]
+
+
 def _section(svc: CalibrationService, cid: str) -> tuple[dict[str, Any], str]:
     """report.json and the HTML Compensation section of ``cid``."""
     d = svc._campaign_dir(cid)
-    page = (d / "report.html").read_text(encoding="utf-8")
-    start = page.index('<section id="compensation">')
     return (json.loads((d / "report.json").read_text(encoding="utf-8")),
-            page[start:page.index("</section>", start)])
+            _cut((d / "report.html").read_text(encoding="utf-8")))
 
 
 def _now(p: dict[str, Any]) -> str:
@@ -44,37 +48,39 @@ def _now(p: dict[str, Any]) -> str:
                            f"(rollback {p['rolled_back_by']})"}[p["compensation_state"]]
 
 
+def _shows(doc: dict[str, Any], html: str, want: dict[str, Any] | None) -> bool:
+    """Whether a report (JSON, HTML section) shows the API's push summary ``want`` (None:
+    approved, not pushed)."""
+    if doc.get("approval") is None:
+        return False
+    pushes = [e for e in doc.get("compensation") or [] if e["action"] == "push"]
+    if want is None:
+        return not pushes and "Not pushed to the controller yet." in html
+    if len(pushes) != 1:
+        return False
+    e, v = pushes[0], pushes[0]["verification"] or {}
+    return (e["key"] == want["key"]
+            and all(e.get(k) == want[k] for k in ("compensation_state", "superseded_by",
+                                                  "rolled_back_by", "rolled_back_at"))
+            and (v.get("before") or {}).get("rms_mm") == want["measured_before_rms_mm"]
+            and (v.get("after") or {}).get("rms_mm") == want["measured_after_rms_mm"]
+            and f"push {want['key']}</b>" in html and f"Now: <b>{_now(want)}</b>" in html
+            and f"{want['measured_before_rms_mm']:.4f} mm before -&gt; "
+                f"{want['measured_after_rms_mm']:.4f} mm after" in html)
+
+
 async def _report_shows(svc: CalibrationService, q: asyncio.Queue[Any], cid: str,
                         want: dict[str, Any] | None) -> None:
-    """Wait, event by event, until ``cid``'s report shows the API's push summary ``want``
-    (None: approved, not pushed)."""
-
-    def shows() -> bool:
-        doc, html = _section(svc, cid)
-        if doc.get("approval") is None:
-            return False
-        pushes = [e for e in doc.get("compensation") or [] if e["action"] == "push"]
-        if want is None:
-            return not pushes and "Not pushed to the controller yet." in html
-        if len(pushes) != 1:
-            return False
-        e, v = pushes[0], pushes[0]["verification"] or {}
-        return (e["key"] == want["key"]
-                and all(e.get(k) == want[k] for k in ("compensation_state", "superseded_by",
-                                                      "rolled_back_by", "rolled_back_at"))
-                and (v.get("before") or {}).get("rms_mm") == want["measured_before_rms_mm"]
-                and (v.get("after") or {}).get("rms_mm") == want["measured_after_rms_mm"]
-                and f"push {want['key']}</b>" in html and f"Now: <b>{_now(want)}</b>" in html
-                and f"{want['measured_before_rms_mm']:.4f} mm before -&gt; "
-                    f"{want['measured_after_rms_mm']:.4f} mm after" in html)
-
+    """Wait, event by event, until ``cid``'s report files show ``want`` (see :func:`_shows`)."""
     async with asyncio.timeout(30):
-        while not shows():
+        while not _shows(*_section(svc, cid), want):
             assert await q.get() is not None, "the service stopped"
 
 
 async def test_push_rollback_push_again_status_list_watch_report_and_api_agree(
         make_config, tmp_path, capsys):
+    import aiohttp
+
     from robocal.cli.main import main
     from robocal.daemon.api import ApiServer
     from robocal.daemon.client import DaemonClient
@@ -89,6 +95,17 @@ async def test_push_rollback_push_again_status_list_watch_report_and_api_agree(
 
     async def get(path: str) -> Any:
         return await asyncio.to_thread(http.request, "GET", path)
+
+    async def get_html(path: str) -> str:
+        async with (aiohttp.ClientSession(connector=aiohttp.UnixConnector(path=str(sock)))
+                    as session, session.get(f"http://robocal{path}") as r):
+            assert r.status == 200 and r.content_type == "text/html", await r.text()
+            return await r.text()
+
+    async def served_report_shows(cid: str, want: dict[str, Any] | None) -> None:
+        """The report as the API serves it (``report.json``, ``report.html``)."""
+        doc = await get(f"/campaigns/{cid}/report.json")
+        assert _shows(doc, _cut(await get_html(f"/campaigns/{cid}/report.html")), want), doc
 
     async def cli(*argv: str, rc: int = 0) -> str:
         code = await asyncio.wait_for(asyncio.to_thread(main, [*argv, "--socket", str(sock)]),
@@ -130,6 +147,7 @@ async def test_push_rollback_push_again_status_list_watch_report_and_api_agree(
                     assert "push" not in line and len(final) == 1, (line, watch_text)
                     assert final[0].startswith(f"{cid}: approved: "), watch_text
                     await _report_shows(svc, q, cid, None)
+                    await served_report_shows(cid, None)
                     continue
                 p, key = st["push"], st["push_key"]
                 assert p["key"] == key and p["compensation_state"] == want
@@ -155,6 +173,7 @@ async def test_push_rollback_push_again_status_list_watch_report_and_api_agree(
                     assert (f"rolled back at {p['rolled_back_at']} by rollback "
                             f"{p['rolled_back_by']}") in status_text
                 await _report_shows(svc, q, cid, p)
+                await served_report_shows(cid, p)
 
         async with svc.events.subscribe() as q:
             await cli("campaign", "approve", a)
@@ -231,3 +250,56 @@ async def test_a_report_left_stale_by_a_stop_is_brought_up_to_date_at_start(make
             await _report_shows(again, q, cid, want)
         finally:
             await again.stop()
+
+
+async def test_a_get_of_the_report_after_an_action_waits_for_its_rewrite(make_config, tmp_path,
+                                                                         monkeypatch):
+    """The rewrite runs in the background, yet ``GET /campaigns/{id}/report.json`` right after
+    an approve answers with the report as rewritten (held here until the GET is waiting)."""
+    import threading
+
+    from robocal.daemon import _reports
+    from robocal.daemon.api import ApiServer
+    from robocal.daemon.client import DaemonClient
+
+    sock = tmp_path / "api.sock"
+    cfg = _config(make_config, sock)
+    svc = CalibrationService(cfg)
+    await svc.start()
+    api = ApiServer(svc, cfg)
+    await api.start()
+    entered, release = threading.Event(), threading.Event()
+    write = _reports._write
+
+    def held(out_dir: Path, record: dict[str, Any]) -> bool:
+        entered.set()
+        release.wait(30)
+        return write(out_dir, record)
+
+    try:
+        st = await svc.create(program_plan(36, validation=10), actor="a")
+        cid = str(st["id"])
+        await svc.wait(cid, ["fitted"], timeout=60)
+        assert "approval" not in json.loads((svc._campaign_dir(cid) / "report.json").read_text())
+        monkeypatch.setattr(_reports, "_write", held)
+        asked = asyncio.Event()
+        settled = svc.reports.settled
+
+        async def waiting(timeout: float) -> None:
+            asked.set()
+            await settled(timeout)
+
+        monkeypatch.setattr(svc.reports, "settled", waiting)
+        await svc.approve(cid, actor="alice")
+        assert await asyncio.to_thread(entered.wait, 30)
+        http = DaemonClient.from_args(socket_path=sock, timeout=30)
+        got = asyncio.create_task(asyncio.to_thread(http.request, "GET",
+                                                    f"/campaigns/{cid}/report.json"))
+        await asyncio.wait_for(asked.wait(), 30)
+        release.set()
+        doc = await asyncio.wait_for(got, 30)
+        assert doc["approval"]["actor"] == "alice" and doc["approval"]["model"] == "constant"
+    finally:
+        release.set()
+        await api.stop()
+        await svc.stop()
