@@ -234,10 +234,10 @@ class CalibrationService:
             elif stack:  # a rollback takes the top push off (never the baseline below)
                 out[stack.pop()] = {"compensation_state": "rolled back", "superseded_by": None,
                                     "rolled_back_by": e.key, "rolled_back_at": e.finished_at}
-        for below, above in zip(stack, [*stack[1:], None][:len(stack)], strict=True):
-            out[below] = {"compensation_state": "active" if above is None else "superseded",
-                          "superseded_by": above, "rolled_back_by": None,
-                          "rolled_back_at": None}
+        for i, k in enumerate(stack):  # the top one is active, each below it superseded
+            above = stack[i + 1] if i + 1 < len(stack) else None
+            out[k] = {"compensation_state": "active" if above is None else "superseded",
+                      "superseded_by": above, "rolled_back_by": None, "rolled_back_at": None}
         return out
 
     def measurements(self, cid: str) -> builtins.list[MeasurementRow]:

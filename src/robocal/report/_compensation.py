@@ -76,8 +76,8 @@ def _now(e: Mapping[str, Any]) -> str:
     if state == "superseded":
         return f"superseded by push {e.get('superseded_by')}"
     if state == "rolled back":
-        return (f"rolled back {nice_date(str(e.get('rolled_back_at', '')))} "
-                f"(rollback {e.get('rolled_back_by')})")
+        return (f"rolled back at {nice_date(str(e.get('rolled_back_at', '')))} by rollback "
+                f"{e.get('rolled_back_by')}")
     return "active on the controller"
 
 
@@ -95,13 +95,13 @@ def _headline(pushes: Sequence[Mapping[str, Any]], approval: Mapping[str, Any] |
     parts = []
     if approval:
         parts.append(f"Model {esc(approval.get('model'))} approved by "
-                     f"{esc(approval.get('actor'))} {esc(nice_date(str(approval.get('at'))))}.")
+                     f"{esc(approval.get('actor'))} at {esc(nice_date(str(approval.get('at'))))}.")
     done = [e for e in pushes if e.get("state") == "completed"]
     if not done:
         parts.append("Not pushed to the controller" + (" yet." if approval else "."))
     for e in done:
         parts.append(f"Pushed as <b>push {esc(e.get('key'))}</b> by {esc(e.get('actor'))} "
-                     f"{esc(nice_date(str(e.get('at'))))}; {esc(_measured(e))}. "
+                     f"at {esc(nice_date(str(e.get('at'))))}; {esc(_measured(e))}. "
                      f"Now: <b>{esc(_now(e))}</b>.")
     return f'<p class="now">{" ".join(parts)}</p>'
 

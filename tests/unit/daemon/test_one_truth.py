@@ -44,8 +44,8 @@ def _now(p: dict[str, Any]) -> str:
 
     return {"active": "active on the controller",
             "superseded": f"superseded by push {p['superseded_by']}",
-            "rolled back": f"rolled back {nice_date(str(p['rolled_back_at']))} "
-                           f"(rollback {p['rolled_back_by']})"}[p["compensation_state"]]
+            "rolled back": f"rolled back at {nice_date(str(p['rolled_back_at']))} by "
+                           f"rollback {p['rolled_back_by']}"}[p["compensation_state"]]
 
 
 def _shows(doc: dict[str, Any], html: str, want: dict[str, Any] | None) -> bool:
