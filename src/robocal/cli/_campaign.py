@@ -224,8 +224,9 @@ def list_(args: argparse.Namespace) -> int:
     if args.json:
         emit(out)
         return 0
+    width = max([9, *(len(_state_text(c)) for c in out)])
     for c in out:
-        sys.stdout.write(f"{c['id']}  {_state_text(c):9s} {c['poses_measured']:5d}/"
+        sys.stdout.write(f"{c['id']}  {_state_text(c):{width}s} {c['poses_measured']:5d}/"
                          f"{c['poses_total']:<5d} {c['created']}  {c['name']}\n")
     return 0
 
