@@ -98,8 +98,15 @@ def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
         log.read_text()[-3000:] if log.exists() else "")
     text = out.stdout
     assert re.search(r"held-out RMS: .*auto \d+\.\d+ mm", text), text[-3000:]
-    assert "approved model auto" in text and "pushed model auto, kind targets" in text
-    assert "rolled back" in text.lower() or "rollback" in text.lower(), text[-2000:]
+    pushed = re.search(r"pushed as push ([\w.:-]+), model auto, kind targets", text)
+    assert "approved model auto" in text and pushed, text[-3000:]
+    key = pushed.group(1)  # one id for the push: status, then `compensation list` after rollback
+    assert f"state     pushed (push {key}: active)" in text, text[-3000:]
+    assert re.search(rf"push +{key} +rolled back ", text), text[-2000:]
+    report = re.search(r"  report    (\S+report\.html)", text)
+    assert report, text[-3000:]
+    page = Path(report.group(1)).read_text(encoding="utf-8")  # rewritten before the daemon ended
+    assert f"Pushed as <b>push {key}</b>" in page and "Now: <b>rolled back " in page
     # the daemon stopped first: its shutdown stop reached the simulated controller
     assert not [ln for ln in log.read_text().splitlines()
                 if "motion stop" in ln and '"failed"' in ln]

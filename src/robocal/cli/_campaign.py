@@ -180,10 +180,21 @@ def start(args: argparse.Namespace) -> int:
 
 
 def _state_text(s: dict[str, Any]) -> str:
-    """The campaign's state; a pushed one with where its table is now (the daemon's
-    ``compensation_state``: active, superseded, rolled back)."""
-    where = s.get("compensation_state")
-    return f"{s['state']} ({where})" if where and where != "active" else str(s["state"])
+    """The campaign's state; a pushed one with its push's key (the one id of a push) and
+    where its table is now (the daemon's ``compensation_state``: active, superseded, rolled
+    back)."""
+    where, key = s.get("compensation_state"), s.get("push_key")
+    return f"{s['state']} (push {key}: {where})" if where and key else str(s["state"])
+
+
+def _now_text(p: dict[str, Any]) -> str:
+    """Where a push's table is now, with what made it so (a campaign status's ``push``)."""
+    where = p.get("compensation_state")
+    if where == "superseded":
+        return f"superseded by push {p.get('superseded_by')} (a rollback brings it back)"
+    if where == "rolled back":
+        return f"rolled back at {p.get('rolled_back_at')} by rollback {p.get('rolled_back_by')}"
+    return "active on the controller" if where == "active" else str(where)
 
 
 def _describe(s: dict[str, Any]) -> str:
@@ -216,9 +227,10 @@ def _describe(s: dict[str, Any]) -> str:
         lines.append(f"  report    {report}")
     p = s.get("push") or {}
     if p:
-        lines.append(f"  push      {p.get('kind')} {str(p.get('checksum', ''))[:12]}  model "
-                     f"{p.get('model')}  at {p.get('at', '')} by {p.get('actor', '')}"
-                     + ("  (forced)" if p.get("forced") else ""))
+        lines.append(f"  push      {p.get('key')}  model {p.get('model')}, {p.get('kind')} "
+                     f"table {str(p.get('checksum', ''))[:12]}, at {p.get('at', '')} by "
+                     f"{p.get('actor', '')}" + ("  (forced)" if p.get("forced") else ""))
+        lines.append(f"  now       {_now_text(p)}")
         before, after = p.get("measured_before_rms_mm"), p.get("measured_after_rms_mm")
         if isinstance(before, int | float) and isinstance(after, int | float):
             lines.append(f"  measured  {before:.4f} mm before -> {after:.4f} mm after "
@@ -303,8 +315,9 @@ def list_(args: argparse.Namespace) -> int:
     if args.json:
         emit(out)
         return 0
+    width = max([9, *(len(_state_text(c)) for c in out)])
     for c in out:
-        sys.stdout.write(f"{c['id']}  {_state_text(c):9s} {c['poses_measured']:5d}/"
+        sys.stdout.write(f"{c['id']}  {_state_text(c):{width}s} {c['poses_measured']:5d}/"
                          f"{c['poses_total']:<5d} {c['created']}  {c['name']}\n")
     return 0
 
@@ -347,9 +360,10 @@ def _push_text(s: dict[str, Any]) -> str:
     p = s.get("push") or {}
     if not p:
         return f"; model {s.get('selected_model')} pushed"
-    parts = [f"model {p.get('model', s.get('selected_model'))}", f"kind {p.get('kind')}"]
+    parts = [f"as push {p.get('key')}", f"model {p.get('model', s.get('selected_model'))}",
+             f"kind {p.get('kind')}"]
     if p.get("checksum"):
-        parts.append(f"checksum {str(p['checksum'])[:12]}")
+        parts.append(f"table checksum {str(p['checksum'])[:12]}")
     for key, label in (("predicted_rms_mm", "solved to"),
                        ("model_accuracy_mm", "model held-out RMS"),
                        ("nominal_rms_mm", "uncompensated (predicted)"),

@@ -51,30 +51,32 @@ def _mm(v: Any) -> str:
 
 
 def _print_state(out: dict[str, Any]) -> None:
+    history = out.get("history", [])
     active = out.get("active")
     if active:
-        sys.stdout.write(f"active: table {active['table_id']} ({active['kind']}, "
-                         f"{active['checksum'][:16]}, from {active['campaign'] or 'controller'})"
-                         "\n")
+        on_top = [h for h in history if h.get("compensation_state") == "active"]
+        what = (f"push {on_top[-1]['key']} (table {active['table_id']}"
+                if on_top else f"table {active['table_id']} (")
+        sys.stdout.write(f"active: {what}, {active['kind']}, {active['checksum'][:16]}, from "
+                         f"{active['campaign'] or 'controller'})\n")
         if active.get("purpose"):
             sys.stdout.write(f"  {active['purpose']}\n")
         for w in active.get("warnings") or []:
             sys.stdout.write(f"  warning: {w}\n")
     else:
         sys.stdout.write("active: none pushed by robocal\n")
-    history = out.get("history", [])
     if history:
-        sys.stdout.write(f"  {'at':29s} {'action':8s} {'table':5s} {'kind':8s} "
-                         f"{'checksum':16s} {'predicted':>9s} {'nominal':>9s} "
+        sys.stdout.write(f"  {'at':29s} {'action':8s} {'key':12s} {'now':11s} {'table':5s} "
+                         f"{'kind':8s} {'predicted':>9s} {'nominal':>9s} "
                          f"{'meas.before':>11s} {'meas.after':>10s}  by\n")
     for h in history:
         v = h.get("verification") or {}
         before = (v.get("before") or {}).get("rms_mm")
         after = (v.get("after") or {}).get("rms_mm")
         forced = "  (forced)" if h.get("forced") else ""
-        sys.stdout.write(f"  {h['at']:29s} {h['action']:8s} {h['table_id']:<5d} "
-                         f"{h['kind']:8s} {h['checksum'][:16]:16s} "
-                         f"{_mm(h.get('predicted_residual_mm')):>9s} "
+        sys.stdout.write(f"  {h['at']:29s} {h['action']:8s} {h.get('key') or '-':12s} "
+                         f"{h.get('compensation_state') or '':11s} {h['table_id']:<5d} "
+                         f"{h['kind']:8s} {_mm(h.get('predicted_residual_mm')):>9s} "
                          f"{_mm(h.get('nominal_residual_mm')):>9s} {_mm(before):>11s} "
                          f"{_mm(after):>10s}  {h['actor']}{forced}\n")
     if history:

@@ -411,8 +411,9 @@ def _print_summary(f: dict[str, Any]) -> None:
         if "error" in push:
             w(f"\nPush: {push['error']}\n")
         else:
-            w(f"\nApproved ({push.get('model')}) and pushed: {push['kind']} table "
-              f"{push['checksum'][:16]} (journaled, written, read back, verified, audited)\n")
+            w(f"\nApproved ({push.get('model')}) and pushed as push {push.get('key')}: "
+              f"{push['kind']} table {push['checksum'][:16]} (journaled, written, read back, "
+              "verified, audited)\n")
             w(f"  predicted residual {_fmt(push.get('predicted_rms_mm'), 4)} mm (targets "
               f"solved on the model; its held-out accuracy {_fmt(push.get('model_accuracy_mm'), 4)}"
               f" mm) against {_fmt(push.get('nominal_rms_mm'), 4)} mm nominal\n")

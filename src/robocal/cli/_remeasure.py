@@ -25,8 +25,9 @@ def add_wait_options(p: argparse.ArgumentParser) -> None:
 
 
 def new_key() -> str:
-    """A fresh idempotency key (the CLI names its push or rollback, so it can follow it)."""
-    return uuid.uuid4().hex
+    """A fresh idempotency key (the CLI names its push or rollback, so it can follow it):
+    12 hex digits, as the daemon's own (the id shown for it everywhere)."""
+    return uuid.uuid4().hex[:12]
 
 
 def _verification(cli: Any, key: str) -> dict[str, Any] | None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import uuid
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +29,13 @@ from robocal.daemon.campaign import CampaignState, check_transition
 from robocal.daemon.store import Store, now_iso
 from robocal.errors import CampaignError
 
-__all__ = ["JournalEntry", "PushJournal"]
+__all__ = ["JournalEntry", "PushJournal", "new_key"]
+
+
+def new_key() -> str:
+    """A fresh journal key: 12 hex digits (48 random bits), the one id a push or rollback is
+    shown by everywhere (status, list, watch, report, API), in full."""
+    return uuid.uuid4().hex[:12]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS push_journal(
@@ -164,8 +171,8 @@ class PushJournal:
                            "VALUES(?,?,?,?,?)", (t, "push", e.table_id, e.campaign, actor))
                 if e.campaign is not None:
                     note = self._to_pushed(db, e.campaign, actor,
-                                           f"{e.detail.get('kind', 'table')} {checksum[:12]} "
-                                           "pushed")
+                                           f"push {key} ({e.detail.get('kind', 'table')} "
+                                           f"table {checksum[:12]})")
                     if note:
                         outcome = f"{outcome}; {note}"
                         detail["campaign_note"] = note

@@ -14,6 +14,8 @@ Routes::
     POST /campaigns                    create (and start) from a plan
     GET  /campaigns/{id}               status (state, poses_total, poses_measured, fits)
     GET  /campaigns/{id}/measurements  stored measurements (mm, deg)
+    GET  /campaigns/{id}/report.json   the report's summary, as it is after the last action
+    GET  /campaigns/{id}/report.html   the report page, likewise
     POST /campaigns/{id}/{action}      start | pause | resume | abort | approve | push
     GET  /events                       Server-Sent Events (``?campaign=ID&after=SEQ``)
     GET  /events/poll                  long-poll: JSON list of events after ``after``
@@ -291,6 +293,26 @@ async def get_measurements(request: web.Request) -> web.Response:
     return _reply(list[Measurement], [r.to_json() for r in rows])
 
 
+async def _report(request: web.Request, name: str) -> web.Response:
+    cid = request.match_info["cid"]
+    path = await request.app[_SERVICE].report_file(cid, name)
+    if path is None:
+        raise web.HTTPNotFound(reason=f"campaign {cid} has no {name} (fitted with "
+                                      "report = false, or not fitted yet)")
+    text = await asyncio.to_thread(path.read_text, encoding="utf-8")
+    if name == "report.json":
+        return web.json_response(json.loads(text))
+    return web.Response(text=text, content_type="text/html")
+
+
+async def get_report_json(request: web.Request) -> web.Response:
+    return await _report(request, "report.json")
+
+
+async def get_report_html(request: web.Request) -> web.Response:
+    return await _report(request, "report.html")
+
+
 async def campaign_action(request: web.Request) -> web.Response:
     svc = request.app[_SERVICE]
     cid, action = request.match_info["cid"], request.match_info["action"]
@@ -396,7 +418,8 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
 class Route:
     """One route: what aiohttp serves and what ``openapi.json`` says about it.
 
-    ``response`` is the model (or type) of the JSON answer, None for a non-JSON one;
+    ``response`` is the model (or type) of the JSON answer, None for a non-JSON one (of
+    type ``media``);
     ``query`` lists ``(name, JSON type)`` of the query parameters.
     """
 
@@ -409,6 +432,7 @@ class Route:
     body: type[_Request] | None = None
     body_required: bool = False
     query: tuple[tuple[str, str], ...] = ()
+    media: str = "text/event-stream"
 
 
 #: Every route of the API; ``{action}`` is one of ``_ACTIONS`` (documented one path each).
@@ -423,6 +447,12 @@ ROUTES: tuple[Route, ...] = (
           "campaign status: state, poses, fits, transitions, pushes", CampaignStatus),
     Route("GET", "/campaigns/{cid}/measurements", get_measurements,
           "stored measurements (mm, deg)", list[Measurement]),
+    Route("GET", "/campaigns/{cid}/report.json", get_report_json,
+          "the report's JSON summary, once it shows the last approve, push or rollback",
+          dict[str, Any]),
+    Route("GET", "/campaigns/{cid}/report.html", get_report_html,
+          "the report page, once it shows the last approve, push or rollback",
+          media="text/html"),
     Route("POST", "/campaigns/{cid}/{action}", campaign_action, "{action} the campaign",
           CampaignStatus, body=ActionRequest),
     Route("GET", "/events", events_sse,
@@ -489,8 +519,8 @@ def _operation(route: Route, path: str, components: dict[str, Any]) -> dict[str,
     err = {"description": "error", "content": {"application/json": {
         "schema": {"$ref": _REF.format(model=ErrorBody.__name__)}}}}
     if route.response is None:
-        ok: dict[str, Any] = {"description": "event stream", "content": {
-            "text/event-stream": {"schema": {"type": "string"}}}}
+        ok: dict[str, Any] = {"description": route.media, "content": {
+            route.media: {"schema": {"type": "string"}}}}
     else:
         ok = {"description": "OK", "content": {"application/json": {
             "schema": _schema(route.response, "serialization", components)}}}

@@ -7,7 +7,8 @@ daemon run), ``time``, ``kind`` and ``campaign``; a subscriber that reconnects p
 and gets what it missed from a bounded replay buffer.
 
 Kinds: ``state`` (a transition), ``pose`` (a pose measured), ``retry`` (a reading retried),
-``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``log``; each kind's
+``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``report`` (a
+campaign's report rewritten to show the compensation now), ``log``; each kind's
 fields are the model in :mod:`robocal.daemon.schemas`, checked by :meth:`EventBus.emit`.
 """
 

@@ -30,6 +30,7 @@ __all__ = [
     "LogEvent",
     "Measurement",
     "PoseEvent",
+    "ReportEvent",
     "RetryEvent",
     "StateEvent",
     "event_adapter",
@@ -70,6 +71,9 @@ class CampaignSummary(_Closed):
     compensation_state: CompensationStateName | None = Field(
         default=None, description="a pushed campaign's table now: active, superseded by a "
                                   "later push, or rolled back")
+    push_key: str | None = Field(
+        default=None, description="journal key of the campaign's push: the one id the push is "
+                                  "shown by (status, list, watch, report, /compensation)")
     verifies: str | None = Field(
         default=None, description="journal key of the push or rollback this run verifies "
                                   "(a verification run, a child of that push); else null")
@@ -169,6 +173,9 @@ class PushSummary(_Closed):
     measured_after_rms_mm: float | None
     measured_n: int | None
     compensation_state: CompensationStateName | None = None
+    superseded_by: str | None = Field(default=None, description="key of the push on top of it")
+    rolled_back_by: str | None = Field(default=None, description="key of the rollback")
+    rolled_back_at: str | None = None
 
 
 class FitProgress(_Closed):
@@ -290,6 +297,9 @@ class PushHistoryEntry(_Closed):
     verification: Verification | None = None
     compensation_state: CompensationStateName | None = Field(
         default=None, description="for a push: its table now (active, superseded, rolled back)")
+    superseded_by: str | None = Field(default=None, description="key of the push on top of it")
+    rolled_back_by: str | None = Field(default=None, description="key of the rollback")
+    rolled_back_at: str | None = None
 
 
 class JournalRow(_Closed):
@@ -416,6 +426,14 @@ class CompensationEvent(_EventBase):
     after_rms_mm: float | None = None
 
 
+class ReportEvent(_EventBase):
+    """A campaign's report was rewritten to show what is true now."""
+
+    kind: Literal["report"]
+    section: Literal["compensation"]
+    html: str
+
+
 class LogEvent(_EventBase):
     """A free-text note for watchers."""
 
@@ -425,12 +443,12 @@ class LogEvent(_EventBase):
 
 
 Event = Annotated[StateEvent | PoseEvent | RetryEvent | FitEvent | CompensationEvent
-                  | LogEvent, Field(discriminator="kind")]
+                  | ReportEvent | LogEvent, Field(discriminator="kind")]
 
 #: The model of each event kind.
 EVENT_MODELS: dict[str, type[_EventBase]] = {
     "state": StateEvent, "pose": PoseEvent, "retry": RetryEvent, "fit": FitEvent,
-    "compensation": CompensationEvent, "log": LogEvent}
+    "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent}
 
 event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
 

@@ -17,7 +17,6 @@ import contextlib
 import math
 import sqlite3
 import time
-import uuid
 from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -31,8 +30,9 @@ from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import _fingerprint, pushing
-from robocal.daemon._journal import JournalEntry, PushJournal
+from robocal.daemon._journal import JournalEntry, PushJournal, new_key
 from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses, unsafe_moves
+from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margin
@@ -93,6 +93,7 @@ class CalibrationService:
         self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
         self._verify_tasks: dict[str, asyncio.Task[None]] = {}
+        self.reports = ReportKeeper(self.report_records, self._campaign_dir, self.events)
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
@@ -125,6 +126,7 @@ class CalibrationService:
             await self.reconcile()
         for key, _ in self.journal.open_verifications():
             self._spawn_verify(key)
+        self.reports.refresh()
 
     async def drain(self, timeout: float = 30.0) -> None:
         """Refuse new pushes and rollbacks and wait (at most ``timeout`` s) for the one in
@@ -159,6 +161,9 @@ class CalibrationService:
         for t in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await t
+        with contextlib.suppress(TimeoutError):  # a report being rewritten gets finished
+            await self.reports.settled(10.0)
+        await self.reports.close()
         self.fitter.shutdown()
         await self.hub.close()
         self.events.close()
@@ -192,8 +197,9 @@ class CalibrationService:
         out["compensation"] = self.campaign_compensation(cid)
         out["push"] = self._push_summary(out["compensation"])
         if out["push"] is not None:
-            out["compensation_state"] = self.push_states().get(out["push"]["key"])
-            out["push"]["compensation_state"] = out["compensation_state"]
+            out["push"].update(self.push_fates().get(out["push"]["key"], {}))
+            out["compensation_state"] = out["push"].get("compensation_state")
+            out["push_key"] = out["push"]["key"]
         started = (self._fit_started.get(cid)
                    if cid in self._fit_tasks and rec.state == S.MEASURED else None)
         out["fitting"] = None if started is None else {
@@ -206,13 +212,13 @@ class CalibrationService:
     def list(self) -> list[dict[str, Any]]:
         """Every campaign, oldest first (a pushed one with its table's state now)."""
         states = self.push_states()
-        by_campaign = {e.campaign: states[e.key] for e in self.journal.entries()
-                       if e.key in states}
+        by_campaign = {e.campaign: e.key for e in self.journal.entries() if e.key in states}
         out = []
         for r in self.store.campaigns():
             d = r.to_json()
             if r.id in by_campaign:
-                d["compensation_state"] = by_campaign[r.id]
+                d["push_key"] = by_campaign[r.id]
+                d["compensation_state"] = states[d["push_key"]]
             out.append(d)
         return out
 
@@ -220,18 +226,25 @@ class CalibrationService:
         """Journal key of every completed push -> its table now: ``active`` (on the
         controller), ``superseded`` (a later push is on top; a rollback would bring it back)
         or ``rolled back``. The one source status, list, the API and the report read."""
+        return {k: str(f["compensation_state"]) for k, f in self.push_fates().items()}
+
+    def push_fates(self) -> dict[str, dict[str, str | None]]:
+        """:meth:`push_states` with what made it so: ``superseded_by`` (key of the push on
+        top of it), ``rolled_back_by`` (key of the rollback) and ``rolled_back_at``."""
         stack: builtins.list[str] = []
-        out: dict[str, str] = {}
+        out: dict[str, dict[str, str | None]] = {}
         for e in self.journal.entries():
             if e.state != "completed":
                 continue
             if e.action == "push":
                 stack.append(e.key)
-                out[e.key] = "active"
             elif stack:  # a rollback takes the top push off (never the baseline below)
-                out[stack.pop()] = "rolled back"
-        for k in stack[:-1]:
-            out[k] = "superseded"
+                out[stack.pop()] = {"compensation_state": "rolled back", "superseded_by": None,
+                                    "rolled_back_by": e.key, "rolled_back_at": e.finished_at}
+        for i, k in enumerate(stack):  # the top one is active, each below it superseded
+            above = stack[i + 1] if i + 1 < len(stack) else None
+            out[k] = {"compensation_state": "active" if above is None else "superseded",
+                      "superseded_by": above, "rolled_back_by": None, "rolled_back_at": None}
         return out
 
     def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
@@ -460,6 +473,7 @@ class CalibrationService:
                          audit=("campaign.approve", {"model": chosen,
                                                      "model_id": fits[chosen].get("model_id")}))
         pushing.fault_point("approve:after-commit")
+        self.reports.refresh()
         return self.status(cid)
 
     # --- measuring and fitting tasks -----------------------------------------------------------
@@ -748,7 +762,7 @@ class CalibrationService:
                 seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
             # checked and about to write: an earlier push's re-measurement ends here
             await self._stop_verification_run("a new push was asked for")
-            key = key or uuid.uuid4().hex
+            key = key or new_key()
             detail = {**summary, "forced": refusal is not None or calibration["forced"],
                       "refusal": refusal, "reason": reason, "controller_calibration": calibration,
                       "program_q_deg": desc["program_q_deg"]}
@@ -780,6 +794,7 @@ class CalibrationService:
         self.events.emit("compensation", cid, action="push", checksum=table.checksum, key=key)
         _log.info("compensation pushed", campaign=cid, key=key, **summary)
         self._spawn_verify(key)
+        self.reports.refresh()
         return self.status(cid)
 
     def _ensure_open(self) -> None:
@@ -869,6 +884,8 @@ class CalibrationService:
             self.events.emit("compensation", e.campaign, action=f"{e.action}-reconciled",
                              key=e.key, state=done.state)
             out.append(done.to_json())
+        if out:
+            self.reports.refresh()
         return out
 
     async def rollback(self, *, actor: str, reason: str = "", key: str | None = None
@@ -905,7 +922,7 @@ class CalibrationService:
                       if j.action == "push" and j.table_id == source_id]
             program = pushed[-1].detail.get("program_q_deg") if pushed else None
             model_campaign = self.store.table(source_id)["campaign"]
-            key = key or uuid.uuid4().hex
+            key = key or new_key()
             detail = {"reason": reason, "restored_table_id": previous_id,
                       "rolled_back_table_id": current_id, "program_q_deg": program,
                       "model_campaign": model_campaign,
@@ -933,6 +950,7 @@ class CalibrationService:
         checksum = self.store.table(previous_id)["checksum"]
         self.events.emit("compensation", None, action="rollback", checksum=checksum, key=key)
         self._spawn_verify(key)
+        self.reports.refresh()
         return self.compensation()
 
     # --- verification runs: the pushed targets measured again ----------------------------------
@@ -954,11 +972,14 @@ class CalibrationService:
         try:
             v = self.journal.verification(key)
             if v is None or v["state"] == "pending":
-                if not await self._start_verification(key):
+                started = await self._start_verification(key)
+                self.reports.refresh()
+                if not started:
                     return
                 v = self.journal.verification(key)
             if v is not None and v["state"] == "measuring":
                 await self._finish_verification(key)
+                self.reports.refresh()
         except asyncio.CancelledError:
             raise
         except Exception as err:  # a verification bug must not take the daemon down
@@ -969,6 +990,7 @@ class CalibrationService:
             with contextlib.suppress(Exception):
                 self.journal.set_verification(key, state="failed",
                                               result={"reason": f"{type(err).__name__}: {err}"})
+            self.reports.refresh()
 
     def _verifying(self) -> str | None:
         """The verification run measuring now (a child of a push), or None."""
@@ -1063,7 +1085,7 @@ class CalibrationService:
             await self._wait_idle()
             try:
                 vst = await self.create(parse_plan(doc, source="verification", strict=False),
-                                        actor="daemon", name=f"verify {e.action} {key[:12]}",
+                                        actor="daemon", name=f"verify {e.action} {key}",
                                         measure_only=True, parent=key)
             except RobocalError as err:
                 if self._closing:
@@ -1121,19 +1143,33 @@ class CalibrationService:
                          before_rms_mm=before.get("rms_mm"), after_rms_mm=after.get("rms_mm"))
         _log.info("compensation verified", key=key, before_rms_mm=before.get("rms_mm"),
                   after_rms_mm=after.get("rms_mm"))
-        if e.campaign is not None and e.action == "push":
-            self._write_compensation_report(e.campaign)
 
-    def _write_compensation_report(self, cid: str) -> None:
-        """Add the compensation record to the campaign's report files (best effort)."""
-        out_dir = self._campaign_dir(cid)
-        try:
-            from robocal.report import add_compensation_section
+    async def report_file(self, cid: str, name: str) -> Path | None:
+        """The campaign's report file ``name`` (``report.html``, ``report.json``) as it is
+        once a rewrite pending after an action has ended (at most 30 s); None if absent."""
+        self.store.campaign(cid)
+        with contextlib.suppress(TimeoutError):
+            await self.reports.settled(30.0)
+        path = self._campaign_dir(cid) / name
+        return path if path.is_file() else None
 
-            add_compensation_section(out_dir, self.campaign_compensation(cid))
-        except (ImportError, RobocalError, OSError, ValueError) as err:
-            _log.warning("report not updated with the compensation", campaign=cid,
-                         error=str(err))
+    def report_records(self) -> dict[str, dict[str, Any]]:
+        """Campaign id -> what its report's Compensation section shows: its approval and its
+        pushes, each with where its table is now (:meth:`push_fates`)."""
+        fates = self.push_fates()
+        pushed = {e.campaign for e in self.journal.entries() if e.campaign is not None}
+        out: dict[str, dict[str, Any]] = {}
+        for rec in self.store.campaigns():
+            if rec.id not in pushed and rec.state not in (S.APPROVED, S.PUSHED):
+                continue
+            approved = [t for t in self.store.transitions(rec.id) if t["to_state"] == "approved"]
+            approval = None if not approved else {
+                "model": rec.selected_model, "actor": approved[-1]["actor"],
+                "at": approved[-1]["at"]}
+            entries = [{**e, **fates.get(e["key"], {})} if e["action"] == "push" else e
+                       for e in self.campaign_compensation(rec.id)]
+            out[rec.id] = {"approval": approval, "entries": entries}
+        return out
 
     def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
         """The pushes of ``cid``: journal state, table description, verification run."""
@@ -1181,7 +1217,7 @@ class CalibrationService:
             else:
                 active["purpose"] = "the controller's own values from before robocal's first push"
         journal = self.journal.entries()
-        states = self.push_states()
+        fates = self.push_fates()
         by_table: dict[tuple[str, int | None], JournalEntry] = {}
         for j in journal:
             if j.state == "completed":
@@ -1197,7 +1233,7 @@ class CalibrationService:
                                                       "refusal", "reason")},
                      "verification": self.journal.verification(hj.key)}
                 if hj.action == "push":
-                    h["compensation_state"] = states.get(hj.key)
+                    h.update(fates.get(hj.key, {}))
             history.append(h)
         return {"active": active, "stack": stack, "history": history,
                 "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()

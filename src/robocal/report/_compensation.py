@@ -1,11 +1,15 @@
 """The report's Compensation section: what was pushed, predicted, and measured after the push.
 
-The daemon adds it once the verification run of a push is measured
-(:func:`add_compensation_section`): the campaign's ``report.html`` gets (or has replaced) a
-``<section id="compensation">`` and ``report.json`` a ``compensation`` list. Each push shows
-its kind and purpose, checksum, time, who pushed it, the predicted residual against the
-nominal one and the model's accuracy, and the measured before/after of its verification run
-with a per-target plot.
+The daemon rewrites it whenever what is true of the campaign's compensation changes
+(approval, push, re-measurement, rollback, a later push that supersedes it; also after a
+restart): the campaign's ``report.html`` gets (or has replaced) a ``<section
+id="compensation">`` and ``report.json`` a ``compensation`` list and an ``approval``. The
+section opens with one sentence of what is true now (approved model, ``push KEY`` with its
+time, measured before -> after, and whether its table is active, superseded by a later push
+or rolled back, when and by which rollback); then each push (named by its journal key, the
+one id status, list, watch and the API use; the table checksum is a detail) with its kind
+and purpose, the predicted residual against the nominal one and the model's accuracy, and
+the measured before/after of its verification run with a per-target plot.
 """
 
 from __future__ import annotations
@@ -65,26 +69,67 @@ def _rms(block: Mapping[str, Any] | None) -> float | None:
     return float(v) if isinstance(v, int | float) else None
 
 
-def compensation_html(entries: Sequence[Mapping[str, Any]]) -> str:
-    """The ``<section id="compensation">`` for the campaign's push journal ``entries``."""
+def _now(e: Mapping[str, Any]) -> str:
+    """Where the push's table is now (the daemon's one truth), or why it never got there."""
+    state = e.get("compensation_state")
+    if e.get("state") != "completed" or state is None:
+        return str(e.get("state", "-"))
+    if state == "superseded":
+        return f"superseded by push {e.get('superseded_by')}"
+    if state == "rolled back":
+        return (f"rolled back at {nice_date(str(e.get('rolled_back_at', '')))} by rollback "
+                f"{e.get('rolled_back_by')}")
+    return "active on the controller"
+
+
+def _measured(e: Mapping[str, Any]) -> str:
+    v = e.get("verification") or {}
+    before, after = _rms(v.get("before")), _rms(v.get("after"))
+    if before is not None and after is not None:
+        return (f"measured {_mm(before)} mm before -> {_mm(after)} mm after "
+                f"({(v.get('after') or {}).get('n')} targets)")
+    return f"re-measurement {v.get('state', 'not recorded')}"
+
+
+def _headline(pushes: Sequence[Mapping[str, Any]], approval: Mapping[str, Any] | None) -> str:
+    """One sentence of what is true now: approval, push, measurement, where the table is."""
+    parts = []
+    if approval:
+        parts.append(f"Model {esc(approval.get('model'))} approved by "
+                     f"{esc(approval.get('actor'))} at {esc(nice_date(str(approval.get('at'))))}.")
+    done = [e for e in pushes if e.get("state") == "completed"]
+    if not done:
+        parts.append("Not pushed to the controller" + (" yet." if approval else "."))
+    for e in done:
+        parts.append(f"Pushed as <b>push {esc(e.get('key'))}</b> by {esc(e.get('actor'))} "
+                     f"at {esc(nice_date(str(e.get('at'))))}; {esc(_measured(e))}. "
+                     f"Now: <b>{esc(_now(e))}</b>.")
+    return f'<p class="now">{" ".join(parts)}</p>'
+
+
+def compensation_html(entries: Sequence[Mapping[str, Any]],
+                      approval: Mapping[str, Any] | None = None) -> str:
+    """The ``<section id="compensation">`` for the campaign's push journal ``entries`` (each
+    push with ``compensation_state`` and what made it so) and its ``approval``."""
     out = ['<section id="compensation"><h2>Compensation</h2>']
     pushes = [e for e in entries if e.get("action") == "push"]
+    out.append(_headline(pushes, approval))
     if not pushes:
-        out.append("<p>Nothing from this campaign was pushed to the controller.</p></section>")
+        out.append("</section>")
         return "".join(out)
     rows = []
     for e in pushes:
         v = e.get("verification") or {}
         rows.append([
-            esc(e.get("kind")), esc(str(e.get("checksum", ""))[:16]), esc(nice_date(e["at"])),
-            esc(e.get("actor")), esc(e.get("state")),
-            _mm(e.get("predicted_residual_mm")), _mm(e.get("nominal_residual_mm")),
-            _mm(e.get("model_accuracy_mm")), _mm(_rms(v.get("before"))),
-            _mm(_rms(v.get("after"))),
-            esc((v.get("after") or {}).get("n", v.get("state", "-")))])
-    out.append(_table(["kind", "checksum", "time", "by", "state", "predicted mm",
-                       "nominal mm", "model mm", "measured before mm", "measured after mm",
-                       "targets"], rows, raw=True))
+            esc(e.get("key")), esc(_now(e)), esc(nice_date(e["at"])), esc(e.get("actor")),
+            esc(e.get("kind")), _mm(e.get("predicted_residual_mm")),
+            _mm(e.get("nominal_residual_mm")), _mm(e.get("model_accuracy_mm")),
+            _mm(_rms(v.get("before"))), _mm(_rms(v.get("after"))),
+            esc((v.get("after") or {}).get("n", v.get("state", "-"))),
+            esc(str(e.get("checksum", ""))[:16])])
+    out.append(_table(["push", "now", "time", "by", "kind", "predicted mm", "nominal mm",
+                       "model mm", "measured before mm", "measured after mm", "targets",
+                       "table checksum"], rows, raw=True))
     out.append("<p>Predicted: the model's residual with the table applied, against the "
                "nominal (uncompensated) residual on the same targets. Measured: the daemon "
                "moved the robot to a subset of the pushed targets, first as programmed "
@@ -100,7 +145,7 @@ def compensation_html(entries: Sequence[Mapping[str, Any]]) -> str:
         v = e.get("verification") or {}
         if v.get("state") in ("skipped", "failed"):
             out.append(f"<p>Not measured after the push: {esc(v.get('reason'))}</p>")
-        out.append(_fig(_plot(e), f"Verification of push {esc(str(e.get('key', ''))[:12])}: "
+        out.append(_fig(_plot(e), f"Verification of push {esc(e.get('key', ''))}: "
                                   "error of each measured target before and after"))
     out.append("</section>")
     return "".join(out)
@@ -120,10 +165,12 @@ def push_summary_html(entries: Sequence[Mapping[str, Any]]) -> str:
                 f"{esc(n)} re-measured targets")
     else:
         what = f"not measured after the push ({esc(v.get('reason') or v.get('state') or '-')})"
-    return (f'<div id="push-result" class="flag ok"><b>Pushed</b> {esc(e.get("kind"))} table '
-            f'{esc(str(e.get("checksum", ""))[:12])} ({esc(e.get("state"))}, '
+    active = e.get("state") == "completed" and e.get("compensation_state") in (None, "active")
+    return (f'<div id="push-result" class="flag {"ok" if active else "info"}"><b>Pushed</b> as '
+            f'push {esc(e.get("key"))} ({esc(e.get("kind"))} table '
+            f'{esc(str(e.get("checksum", ""))[:12])}; '
             f'{esc(nice_date(str(e.get("at", ""))))} by {esc(e.get("actor"))}): {what}. '
-            '<a href="#compensation">Details</a></div>')
+            f'Now: {esc(_now(e))}. <a href="#compensation">Details</a></div>')
 
 
 def _put_summary(page: str, summary: str) -> str:
@@ -137,23 +184,25 @@ def _put_summary(page: str, summary: str) -> str:
     return page[:end] + summary + page[end:]
 
 
-def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str, Any]]
-                             ) -> None:
-    """Add (or replace) the Compensation section of ``out_dir``'s report files.
+def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str, Any]], *,
+                             approval: Mapping[str, Any] | None = None) -> bool:
+    """Add (or replace) the Compensation section of ``out_dir``'s report files; return
+    False when there is nothing to rewrite: no report files, or a ``report.json`` that
+    already shows ``entries`` and ``approval``.
 
-    Missing report files are left missing (a campaign fitted with ``report = false``).
+    Missing report files are left missing (a campaign fitted with ``report = false``). The
+    HTML is written first, the JSON last: a JSON that shows the record vouches for both.
     """
     out_dir = Path(out_dir)
     data = [dict(e) for e in entries]
-    jpath = out_dir / "report.json"
-    if jpath.exists():
-        doc = json.loads(jpath.read_text(encoding="utf-8"))
-        doc["compensation"] = data
-        atomic_write_text(jpath, json.dumps(doc, indent=1, default=str))
-    hpath = out_dir / "report.html"
+    jpath, hpath = out_dir / "report.json", out_dir / "report.html"
+    doc = json.loads(jpath.read_text(encoding="utf-8")) if jpath.exists() else None
+    if doc is not None and doc.get("compensation") == data and doc.get("approval") == approval:
+        return False
+    wrote = False
     if hpath.exists():
         page = hpath.read_text(encoding="utf-8")
-        section = compensation_html(data)
+        section = compensation_html(data, approval)
         if _SECTION.search(page):
             page = _SECTION.sub(lambda _m: section, page, count=1)
         elif "</main>" in page:
@@ -161,3 +210,10 @@ def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str,
         else:
             page = page.replace("</body>", section + "</body>", 1)
         atomic_write_text(hpath, _put_summary(page, push_summary_html(data)))
+        wrote = True
+    if doc is not None:
+        doc["compensation"] = data
+        doc["approval"] = None if approval is None else dict(approval)
+        atomic_write_text(jpath, json.dumps(doc, indent=1, default=str))
+        wrote = True
+    return wrote

@@ -8,6 +8,7 @@ schema ``openapi.json`` documents for its route and status, independently of pyd
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import jsonschema
@@ -79,7 +80,7 @@ async def test_every_registered_route_is_documented_with_its_methods(svc):
             registered.setdefault(p, set()).add(route.method.lower())
     documented = {p: set(ops) for p, ops in SPEC["paths"].items()}
     assert registered == documented
-    assert len(documented) == 16
+    assert len(documented) == 18
 
 
 async def test_spec_components_are_the_models_and_served_as_generated(checker):
@@ -140,6 +141,14 @@ async def test_every_documented_answer_validates_a_real_one(checker, svc, real_p
     assert status == 200 and comp["active"]["kind"] == "snapshot"
     rb_key = [j for j in comp["journal"] if j["action"] == "rollback"][-1]["key"]
     assert (await svc.wait_verification(rb_key, timeout=60)) is not None
+    # the report as the API serves it: none written with report = false (404) until one is
+    report = doc + "/report.json"
+    assert (await c.call("GET", f"/campaigns/{cid}/report.json", report))[0] == 404
+    files = Path(svc.status(cid)["files"])
+    files.mkdir(parents=True, exist_ok=True)
+    (files / "report.json").write_text(json.dumps({"format": "robocal.report/1"}))
+    status, body = await c.call("GET", f"/campaigns/{cid}/report.json", report)
+    assert status == 200 and body["format"] == "robocal.report/1"
 
     # the other actions, on a campaign long enough to be paused while measuring (a bare
     # plan, which only the service takes: the API wants a complete one)

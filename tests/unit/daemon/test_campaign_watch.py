@@ -139,15 +139,22 @@ def test_status_and_push_lines_say_what_was_pushed_and_measured():
 
     s = {"id": "c1", "state": "pushed", "poses_measured": 5, "poses_total": 5,
          "selected_model": "auto",
-         "push": {"kind": "targets", "checksum": "8b55f09c059280439c", "model": "auto",
+         "push_key": "3f2a9c1b7d04", "compensation_state": "active",
+         "push": {"key": "3f2a9c1b7d04", "compensation_state": "active",
+                  "kind": "targets", "checksum": "8b55f09c059280439c", "model": "auto",
                   "at": "2026-11-23T22:26:53", "actor": "alice", "predicted_rms_mm": 3e-5,
                   "model_accuracy_mm": 0.0109, "nominal_rms_mm": 1.2977,
                   "verification": "done", "measured_before_rms_mm": 1.299,
                   "measured_after_rms_mm": 0.0104, "measured_n": 10}}
     text = _describe(s)
-    assert "push      targets 8b55f09c0592  model auto" in text
+    # the push is named by its key (as in list, watch, the report and the API); the table
+    # checksum is a detail
+    assert "state     pushed (push 3f2a9c1b7d04: active)" in text
+    assert "push      3f2a9c1b7d04  model auto, targets table 8b55f09c0592" in text
+    assert "now       active on the controller" in text
     assert "1.2990 mm before -> 0.0104 mm after (10 pushed targets re-measured)" in text
     line = _push_text(s)
+    assert "as push 3f2a9c1b7d04" in line and "table checksum 8b55f09c0592" in line
     assert "kind targets" in line and "model held-out RMS 0.0109 mm" in line
     assert "measured after 0.0104 mm" in line
 

@@ -90,7 +90,7 @@ async def test_push_rollback_push_status_list_and_api_agree_at_every_step(make_c
                     if want is not None:
                         assert st["push"]["compensation_state"] == want
                         shown = _describe(st).splitlines()[1]
-                        assert (f"pushed ({want})" in shown) == (want != "active"), shown
+                        assert f"pushed (push {st['push_key']}: {want})" in shown, shown
 
             async def post(path: str) -> None:
                 r = await http.post(path, json={})

@@ -57,3 +57,31 @@ def test_forced_push_and_missing_measurement_are_stated(tmp_path):
     assert "Pushed by force: frames table predicts 1.07 mm" in page
     assert "Not measured after the push: a frames table changes the frames" in page
     assert not (tmp_path / "report.json").exists()
+
+
+def test_the_section_says_where_the_push_is_now_and_is_not_rewritten_when_it_agrees(tmp_path):
+    """Approval, push key, measured before -> after and the table's state now (issue 32)."""
+    (tmp_path / "report.html").write_text("<html><body><main></main></body></html>")
+    (tmp_path / "report.json").write_text(json.dumps({"format": "x"}))
+    approval = {"model": "auto", "actor": "bob", "at": "2026-11-23T20:50:00+00:00"}
+    assert add_compensation_section(tmp_path, [], approval=approval)
+    page = (tmp_path / "report.html").read_text()
+    assert "Model auto approved by bob at 2026-11-23 20:50 UTC." in page
+    assert "Not pushed to the controller yet." in page
+    e = {**_entry(0.0123), "key": "3f2a9c1b7d04", "compensation_state": "superseded",
+         "superseded_by": "9c1b7d043f2a", "rolled_back_by": None, "rolled_back_at": None}
+    assert add_compensation_section(tmp_path, [e], approval=approval)
+    page = (tmp_path / "report.html").read_text()
+    assert ("Pushed as <b>push 3f2a9c1b7d04</b> by alice at 2026-11-23 21:00 UTC; measured "
+            "1.0500 mm before -&gt; 0.0123 mm after (3 targets). Now: <b>superseded by push "
+            "9c1b7d043f2a</b>.") in page
+    assert "Not pushed" not in page
+    assert not add_compensation_section(tmp_path, [e], approval=approval)  # already shown
+    e.update(compensation_state="rolled back", superseded_by=None, rolled_back_by="r1b2c3d4",
+             rolled_back_at="2026-11-23T21:30:00+00:00")
+    assert add_compensation_section(tmp_path, [e], approval=approval)
+    page = (tmp_path / "report.html").read_text()
+    assert "Now: <b>rolled back at 2026-11-23 21:30 UTC by rollback r1b2c3d4</b>." in page
+    assert page.count('<section id="compensation">') == 1
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["approval"] == approval and doc["compensation"][0]["rolled_back_by"] == "r1b2c3d4"
