@@ -28,7 +28,8 @@ async def test_list_prints_what_was_predicted_and_measured(tmp_path, capsys):
     _print_state(out)
     text = capsys.readouterr().out
     push = next(h for h in out["history"] if h["action"] == "push")
-    line = next(x for x in text.splitlines() if " push " in x)
+    # the history row (the "active:" line above it names the push too)
+    line = next(x for x in text.splitlines() if x.startswith("  ") and " push " in x)
     for value in (push["predicted_residual_mm"], push["nominal_residual_mm"],
                   v["before"]["rms_mm"], v["after"]["rms_mm"]):
         assert f"{value:.4f}" in line
