@@ -300,3 +300,70 @@ def test_off_removes_the_triggers(tmp_path: Path) -> None:
     assert first[0] > seq[0]
     assert first[1] == sum(len(rows) for rows in _source(store.path).values())
     store.close()
+
+
+async def test_a_crash_after_the_commit_skips_only_what_was_applied(
+        tmp_path: Path, fleet_url: str) -> None:
+    """The state a kill -9 leaves between the PostgreSQL commit and the outbox delete (a
+    copy of the store taken before the copy to PostgreSQL): the applied entries are skipped,
+    a newer change of the same row is not."""
+    store = _store(tmp_path / "c")
+    rec = store.create_campaign(name="c", robot="ur10", poses=[PoseRow(0, "calibration",
+                                (0.0,) * 6)], plan_json="{}", plan_digest="p",
+                                config_digest="c", actor="t")
+    install(store.path)
+    crashed = tmp_path / "crashed.sqlite3"
+    with sqlite3.connect(crashed) as dst:
+        store.db.backup(dst)
+    dst.close()
+    rep = FleetReplicator(store.path, _config(url=fleet_url), robot="ur10")
+    rep.start()
+    try:
+        await eventually(lambda: rep.pending() == 0, 20, what="outbox drained")
+    finally:
+        await rep.stop()
+        store.close()
+    after = Store(crashed).open()  # the crashed cell restarts; the campaign moves on
+    after.transition(rec.id, S.RUNNING, actor="t")
+    after.close()
+    rep = FleetReplicator(crashed, _config(url=fleet_url), robot="ur10")
+    rep.start()
+    try:
+        await eventually(lambda: rep.pending() == 0, 20, what="outbox drained")
+        assert_replicated(fleet_url, crashed, rep.cell_id)
+        assert _mirror(fleet_url, rep.cell_id)["campaigns"][rec.id]["state"] == "running"
+    finally:
+        await rep.stop()
+
+
+async def test_a_store_restored_from_an_older_copy_becomes_a_new_cell(
+        tmp_path: Path, fleet_url: str) -> None:
+    """Rows a restored store writes reuse local ids the fleet holds from the lost store: the
+    restored store is replicated whole under a new cell id, the old cell stays as it was."""
+    store = _store(tmp_path / "r")
+    old_id = install(store.path)
+    backup = tmp_path / "backup.sqlite3"
+    with sqlite3.connect(backup) as dst:
+        store.db.backup(dst)
+    dst.close()
+    _campaign(store, 20)  # written after the backup, replicated, then the disk dies
+    rep = FleetReplicator(store.path, _config(url=fleet_url), robot="ur10")
+    rep.start()
+    try:
+        await eventually(lambda: rep.pending() == 0, 20, what="outbox drained")
+    finally:
+        await rep.stop()
+        store.close()
+    lost = _mirror(fleet_url, old_id)
+    restored = Store(backup).open()
+    _campaign(restored, 3)  # measurement ids 1..3 again, other contents
+    restored.close()
+    rep = FleetReplicator(backup, _config(url=fleet_url), robot="ur10")
+    rep.start()
+    try:
+        await eventually(lambda: rep.pending() == 0 and rep.cell_id != old_id, 20,
+                         what="restored store replicated")
+        assert_replicated(fleet_url, backup, rep.cell_id)
+        assert _mirror(fleet_url, old_id) == lost
+    finally:
+        await rep.stop()

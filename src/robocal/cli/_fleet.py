@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from robocal.daemon.config import read_secret
 from robocal.daemon.fleet import fleet_report
 
 
@@ -70,10 +69,8 @@ def report(args: argparse.Namespace) -> int:
         sys.stderr.write("robocal fleet report: error: --url (or ROBOCAL_FLEET_URL) is "
                          "required\n")
         return 2
-    password = None if args.password_file is None else read_secret(args.password_file,
-                                                                     "password")
     try:
-        robots = fleet_report(args.url, password=password)
+        robots = fleet_report(args.url, password_file=args.password_file)
     except Exception as err:  # psycopg's errors: the database is out of reach or refuses
         if type(err).__module__.split(".")[0] != "psycopg":
             raise

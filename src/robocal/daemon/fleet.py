@@ -66,6 +66,11 @@ _OUTBOX = ("CREATE TABLE IF NOT EXISTS fleet_outbox(seq INTEGER PRIMARY KEY AUTO
 
 _CELL_ID_KEY = "fleet_cell_id"
 
+#: libpq TCP keepalives (unless the URL sets them): a peer gone without a reset (a cable
+#: pulled, a firewall dropping the session) is noticed within about 25 s.
+_KEEPALIVE = {"keepalives": "1", "keepalives_idle": "10", "keepalives_interval": "5",
+              "keepalives_count": "3"}
+
 _PG_CELLS = """
 CREATE TABLE IF NOT EXISTS robocal_cells(
     cell_id text PRIMARY KEY,
@@ -186,9 +191,11 @@ def detach(db_path: Path) -> bool:
 
 
 def _finite(value: Any) -> Any:
-    """``value`` with NaN and infinities made None (JSONB has no such numbers)."""
+    """``value`` as JSONB takes it: NaN and infinities made None, NUL characters replaced."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
+    if isinstance(value, str):
+        return value.replace("\x00", "\ufffd")
     if isinstance(value, dict):
         return {str(k): _finite(v) for k, v in value.items()}
     if isinstance(value, list):
@@ -225,37 +232,44 @@ class _Change:
 
 
 def _read_batch(db: sqlite3.Connection, limit: int) -> list[_Change]:
-    """The oldest ``limit`` outbox entries with their rows' current contents (one snapshot).
-
-    Entries for the same row collapse into the first (it carries the newest contents)."""
+    """The oldest ``limit`` outbox entries, in order, each with its row's current contents
+    (one snapshot; ``data`` None when the row is gone)."""
     db.execute("BEGIN")
     try:
         entries = db.execute("SELECT seq, tbl, key FROM fleet_outbox ORDER BY seq LIMIT ?",
                              (limit,)).fetchall()
-        seen: set[tuple[str, str]] = set()
+        rows: dict[tuple[str, str], tuple[str, str | None, dict[str, Any] | None]] = {}
         out: list[_Change] = []
-        last = 0
         for seq, tbl, key in entries:
-            last = int(seq)
-            if (tbl, key) in seen or tbl not in REPLICATED:
+            if tbl not in REPLICATED:
+                out.append(_Change(int(seq), "", "", None, None))  # a later robocal's table
                 continue
-            seen.add((tbl, key))
-            cols = REPLICATED[tbl][0]
-            values = json.loads(key)
-            where = " AND ".join(f"{c}=?" for c in cols)
-            row = db.execute(f"SELECT * FROM {tbl} WHERE {where}", values).fetchone()
-            data = None if row is None else _row_json(row)
-            campaign = None
-            if data is not None:
-                c = data.get("id" if tbl == "campaigns" else "campaign")
-                campaign = None if c is None else str(c)
-            out.append(_Change(int(seq), tbl, "/".join(str(v) for v in values), campaign,
-                               data))
-        if out and out[-1].seq != last:  # the batch ends at its last entry, duplicate or not
-            out.append(_Change(last, "", "", None, None))
+            if (tbl, key) not in rows:
+                cols = REPLICATED[tbl][0]
+                values = json.loads(key)
+                where = " AND ".join(f"{c}=?" for c in cols)
+                row = db.execute(f"SELECT * FROM {tbl} WHERE {where}", values).fetchone()
+                data = None if row is None else _row_json(row)
+                campaign = None if data is None else data.get(
+                    "id" if tbl == "campaigns" else "campaign")
+                rows[tbl, key] = ("/".join(str(v) for v in values),
+                                  None if campaign is None else str(campaign), data)
+            local_id, campaign, data = rows[tbl, key]
+            out.append(_Change(int(seq), tbl, local_id, campaign, data))
         return out
     finally:
         db.execute("COMMIT")
+
+
+def _unique(changes: Iterable[_Change]) -> list[_Change]:
+    """The first change of each row (all carry the row's newest contents)."""
+    seen: set[tuple[str, str]] = set()
+    out = []
+    for c in changes:
+        if c.tbl and (c.tbl, c.local_id) not in seen:
+            seen.add((c.tbl, c.local_id))
+            out.append(c)
+    return out
 
 
 # --- the PostgreSQL side ---------------------------------------------------------------------
@@ -270,6 +284,18 @@ def _pg() -> Any:
 
 def _password(cfg: FleetConfig) -> str | None:
     return None if cfg.password_file is None else read_secret(cfg.password_file, "password")
+
+
+def _params(psycopg: Any, cfg: FleetConfig, application: str) -> dict[str, Any]:
+    """Connection parameters: the URL's, then defaults (keepalives, connect timeout, the
+    application name PostgreSQL shows), the password from its file."""
+    params: dict[str, Any] = {**_KEEPALIVE, "connect_timeout": str(max(1, round(
+        cfg.connect_timeout_s))), "application_name": application,
+        **psycopg.conninfo.conninfo_to_dict(cfg.url)}
+    password = _password(cfg)
+    if password is not None:
+        params["password"] = password
+    return params
 
 
 async def _ensure_schema(conn: psycopg.AsyncConnection[Any]) -> None:
@@ -311,9 +337,13 @@ class FleetReplicator:
 
     # --- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
-        """Install the outbox (synchronously, so a bad store fails the start) and start the
-        background task."""
-        self.cell_id = install(self.db_path)
+        """Install the outbox and start the background task. A store that cannot take the
+        outbox now (a full disk) does not stop the daemon: the task tries again."""
+        try:
+            self.cell_id = install(self.db_path)
+        except sqlite3.Error as err:
+            self.last_error = f"{type(err).__name__}: {err}"
+            _log.warning("fleet outbox not installed yet", error=self.last_error)
         self._task = asyncio.create_task(self.run(), name="fleet-replication")
 
     async def stop(self) -> None:
@@ -338,12 +368,12 @@ class FleetReplicator:
     async def run(self) -> None:
         """Connect, replicate, and on any database or network error wait and start again
         (``backoff_s`` doubling up to ``max_backoff_s``)."""
-        if not self.cell_id:
-            self.cell_id = install(self.db_path)
         psycopg = _pg()
         delay = self.config.backoff_s
         while not self._stop.is_set():
             try:
+                if not self.cell_id:
+                    self.cell_id = install(self.db_path)
                 await self._session(psycopg)
             except (psycopg.Error, OSError, sqlite3.Error) as err:
                 self.last_error = f"{type(err).__name__}: {err}".strip()
@@ -358,9 +388,7 @@ class FleetReplicator:
 
     async def _session(self, psycopg: Any) -> None:
         cfg = self.config
-        conn = await psycopg.AsyncConnection.connect(
-            cfg.url, password=_password(cfg), connect_timeout=max(1, round(cfg.connect_timeout_s)),
-            application_name="robocal-fleet")
+        conn = await psycopg.AsyncConnection.connect(**_params(psycopg, cfg, "robocal-fleet"))
         db = _connect(self.db_path)
         try:
             await _ensure_schema(conn)
@@ -368,7 +396,10 @@ class FleetReplicator:
             _log.info("fleet replication connected", cell_id=self.cell_id,
                       pending=self.pending())
             while not self._stop.is_set():
-                if await self.replicate_once(conn, db):
+                # a connection that went silent (no reset) is given up after this long
+                async with asyncio.timeout(max(30.0, 3 * cfg.connect_timeout_s)):
+                    done = await self.replicate_once(conn, db)
+                if done:
                     continue
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(cfg.poll_s):
@@ -380,9 +411,36 @@ class FleetReplicator:
 
     async def _register(self, conn: psycopg.AsyncConnection[Any], db: sqlite3.Connection
                         ) -> None:
-        """Create or update this cell's row; if the fleet has applied more of this cell's
-        outbox than the store ever numbered (a store restored from a backup), number on
-        from there and copy the whole store again."""
+        """Create or update this cell's row.
+
+        If the fleet has applied more of this cell's outbox than the store ever numbered,
+        the store is an older copy (restored from a backup) whose new rows would reuse local
+        ids the fleet already holds: it becomes a new cell (a new id, the same serial) and
+        is copied whole; the old cell's rows stay in the fleet as history.
+        """
+        applied = await self._upsert_cell(conn)
+        local = db.execute("SELECT seq FROM sqlite_sequence WHERE name='fleet_outbox'"
+                           ).fetchone()
+        if applied <= (int(local[0]) if local else 0):
+            return
+        old, self.cell_id = self.cell_id, str(uuid.uuid4())
+        _log.warning("the fleet holds more of this cell than its store (restored from a "
+                     "backup?): replicating it as a new cell", old_cell_id=old,
+                     cell_id=self.cell_id, applied_seq=applied)
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.execute("DELETE FROM fleet_outbox")
+            db.execute("UPDATE meta SET value=? WHERE key=?", (self.cell_id, _CELL_ID_KEY))
+            for tbl in _tables(db):
+                _enqueue_all(db, tbl)
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        await self._upsert_cell(conn)
+
+    async def _upsert_cell(self, conn: psycopg.AsyncConnection[Any]) -> int:
+        """Insert or refresh this cell's row; return its applied sequence number."""
         async with conn.transaction():
             cur = await conn.execute(
                 "INSERT INTO robocal_cells(cell_id, cell_name, robot_serial, robot) "
@@ -391,24 +449,7 @@ class FleetReplicator:
                 "robot=EXCLUDED.robot, last_seen=now() RETURNING applied_seq",
                 (self.cell_id, self.cell_name, self.config.robot_serial, self.robot))
             row = await cur.fetchone()
-        applied = int(row[0]) if row else 0
-        local = db.execute("SELECT seq FROM sqlite_sequence WHERE name='fleet_outbox'"
-                           ).fetchone()
-        if applied > (int(local[0]) if local else 0):
-            _log.warning("fleet store is ahead of this store's outbox; copying it again",
-                         applied_seq=applied)
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                db.execute("DELETE FROM fleet_outbox")
-                db.execute("DELETE FROM sqlite_sequence WHERE name='fleet_outbox'")
-                db.execute("INSERT INTO sqlite_sequence(name, seq) VALUES('fleet_outbox', ?)",
-                           (applied,))
-                for tbl in _tables(db):
-                    _enqueue_all(db, tbl)
-                db.execute("COMMIT")
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
+        return int(row[0]) if row else 0
 
     async def replicate_once(self, conn: psycopg.AsyncConnection[Any],
                              db: sqlite3.Connection) -> int:
@@ -423,8 +464,7 @@ class FleetReplicator:
                 (self.cell_id,))
             row = await cur.fetchone()
             applied = int(row[0]) if row else 0
-            todo = [c for c in batch if c.seq > applied and c.tbl]
-            await self._apply(conn, todo)
+            await self._apply(conn, _unique(c for c in batch if c.seq > applied))
             if last > applied:
                 await conn.execute(
                     "UPDATE robocal_cells SET applied_seq=%s, last_seen=now() "
@@ -463,8 +503,11 @@ def start_fleet(config: AppConfig, *, robot: str) -> FleetReplicator | None:
     loop, after the store is open); otherwise remove the outbox triggers of an earlier
     configuration and return None."""
     if config.fleet.url is None:
-        if config.db_path.exists() and detach(config.db_path):
-            _log.info("fleet store off: outbox triggers removed")
+        try:
+            if config.db_path.exists() and detach(config.db_path):
+                _log.info("fleet store off: outbox triggers removed")
+        except sqlite3.Error as err:  # a full disk: the next start tries again
+            _log.warning("fleet outbox triggers not removed", error=str(err))
         return None
     rep = FleetReplicator(config.db_path, config.fleet, robot=robot)
     rep.start()
@@ -545,13 +588,12 @@ def _robot_entry(cells: list[dict[str, Any]], rows: Mapping[str, list[dict[str, 
     }
 
 
-def fleet_report(url: str, *, password: str | None = None, connect_timeout_s: float = 10.0
-                 ) -> list[dict[str, Any]]:
+def fleet_report(url: str, *, password_file: Path | None = None) -> list[dict[str, Any]]:
     """Every robot in the fleet database by serial: last calibration, last check, the
     checks' trend and the active compensation (see ``robocal fleet report``)."""
     psycopg = _pg()
-    with psycopg.connect(url, password=password, connect_timeout=max(1, round(
-            connect_timeout_s)), application_name="robocal-fleet-report") as conn:
+    cfg = FleetConfig(url=url, robot_serial="-", password_file=password_file)
+    with psycopg.connect(**_params(psycopg, cfg, "robocal-fleet-report")) as conn:
         have = {r[0] for r in conn.execute(
             "SELECT table_name FROM information_schema.tables WHERE table_schema = "
             "current_schema() AND table_name LIKE 'robocal\\_%'")}
