@@ -330,8 +330,9 @@ class FleetReplicator:
         self.cell_id = ""
         #: The last connection or replication error (None after a successful batch).
         self.last_error: str | None = None
-        #: Outbox entries applied by this replicator (for health and tests).
+        #: Outbox entries applied by this replicator, and sessions it opened (for tests).
         self.applied = 0
+        self.sessions = 0
         self._stop = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
 
@@ -391,6 +392,7 @@ class FleetReplicator:
         conn = await psycopg.AsyncConnection.connect(**_params(psycopg, cfg, "robocal-fleet"))
         db = _connect(self.db_path)
         try:
+            self.sessions += 1
             await _ensure_schema(conn)
             await self._register(conn, db)
             _log.info("fleet replication connected", cell_id=self.cell_id,
