@@ -26,7 +26,7 @@ import math
 import socket
 import sqlite3
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -101,6 +101,19 @@ def _connect(db_path: Path) -> sqlite3.Connection:
     return db
 
 
+@contextlib.contextmanager
+def _immediate(db: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any error."""
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        yield db
+        db.execute("COMMIT")
+    except BaseException:
+        with contextlib.suppress(sqlite3.Error):  # a failed COMMIT may have ended it
+            db.execute("ROLLBACK")
+        raise
+
+
 def _tables(db: sqlite3.Connection) -> list[str]:
     have = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
     return [t for t in REPLICATED if t in have]
@@ -141,8 +154,7 @@ def install(db_path: Path) -> str:
     """
     db = _connect(db_path)
     try:
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        with _immediate(db):
             db.execute(_OUTBOX)
             have = {r[0] for r in db.execute(
                 "SELECT name FROM sqlite_master WHERE type='trigger'")}
@@ -157,10 +169,6 @@ def install(db_path: Path) -> str:
                 db.execute("INSERT INTO meta(key, value) VALUES(?, ?)", (_CELL_ID_KEY, cell_id))
             else:
                 cell_id = str(row[0])
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
     finally:
         db.close()
     return cell_id
@@ -176,15 +184,10 @@ def detach(db_path: Path) -> bool:
             "ESCAPE '\\'")]
         if not names:
             return False
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        with _immediate(db):
             for name in names:
                 db.execute(f'DROP TRIGGER IF EXISTS "{name}"')
             db.execute("DELETE FROM fleet_outbox")
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
         return True
     finally:
         db.close()
@@ -376,7 +379,7 @@ class FleetReplicator:
                 if not self.cell_id:
                     self.cell_id = install(self.db_path)
                 await self._session(psycopg)
-            except (psycopg.Error, OSError, sqlite3.Error) as err:
+            except (psycopg.Error, OSError, sqlite3.Error, ConfigError) as err:
                 self.last_error = f"{type(err).__name__}: {err}".strip()
                 _log.warning("fleet replication interrupted", error=self.last_error,
                              retry_in_s=delay)
@@ -429,16 +432,11 @@ class FleetReplicator:
         _log.warning("the fleet holds more of this cell than its store (restored from a "
                      "backup?): replicating it as a new cell", old_cell_id=old,
                      cell_id=self.cell_id, applied_seq=applied)
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        with _immediate(db):
             db.execute("DELETE FROM fleet_outbox")
             db.execute("UPDATE meta SET value=? WHERE key=?", (self.cell_id, _CELL_ID_KEY))
             for tbl in _tables(db):
                 _enqueue_all(db, tbl)
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
         await self._upsert_cell(conn)
 
     async def _upsert_cell(self, conn: psycopg.AsyncConnection[Any]) -> int:
