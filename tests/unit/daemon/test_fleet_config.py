@@ -4,6 +4,8 @@ warnings for a password in the URL and an unverified server; the fleet report's 
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -75,3 +77,18 @@ def test_report_on_an_unreachable_database_is_one_line(capsys: pytest.CaptureFix
         assert main(["fleet", "report", "--url", url]) == 2
     err = capsys.readouterr().err
     assert err.startswith("robocal fleet report: error:") and "Traceback" not in err
+
+
+def test_psycopg_is_imported_only_when_used(tmp_path: Path) -> None:
+    """The daemon with the fleet store off never loads the PostgreSQL client."""
+    src = ("import asyncio, sys\n"
+           "import robocal.daemon.main, robocal.cli._fleet\n"
+           "from robocal.daemon.config import parse_config\n"
+           "from robocal.daemon.fleet import start_fleet\n"
+           f"cfg = parse_config({{**{BASE!r}, 'data_dir': {str(tmp_path)!r}}})\n"
+           "assert start_fleet(cfg, robot='r') is None\n"
+           "print('psycopg' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
