@@ -57,6 +57,7 @@ class PostgresServer:
         self.log = self.root / "server.log"
         self.port = 0
         self.user: str | None = None
+        self.running = False
         if os.geteuid() == 0:
             for name in ("postgres", "nobody"):
                 with contextlib.suppress(KeyError):
@@ -89,6 +90,7 @@ class PostgresServer:
                 self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "30",
                           "-o", f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
                           "-c fsync=off -c full_page_writes=off", "start")
+                self.running = True
                 return
             except RuntimeError:
                 if attempt == 4:
@@ -97,6 +99,7 @@ class PostgresServer:
     def stop(self, mode: str = "fast") -> None:
         """``pg_ctl stop`` (``immediate``: like a crash)."""
         self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "-t", "30", "stop")
+        self.running = False
 
     def url(self, dbname: str = "postgres") -> str:
         """A libpq URI for ``dbname`` over TCP."""

@@ -243,6 +243,8 @@ async def test_connection_cut_killed_and_server_restart(tmp_path: Path, postgres
     finally:
         await rep.stop()
         store.close()
+        if not postgres.running:  # the next tests share the server
+            await asyncio.to_thread(postgres.start)
 
 
 async def test_report_lists_robots_by_serial(tmp_path: Path, fleet_url: str) -> None:
