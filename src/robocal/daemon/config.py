@@ -52,7 +52,6 @@ __all__ = [
     "is_loopback",
     "load_config",
     "parse_config",
-    "read_secret",
 ]
 
 
@@ -310,30 +309,18 @@ class AppConfig(_Model):
         path = self.api.token_file
         if path is None:
             return None
-        token = read_secret(path, "token")
+        try:
+            mode = stat.S_IMODE(path.stat().st_mode)
+            token = path.read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"cannot read token file: {err}", source=str(path)) from err
+        if mode & 0o077:
+            raise ConfigError(f"token file has mode {mode:04o}: others could read or change the "
+                              "token; make it the daemon user's alone (chmod 600)",
+                              source=str(path))
         if len(token) < 16:
             raise ConfigError("token must have at least 16 characters", source=str(path))
         return token
-
-
-def read_secret(path: Path, what: str) -> str:
-    """The stripped text of a file only its owner may read or write (a token, a password).
-
-    Raises
-    ------
-    ConfigError
-        If the file cannot be read or group or others may read or write it.
-    """
-    try:
-        mode = stat.S_IMODE(path.stat().st_mode)
-        text = path.read_text(encoding="utf-8").strip()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read {what} file: {err}", source=str(path)) from err
-    if mode & 0o077:
-        raise ConfigError(f"{what} file has mode {mode:04o}: others could read or change the "
-                          f"{what}; make it the daemon user's alone (chmod 600)",
-                          source=str(path))
-    return text
 
 
 def _loc(loc: tuple[Any, ...]) -> str:

@@ -23,8 +23,10 @@ import asyncio
 import contextlib
 import json
 import math
+import os
 import socket
 import sqlite3
+import stat
 import uuid
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -33,13 +35,14 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
-from robocal.daemon.config import AppConfig, FleetConfig, read_secret
+from robocal.daemon.config import AppConfig, FleetConfig
 from robocal.errors import ConfigError
 
 if TYPE_CHECKING:
     import psycopg
 
-__all__ = ["REPLICATED", "FleetReplicator", "detach", "fleet_report", "install", "start_fleet"]
+__all__ = ["REPLICATED", "FleetReplicator", "detach", "fleet_report", "install",
+           "read_password", "start_fleet"]
 
 _log = structlog.get_logger(__name__)
 
@@ -285,8 +288,35 @@ def _pg() -> Any:
     return psycopg
 
 
+def read_password(path: Path) -> str:
+    """The database password in ``path`` (stripped); the file must be its owner's alone.
+
+    The mode is checked on the descriptor the password is read from, so the file cannot be
+    swapped between the check and the read.
+
+    Raises
+    ------
+    ConfigError
+        If the file cannot be read or group or others may read or write it.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError as err:
+        raise ConfigError(f"cannot read password file: {err}", source=str(path)) from err
+    with os.fdopen(fd, "rb") as f:
+        mode = stat.S_IMODE(os.fstat(fd).st_mode)
+        if mode & 0o077:
+            raise ConfigError(f"password file has mode {mode:04o}: group or others may read "
+                              "or change it; chmod 600 (owned by the daemon's user)",
+                              source=str(path))
+        try:
+            return f.read(65536).decode("utf-8").strip()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"cannot read password file: {err}", source=str(path)) from err
+
+
 def _password(cfg: FleetConfig) -> str | None:
-    return None if cfg.password_file is None else read_secret(cfg.password_file, "password")
+    return None if cfg.password_file is None else read_password(cfg.password_file)
 
 
 def _params(psycopg: Any, cfg: FleetConfig, application: str) -> dict[str, Any]:

@@ -25,8 +25,8 @@ from robocal import __version__
 from robocal._core.files import private_dir
 from robocal.daemon import systemd
 from robocal.daemon.api import ApiServer
-from robocal.daemon.config import AppConfig, config_warnings, load_config, read_secret
-from robocal.daemon.fleet import start_fleet
+from robocal.daemon.config import AppConfig, config_warnings, load_config
+from robocal.daemon.fleet import read_password, start_fleet
 from robocal.daemon.logging import configure_logging
 from robocal.daemon.service import CalibrationService
 from robocal.errors import ConfigError, RobocalError
@@ -80,7 +80,7 @@ def preflight(config: AppConfig) -> None:
         raise ConfigError(str(err), source="fit.options") from err
     config.read_token()
     if config.fleet.password_file is not None:
-        read_secret(config.fleet.password_file, "password")
+        read_password(config.fleet.password_file)
 
 
 async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None:
