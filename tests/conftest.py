@@ -129,3 +129,14 @@ def _no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
     before = set(threading.enumerate())
     yield
     _fail_on_leaked_threads(before)
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[object]:
+    """A throw-away PostgreSQL server (tests/_postgres.py); skipped without its binaries."""
+    from tests._postgres import postgres_server
+
+    with postgres_server() as server:
+        if isinstance(server, str):
+            pytest.skip(server)
+        yield server

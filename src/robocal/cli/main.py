@@ -36,6 +36,7 @@ COMMANDS: dict[str, str] = {
     "robots": "list built-in robots, or show/validate one",
     "drivers": "list installed drivers or show a driver's options",
     "config": "check a daemon configuration or print its schema",
+    "fleet": "report on the robots in the shared fleet database",
 }
 
 

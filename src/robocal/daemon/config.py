@@ -27,6 +27,7 @@ import ipaddress
 import json
 import os
 import stat
+import urllib.parse
 from pathlib import Path
 from typing import Any, Literal
 
@@ -42,6 +43,7 @@ __all__ = [
     "CompensationConfig",
     "DriverConfig",
     "FitConfig",
+    "FleetConfig",
     "LimitsConfig",
     "LoggingConfig",
     "MeasurementConfig",
@@ -236,6 +238,39 @@ class LoggingConfig(_Model):
     format: Literal["json", "console"] = "json"
 
 
+class FleetConfig(_Model):
+    """Replication of the store to a shared PostgreSQL fleet database (ADR 0035); off unless
+    ``url`` is set.
+
+    ``url`` is a libpq connection URI (``postgresql://user@host/db?sslmode=verify-full&...``;
+    TLS and client certificates through its ``ssl*`` parameters); the password belongs in
+    ``password_file`` (mode 0600), never in the URL. ``robot_serial`` names the robot in the
+    fleet; ``cell_name`` (default: the host name) is for people, the cell's key is an id kept
+    in the store. Failed attempts are retried after ``backoff_s``, doubling up to
+    ``max_backoff_s``; ``poll_s`` is how often new rows are looked for.
+    """
+
+    url: str | None = None
+    password_file: Path | None = None
+    robot_serial: str | None = None
+    cell_name: str | None = None
+    batch_rows: int = Field(default=500, ge=1, le=100_000)
+    poll_s: float = Field(default=1.0, gt=0.0, le=3600.0)
+    connect_timeout_s: float = Field(default=10.0, gt=0.0, le=600.0)
+    backoff_s: float = Field(default=1.0, gt=0.0)
+    max_backoff_s: float = Field(default=60.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> FleetConfig:
+        if self.url is not None:
+            if not self.url.startswith(("postgresql://", "postgres://")):
+                raise ValueError("url must be a postgresql:// URI")
+            if not self.robot_serial:
+                raise ValueError("robot_serial is required with url: the fleet lists robots "
+                                 "by serial")
+        return self
+
+
 def _default_data_dir() -> Path:
     state = os.environ.get("STATE_DIRECTORY")
     if state:
@@ -260,6 +295,7 @@ class AppConfig(_Model):
     fit: FitConfig = FitConfig()
     compensation: CompensationConfig = CompensationConfig()
     logging: LoggingConfig = LoggingConfig()
+    fleet: FleetConfig = FleetConfig()
 
     @property
     def socket_path(self) -> Path | None:
@@ -359,6 +395,9 @@ def _resolve(data: dict[str, Any], base: Path) -> dict[str, Any]:
         comp = dict(comp)
         comp["targets_file"] = fix(comp["targets_file"])
         out["compensation"] = comp
+    fleet = out.get("fleet")
+    if isinstance(fleet, dict) and "password_file" in fleet:
+        out["fleet"] = {**fleet, "password_file": fix(fleet["password_file"])}
     rd = out.get("robot_description")
     if isinstance(rd, str) and rd.endswith((".toml", ".urdf")):
         out["robot_description"] = fix(rd)
@@ -423,6 +462,16 @@ def config_warnings(config: AppConfig) -> list[str]:
         out.append(f"api.tcp_host = {config.api.tcp_host!r} exposes the API beyond this "
                    "machine: anyone who can reach the port can try the token; prefer "
                    "127.0.0.1 behind an authenticating proxy or a firewall")
+    url = config.fleet.url
+    if url is not None:
+        parts = urllib.parse.urlsplit(url)
+        if parts.password:
+            out.append("fleet.url holds a password: anyone who can read the configuration "
+                       "can use it; put it in fleet.password_file (mode 0600)")
+        if (parts.hostname and not is_loopback(parts.hostname)
+                and "sslmode=verify-full" not in parts.query):
+            out.append("fleet.url does not verify the database server "
+                       "(add ?sslmode=verify-full&sslrootcert=CA.pem)")
     return out
 
 

@@ -26,6 +26,7 @@ from robocal._core.files import private_dir
 from robocal.daemon import systemd
 from robocal.daemon.api import ApiServer
 from robocal.daemon.config import AppConfig, config_warnings, load_config
+from robocal.daemon.fleet import read_password, start_fleet
 from robocal.daemon.logging import configure_logging
 from robocal.daemon.service import CalibrationService
 from robocal.errors import ConfigError, RobocalError
@@ -78,6 +79,8 @@ def preflight(config: AppConfig) -> None:
     except (TypeError, ValueError) as err:
         raise ConfigError(str(err), source="fit.options") from err
     config.read_token()
+    if config.fleet.password_file is not None:
+        read_password(config.fleet.password_file)
 
 
 async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None:
@@ -91,9 +94,11 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
         service = CalibrationService(config)
         api = ApiServer(service, config)
         watchdog: asyncio.Task[None] | None = None
+        fleet = None
         try:
             systemd.notify("STATUS=starting")
             await service.start()
+            fleet = start_fleet(config, robot=service.robot.name)
             await api.start()
             watchdog = asyncio.create_task(systemd.watchdog(), name="watchdog")
             systemd.notify(f"READY=1\nSTATUS=serving ({service.robot.name})")
@@ -114,6 +119,8 @@ async def serve(config: AppConfig, *, stop: asyncio.Event | None = None) -> None
             await service.drain()
             service.events.close()
             await api.stop()
+            if fleet is not None:
+                await fleet.stop()
             await service.stop()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 with contextlib.suppress(Exception):
