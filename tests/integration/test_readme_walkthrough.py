@@ -11,10 +11,12 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -75,7 +77,10 @@ def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env.pop("ROBOCAL_CONFIG", None)
-    env["HOME"] = str(tmp_path / "home")  # sim.toml keeps the cell's state under ~
+    # sim.toml keeps the cell's state (and the API socket) under ~: a short home, since a
+    # Unix socket path may not exceed 107 bytes and pytest's tmp_path under xdist comes close
+    home = Path(tempfile.mkdtemp(prefix="rc-home-", dir="/tmp"))
+    env["HOME"] = str(home)
     _, offline, daemon = _using_blocks()
 
     out = _run(offline, tmp_path, env, timeout=600)
@@ -110,6 +115,7 @@ def test_readme_walkthroughs_run_verbatim(tmp_path: Path) -> None:
     # the daemon stopped first: its shutdown stop reached the simulated controller
     assert not [ln for ln in log.read_text().splitlines()
                 if "motion stop" in ln and '"failed"' in ln]
-    assert (tmp_path / "home" / ".local" / "state" / "robocal-sim").is_dir()
+    assert (home / ".local" / "state" / "robocal-sim").is_dir()
     for port in SIM_PORTS:  # the block's own `kill` stopped the simulators and the daemon
         assert _port_free(port), f"port {port} still in use after the walkthrough"
+    shutil.rmtree(home, ignore_errors=True)
