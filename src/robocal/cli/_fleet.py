@@ -20,7 +20,10 @@ def register(sub: Any) -> None:
                                    "cells replicate their campaigns, fits, checks, pushes and "
                                    "audit (fleet.url in the daemon configuration).")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    rp = verbs.add_parser("report", help="robots by serial: calibration, checks, compensation")
+    rp = verbs.add_parser("report", help="robots by serial: calibration, checks, compensation",
+                          description="List every robot in the fleet database by serial: its "
+                                      "last calibration (held-out RMS), last check and drift "
+                                      "trend, and the compensation active on its controller.")
     rp.add_argument("--url", default=os.environ.get("ROBOCAL_FLEET_URL"),
                     help="PostgreSQL URI, e.g. postgresql://user@host/db?sslmode=verify-full "
                          "(default: $ROBOCAL_FLEET_URL)")
