@@ -40,6 +40,21 @@ COMMANDS: dict[str, str] = {
 }
 
 
+# Modules whose name is not ``_<command>``: the commands' own names are near-namesakes
+# (compensate / compensation, sim / simulate), the modules say what they do (ADR 0038).
+_MODULES: dict[str, str] = {
+    "compensate": "_solve_targets",
+    "compensation": "_controller_compensation",
+    "sim": "_simulators",
+    "simulate": "_simulated_measurements",
+}
+
+
+def command_module(name: str) -> str:
+    """The module that registers the subcommand ``name``."""
+    return f"robocal.cli.{_MODULES.get(name, '_' + name)}"
+
+
 class _HelpFormatter(argparse.HelpFormatter):
     """Shows every option's default where the help text does not already state it."""
 
@@ -126,7 +141,7 @@ def build_parser(only: str | None = None, *, lazy: bool = False) -> argparse.Arg
         if lazy and name != only:
             sub.add_parser(name, help=text, add_help=False)
             continue
-        importlib.import_module(f"robocal.cli._{name}").register(sub)
+        importlib.import_module(command_module(name)).register(sub)
     return parser
 
 

@@ -27,6 +27,7 @@ from robocal.compensation._build import (
     valid_range,
 )
 from robocal.compensation._diff import TableDiff, diff_tables
+from robocal.compensation._dls import rotation_error
 from robocal.compensation._ik import (
     IKResult,
     has_closed_form,
@@ -38,7 +39,6 @@ from robocal.compensation._solve import (
     STATUSES,
     CompensationResult,
     compensate,
-    rotation_error,
 )
 from robocal.compensation._summary import (
     PURPOSE,

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal.compensation._dls import solve_pose
 from robocal.errors import ConfigError
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription
 
@@ -348,8 +349,6 @@ def nominal_ik(robot: RobotDescription, T_base_flange: Array, seed: Array | None
         return IKResult(q=q, found=found, solutions=sols, valid=valid,
                         reachable=np.asarray(exists.any(axis=1)), method="closed-form")
     # numeric: damped least squares on the nominal model from the seed
-    from robocal.compensation._solve import solve_pose
-
     m = nominal_model(robot)
     x = np.zeros(m.size)
 

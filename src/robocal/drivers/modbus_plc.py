@@ -33,6 +33,7 @@ from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, table_diff
+from robocal.drivers._modbus_client import ModbusClient
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -141,7 +142,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
     ) -> None:
         super().__init__(options)
         self.clock = clock
-        self._client: mb.ModbusClient | None = None
+        self._client: ModbusClient | None = None
         self._op_lock = asyncio.Lock()
         self._seq = 0
         self._heartbeat_task: asyncio.Task[None] | None = None
@@ -159,7 +160,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
     async def _connect_impl(self, timeout: float) -> None:
         o, m = self.options, self.options.register_map
         self._fault = None
-        client = mb.ModbusClient(
+        client = ModbusClient(
             o.host, o.port, device_id=m.device_id, timeout=min(o.request_timeout_s, timeout)
         )
         self._client = client
@@ -191,7 +192,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             await self._client.close()
             self._client = None
 
-    def _live_client(self) -> mb.ModbusClient:
+    def _live_client(self) -> ModbusClient:
         self._ensure_connected()
         if self._fault is not None:
             raise self._fault

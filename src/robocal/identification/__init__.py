@@ -27,12 +27,12 @@ from robocal.identification._cpa import (
 from robocal.identification._engine import min_poses
 from robocal.identification._fit import (
     MODELS,
-    FitOptions,
     FitResult,
     fit,
     refit_frozen,
     sanity_check,
 )
+from robocal.identification._fitter import FitOptions
 from robocal.identification._metrics import (
     BASELINE_DESCRIPTION,
     Accuracy,

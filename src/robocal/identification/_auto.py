@@ -30,13 +30,14 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import IdentificationError
 from robocal.identification._engine import Solution
+from robocal.identification._fitter import Fitter as _Fitter
 from robocal.identification._linalg import block_diag, cholesky, spd_solve
 from robocal.identification._models import (
     MapPrior,
@@ -57,9 +58,6 @@ from robocal.kinematics import (
     Term,
     gravity_torques,
 )
-
-if TYPE_CHECKING:
-    from robocal.identification._fit import _Fitter
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]

@@ -3,13 +3,13 @@
 from robocal._core.robot_names import builtin_robots
 from robocal.kinematics._basis import evaluate_basis, gravity_torques, spline_weights
 from robocal.kinematics._calibrated import MODEL_FORMAT, CalibratedModel
+from robocal.kinematics._load import load_robot
 from robocal.kinematics._model import ChainState, KinematicModel
 from robocal.kinematics._robot import (
     Joint,
     RobotDescription,
     default_link_radii,
     link_radii,
-    load_robot,
     matrix_to_rpy,
     robot_to_toml,
     rpy_to_matrix,

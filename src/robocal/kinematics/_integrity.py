@@ -21,7 +21,7 @@ import numpy as np
 from robocal._core.files import json_default
 from robocal._core.robot_names import builtin_robots
 from robocal.errors import ConfigError
-from robocal.kinematics._robot import RobotDescription, load_robot
+from robocal.kinematics._robot import RobotDescription, load_toml_robot
 
 #: Sections of MODEL.json the hash covers (free-form ``metrics``, ``fit``, ``data``,
 #: ``kind`` and ``created`` describe the model and change no prediction).
@@ -89,9 +89,9 @@ def builtin_nominal(robot: RobotDescription) -> RobotDescription | None:
     if robot.source.startswith("builtin:"):
         name = robot.source.removeprefix("builtin:")
         if name in builtin_robots():
-            return load_robot(name)
+            return load_toml_robot(name)
     for name in builtin_robots():
-        nominal = load_robot(name)
+        nominal = load_toml_robot(name)
         if nominal.name == robot.name:
             return nominal
     return None

@@ -442,10 +442,10 @@ def _parse(data: dict[str, Any], src: str) -> RobotDescription:
     )
 
 
-def load_robot(spec: str | Path) -> RobotDescription:
-    """Load a robot by built-in name (see :func:`builtin_robots`), a TOML or a URDF file path.
+def load_toml_robot(spec: str | Path) -> RobotDescription:
+    """Load a robot by built-in name (see :func:`builtin_robots`) or a TOML file path.
 
-    A path ending in ``.urdf`` is imported with :func:`robocal.kinematics.load_urdf`.
+    :func:`robocal.kinematics.load_robot` takes URDF paths too (ADR 0038).
 
     Raises
     ------
@@ -453,10 +453,6 @@ def load_robot(spec: str | Path) -> RobotDescription:
         When the name is unknown, the file is missing or unreadable, or a key is invalid.
     """
     text_spec = str(spec)
-    if text_spec.lower().endswith(".urdf"):
-        from robocal.kinematics._urdf import load_urdf
-
-        return load_urdf(text_spec)
     key = builtin_robot_key(text_spec)
     if key is not None:
         res = resources.files("robocal.data") / "robots" / f"{key}.toml"

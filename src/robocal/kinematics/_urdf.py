@@ -43,12 +43,13 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
+from robocal.kinematics._calibrated import CalibratedModel
 from robocal.kinematics._robot import (
     Joint,
     RobotDescription,
@@ -57,9 +58,7 @@ from robocal.kinematics._robot import (
     transform,
 )
 from robocal.kinematics._spec import ParameterLayout
-
-if TYPE_CHECKING:
-    from robocal.kinematics._calibrated import CalibratedModel
+from robocal.kinematics._transforms import euler_xyz_to_matrix
 
 Array = NDArray[np.float64]
 MAX_URDF_BYTES = 16 * 1024 * 1024
@@ -437,8 +436,6 @@ def _rz(t: float) -> Array:
 
 def _error_T(e: Array) -> Array:
     """``Tx Ty Tz Rx Ry Rz`` (4, 4) of error components e (6,)."""
-    from robocal.kinematics._transforms import euler_xyz_to_matrix
-
     T = np.eye(4)
     T[:3, :3] = euler_xyz_to_matrix(float(e[3]), float(e[4]), float(e[5]))
     T[:3, 3] = e[:3]

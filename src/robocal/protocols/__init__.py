@@ -1,8 +1,8 @@
 """Wire protocols: async transports chosen by URL and sans-I/O codecs.
 
 Nothing here imports numpy or scipy (an import-linter contract), so codecs can be reused and
-tested without the numerical stack. :mod:`robocal.protocols.modbus` is the only module that
-imports pymodbus and is not imported here; import it explicitly.
+tested without the numerical stack. :mod:`robocal.protocols.modbus` is not imported here; import it
+explicitly.
 
 Modules
 -------
@@ -20,7 +20,8 @@ kuka_kvp
 emscon
     Leica emScon TPI binary packet codec (size-field framer, command and result structs).
 modbus
-    Register map, value codecs, pymodbus client and server wrappers.
+    Modbus register map, value and table-block codecs (the pymodbus client is in
+    :mod:`robocal.drivers`, the server in :mod:`robocal.drivers.sim`).
 """
 
 from robocal.protocols.framing import CRLF, LineFramer

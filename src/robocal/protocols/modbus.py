@@ -1,10 +1,10 @@
-"""Modbus-TCP register map, value codecs and the pymodbus boundary.
+"""Modbus-TCP register map and value codecs (sans-I/O).
 
 The map and handshake robocal speaks are described in ``docs/protocols/modbus-plc.md``.
 
-This is the **only** module that imports pymodbus; the pinned series is ``>=3.16,<3.17``.
-It maps our names (``device_id``, ``address``, ``count``) onto pymodbus and turns its
-exceptions and exception replies into :mod:`robocal.errors` types.
+Nothing here does I/O or imports pymodbus (ADR 0038): the pymodbus client is
+:mod:`robocal.drivers._modbus_client`, the pymodbus server of the simulated PLC is
+:mod:`robocal.drivers.sim._modbus_server`.
 
 Default register map (0-based wire addresses; FLOAT32 = 2 words, word order configurable)::
 
@@ -39,33 +39,24 @@ Table block layout (``TABLE`` base, words)::
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import itertools
 import math
 import struct
-from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any, Literal
+from typing import Literal
 
-import structlog
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from pymodbus.client import AsyncModbusTcpClient
-from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
 
-from robocal.errors import FramingError, TransportError, TransportTimeout, UnexpectedReply
+from robocal.errors import FramingError
 
 __all__ = [
+    "MAX_READ",
+    "MAX_WRITE",
     "TABLE_HEADER_WORDS",
     "TABLE_MAGIC",
     "Cmd",
-    "ExcCodes",
-    "ModbusClient",
-    "ModbusSimServer",
     "PlcError",
     "RegisterMap",
     "Status",
@@ -82,8 +73,6 @@ __all__ = [
     "encode_u32",
     "table_block_length",
 ]
-
-_log = structlog.get_logger(__name__)
 
 WordOrder = Literal["big", "little"]
 MAX_WRITE = 123  # FC16 limit, registers per request
@@ -417,225 +406,3 @@ def decode_table_block(words: Sequence[int], word_order: WordOrder = "big") -> T
         digest=digest,
         dtype="float32" if wpv == 2 else "float64",
     )
-
-
-# --- client --------------------------------------------------------------------------------------
-class ModbusClient:
-    """Async Modbus-TCP client; one request at a time, errors as :mod:`robocal.errors` types.
-
-    Parameters
-    ----------
-    host, port : str, int
-        Server address.
-    device_id : int
-        Modbus unit / device id.
-    timeout : float
-        Per-request timeout in seconds.
-    """
-
-    def __init__(self, host: str, port: int, *, device_id: int = 1, timeout: float = 2.0) -> None:
-        self.host = host
-        self.port = port
-        self.device_id = device_id
-        self.timeout = timeout
-        self.url = f"modbus-tcp://{host}:{port}/{device_id}"
-        self._client: AsyncModbusTcpClient | None = None
-        self._lock = asyncio.Lock()
-
-    @property
-    def is_open(self) -> bool:
-        """True while connected."""
-        return self._client is not None and bool(self._client.connected)
-
-    async def connect(self, *, timeout: float) -> None:
-        """Connect; raise TransportError or TransportTimeout."""
-        if self.is_open:
-            return
-        client = AsyncModbusTcpClient(
-            self.host, port=self.port, timeout=self.timeout, retries=0, reconnect_delay=0
-        )
-        try:
-            async with asyncio.timeout(timeout):
-                ok = await client.connect()
-        except TimeoutError as err:
-            client.close()
-            raise TransportTimeout(f"{self.url}: connect timed out") from err
-        except (OSError, ModbusException) as err:
-            client.close()
-            raise TransportError(f"{self.url}: cannot connect: {err}") from err
-        if not ok:
-            client.close()
-            raise TransportError(f"{self.url}: cannot connect")
-        self._client = client
-
-    async def close(self) -> None:
-        """Close; idempotent and never raises."""
-        client, self._client = self._client, None
-        if client is not None:
-            with contextlib.suppress(Exception):
-                client.close()
-
-    async def _call(self, what: str, fn: Callable[[AsyncModbusTcpClient], Awaitable[object]]):
-        client = self._client
-        if client is None or not client.connected:
-            raise TransportError(f"{self.url}: not connected")
-        task = asyncio.current_task()
-        cancels = task.cancelling() if task is not None else 0
-        loop = asyncio.get_running_loop()
-        async with self._lock:
-            try:
-                for attempt in (1, 2):
-                    started = loop.time()
-                    try:
-                        async with asyncio.timeout(self.timeout + 1.0):
-                            rr = await fn(client)
-                        break
-                    except (TimeoutError, ModbusIOException):
-                        # A timeout that fired long after it was due means the process or
-                        # its loop stood still (SIGSTOP, a suspended VM): the reply may have
-                        # come meanwhile, and pymodbus dropped it with the request. Every
-                        # request here is idempotent (reads; writes of fixed values), so
-                        # it is asked once more (ADR 0025).
-                        overrun = loop.time() - started - self.timeout
-                        if attempt == 2 or overrun < max(0.05, 0.25 * self.timeout):
-                            raise
-                        _log.info("modbus request repeated after a stall", what=what,
-                                  stalled_s=round(overrun, 3))
-                if task is not None and task.cancelling() > cancels:
-                    # pymodbus waits with asyncio.wait_for, which on Python 3.11 drops a
-                    # cancellation that arrives together with the reply (CPython gh-86296):
-                    # honour it here, or a cancelled caller would run on.
-                    raise asyncio.CancelledError
-            except TimeoutError as err:
-                raise TransportTimeout(f"{self.url}: {what} timed out") from err
-            except ModbusIOException as err:
-                raise TransportTimeout(f"{self.url}: {what}: {err}") from err
-            except ConnectionException as err:
-                raise TransportError(f"{self.url}: {what}: {err}") from err
-            except ModbusException as err:
-                raise TransportError(f"{self.url}: {what}: {err}") from err
-        if rr.isError():  # type: ignore[attr-defined]
-            code = getattr(rr, "exception_code", None)
-            raise UnexpectedReply(f"{self.url}: {what}: Modbus exception code {code}")
-        return rr
-
-    async def _read(self, fc: int, address: int, count: int) -> list[int]:
-        out: list[int] = []
-        # the ignores below: mypy cannot type a lambda with default arguments
-        # (python/mypy#15459); the defaults bind the loop values (ruff B023)
-        while count > 0:
-            n = min(count, MAX_READ)
-            start = address
-            if fc == 3:
-                rr = await self._call(
-                    f"read HR {start}+{n}",
-                    lambda c, s=start, n=n: c.read_holding_registers(  # type: ignore[misc]
-                        s, count=n, device_id=self.device_id
-                    ),
-                )
-            else:
-                rr = await self._call(
-                    f"read IR {start}+{n}",
-                    lambda c, s=start, n=n: c.read_input_registers(  # type: ignore[misc]
-                        s, count=n, device_id=self.device_id
-                    ),
-                )
-            regs = list(rr.registers)
-            if len(regs) != n:
-                raise UnexpectedReply(f"{self.url}: asked for {n} registers, got {len(regs)}")
-            out += regs
-            address += n
-            count -= n
-        return out
-
-    async def read_holding(self, address: int, count: int) -> list[int]:
-        """Read ``count`` holding registers (FC3, split into legal requests)."""
-        return await self._read(3, address, count)
-
-    async def read_input(self, address: int, count: int) -> list[int]:
-        """Read ``count`` input registers (FC4, split into legal requests)."""
-        return await self._read(4, address, count)
-
-    async def write_registers(self, address: int, values: Sequence[int]) -> None:
-        """Write holding registers (FC16, split into legal requests)."""
-        values = list(values)
-        for i in range(0, len(values), MAX_WRITE):
-            chunk = values[i : i + MAX_WRITE]
-            start = address + i
-            await self._call(
-                f"write HR {start}+{len(chunk)}",
-                # mypy cannot type a lambda with default arguments (python/mypy#15459)
-                lambda c, s=start, v=chunk: c.write_registers(  # type: ignore[misc]
-                    s, v, device_id=self.device_id
-                ),
-            )
-
-    async def write_register(self, address: int, value: int) -> None:
-        """Write one holding register (FC6)."""
-        await self._call(
-            f"write HR {address}",
-            lambda c: c.write_register(address, value, device_id=self.device_id),
-        )
-
-
-# --- server (simulators) --------------------------------------------------------------------------
-#: ``action(function_code, start_address, address, count, registers, set_values)``,
-#: pymodbus' SimDevice hook; return an :class:`ExcCodes` member to refuse the request.
-SimAction = Callable[
-    [int, int, int, int, list[int], list[int] | list[bool] | None],
-    Coroutine[Any, Any, ExcCodes | None],
-]
-
-HOLDING_FCS = frozenset({3, 6, 16, 22, 23})
-WRITE_FCS = frozenset({6, 16, 22, 23})
-
-
-class ModbusSimServer:
-    """A real pymodbus ``ModbusTcpServer`` on one ``SimDevice`` with separate HR and IR blocks.
-
-    Parameters
-    ----------
-    holding_size, input_size : int
-        Registers from address 0 in each area.
-    action : SimAction
-        The PLC logic hook, called before the server reads or writes the block.
-    device_id : int
-        Device id served.
-    """
-
-    def __init__(
-        self, *, holding_size: int, input_size: int, action: SimAction, device_id: int = 1
-    ) -> None:
-        bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
-        self._device = SimDevice(
-            id=device_id,
-            simdata=(
-                bits,
-                [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-                [SimData(0, count=holding_size, values=0, datatype=DataType.REGISTERS)],
-                [SimData(0, count=max(1, input_size), values=0, datatype=DataType.REGISTERS)],
-            ),
-            action=action,
-        )
-        self._server: ModbusTcpServer | None = None
-        self.host = "127.0.0.1"
-        self.port = 0
-
-    async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
-        """Listen on ``host:port`` (0 picks a free port); return the bound port."""
-        self._server = ModbusTcpServer(self._device, address=(host, port))
-        await self._server.serve_forever(background=True)
-        transport = self._server.transport
-        if transport is None:
-            raise TransportError(f"Modbus server on {host}:{port} did not start")
-        # pymodbus keeps the asyncio.Server as its transport; its socket holds the bound port.
-        self.host = host
-        self.port = int(transport.sockets[0].getsockname()[1])  # type: ignore[attr-defined]
-        return self.port
-
-    async def stop(self) -> None:
-        """Stop serving and drop client connections; idempotent."""
-        server, self._server = self._server, None
-        if server is not None:
-            with contextlib.suppress(Exception):
-                await server.shutdown()

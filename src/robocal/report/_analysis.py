@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,6 @@ from robocal.report._coverage import Coverage, coverage
 from robocal.report._cpa import CpaComparison, compare, with_classical
 from robocal.report._input import BASELINE, ModelEntry, ReportInput, model_entry
 from robocal.report._metrics import (
-    Described,
     ErrorStats,
     Identifiability,
     IsoResult,
@@ -36,37 +35,12 @@ from robocal.report._metrics import (
     verdict,
     workspace,
 )
+from robocal.report._results import ModelResult, SetResult
 
 Array = NDArray[np.float64]
 SETS = ("calibration", "validation")
 _STORED_KEYS = {"calibration": ("calibration", "train", "training"),
                 "validation": ("validation", "val", "holdout", "held_out")}
-
-
-@dataclass
-class SetResult:
-    """One model on one pose set. ``norms`` (n,) m for every pose (outliers included),
-    ``inlier`` (n,) mask; ``stats``/``described`` over inliers. ``source``: data or stored."""
-
-    stats: ErrorStats | None
-    described: Described | None = None
-    norms: Array | None = None
-    inlier: NDArray[np.bool_] | None = None
-    source: str = "data"
-    baseline_stats: ErrorStats | None = None
-
-
-@dataclass
-class ModelResult:
-    """A model and its results per pose set."""
-
-    entry: ModelEntry
-    sets: dict[str, SetResult] = field(default_factory=dict)
-
-    @property
-    def name(self) -> str:
-        """Model name."""
-        return self.entry.name
 
 
 @dataclass

@@ -13,15 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from robocal.errors import ConfigError
 from robocal.identification import CPAResult
 from robocal.kinematics import CalibratedModel
 from robocal.report._input import BASELINE, ModelEntry, model_entry
-
-if TYPE_CHECKING:
-    from robocal.report._analysis import ModelResult
+from robocal.report._results import ModelResult
 
 #: Model kinds identification gives CPA models.
 KINDS = ("cpa", "cpa-classical")

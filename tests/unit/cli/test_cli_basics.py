@@ -16,7 +16,7 @@ def test_help_lists_commands(capsys: pytest.CaptureFixture[str]) -> None:
     """``--help`` lists every subcommand of main.COMMANDS with its line, and COMMANDS names
     every module of robocal.cli that registers a subcommand."""
     import robocal.cli
-    from robocal.cli.main import COMMANDS
+    from robocal.cli.main import COMMANDS, command_module
 
     with pytest.raises(SystemExit) as info:
         main(["--help"])
@@ -26,9 +26,9 @@ def test_help_lists_commands(capsys: pytest.CaptureFixture[str]) -> None:
     flat = " ".join(out.split())  # long names wrap their help line
     for name, text in COMMANDS.items():
         assert f" {name} {text} " in flat
-    modules = {f.stem[1:] for f in Path(robocal.cli.__path__[0]).glob("_*.py")
+    modules = {f"robocal.cli.{f.stem}" for f in Path(robocal.cli.__path__[0]).glob("_*.py")
                if "\ndef register(" in f.read_text(encoding="utf-8")}
-    assert modules == set(COMMANDS)
+    assert modules == {command_module(name) for name in COMMANDS}
 
 
 def test_a_subcommand_that_fails_to_import_is_an_error(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from tests.unit.daemon.conftest import base_config
 from tests.unit.daemon.test_service import program_plan
 
-from robocal.cli._compensation import _print_state
+from robocal.cli._controller_compensation import _print_state
 from robocal.daemon.config import parse_config
 from robocal.daemon.service import CalibrationService
 

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from robocal.drivers import Stoppable, _registry, load_robot_driver, require
+from robocal.drivers._modbus_client import ModbusClient
 from robocal.drivers.mock import MockRobot
 from robocal.drivers.sim import (
     FanucRmiSimulator,
@@ -99,7 +100,7 @@ async def test_modbus_sim_abort_halts_the_move_and_keeps_ack_seq_monotonic(world
     world.move(q0)
     async with _plc(world, time_scale=1.0, max_joint_speed_deg_s=40.0) as sim:
         m = sim.map
-        client = mb.ModbusClient("127.0.0.1", sim.port, device_id=m.device_id, timeout=2.0)
+        client = ModbusClient("127.0.0.1", sim.port, device_id=m.device_id, timeout=2.0)
         await client.connect(timeout=5.0)
         s0, s1 = m.status_span()
         fields = m.status_fields()
@@ -151,7 +152,7 @@ async def test_modbus_sim_abort_halts_the_move_and_keeps_ack_seq_monotonic(world
 async def test_modbus_sim_abort_when_idle_and_while_latched_is_done(world):
     async with _plc(world, time_scale=0.0, client_heartbeat_timeout_s=0.05) as sim:
         m = sim.map
-        client = mb.ModbusClient("127.0.0.1", sim.port, device_id=m.device_id, timeout=2.0)
+        client = ModbusClient("127.0.0.1", sim.port, device_id=m.device_id, timeout=2.0)
         await client.connect(timeout=5.0)
         try:
             await client.write_register(m.client_heartbeat, 7)  # then let it go stale

@@ -158,12 +158,12 @@ def test_auto_offers_no_harmonic_a_joint_with_too_few_angles_can_tell_apart():
     # J6 at three angles only (as in the UR10's ISO-cube series): const + cos + sin of order 1
     # interpolate three values exactly, so order 1 and above are no candidates for J6
     from robocal.identification._auto import candidate_groups
-    from robocal.identification._fit import _Fitter
+    from robocal.identification._fitter import Fitter
 
     d = make_data("fanuc_lrmate200i", "paper", seed=3, n_train=120, n_val=10)
     q = d.train.q.copy()
     q[:, 5] = np.radians(np.array([-90.0, 0.0, 90.0]))[np.arange(len(q)) % 3]
-    f = _Fitter(d.cell.robot, MeasurementSet(q, d.train.p), FitOptions())
+    f = Fitter(d.cell.robot, MeasurementSet(q, d.train.p), FitOptions())
     keys = {g.key for g in candidate_groups(f, q)}
     assert not any(k.startswith("j6:fourier") or k.startswith("j6:ripple") for k in keys)
     assert {"j5:fourier1", "j5:fourier3"} <= keys and "j5:ripple40" in keys

@@ -24,6 +24,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
+from robocal.drivers.sim._modbus_server import HOLDING_FCS, WRITE_FCS, ExcCodes, ModbusSimServer
 from robocal.drivers.sim._server import SimServer
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
@@ -116,7 +117,7 @@ class ModbusPlcSimulator(SimServer):
         self._client_hb: int | None = None
         self._client_hb_time = clock.monotonic()
         self._t0 = time.monotonic()
-        self._server = mb.ModbusSimServer(
+        self._server = ModbusSimServer(
             holding_size=m.holding_size(),
             input_size=m.input_size(),
             action=self._action,
@@ -165,19 +166,19 @@ class ModbusPlcSimulator(SimServer):
         count: int,
         registers: list[int],
         set_values: list[int] | list[bool] | None,
-    ) -> mb.ExcCodes | None:
+    ) -> ExcCodes | None:
         m = self.map
         s0, s1 = m.status_span()
         status_fc = 4 if m.status_area == "input" else 3
-        if fc in mb.HOLDING_FCS:
+        if fc in HOLDING_FCS:
             self._hr, self._hr_start = registers, start
-        if fc in mb.WRITE_FCS and set_values is not None:
+        if fc in WRITE_FCS and set_values is not None:
             # (pymodbus also calls back without values when it reads a write back for its echo)
             values = [int(v) for v in set_values]
             self.writes.append((fc, address, len(values)))
             end = address + len(values)
             if m.status_area == "holding" and address < s1 and s0 < end:
-                return mb.ExcCodes.ILLEGAL_ADDRESS  # PLC-owned registers
+                return ExcCodes.ILLEGAL_ADDRESS  # PLC-owned registers
             self._on_write(address, values, registers, start)
             return None
         if fc == status_fc and address < s1 and s0 < address + count:
