@@ -28,12 +28,13 @@ import structlog
 from robocal import __version__
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal._core.files import private_dir
-from robocal.compensation import CompensationTable, describe_table, improvement_refusal
+from robocal.compensation import CompensationTable
 from robocal.daemon import _fingerprint, pushing
-from robocal.daemon._journal import JournalEntry, PushJournal, new_key
-from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses, unsafe_moves
+from robocal.daemon._journal import PushJournal
+from robocal.daemon._plan import PlanDoc, parse_plan, unsafe_moves
 from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
+from robocal.daemon.compensating import CompensationManager
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, halt_motion, limits_with_margin
 from robocal.daemon.events import EventBus
@@ -42,9 +43,7 @@ from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import CampaignRecord, MeasurementRow, Store, now_iso
 from robocal.drivers import ControllerSnapshot, check_joint_target
 from robocal.errors import (
-    ApprovalRequired,
     CampaignError,
-    CompensationError,
     ConfigError,
     ConnectFailed,
     DriverError,
@@ -89,15 +88,16 @@ class CalibrationService:
         self._measure_task: tuple[str, asyncio.Task[None]] | None = None
         self._fit_tasks: dict[str, asyncio.Task[None]] = {}
         self._fit_started: dict[str, tuple[str, float]] = {}  # ISO time, monotonic s
-        self._push_lock = asyncio.Lock()
         self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
-        self._verify_tasks: dict[str, asyncio.Task[None]] = {}
         self.reports = ReportKeeper(self.report_records, self._campaign_dir, self.events)
+        self.compensator = CompensationManager(
+            config=config, robot=self.robot, store=self.store, hub=self.hub,
+            journal=self.journal, events=self.events, reports=self.reports, campaigns=self,
+            secret=self._secret)
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
-        self._closing = False
 
     # --- lifecycle -------------------------------------------------------------------------
     async def start(self, *, connect: bool = True) -> None:
@@ -119,13 +119,10 @@ class CalibrationService:
             _log.info("resuming campaign after restart", campaign=rec.id, state=rec.state.value,
                       measured=rec.poses_measured, total=rec.poses_total)
             if rec.state == S.RUNNING:
-                self._spawn_measure(rec.id)
+                self.spawn_measure(rec.id)
             elif not rec.measure_only:
                 self._spawn_fit(rec.id)
-        if self.journal.pending():
-            await self.reconcile()
-        for key, _ in self.journal.open_verifications():
-            self._spawn_verify(key)
+        await self.compensator.resume()
         self.reports.refresh()
 
     async def drain(self, timeout: float = 30.0) -> None:
@@ -135,10 +132,7 @@ class CalibrationService:
         A write still running after ``timeout`` stays ``intended`` in the journal and is
         reconciled on the next start.
         """
-        self._closing = True
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(timeout), self._push_lock:
-                pass
+        await self.compensator.drain(timeout)
 
     async def stop(self) -> None:
         """Stop work (campaign states stay as they are, to resume on restart); close all.
@@ -146,14 +140,14 @@ class CalibrationService:
         Motion stops first, at once (the driver's ``stop()``), before anything else closes;
         then a push or rollback in progress finishes (:meth:`drain`).
         """
-        self._closing = True  # verification runs cut from here on stay open in the journal
+        self.compensator.closing = True  # verification runs cut from here on stay open
         task = self._measure_task
         if not self._shutdown_stopped or (task is not None and not task[1].done()):
             await self.stop_motion(trigger="shutdown", reason="daemon stopping")
         await self.drain()
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += list(self._fit_tasks.values())
-        tasks += [t for t in self._verify_tasks.values() if not t.done()]
+        tasks += self.compensator.runs.unfinished()
         if self._storage_task is not None:
             tasks.append(self._storage_task)
         for t in tasks:
@@ -180,8 +174,7 @@ class CalibrationService:
             "uptime_s": round(time.time() - self._started, 3),
             "robot": self.robot.name,
             "drivers": self.hub.info(),
-            "measuring": (self._measure_task[0] if self._measure_task is not None
-                          and not self._measure_task[1].done() else None),
+            "measuring": self.measuring(),
             "fitting": sorted(self._fit_tasks),
             "config_digest": self._digest,
         }
@@ -194,12 +187,7 @@ class CalibrationService:
         out["transitions"] = self.store.transitions(cid)
         out["pose_overhead_s"] = self._overhead()
         out["files"] = str(self._campaign_dir(cid))
-        out["compensation"] = self.campaign_compensation(cid)
-        out["push"] = self._push_summary(out["compensation"])
-        if out["push"] is not None:
-            out["push"].update(self.push_fates().get(out["push"]["key"], {}))
-            out["compensation_state"] = out["push"].get("compensation_state")
-            out["push_key"] = out["push"]["key"]
+        out.update(self.compensator.campaign_status(cid))
         started = (self._fit_started.get(cid)
                    if cid in self._fit_tasks and rec.state == S.MEASURED else None)
         out["fitting"] = None if started is None else {
@@ -211,14 +199,12 @@ class CalibrationService:
     # below this method `list` names it inside the class: annotations use builtins.list
     def list(self) -> list[dict[str, Any]]:
         """Every campaign, oldest first (a pushed one with its table's state now)."""
-        states = self.push_states()
-        by_campaign = {e.campaign: e.key for e in self.journal.entries() if e.key in states}
+        pushed = self.compensator.pushed_campaigns()
         out = []
         for r in self.store.campaigns():
             d = r.to_json()
-            if r.id in by_campaign:
-                d["push_key"] = by_campaign[r.id]
-                d["compensation_state"] = states[d["push_key"]]
+            if r.id in pushed:
+                d["push_key"], d["compensation_state"] = pushed[r.id]
             out.append(d)
         return out
 
@@ -226,26 +212,12 @@ class CalibrationService:
         """Journal key of every completed push -> its table now: ``active`` (on the
         controller), ``superseded`` (a later push is on top; a rollback would bring it back)
         or ``rolled back``. The one source status, list, the API and the report read."""
-        return {k: str(f["compensation_state"]) for k, f in self.push_fates().items()}
+        return self.compensator.push_states()
 
     def push_fates(self) -> dict[str, dict[str, str | None]]:
         """:meth:`push_states` with what made it so: ``superseded_by`` (key of the push on
         top of it), ``rolled_back_by`` (key of the rollback) and ``rolled_back_at``."""
-        stack: builtins.list[str] = []
-        out: dict[str, dict[str, str | None]] = {}
-        for e in self.journal.entries():
-            if e.state != "completed":
-                continue
-            if e.action == "push":
-                stack.append(e.key)
-            elif stack:  # a rollback takes the top push off (never the baseline below)
-                out[stack.pop()] = {"compensation_state": "rolled back", "superseded_by": None,
-                                    "rolled_back_by": e.key, "rolled_back_at": e.finished_at}
-        for i, k in enumerate(stack):  # the top one is active, each below it superseded
-            above = stack[i + 1] if i + 1 < len(stack) else None
-            out[k] = {"compensation_state": "active" if above is None else "superseded",
-                      "superseded_by": above, "rolled_back_by": None, "rolled_back_at": None}
-        return out
+        return self.compensator.push_fates()
 
     def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
         """Stored measurements of a campaign."""
@@ -330,7 +302,7 @@ class CalibrationService:
         with ThreadPoolExecutor(1, thread_name_prefix="plan-check") as pool:
             await asyncio.get_running_loop().run_in_executor(pool, self._check_plan, doc)
         if start:
-            self._ensure_idle()
+            self.ensure_idle()
             await self.preflight()
         rec = self.store.create_campaign(
             name=name or f"campaign {time.strftime('%Y-%m-%d %H:%M')}", robot=self.robot.name,
@@ -343,7 +315,19 @@ class CalibrationService:
             return await self.start_campaign(rec.id, actor=actor)
         return self.status(rec.id)
 
-    def _ensure_idle(self, cid: str | None = None) -> None:
+    def measuring(self) -> str | None:
+        """The campaign measuring now, or None."""
+        task = self._measure_task
+        return task[0] if task is not None and not task[1].done() else None
+
+    def ensure_idle(self, cid: str | None = None) -> None:
+        """Refuse while a campaign other than ``cid`` measures (the robot is one).
+
+        Raises
+        ------
+        CampaignError
+            Naming it (and, for a verification run, the push it re-measures).
+        """
         if self._measure_task is not None and not self._measure_task[1].done():
             other = self._measure_task[0]
             if other != cid:
@@ -354,7 +338,7 @@ class CalibrationService:
                                         "roll back / push again, which stops it")
                 raise CampaignError(f"campaign {other} is measuring; pause or abort it first")
 
-    def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",
+    def transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",
                     only_from: Iterable[CampaignState] | None = None,
                     selected_model: str | None = None,
                     audit: tuple[str, dict[str, Any]] | None = None) -> CampaignRecord:
@@ -369,11 +353,11 @@ class CalibrationService:
 
     async def start_campaign(self, cid: str, *, actor: str) -> dict[str, Any]:
         """``created -> running``."""
-        self._ensure_idle(cid)
+        self.ensure_idle(cid)
         await _fingerprint.record_campaign_start(self.hub, self.store, cid, actor=actor)
-        self._transition(cid, S.RUNNING, actor=actor, reason="started",
+        self.transition(cid, S.RUNNING, actor=actor, reason="started",
                          only_from=[S.CREATED])
-        self._spawn_measure(cid)
+        self.spawn_measure(cid)
         return self.status(cid)
 
     async def pause(self, cid: str, *, actor: str, reason: str = "") -> dict[str, Any]:
@@ -382,7 +366,7 @@ class CalibrationService:
         The unfinished pose keeps nothing; resume moves to it again and measures it.
         """
         why = reason or "paused by operator"
-        self._transition(cid, S.PAUSED, actor=actor, reason=why)
+        self.transition(cid, S.PAUSED, actor=actor, reason=why)
         await self.stop_motion(trigger="pause", reason=why, actor=actor, cid=cid)
         return self.status(cid)
 
@@ -419,9 +403,9 @@ class CalibrationService:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(asyncio.shield(task[1]),
                                        self.config.measurement.move_timeout_s)
-        self._ensure_idle(cid)
-        self._transition(cid, S.RUNNING, actor=actor, reason="resumed by operator")
-        self._spawn_measure(cid)
+        self.ensure_idle(cid)
+        self.transition(cid, S.RUNNING, actor=actor, reason="resumed by operator")
+        self.spawn_measure(cid)
         return self.status(cid)
 
     async def abort(self, cid: str, *, actor: str, reason: str = "") -> dict[str, Any]:
@@ -432,20 +416,20 @@ class CalibrationService:
         if task is not None and task[0] == cid and not task[1].done():
             # Measuring: the robot stops at once. No push or rollback runs while a campaign
             # measures (both need the robot idle), so there is nothing to wait for.
-            self._transition(cid, S.ABORTED, actor=actor, reason=why,
+            self.transition(cid, S.ABORTED, actor=actor, reason=why,
                              audit=("campaign.abort", {"reason": reason}))
             await self.stop_motion(trigger="abort", reason=why, actor=actor, cid=cid)
             await self.hub.reset("campaign aborted")
         else:
             # A push of this campaign may be writing: the abort waits until the table is
             # read back and journaled (or undone), then applies to what is true by then.
-            async with self._push_lock:
+            async with self.compensator.lock:
                 if self.store.campaign(cid).state == S.PUSHED:
                     raise InvalidTransition(
                         S.PUSHED.value, S.ABORTED.value,
                         "its table was pushed before the abort; robocal compensation "
                         "rollback removes it")
-                self._transition(cid, S.ABORTED, actor=actor, reason=why,
+                self.transition(cid, S.ABORTED, actor=actor, reason=why,
                                  audit=("campaign.abort", {"reason": reason}))
         fit = self._fit_tasks.get(cid)
         if fit is not None:
@@ -468,7 +452,7 @@ class CalibrationService:
             raise CampaignError(f"model {chosen!r} was not fitted in campaign {cid} "
                                 f"(fitted: {', '.join(fits) or 'none'})")
         pushing.fault_point("approve:before-commit")
-        self._transition(cid, S.APPROVED, actor=actor, reason=f"model {chosen} approved",
+        self.transition(cid, S.APPROVED, actor=actor, reason=f"model {chosen} approved",
                          selected_model=chosen,
                          audit=("campaign.approve", {"model": chosen,
                                                      "model_id": fits[chosen].get("model_id")}))
@@ -489,7 +473,7 @@ class CalibrationService:
                                       secret=self._secret, nominal=self.robot)
         return None
 
-    def _spawn_measure(self, cid: str) -> None:
+    def spawn_measure(self, cid: str) -> None:
         """Start measuring ``cid`` (state ``running``) unless the store cannot write: then the
         campaign pauses with the reason before anything moves (start, resume, restart)."""
         fault = self.store.probe()
@@ -527,7 +511,7 @@ class CalibrationService:
         _log.error("campaign paused: the store cannot write", campaign=cid, error=str(err))
         try:
             if self.store.campaign(cid).state == S.RUNNING:
-                self._transition(cid, S.PAUSED, actor="daemon", reason=reason)
+                self.transition(cid, S.PAUSED, actor="daemon", reason=reason)
         except (RobocalError, sqlite3.Error) as again:
             _log.error("storage fault: campaign state unknown", campaign=cid, error=str(again))
 
@@ -609,7 +593,7 @@ class CalibrationService:
         report = result.get("report")
         if self.store.campaign(cid).state != S.MEASURED:
             return  # aborted while fitting
-        self._transition(cid, S.FITTED, actor="daemon",
+        self.transition(cid, S.FITTED, actor="daemon",
                          reason=f"fitted {', '.join(result['fits'])}; proposed {chosen}")
         summary = result["fits"][chosen][0].get("validation") or {}
         self.events.emit("fit", cid, phase="done", selected=chosen,
@@ -619,7 +603,7 @@ class CalibrationService:
 
     def _fault_fit(self, cid: str, reason: str) -> None:
         if self.store.campaign(cid).state == S.MEASURED:
-            self._transition(cid, S.FAULTED, actor="daemon", reason=reason)
+            self.transition(cid, S.FAULTED, actor="daemon", reason=reason)
         self.events.emit("fit", cid, phase="failed", reason=reason)
 
     async def wait(self, cid: str, states: Iterable[CampaignState | str], *,
@@ -641,35 +625,14 @@ class CalibrationService:
                         if await q.get() is None:
                             raise CampaignError("the service stopped")
 
-    # --- compensation --------------------------------------------------------------------------
+    # --- compensation: the component beside the service (robocal.daemon.compensating) ----------
     def _entry(self, table_id: int) -> CompensationTable | ControllerSnapshot:
         """A stored table or controller snapshot."""
-        row = self.store.table(table_id)
-        return pushing.parse_entry(str(row["kind"]), str(row["table_json"]))
+        return self.compensator.entry(table_id)
 
-    def _table(self, table_id: int) -> CompensationTable:
-        entry = self._entry(table_id)
-        if not isinstance(entry, CompensationTable):
-            raise CompensationError(f"stored entry {table_id} is a controller snapshot")
-        return entry
-
-    def _program(self, cid: str) -> pushing.Program:
-        """The production targets: ``targets_file`` (JOINTS or TARGETS.csv), else the
-        campaign's validation poses (else all measured poses)."""
-        path = self.config.compensation.targets_file
-        if path is not None:
-            return pushing.read_program(path, dof=self.robot.dof)
-        rows = [p for p in self.store.poses(cid) if p.purpose == "validation"]
-        if not rows:
-            rows = [p for p in self.store.poses(cid) if p.measure]
-        return pushing.Program(np.radians(np.array([p.q_deg for p in rows], dtype=float)))
-
-    def _covered_kinds(self, stack: builtins.list[int]) -> set[str]:
-        kinds: set[str] = set()
-        for tid in stack:
-            entry = self._entry(tid)
-            kinds.add(entry.covers if isinstance(entry, ControllerSnapshot) else entry.kind)
-        return kinds
+    def _verifying(self) -> str | None:
+        """The verification run measuring now (a child of a push), or None."""
+        return self.compensator.runs.verifying()
 
     def build_push_table(self, cid: str) -> tuple[CompensationTable, dict[str, Any]]:
         """The table a push of ``cid`` would write, and its description (nothing written).
@@ -679,26 +642,7 @@ class CalibrationService:
         CompensationError
             If the campaign has no approved model or the table cannot be built.
         """
-        rec = self.store.campaign(cid)
-        model = rec.selected_model or ""
-        text = self.store.model_json(cid, model)
-        if text is None:
-            raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
-        cal = load_model(text, source=f"campaign {cid}", secret=self._secret,
-                         nominal=self.robot)
-        kind = self.config.compensation.kind
-        program = self._program(cid)
-        table = pushing.build_campaign_table(
-            cal, kind, targets_q=program.q if kind == "targets" else None,
-            targets_p=program.p, targets_R=program.R,
-            max_change_deg=self.config.limits.max_joint_correction_deg)
-        desc = describe_table(table)
-        desc.update(model=model, model_id=cal.model_id,
-                    program_q_deg=np.round(np.degrees(program.q), 9).tolist(),
-                    target_p_mm=None if program.p is None
-                    else np.round(program.p * 1e3, 6).tolist(),
-                    coverage=pushing.outside_coverage(cal, program.q, table.kind))
-        return table, desc
+        return self.compensator.build_push_table(cid)
 
     async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
                    reason: str = "") -> dict[str, Any]:
@@ -708,7 +652,7 @@ class CalibrationService:
         controller is written and completed after the read-back, in one transaction with the
         history, the audit entry and ``approved -> pushed``. A ``key`` already completed
         returns the status without writing again. Then the pushed targets are measured
-        again (:meth:`verification`).
+        again (:meth:`wait_verification`).
 
         Raises
         ------
@@ -721,172 +665,12 @@ class CalibrationService:
             If the read-back differs (the previous values are put back; the campaign stays
             ``approved``; see the audit log).
         """
-        if key is not None and await self._retried(key, action="push", campaign=cid):
-            return self.status(cid)
-        rec = self.store.campaign(cid)
-        if rec.state == S.PUSHED:
-            raise CampaignError(f"campaign {cid} was already pushed; robocal compensation "
-                                "list shows it (a new push needs a new campaign; rollback "
-                                "restores the previous table)")
-        if rec.state != S.APPROVED:
-            raise ApprovalRequired(f"campaign {cid} is {rec.state.value}; compensation is "
-                                   "pushed only after an operator approves the fit")
-        table, desc = self.build_push_table(cid)
-        refusal = improvement_refusal(table, self.config.compensation.max_residual_ratio)
-        refusal = refusal or pushing.coverage_refusal(
-            desc["coverage"], self.config.compensation.max_outside_coverage)
-        summary = {k: desc[k] for k in ("kind", "purpose", "predicted_residual_mm",
-                                         "nominal_residual_mm", "model_accuracy_mm", "ratio",
-                                         "warnings", "model", "model_id", "coverage")}
-        if refusal is not None and not force:
-            self.store.audit(actor=actor, action="compensation.push-refused", campaign=cid,
-                             checksum=table.checksum, detail={"refusal": refusal, **summary})
-            raise CompensationError(f"push refused: {refusal}; an operator may force it "
-                                    "(recorded in the audit log)")
-        calibration = await _fingerprint.check_push(self.hub, self.store, cid, force=force,
-                                                    actor=actor)
-        async with self._push_lock:
-            self._ensure_open()
-            self._ensure_idle(self._verifying())
-            await self._reconcile_locked()
-            if self.journal.pending():
-                raise CompensationError("an earlier push could not be reconciled with the "
-                                        "controller yet (is it reachable?); nothing written")
-            if self.store.campaign(cid).state != S.APPROVED:
-                raise ApprovalRequired(f"campaign {cid} is no longer approved")
-            stack = self.store.table_stack()
-            previous = self._entry(stack[-1]) if stack else None
-            pushing.check_bounds(
-                table, self.config.limits, self.robot,
-                previous=previous if isinstance(previous, CompensationTable) else None,
-                seeds_q_deg=desc["program_q_deg"] if table.kind == "targets" else None)
-            # checked and about to write: an earlier push's re-measurement ends here
-            await self._stop_verification_run("a new push was asked for")
-            key = key or new_key()
-            detail = {**summary, "forced": refusal is not None or calibration["forced"],
-                      "refusal": refusal, "reason": reason, "controller_calibration": calibration,
-                      "program_q_deg": desc["program_q_deg"]}
-            try:
-                async with self.hub.lock:
-                    robot = await self.hub.robot()
-                    snap = None
-                    if table.kind not in self._covered_kinds(stack):
-                        snap = await pushing.take_snapshot(robot, table)
-                    pushing.fault_point("push:after-snapshot")
-                    self.journal.intend(
-                        key=key, action="push", campaign=cid, actor=actor,
-                        table=(table.kind, table.checksum, table.model_dump_json()),
-                        baseline=None if snap is None else (snap.checksum(),
-                                                            snap.model_dump_json()),
-                        detail=detail)
-                    pushing.fault_point("push:after-intent")
-                    try:
-                        await pushing.write_and_verify(robot, table)
-                    except (RobocalError, OSError) as err:
-                        await self._undo(robot, key, actor, f"write failed: {err}")
-                        raise
-                    pushing.fault_point("push:after-write")
-                    self.journal.complete(key, actor=actor)
-                    pushing.fault_point("push:after-complete")
-            except (RobocalError, OSError) as err:
-                await self.hub.reset(f"push failed: {err}")
-                raise
-        self.events.emit("compensation", cid, action="push", checksum=table.checksum, key=key)
-        _log.info("compensation pushed", campaign=cid, key=key, **summary)
-        self._spawn_verify(key)
-        self.reports.refresh()
-        return self.status(cid)
-
-    def _ensure_open(self) -> None:
-        if self._closing:
-            raise CompensationError("the daemon is stopping; nothing written")
-
-    async def _retried(self, key: str, *, action: str, campaign: str | None) -> bool:
-        """True when ``key`` is a completed ``action`` (a retry: answer as the first time);
-        False when the key is new.
-
-        Raises
-        ------
-        CampaignError
-            If the key belongs to another action or campaign.
-        CompensationError
-            If that action was abandoned (nothing of it is on the controller).
-        """
-        done = self.journal.find(key)
-        if done is None:
-            return False
-        if done.campaign != campaign or done.action != action:
-            raise CampaignError(f"idempotency key {key!r} belongs to another action")
-        if done.state == "intended":
-            await self.reconcile()
-            done = self.journal.get(key)
-        if done.state == "completed":
-            return True
-        raise CompensationError(f"{action} {key} was abandoned: {done.outcome}")
-
-    async def _undo(self, robot: object, key: str, actor: str, reason: str,
-                    what: str = "failed") -> None:
-        """After a failed or unfinished write: put back what the slots held, abandon ``key``.
-
-        Never writes the journaled table again; writes the previous values only when the
-        controller holds something else.
-        """
-        e = self.journal.get(key)
-        prior: CompensationTable | ControllerSnapshot | None = None
-        if e.action == "push":
-            if e.baseline_id is not None:
-                prior = self._entry(e.baseline_id)
-            else:
-                stack = self.store.table_stack()
-                prior = self._entry(stack[-1]) if stack else None
-        elif e.rolled_back_id is not None:
-            prior = self._entry(e.rolled_back_id)
-        outcome = reason
-        try:
-            if prior is not None and not await pushing.holds(robot, prior):
-                await pushing.restore(robot, prior)
-                outcome += "; the previous values were written back and verified"
-            else:
-                outcome += "; the controller holds the previous values"
-        except (RobocalError, OSError) as err:
-            outcome += f"; restoring the previous values failed too: {err}"
-        self.journal.abandon(key, actor=actor, reason=outcome, what=what)
+        return await self.compensator.push(cid, actor=actor, force=force, key=key,
+                                           reason=reason)
 
     async def reconcile(self) -> builtins.list[dict[str, Any]]:
         """Settle journal entries left ``intended`` by a crash, by reading the controller."""
-        async with self._push_lock:
-            return await self._reconcile_locked()
-
-    async def _reconcile_locked(self) -> builtins.list[dict[str, Any]]:
-        out = []
-        for e in self.journal.pending():
-            target = self._entry(e.table_id)
-            try:
-                async with self.hub.lock:
-                    robot = await self.hub.robot()
-                    if await pushing.holds(robot, target):
-                        done = self.journal.complete(
-                            e.key, actor=e.actor,
-                            outcome="reconciled after a restart: the controller holds it",
-                            extra={"reconciled_by": "daemon"})
-                        self._spawn_verify(e.key)
-                    else:
-                        await self._undo(robot, e.key, "daemon",
-                                         "interrupted before the write was confirmed",
-                                         what="abandoned")
-                        done = self.journal.get(e.key)
-            except (RobocalError, OSError) as err:
-                _log.warning("push journal not reconciled", key=e.key, error=str(err))
-                await self.hub.reset(f"reconcile failed: {err}")
-                continue
-            _log.info("push journal reconciled", key=e.key, state=done.state,
-                      outcome=done.outcome)
-            self.events.emit("compensation", e.campaign, action=f"{e.action}-reconciled",
-                             key=e.key, state=done.state)
-            out.append(done.to_json())
-        if out:
-            self.reports.refresh()
-        return out
+        return await self.compensator.reconcile()
 
     async def rollback(self, *, actor: str, reason: str = "", key: str | None = None
                        ) -> dict[str, Any]:
@@ -898,251 +682,24 @@ class CalibrationService:
         CompensationError
             If there is no earlier table.
         """
-        if key is not None and await self._retried(key, action="rollback", campaign=None):
-            return self.compensation()
-        async with self._push_lock:
-            self._ensure_open()
-            await self._stop_verification_run("a rollback was asked for")
-            self._ensure_idle()
-            await self._reconcile_locked()
-            if self.journal.pending():
-                raise CompensationError("an earlier push could not be reconciled with the "
-                                        "controller yet; nothing written")
-            stack = self.store.table_stack()
-            if len(stack) < 2:
-                raise CompensationError("no earlier compensation table to restore")
-            current_id, previous_id = stack[-1], stack[-2]
-            entry = self._entry(previous_id)
-            if isinstance(entry, CompensationTable):
-                entry.verify()
-            # Re-measured afterwards: the restored table's own targets, or (restoring the
-            # controller's original) the rolled-back table's targets, now uncompensated.
-            source_id = previous_id if isinstance(entry, CompensationTable) else current_id
-            pushed = [j for j in self.journal.entries()
-                      if j.action == "push" and j.table_id == source_id]
-            program = pushed[-1].detail.get("program_q_deg") if pushed else None
-            model_campaign = self.store.table(source_id)["campaign"]
-            key = key or new_key()
-            detail = {"reason": reason, "restored_table_id": previous_id,
-                      "rolled_back_table_id": current_id, "program_q_deg": program,
-                      "model_campaign": model_campaign,
-                      "target_p_mm": pushed[-1].detail.get("target_p_mm") if pushed else None,
-                      "restores": ("controller original" if isinstance(entry, ControllerSnapshot)
-                                   else f"{entry.kind} table")}
-            try:
-                async with self.hub.lock:
-                    robot = await self.hub.robot()
-                    self.journal.intend(key=key, action="rollback", campaign=None, actor=actor,
-                                        table_id=previous_id, rolled_back_id=current_id,
-                                        detail=detail)
-                    pushing.fault_point("rollback:after-intent")
-                    try:
-                        await pushing.restore(robot, entry)
-                    except (RobocalError, OSError) as err:
-                        await self._undo(robot, key, actor, f"restore failed: {err}")
-                        raise
-                    pushing.fault_point("rollback:after-write")
-                    self.journal.complete(key, actor=actor)
-                    pushing.fault_point("rollback:after-complete")
-            except (RobocalError, OSError) as err:
-                await self.hub.reset(f"rollback failed: {err}")
-                raise
-        checksum = self.store.table(previous_id)["checksum"]
-        self.events.emit("compensation", None, action="rollback", checksum=checksum, key=key)
-        self._spawn_verify(key)
-        self.reports.refresh()
-        return self.compensation()
-
-    # --- verification runs: the pushed targets measured again ----------------------------------
-    def _spawn_verify(self, key: str) -> None:
-        if key in self._verify_tasks and not self._verify_tasks[key].done():
-            return
-        task = asyncio.create_task(self._verify(key), name=f"verify-{key}")
-        self._verify_tasks[key] = task
+        return await self.compensator.rollback(actor=actor, reason=reason, key=key)
 
     async def wait_verification(self, key: str, *, timeout: float) -> dict[str, Any] | None:
         """Wait (at most ``timeout`` s) for the verification run of ``key``; return it."""
-        task = self._verify_tasks.get(key)
-        if task is not None:
-            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
-                await asyncio.wait_for(asyncio.shield(task), timeout)
-        return self.journal.verification(key)
+        return await self.compensator.runs.wait(key, timeout=timeout)
 
-    async def _verify(self, key: str) -> None:
-        try:
-            v = self.journal.verification(key)
-            if v is None or v["state"] == "pending":
-                started = await self._start_verification(key)
-                self.reports.refresh()
-                if not started:
-                    return
-                v = self.journal.verification(key)
-            if v is not None and v["state"] == "measuring":
-                await self._finish_verification(key)
-                self.reports.refresh()
-        except asyncio.CancelledError:
-            raise
-        except Exception as err:  # a verification bug must not take the daemon down
-            if self._closing:  # cut by shutdown: still open in the journal, resumed on start
-                _log.info("verification interrupted by shutdown", key=key, error=str(err))
-                return
-            _log.exception("verification failed", key=key)
-            with contextlib.suppress(Exception):
-                self.journal.set_verification(key, state="failed",
-                                              result={"reason": f"{type(err).__name__}: {err}"})
-            self.reports.refresh()
+    def report_records(self) -> dict[str, dict[str, Any]]:
+        """Campaign id -> what its report's Compensation section shows: its approval and its
+        pushes, each with where its table is now (:meth:`push_fates`)."""
+        return self.compensator.report_records()
 
-    def _verifying(self) -> str | None:
-        """The verification run measuring now (a child of a push), or None."""
-        task = self._measure_task
-        if task is None or task[1].done():
-            return None
-        return task[0] if self.store.campaign(task[0]).parent is not None else None
+    def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
+        """The pushes of ``cid``: journal state, table description, verification run."""
+        return self.compensator.campaign_compensation(cid)
 
-    async def _stop_verification_run(self, why: str) -> None:
-        """Stop the verification run measuring now, if any (push lock held): a new push or a
-        rollback supersedes what it measures, so it ends (``skipped``, saying why) instead of
-        making the operator wait or refusing them."""
-        task = self._measure_task
-        if task is None or task[1].done():
-            return
-        rec = self.store.campaign(task[0])
-        if rec.parent is None:
-            return  # an operator's campaign: the caller refuses, naming it
-        key = rec.parent
-        verifying = self._verify_tasks.get(key)
-        if verifying is not None:
-            verifying.cancel()
-        reason = f"verification stopped: {why}"
-        self._transition(rec.id, S.ABORTED, actor="daemon", reason=reason)
-        await self.stop_motion(trigger="abort", reason=reason, cid=rec.id)
-        if verifying is not None:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(verifying, 10.0)
-        self.journal.set_verification(key, state="skipped",
-                                      result={"reason": f"stopped before the end: {why}"})
-        _log.info("verification run stopped", key=key, campaign=rec.id, reason=why)
-
-    async def _wait_idle(self) -> None:
-        """Wait until no campaign measures (the robot is one)."""
-        async with self.events.subscribe() as q:
-            while self._measure_task is not None and not self._measure_task[1].done():
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(0.5):
-                        if await q.get() is None:
-                            raise CampaignError("the service stopped")
-
-    async def _run_child(self, vcid: str) -> None:
-        """Make a verification run measure: after a restart it is ``running`` without a task
-        (never resumed as a campaign of its own) or still ``created``."""
-        task = self._measure_task
-        if task is not None and task[0] == vcid and not task[1].done():
-            return
-        state = self.store.campaign(vcid).state
-        if state not in (S.CREATED, S.RUNNING):
-            return
-        await self._wait_idle()
-        if self.store.campaign(vcid).state == S.CREATED:
-            await self.preflight()
-            await self.start_campaign(vcid, actor="daemon")
-        elif self.store.campaign(vcid).state == S.RUNNING:
-            _log.info("resuming verification run after restart", campaign=vcid)
-            self._spawn_measure(vcid)
-
-    async def _start_verification(self, key: str) -> bool:
-        e = self.journal.get(key)
-        count = self.config.compensation.verify_count
-        program = e.detail.get("program_q_deg")
-        entry = self._entry(e.table_id)
-        skip = None
-        if count <= 0:
-            skip = "verification disabled (compensation.verify_count = 0)"
-        elif not program:
-            skip = "no program targets recorded for this push"
-        elif isinstance(entry, CompensationTable) and entry.kind == "frames":
-            skip = ("a frames table changes the frames Cartesian programs use; measuring "
-                    "joint targets again would not test it")
-        if skip is not None:
-            self.journal.set_verification(key, state="skipped", result={"reason": skip})
-            return False
-        q_program = np.radians(np.asarray(program, dtype=float))
-        q_cmd, compensated = pushing.commanded_joints(entry, q_program)
-        rows = ([i for i in range(len(q_program)) if compensated[i]]
-                if isinstance(entry, CompensationTable) else list(range(len(q_program))))
-        idx = [rows[k] for k in pushing.verification_indices(len(rows), count)]
-        q_deg: builtins.list[builtins.list[float]] = []
-        purposes: builtins.list[str] = []
-        for i in idx:
-            q_deg += [np.degrees(q_program[i]).tolist(), np.degrees(q_cmd[i]).tolist()]
-            purposes += ["verify-before", "verify-after"]
-        doc = plan_from_poses(q_deg, purposes=purposes, robot=self.robot.name)
-        model_campaign = e.campaign or e.detail.get("model_campaign")
-        # a child created by a daemon that stopped before recording it is taken up again
-        earlier = [r for r in self.store.campaigns(parent=key) if r.state not in FINAL]
-        if earlier:
-            vcid = earlier[-1].id
-        else:
-            await self._wait_idle()
-            try:
-                vst = await self.create(parse_plan(doc, source="verification", strict=False),
-                                        actor="daemon", name=f"verify {e.action} {key}",
-                                        measure_only=True, parent=key)
-            except RobocalError as err:
-                if self._closing:
-                    raise
-                self.journal.set_verification(key, state="skipped",
-                                              result={"reason": f"not measured: {err}"})
-                return False
-            vcid = str(vst["id"])
-        self.journal.set_verification(key, state="measuring", campaign=vcid,
-                                      result={"indices": idx, "model_campaign": model_campaign,
-                                              "action": e.action})
-        return True
-
-    async def _finish_verification(self, key: str) -> None:
-        v = self.journal.verification(key)
-        if v is None or not v.get("campaign"):
-            return
-        vcid = str(v["campaign"])
-        await self._run_child(vcid)
-        st = await self.wait(vcid, ["measured", "faulted"], timeout=24 * 3600.0)
-        if st["state"] != "measured":
-            self.journal.set_verification(
-                key, state="failed",
-                result={"reason": f"verification campaign {vcid} {st['state']}: "
-                                  f"{st['reason']}"})
-            return
-        e = self.journal.get(key)
-        cal = self.fitted_model(str(v["model_campaign"]))
-        q_program = np.radians(np.asarray(e.detail["program_q_deg"], dtype=float))
-        target_p = e.detail.get("target_p_mm")
-        idx = [int(i) for i in v["indices"]]
-        rows = {m.pose_idx: m for m in self.store.measurements(vcid)}
-        p_before = np.array([rows[2 * k].p_mm for k in range(len(idx))]) * 1e-3
-        p_after = np.array([rows[2 * k + 1].p_mm for k in range(len(idx))]) * 1e-3
-        # TARGETS.csv positions where the program gives them, else where the error-free
-        # robot would be at the program joints
-        p_ideal = (np.asarray(target_p, dtype=float)[idx] * 1e-3 if target_p
-                   else pushing.ideal_positions(cal, q_program[idx]))
-        before = pushing.verification_errors(p_ideal, p_before)
-        after = pushing.verification_errors(p_ideal, p_after)
-        per_target = [{"index": i,
-                       "before_mm": round(float(np.linalg.norm(p_before[k] - p_ideal[k]) * 1e3),
-                                          5),
-                       "after_mm": round(float(np.linalg.norm(p_after[k] - p_ideal[k]) * 1e3),
-                                         5)}
-                      for k, i in enumerate(idx)]
-        result = {"before": before, "after": after, "per_target": per_target}
-        self.journal.set_verification(key, state="done", result=result)
-        self.store.audit(actor="daemon", action=f"compensation.{e.action}-verified",
-                         campaign=e.campaign,
-                         detail={"key": key, "verification_campaign": vcid,
-                                 "before_rms_mm": before.get("rms_mm"),
-                                 "after_rms_mm": after.get("rms_mm"), "n": after.get("n")})
-        self.events.emit("compensation", e.campaign, action="verified", key=key,
-                         before_rms_mm=before.get("rms_mm"), after_rms_mm=after.get("rms_mm"))
-        _log.info("compensation verified", key=key, before_rms_mm=before.get("rms_mm"),
-                  after_rms_mm=after.get("rms_mm"))
+    def compensation(self) -> dict[str, Any]:
+        """The active table (described) and the push history with verification runs."""
+        return self.compensator.compensation()
 
     async def report_file(self, cid: str, name: str) -> Path | None:
         """The campaign's report file ``name`` (``report.html``, ``report.json``) as it is
@@ -1152,94 +709,6 @@ class CalibrationService:
             await self.reports.settled(30.0)
         path = self._campaign_dir(cid) / name
         return path if path.is_file() else None
-
-    def report_records(self) -> dict[str, dict[str, Any]]:
-        """Campaign id -> what its report's Compensation section shows: its approval and its
-        pushes, each with where its table is now (:meth:`push_fates`)."""
-        fates = self.push_fates()
-        pushed = {e.campaign for e in self.journal.entries() if e.campaign is not None}
-        out: dict[str, dict[str, Any]] = {}
-        for rec in self.store.campaigns():
-            if rec.id not in pushed and rec.state not in (S.APPROVED, S.PUSHED):
-                continue
-            approved = [t for t in self.store.transitions(rec.id) if t["to_state"] == "approved"]
-            approval = None if not approved else {
-                "model": rec.selected_model, "actor": approved[-1]["actor"],
-                "at": approved[-1]["at"]}
-            entries = [{**e, **fates.get(e["key"], {})} if e["action"] == "push" else e
-                       for e in self.campaign_compensation(rec.id)]
-            out[rec.id] = {"approval": approval, "entries": entries}
-        return out
-
-    def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
-        """The pushes of ``cid``: journal state, table description, verification run."""
-        out = []
-        for e in self.journal.entries(campaign=cid):
-            row = self.store.table(e.table_id)
-            d = {k: v for k, v in e.detail.items()
-                 if k not in ("program_q_deg", "target_p_mm")}
-            out.append({"key": e.key, "action": e.action, "state": e.state, "actor": e.actor,
-                        "at": e.finished_at or e.intended_at, "outcome": e.outcome,
-                        "checksum": row["checksum"], "table_id": e.table_id, **d,
-                        "verification": self.journal.verification(e.key)})
-        return out
-
-    @staticmethod
-    def _push_summary(entries: builtins.list[dict[str, Any]]) -> dict[str, Any] | None:
-        """The campaign's last completed push in a few numbers (None if never pushed)."""
-        done = [e for e in entries if e["action"] == "push" and e["state"] == "completed"]
-        if not done:
-            return None
-        e = done[-1]
-        v = e.get("verification") or {}
-        return {"key": e["key"], "at": e["at"], "actor": e["actor"], "model": e.get("model"),
-                "kind": e.get("kind"), "checksum": e["checksum"],
-                "predicted_rms_mm": e.get("predicted_residual_mm"),
-                "nominal_rms_mm": e.get("nominal_residual_mm"),
-                "model_accuracy_mm": e.get("model_accuracy_mm"), "forced": e.get("forced"),
-                "verification": v.get("state"),
-                "measured_before_rms_mm": (v.get("before") or {}).get("rms_mm"),
-                "measured_after_rms_mm": (v.get("after") or {}).get("rms_mm"),
-                "measured_n": (v.get("after") or {}).get("n")}
-
-    def compensation(self) -> dict[str, Any]:
-        """The active table (described) and the push history with verification runs."""
-        stack = self.store.table_stack()
-        active = None
-        if stack:
-            t = self.store.table(stack[-1])
-            active = {"table_id": t["id"], "kind": t["kind"], "checksum": t["checksum"],
-                      "campaign": t["campaign"], "origin": t["origin"]}
-            entry = self._entry(stack[-1])
-            if isinstance(entry, CompensationTable):
-                active.update({k: v for k, v in describe_table(entry).items()
-                               if k not in ("kind", "checksum")})
-            else:
-                active["purpose"] = "the controller's own values from before robocal's first push"
-        journal = self.journal.entries()
-        fates = self.push_fates()
-        by_table: dict[tuple[str, int | None], JournalEntry] = {}
-        for j in journal:
-            if j.state == "completed":
-                by_table[(j.action, j.rolled_back_id if j.action == "rollback"
-                          else j.table_id)] = j
-        history = []
-        for h in self.store.pushes():
-            hj = by_table.get((str(h["action"]), int(h["table_id"])))
-            if hj is not None:
-                h = {**h, "key": hj.key,
-                     **{k: hj.detail.get(k) for k in ("predicted_residual_mm",
-                                                      "nominal_residual_mm", "forced",
-                                                      "refusal", "reason")},
-                     "verification": self.journal.verification(hj.key)}
-                if hj.action == "push":
-                    h.update(fates.get(hj.key, {}))
-            history.append(h)
-        return {"active": active, "stack": stack, "history": history,
-                "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()
-                                                        if k not in ("program_q_deg",
-                                                                     "target_p_mm")}}
-                            for j in journal[-50:]]}
 
     def audit(self, *, limit: int = 1000) -> builtins.list[dict[str, Any]]:
         """The audit log (most recent ``limit`` entries)."""
