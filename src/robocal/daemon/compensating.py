@@ -77,7 +77,11 @@ class CompensationManager:
 
     async def drain(self, timeout: float = 30.0) -> None:
         """Refuse new pushes and rollbacks and wait (at most ``timeout`` s) for the one in
-        progress to be read back and journaled (see :meth:`CalibrationService.drain`)."""
+        progress to be read back and journaled, so shutdown never cuts a write in half.
+
+        A write still running after ``timeout`` stays ``intended`` in the journal and is
+        reconciled on the next start.
+        """
         self.closing = True
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(timeout), self.lock:
@@ -254,8 +258,25 @@ class CompensationManager:
 
     async def push(self, cid: str, *, actor: str, force: bool = False, key: str | None = None,
                    reason: str = "") -> dict[str, Any]:
-        """Build, check, journal, write and read back the approved model's table (see
-        :meth:`CalibrationService.push`)."""
+        """Build, check, journal, write and read back the approved model's table.
+
+        The push is journaled as intended (idempotency ``key``, default a new one) before the
+        controller is written and completed after the read-back, in one transaction with the
+        history, the audit entry and ``approved -> pushed``. A ``key`` already completed
+        returns the status without writing again. Then the pushed targets are measured
+        again (:class:`~robocal.daemon.verifying.VerificationRuns`).
+
+        Raises
+        ------
+        ApprovalRequired
+            If the campaign is not ``approved``.
+        CompensationError
+            If the table exceeds the bounds, does not clearly improve on the nominal
+            residual (unless ``force``), or the driver cannot store it (nothing written).
+        VerificationMismatch
+            If the read-back differs (the previous values are put back; the campaign stays
+            ``approved``; see the audit log).
+        """
         if key is not None and await self._retried(key, action="push", campaign=cid):
             return self.campaigns.status(cid)
         table, desc, summary, forced = await self._push_checks(cid, actor=actor, force=force)
@@ -360,7 +381,13 @@ class CompensationManager:
     async def rollback(self, *, actor: str, reason: str = "", key: str | None = None
                        ) -> dict[str, Any]:
         """Restore the table (or the controller's original values) active before the current
-        one (see :meth:`CalibrationService.rollback`)."""
+        one: journaled like a push, written, read back, verified, then measured again.
+
+        Raises
+        ------
+        CompensationError
+            If there is no earlier table.
+        """
         if key is not None and await self._retried(key, action="rollback", campaign=None):
             return self.compensation()
         async with self.lock:
@@ -398,8 +425,9 @@ class CompensationManager:
 
     # --- what the journal says -----------------------------------------------------------------
     def push_states(self) -> dict[str, str]:
-        """Journal key of every completed push -> its table now (see
-        :meth:`CalibrationService.push_states`)."""
+        """Journal key of every completed push -> its table now: ``active`` (on the
+        controller), ``superseded`` (a later push is on top; a rollback would bring it back)
+        or ``rolled back``. The one source status, list, the API and the report read."""
         return {k: str(f["compensation_state"]) for k, f in self.push_fates().items()}
 
     def push_fates(self) -> dict[str, dict[str, str | None]]:

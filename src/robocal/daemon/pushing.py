@@ -197,52 +197,76 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
     CompensationError
         Naming the first violation (nothing has been written).
     """
-    max_dq = limits.max_joint_correction_deg
-    max_t, max_r = limits.max_frame_translation_mm, limits.max_frame_rotation_deg
-    problems: list[str] = []
     if table.kind == "joint":
-        for jc in table.joints or []:
-            worst = max((abs(v) for v in jc.dq_deg), default=0.0)
-            if not math.isfinite(worst) or worst > max_dq:
-                problems.append(f"J{jc.joint} correction {worst:.4f} deg > {max_dq} deg")
+        problems = _joint_problems(table, limits)
     elif table.kind == "targets":
-        for row in table.targets or []:
-            if row.status != "ok":
-                problems.append(f"target {row.index}: {row.status}")
-                continue
-            if seeds_q_deg is not None and row.index < len(seeds_q_deg):
-                seed = seeds_q_deg[row.index]
-                worst = max(abs(a - b) for a, b in zip(row.q_deg, seed, strict=True))
-                if not math.isfinite(worst) or worst > max_dq:
-                    problems.append(f"target {row.index}: correction {worst:.4f} deg > "
-                                    f"{max_dq} deg")
-            lim = robot.joint_limits
-            for j, v in enumerate(row.q_deg):
-                if not math.radians(v) >= lim[j, 0] or not math.radians(v) <= lim[j, 1]:
-                    problems.append(f"target {row.index}: J{j + 1} {v:.3f} deg outside limits")
+        problems = _target_problems(table, limits, robot, seeds_q_deg)
     elif table.kind == "frames":
-        if table.frames is None:
-            problems.append("frames table without frames")
-        else:
-            t = robot.tool
-            nominal_tool = Frame(x=t[0] * 1e3, y=t[1] * 1e3, z=t[2] * 1e3, w=0.0, p=0.0, r=0.0)
-            dt, dr = _frame_change(nominal_tool, table.frames.tool)
-            if dt > max_t or dr > max_r:
-                problems.append(f"tool frame changes by {dt:.3f} mm / {dr:.4f} deg "
-                                f"(limits {max_t} mm / {max_r} deg)")
-            b = table.frames.base
-            reach = math.sqrt(b.x * b.x + b.y * b.y + b.z * b.z)
-            if not reach <= limits.max_base_distance_mm:
-                problems.append(f"base frame {reach:.1f} mm from the tracker (limit "
-                                f"{limits.max_base_distance_mm} mm)")
-            if previous is not None and previous.kind == "frames" and previous.frames:
-                dt, dr = _frame_change(previous.frames.base, table.frames.base)
-                if dt > max_t or dr > max_r:
-                    problems.append(f"base frame changes by {dt:.3f} mm / {dr:.4f} deg "
-                                    f"(limits {max_t} mm / {max_r} deg)")
+        problems = _frame_problems(table, limits, robot, previous)
+    else:
+        problems = []
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise CompensationError(f"compensation refused: {problems[0]}{more}")
+
+
+def _joint_problems(table: CompensationTable, limits: LimitsConfig) -> list[str]:
+    """Joint corrections beyond ``max_joint_correction_deg``."""
+    max_dq = limits.max_joint_correction_deg
+    problems: list[str] = []
+    for jc in table.joints or []:
+        worst = max((abs(v) for v in jc.dq_deg), default=0.0)
+        if not math.isfinite(worst) or worst > max_dq:
+            problems.append(f"J{jc.joint} correction {worst:.4f} deg > {max_dq} deg")
+    return problems
+
+
+def _target_problems(table: CompensationTable, limits: LimitsConfig, robot: RobotDescription,
+                     seeds_q_deg: Sequence[Sequence[float]] | None) -> list[str]:
+    """Target rows not ``ok``, changed too far from their seeds, or outside joint limits."""
+    max_dq = limits.max_joint_correction_deg
+    problems: list[str] = []
+    for row in table.targets or []:
+        if row.status != "ok":
+            problems.append(f"target {row.index}: {row.status}")
+            continue
+        if seeds_q_deg is not None and row.index < len(seeds_q_deg):
+            seed = seeds_q_deg[row.index]
+            worst = max(abs(a - b) for a, b in zip(row.q_deg, seed, strict=True))
+            if not math.isfinite(worst) or worst > max_dq:
+                problems.append(f"target {row.index}: correction {worst:.4f} deg > "
+                                f"{max_dq} deg")
+        lim = robot.joint_limits
+        for j, v in enumerate(row.q_deg):
+            if not math.radians(v) >= lim[j, 0] or not math.radians(v) <= lim[j, 1]:
+                problems.append(f"target {row.index}: J{j + 1} {v:.3f} deg outside limits")
+    return problems
+
+
+def _frame_problems(table: CompensationTable, limits: LimitsConfig, robot: RobotDescription,
+                    previous: CompensationTable | None) -> list[str]:
+    """Tool and base frames changed beyond the bounds, or a base too far from the tracker."""
+    if table.frames is None:
+        return ["frames table without frames"]
+    max_t, max_r = limits.max_frame_translation_mm, limits.max_frame_rotation_deg
+    problems: list[str] = []
+    t = robot.tool
+    nominal_tool = Frame(x=t[0] * 1e3, y=t[1] * 1e3, z=t[2] * 1e3, w=0.0, p=0.0, r=0.0)
+    dt, dr = _frame_change(nominal_tool, table.frames.tool)
+    if dt > max_t or dr > max_r:
+        problems.append(f"tool frame changes by {dt:.3f} mm / {dr:.4f} deg "
+                        f"(limits {max_t} mm / {max_r} deg)")
+    b = table.frames.base
+    reach = math.sqrt(b.x * b.x + b.y * b.y + b.z * b.z)
+    if not reach <= limits.max_base_distance_mm:
+        problems.append(f"base frame {reach:.1f} mm from the tracker (limit "
+                        f"{limits.max_base_distance_mm} mm)")
+    if previous is not None and previous.kind == "frames" and previous.frames:
+        dt, dr = _frame_change(previous.frames.base, table.frames.base)
+        if dt > max_t or dr > max_r:
+            problems.append(f"base frame changes by {dt:.3f} mm / {dr:.4f} deg "
+                            f"(limits {max_t} mm / {max_r} deg)")
+    return problems
 
 
 class Capabilities(NamedTuple):
