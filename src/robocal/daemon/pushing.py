@@ -19,6 +19,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +33,7 @@ from robocal.drivers import (
     CompensationSlots,
     CompensationSnapshots,
     ControllerSnapshot,
+    RobotDriver,
     snapshot_diff,
     table_diff,
 )
@@ -41,7 +43,9 @@ from robocal.planning import targets_outside
 
 __all__ = [
     "FAULT_POINTS",
+    "Capabilities",
     "build_campaign_table",
+    "capabilities",
     "check_bounds",
     "commanded_joints",
     "coverage_refusal",
@@ -193,55 +197,102 @@ def check_bounds(table: CompensationTable, limits: LimitsConfig, robot: RobotDes
     CompensationError
         Naming the first violation (nothing has been written).
     """
-    max_dq = limits.max_joint_correction_deg
-    max_t, max_r = limits.max_frame_translation_mm, limits.max_frame_rotation_deg
-    problems: list[str] = []
     if table.kind == "joint":
-        for jc in table.joints or []:
-            worst = max((abs(v) for v in jc.dq_deg), default=0.0)
-            if not math.isfinite(worst) or worst > max_dq:
-                problems.append(f"J{jc.joint} correction {worst:.4f} deg > {max_dq} deg")
+        problems = _joint_problems(table, limits)
     elif table.kind == "targets":
-        for row in table.targets or []:
-            if row.status != "ok":
-                problems.append(f"target {row.index}: {row.status}")
-                continue
-            if seeds_q_deg is not None and row.index < len(seeds_q_deg):
-                seed = seeds_q_deg[row.index]
-                worst = max(abs(a - b) for a, b in zip(row.q_deg, seed, strict=True))
-                if not math.isfinite(worst) or worst > max_dq:
-                    problems.append(f"target {row.index}: correction {worst:.4f} deg > "
-                                    f"{max_dq} deg")
-            lim = robot.joint_limits
-            for j, v in enumerate(row.q_deg):
-                if not math.radians(v) >= lim[j, 0] or not math.radians(v) <= lim[j, 1]:
-                    problems.append(f"target {row.index}: J{j + 1} {v:.3f} deg outside limits")
+        problems = _target_problems(table, limits, robot, seeds_q_deg)
     elif table.kind == "frames":
-        if table.frames is None:
-            problems.append("frames table without frames")
-        else:
-            t = robot.tool
-            nominal_tool = Frame(x=t[0] * 1e3, y=t[1] * 1e3, z=t[2] * 1e3, w=0.0, p=0.0, r=0.0)
-            dt, dr = _frame_change(nominal_tool, table.frames.tool)
-            if dt > max_t or dr > max_r:
-                problems.append(f"tool frame changes by {dt:.3f} mm / {dr:.4f} deg "
-                                f"(limits {max_t} mm / {max_r} deg)")
-            b = table.frames.base
-            reach = math.sqrt(b.x * b.x + b.y * b.y + b.z * b.z)
-            if not reach <= limits.max_base_distance_mm:
-                problems.append(f"base frame {reach:.1f} mm from the tracker (limit "
-                                f"{limits.max_base_distance_mm} mm)")
-            if previous is not None and previous.kind == "frames" and previous.frames:
-                dt, dr = _frame_change(previous.frames.base, table.frames.base)
-                if dt > max_t or dr > max_r:
-                    problems.append(f"base frame changes by {dt:.3f} mm / {dr:.4f} deg "
-                                    f"(limits {max_t} mm / {max_r} deg)")
+        problems = _frame_problems(table, limits, robot, previous)
+    else:
+        problems = []
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise CompensationError(f"compensation refused: {problems[0]}{more}")
 
 
-async def write_and_verify(robot: object, table: CompensationTable) -> CompensationTable:
+def _joint_problems(table: CompensationTable, limits: LimitsConfig) -> list[str]:
+    """Joint corrections beyond ``max_joint_correction_deg``."""
+    max_dq = limits.max_joint_correction_deg
+    problems: list[str] = []
+    for jc in table.joints or []:
+        worst = max((abs(v) for v in jc.dq_deg), default=0.0)
+        if not math.isfinite(worst) or worst > max_dq:
+            problems.append(f"J{jc.joint} correction {worst:.4f} deg > {max_dq} deg")
+    return problems
+
+
+def _target_problems(table: CompensationTable, limits: LimitsConfig, robot: RobotDescription,
+                     seeds_q_deg: Sequence[Sequence[float]] | None) -> list[str]:
+    """Target rows not ``ok``, changed too far from their seeds, or outside joint limits."""
+    max_dq = limits.max_joint_correction_deg
+    problems: list[str] = []
+    for row in table.targets or []:
+        if row.status != "ok":
+            problems.append(f"target {row.index}: {row.status}")
+            continue
+        if seeds_q_deg is not None and row.index < len(seeds_q_deg):
+            seed = seeds_q_deg[row.index]
+            worst = max(abs(a - b) for a, b in zip(row.q_deg, seed, strict=True))
+            if not math.isfinite(worst) or worst > max_dq:
+                problems.append(f"target {row.index}: correction {worst:.4f} deg > "
+                                f"{max_dq} deg")
+        lim = robot.joint_limits
+        for j, v in enumerate(row.q_deg):
+            if not math.radians(v) >= lim[j, 0] or not math.radians(v) <= lim[j, 1]:
+                problems.append(f"target {row.index}: J{j + 1} {v:.3f} deg outside limits")
+    return problems
+
+
+def _frame_problems(table: CompensationTable, limits: LimitsConfig, robot: RobotDescription,
+                    previous: CompensationTable | None) -> list[str]:
+    """Tool and base frames changed beyond the bounds, or a base too far from the tracker."""
+    if table.frames is None:
+        return ["frames table without frames"]
+    max_t, max_r = limits.max_frame_translation_mm, limits.max_frame_rotation_deg
+    problems: list[str] = []
+    t = robot.tool
+    nominal_tool = Frame(x=t[0] * 1e3, y=t[1] * 1e3, z=t[2] * 1e3, w=0.0, p=0.0, r=0.0)
+    dt, dr = _frame_change(nominal_tool, table.frames.tool)
+    if dt > max_t or dr > max_r:
+        problems.append(f"tool frame changes by {dt:.3f} mm / {dr:.4f} deg "
+                        f"(limits {max_t} mm / {max_r} deg)")
+    b = table.frames.base
+    reach = math.sqrt(b.x * b.x + b.y * b.y + b.z * b.z)
+    if not reach <= limits.max_base_distance_mm:
+        problems.append(f"base frame {reach:.1f} mm from the tracker (limit "
+                        f"{limits.max_base_distance_mm} mm)")
+    if previous is not None and previous.kind == "frames" and previous.frames:
+        dt, dr = _frame_change(previous.frames.base, table.frames.base)
+        if dt > max_t or dr > max_r:
+            problems.append(f"base frame changes by {dt:.3f} mm / {dr:.4f} deg "
+                            f"(limits {max_t} mm / {max_r} deg)")
+    return problems
+
+
+class Capabilities(NamedTuple):
+    """The optional compensation capabilities of a robot driver (None where it lacks one)."""
+
+    sink: CompensationSink | None
+    slots: CompensationSlots | None
+    snapshots: CompensationSnapshots | None
+
+
+def capabilities(robot: RobotDriver) -> Capabilities:
+    """What ``robot`` can do with compensation tables: the one runtime check of the optional
+    capability protocols (drivers declare them; the daemon's hub hands out a RobotDriver)."""
+    return Capabilities(robot if isinstance(robot, CompensationSink) else None,
+                        robot if isinstance(robot, CompensationSlots) else None,
+                        robot if isinstance(robot, CompensationSnapshots) else None)
+
+
+def _sink(robot: RobotDriver) -> CompensationSink:
+    sink = capabilities(robot).sink
+    if sink is None:
+        raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
+    return sink
+
+
+async def write_and_verify(robot: RobotDriver, table: CompensationTable) -> CompensationTable:
     """Write ``table``, read it back, compare content and checksum; return the read-back.
 
     Raises
@@ -251,11 +302,10 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
     VerificationMismatch
         If what the controller holds differs from what was written.
     """
-    if not isinstance(robot, CompensationSink):
-        raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
+    sink = _sink(robot)
     sealed = table if table.checksum else table.sealed()
-    await robot.write_compensation(sealed)  # drivers verify too; we check independently
-    back = await robot.read_compensation()
+    await sink.write_compensation(sealed)  # drivers verify too; we check independently
+    back = await sink.read_compensation()
     if back is None:
         raise VerificationMismatch("the controller holds no table after writing")
     details = table_diff(sealed, back, tol=1e-3)
@@ -267,28 +317,29 @@ async def write_and_verify(robot: object, table: CompensationTable) -> Compensat
 
 
 # --- controller snapshots and journal reconciliation -------------------------------------------
-async def snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
+async def snapshot(robot: RobotDriver, table: CompensationTable) -> ControllerSnapshot | None:
     """What the controller holds in ``table``'s slots, or None if the driver cannot say."""
-    if not isinstance(robot, CompensationSnapshots):
+    snapshots = capabilities(robot).snapshots
+    if snapshots is None:
         return None
-    return await robot.snapshot_compensation(table)
+    return await snapshots.snapshot_compensation(table)
 
 
-async def read_like(robot: object, table: CompensationTable) -> CompensationTable | None:
+async def read_like(robot: RobotDriver, table: CompensationTable) -> CompensationTable | None:
     """The controller's values in ``table``'s slots, as a table (None: nothing there)."""
-    if isinstance(robot, CompensationSlots):
-        return await robot.read_compensation_like(table)
-    if isinstance(robot, CompensationSink):
-        return await robot.read_compensation()
-    raise CompensationError(f"{type(robot).__name__} cannot store compensation tables")
+    can = capabilities(robot)
+    if can.slots is not None:
+        return await can.slots.read_compensation_like(table)
+    return await _sink(robot).read_compensation()
 
 
-async def holds(robot: object, entry: CompensationTable | ControllerSnapshot) -> bool:
+async def holds(robot: RobotDriver, entry: CompensationTable | ControllerSnapshot) -> bool:
     """Whether the controller holds ``entry`` (a table or a snapshot) right now."""
     if isinstance(entry, ControllerSnapshot):
-        if not isinstance(robot, CompensationSnapshots):
+        snapshots = capabilities(robot).snapshots
+        if snapshots is None:
             return False
-        current = await robot.snapshot_compensation(_template_for(entry))
+        current = await snapshots.snapshot_compensation(_template_for(entry))
         saved = entry.model_copy(update={"items": {k: v for k, v in entry.items.items()
                                                    if k != "template"}})
         return not snapshot_diff(saved, current)
@@ -304,7 +355,8 @@ def _template_for(snap: ControllerSnapshot) -> CompensationTable:
     raise CompensationError("snapshot does not say which slots it covers")
 
 
-async def take_snapshot(robot: object, table: CompensationTable) -> ControllerSnapshot | None:
+async def take_snapshot(robot: RobotDriver, table: CompensationTable
+                        ) -> ControllerSnapshot | None:
     """:func:`snapshot`, remembering the slots (a copy of ``table``) to read them again."""
     snap = await snapshot(robot, table)
     if snap is None:
@@ -312,16 +364,17 @@ async def take_snapshot(robot: object, table: CompensationTable) -> ControllerSn
     return snap.model_copy(update={"items": {**snap.items, "template": table.model_dump_json()}})
 
 
-async def restore(robot: object, entry: CompensationTable | ControllerSnapshot
+async def restore(robot: RobotDriver, entry: CompensationTable | ControllerSnapshot
                   ) -> CompensationTable | None:
     """Write ``entry`` back (a table: :func:`write_and_verify`; a snapshot: the driver's
     ``restore_snapshot``, which verifies the read-back)."""
     if isinstance(entry, CompensationTable):
         return await write_and_verify(robot, entry)
-    if not isinstance(robot, CompensationSnapshots):
+    snapshots = capabilities(robot).snapshots
+    if snapshots is None:
         raise CompensationError(f"{type(robot).__name__} cannot restore controller snapshots")
     items = {k: v for k, v in entry.items.items() if k != "template"}
-    await robot.restore_snapshot(entry.model_copy(update={"items": items}))
+    await snapshots.restore_snapshot(entry.model_copy(update={"items": items}))
     return None
 
 

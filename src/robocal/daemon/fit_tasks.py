@@ -1,0 +1,195 @@
+"""The campaign service's fits: one task per measured campaign, off the event loop.
+
+:class:`FitTasks` starts a fit when a campaign is ``measured`` (or was when the daemon
+stopped), runs it in the :class:`~robocal.daemon.fitting.FitRunner`, signs and stores the
+models and moves the campaign to ``fitted`` (or ``faulted``, saying why). It belongs to the
+campaign service, which constructs it and reaches its tasks through it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import sqlite3
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from robocal.daemon import _fingerprint
+from robocal.daemon.campaign import CampaignState
+from robocal.daemon.config import AppConfig
+from robocal.daemon.events import EventBus
+from robocal.daemon.fitting import FitRunner, build_fit_job, load_model, sign_fits
+from robocal.daemon.store import MeasurementRow, Store, now_iso
+from robocal.errors import IdentificationError, RobocalError, StorageError
+from robocal.kinematics import CalibratedModel, RobotDescription
+
+__all__ = ["FitTasks"]
+
+S = CampaignState
+_log = structlog.get_logger(__name__)
+
+
+class FitTasks:
+    """Fit tasks by campaign id.
+
+    ``campaign_dir`` names a campaign's files; ``transition`` moves a campaign to a state
+    (stored, announced and logged: the service's own).
+    """
+
+    def __init__(self, *, config: AppConfig, robot: RobotDescription, store: Store,
+                 events: EventBus, fitter: FitRunner, secret: bytes | None,
+                 campaign_dir: Callable[[str], Path],
+                 transition: Callable[..., object]) -> None:
+        self.config = config
+        self.robot = robot
+        self.store = store
+        self.events = events
+        self.fitter = fitter
+        self._secret = secret
+        self._campaign_dir = campaign_dir
+        self._transition = transition
+        self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._started: dict[str, tuple[str, float]] = {}  # ISO time, monotonic s
+
+    def __contains__(self, cid: str) -> bool:
+        return cid in self._tasks
+
+    def running(self) -> list[str]:
+        """Campaigns fitting now, sorted."""
+        return sorted(self._tasks)
+
+    def tasks(self) -> list[asyncio.Task[None]]:
+        """The fit tasks (to cancel at shutdown)."""
+        return list(self._tasks.values())
+
+    def started(self, cid: str) -> tuple[str, float] | None:
+        """When the fit of ``cid`` started (ISO time, monotonic s), if it runs."""
+        return self._started.get(cid) if cid in self._tasks else None
+
+    def cancel(self, cid: str) -> None:
+        """Stop the fit of ``cid``, if any."""
+        fit = self._tasks.get(cid)
+        if fit is not None:
+            fit.cancel()
+
+    def spawn(self, cid: str) -> None:
+        """Fit ``cid`` unless its fit runs already."""
+        if cid in self._tasks and not self._tasks[cid].done():
+            return
+        task = asyncio.create_task(self._fit_guarded(cid), name=f"fit-{cid}")
+        self._tasks[cid] = task
+        self._started[cid] = (now_iso(), time.monotonic())
+        task.add_done_callback(lambda _t: (self._tasks.pop(cid, None),
+                                           self._started.pop(cid, None)))
+
+    async def _fit_guarded(self, cid: str) -> None:
+        try:
+            await self._fit(cid)
+        except StorageError as err:
+            # Never stuck in "measured": faulted (held in memory until saved); resume fits again.
+            _log.error("fit not saved: the store cannot write", campaign=cid, error=str(err))
+            with contextlib.suppress(RobocalError, sqlite3.Error):
+                self._fault(cid, f"storage fault while saving the fit: {err}")
+
+    def measurement_log(self, cid: str, rows: list[MeasurementRow]) -> dict[str, Any]:
+        """What the report says of the measuring: poses planned and measured, retries, beam
+        losses, devices and the last weather reading."""
+        retries = sum(max(0, r.attempts - 1) for r in rows)
+        weather = [r.weather for r in rows if r.weather][-1:]
+        planned = sum(1 for p in self.store.poses(cid) if p.measure)
+        return {"planned": planned, "measured": len(rows), "retries": retries,
+                "beam_losses": sum(r.beam_losses for r in rows),
+                "tracker": self.config.tracker.kind, "controller": self.config.robot.kind,
+                "weather": weather[0] if weather else {}}
+
+    async def _run(self, cid: str, rows: list[MeasurementRow]) -> dict[str, Any] | None:
+        """The fit job's result, or None when it failed (the campaign faulted)."""
+        log = _log.bind(campaign=cid)
+        job = build_fit_job(campaign=cid, robot=self.robot, rows=rows,
+                            models=self.config.fit.models, cpa=self.config.fit.cpa,
+                            out_dir=self._campaign_dir(cid), report=self.config.fit.report,
+                            log=self.measurement_log(cid, rows),
+                            options=self.config.fit.options,
+                            acceptance=self.config.fit.acceptance,
+                            model_data=_fingerprint.model_data(self.store, cid))
+        if self.config.fit.select != "best":
+            job["selected"] = self.config.fit.select
+        self.events.emit("fit", cid, phase="started", models=list(self.config.fit.models))
+        log.info("fitting", models=list(self.config.fit.models), poses=len(rows))
+        try:
+            return await self.fitter.run(job)
+        except asyncio.CancelledError:
+            raise
+        except (RobocalError, OSError, ValueError, TypeError) as err:
+            reason = f"fit failed: {type(err).__name__}: {err}"
+            log.warning("fit failed", error=reason)
+            self._fault(cid, reason)
+        except Exception as err:  # never let a fit bug kill the daemon
+            log.exception("fit crashed")
+            self._fault(cid, f"fit crashed: {type(err).__name__}: {err}")
+        return None
+
+    async def _fit(self, cid: str) -> None:
+        result = await self._run(cid, self.store.measurements(cid))
+        if result is None:
+            return
+        fits = {name: (summ, mj) for name, (summ, mj) in result["fits"].items()}
+        for name, msg in result["errors"].items():
+            fits.setdefault(name, ({"model": name, "error": msg}, None))
+        fits = sign_fits(fits, self._secret, self.robot)
+        self.store.save_fits(cid, fits)
+        select = self.config.fit.select
+        chosen = result.get("selected_hint") if select == "best" else select
+        if chosen not in result["fits"] or fits[str(chosen)][1] is None:
+            errors = "; ".join(f"{k}: {v}" for k, v in result["errors"].items())
+            self._fault(cid, f"model {chosen!r} could not be fitted ({errors or 'no model'})")
+            return
+        self.store.set_selected_model(cid, chosen)
+        report = result.get("report")
+        if self.store.campaign(cid).state != S.MEASURED:
+            return  # aborted while fitting
+        self._transition(cid, S.FITTED, actor="daemon",
+                         reason=f"fitted {', '.join(result['fits'])}; proposed {chosen}")
+        summary = result["fits"][chosen][0].get("validation") or {}
+        self.events.emit("fit", cid, phase="done", selected=chosen,
+                         validation_rms_mm=summary.get("rms_mm"), report=report,
+                         seconds=result.get("seconds"))
+        _log.info("fitted", campaign=cid, selected=chosen, seconds=result.get("seconds"),
+                  report=report)
+
+    def model(self, cid: str, model: str | None = None) -> CalibratedModel:
+        """A fitted model of a campaign (default: the selected one), its signature checked.
+
+        Raises
+        ------
+        IdentificationError
+            If that model was not fitted.
+        """
+        rec = self.store.campaign(cid)
+        name = model or rec.selected_model or ""
+        text = self.store.model_json(cid, name)
+        if text is None:
+            raise IdentificationError(f"campaign {cid} has no fitted model {name!r}")
+        return load_model(text, source=f"campaign {cid}", secret=self._secret,
+                          nominal=self.robot)
+
+    def reference_model(self, exclude: str) -> CalibratedModel | None:
+        """The model of the last pushed campaign (not ``exclude``), used to predict readings."""
+        for rec in reversed(self.store.campaigns(states=[S.PUSHED])):
+            if rec.id == exclude or not rec.selected_model:
+                continue
+            text = self.store.model_json(rec.id, rec.selected_model)
+            if text:
+                with contextlib.suppress(RobocalError, ValueError, KeyError):
+                    return load_model(text, source=f"campaign {rec.id}",
+                                      secret=self._secret, nominal=self.robot)
+        return None
+
+    def _fault(self, cid: str, reason: str) -> None:
+        if self.store.campaign(cid).state == S.MEASURED:
+            self._transition(cid, S.FAULTED, actor="daemon", reason=reason)
+        self.events.emit("fit", cid, phase="failed", reason=reason)
