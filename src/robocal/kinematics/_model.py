@@ -21,7 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
-from robocal.kinematics._basis import component_columns, evaluate_basis
+from robocal.kinematics._basis import (
+    basis_plan,
+    component_columns,
+    error_components,
+    evaluate_basis,
+)
 from robocal.kinematics._robot import RobotDescription
 from robocal.kinematics._spec import ErrorModelSpec, ParameterLayout
 
@@ -114,6 +119,10 @@ class KinematicModel:
         self.layout = ParameterLayout(spec)
         self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
         self._cols = component_columns(spec)
+        self._plan = basis_plan(spec, robot)
+        # joints with a joint-dependent error term (the others add nothing to dE/dq)
+        self._dep_joints = frozenset(t.joint for t in spec.terms
+                                     if t.family not in ("const", "gravity"))
         self._theta_off = np.array([j.theta_offset for j in robot.joints])
         self._C = robot.coupling_matrix
         self._dh = [(j.d, j.a, math.cos(j.alpha), math.sin(j.alpha)) for j in robot.joints]
@@ -167,7 +176,8 @@ class KinematicModel:
         """Error component values E (n, dof, 6), optional dE/dq_i (n, dof, 6), and basis B."""
         q, x = self._check(q, x)
         n, dof = q.shape
-        B, dB = evaluate_basis(self.spec, self.robot, q, derivative=derivative)
+        B, dB = evaluate_basis(self.spec, self.robot, q, derivative=derivative,
+                               plan=self._plan)
         coef = x[_OFF:]
         E = np.zeros((n, dof * 6))
         if coef.size:
@@ -179,6 +189,14 @@ class KinematicModel:
             dE = (_scatter_columns(dB * coef, self._cols, dof * 6) if coef.size
                   else np.zeros((n, dof * 6))).reshape(n, dof, 6)
         return E.reshape(n, dof, 6), dE, B
+
+    def _errors(self, q: Array, x: Array, *, derivative: bool = False
+                ) -> tuple[Array, Array | None]:
+        """E (n, dof, 6) and optionally dE/dq_i (n, dof, 6), without the basis matrix."""
+        n, dof = q.shape
+        E, dE = error_components(self._plan, self.robot, q, x[_OFF:], self._cols, dof * 6,
+                                 derivative=derivative)
+        return E.reshape(n, dof, 6), None if dE is None else dE.reshape(n, dof, 6)
 
     def _chain(self, q: Array, x: Array, E: Array) -> ChainState:
         n, dof = q.shape
@@ -220,13 +238,13 @@ class KinematicModel:
     def positions(self, q: Array, x: Array) -> Array:
         """Reflector positions (n, 3) m in the tracker frame for joint values ``q`` (n, dof)."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors(q, x)
         return self._fk_fast(q, x, E)[0]
 
     def flange_poses(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
         """Return reflector positions (n, 3), flange rotations (n, 3, 3) and origins (n, 3)."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors(q, x)
         return self._fk_fast(q, x, E)
 
     def _fk_fast(self, q: Array, x: Array, E: Array) -> tuple[Array, Array, Array]:
@@ -285,23 +303,59 @@ class KinematicModel:
         unit of joint value (rad), including the joint-dependent error terms and couplings.
         """
         q, x = self._check(q, x)
-        E, dE, _ = self.joint_errors(q, x, derivative=True)
+        E, dE = self._errors(q, x, derivative=True)
         assert dE is not None
-        st = self._chain(q, x, E)
+        return self._joint_chain(q, x, E, dE)
+
+    def _joint_chain(self, q: Array, x: Array, E: Array, dE: Array
+                     ) -> tuple[Array, Array, Array]:
+        """Forward pass recording only what the 6 x dof joint Jacobian needs: the joint
+        axes, and per joint with joint-dependent errors the velocity its error components
+        give per unit of the joint value (not a column per error component)."""
         n, dof = q.shape
-        J = np.empty((n, 6, dof))
-        J[:, :3] = st.jlin @ self._C
-        J[:, 3:] = st.jang @ self._C
+        theta = q @ self._C.T + self._theta_off
+        R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
+        o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
+        R, o = _apply_error_fast(R, o, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)))
+        R, o = _fixed(R, o, self._T_base)
+        axes = np.empty((n, 3, dof))
+        origins = np.empty((n, dof, 3))
+        moved: list[tuple[int, Array, Array, Array]] = []     # joint, v, w, pivot
         for i in range(dof):
-            sl = slice(6 + 6 * i, 12 + 6 * i)
-            J[:, :3, i] += np.einsum("nkc,nc->nk", st.lin[:, :, sl], dE[:, i])
-            J[:, 3:, i] += np.einsum("nkc,nc->nk", st.ang[:, :, sl], dE[:, i])
-        return st.p, st.R, J
+            axes[:, :, i] = R[:, :, 2]
+            origins[:, i] = o
+            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
+            e = E[:, i, :]
+            if i in self._dep_joints:
+                de = dE[:, i, :]
+                v = np.einsum("nij,nj->ni", R, de[:, :3])
+                o = o + np.einsum("nij,nj->ni", R, e[:, :3])
+                w = R[:, :, 0] * de[:, 3:4]
+                _cols_rot(R, 1, 2, np.cos(e[:, 3]), np.sin(e[:, 3]))       # Rx(ex)
+                w += R[:, :, 1] * de[:, 4:5]
+                _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))       # Ry(ey)
+                w += R[:, :, 2] * de[:, 5:6]
+                _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))       # Rz(ez)
+                moved.append((i, v, w, o))
+            else:
+                R, o = _apply_error_fast(R, o, e)
+            d, a, ca, sa = self._dh[i]
+            o = o + d * R[:, :, 2] + a * R[:, :, 0]
+            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
+        R, o = _fixed(R, o, self._T_flange)
+        p = o + R @ x[ParameterLayout.TOOL]
+        J = np.empty((n, 6, dof))
+        J[:, :3] = _cross_axis1(axes, (p[:, None, :] - origins).transpose(0, 2, 1)) @ self._C
+        J[:, 3:] = axes @ self._C
+        for i, v, w, piv in moved:
+            J[:, :3, i] += v + np.cross(w, p - piv)
+            J[:, 3:, i] += w
+        return p, R, J
 
     def state(self, q: Array, x: Array) -> ChainState:
         """Full chain state, for callers that need the component sensitivities."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors(q, x)
         return self._chain(q, x, E)
 
     def base_transform(self, x: Array) -> Array:

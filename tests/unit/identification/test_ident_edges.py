@@ -10,7 +10,7 @@ import pytest
 
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import DataError
-from robocal.identification import FitOptions, fit
+from robocal.identification import fit
 from robocal.identification._fit import looks_like_radians, sanity_check
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, load_robot
 from robocal.kinematics._robot import Joint
