@@ -125,6 +125,7 @@ class KinematicModel:
                                      if t.family not in ("const", "gravity"))
         self._theta_off = np.array([j.theta_offset for j in robot.joints])
         self._C = robot.coupling_matrix
+        self._coupled = not np.array_equal(self._C, np.eye(robot.dof))
         self._dh = [(j.d, j.a, math.cos(j.alpha), math.sin(j.alpha)) for j in robot.joints]
         # fixed robot root -> DH frame 0 and DH frame n -> flange transforms (None: identity)
         self._T_base = robot.T_root_dh0 if robot.has_base else None
@@ -248,21 +249,48 @@ class KinematicModel:
         return self._fk_fast(q, x, E)
 
     def _fk_fast(self, q: Array, x: Array, E: Array) -> tuple[Array, Array, Array]:
+        R, o, _ = self._soa_pass(q, x, E, None)
+        p = o + _soa_apply(R, x[ParameterLayout.TOOL])
+        return p.T.copy(), np.ascontiguousarray(R.transpose(2, 0, 1)), o.T.copy()
+
+    def _soa_pass(self, q: Array, x: Array, E: Array, dE: Array | None
+                  ) -> tuple[Array, Array, list[tuple[int, Array, Array, Array, Array]]]:
+        """Forward pass in structure-of-arrays layout: R (3, 3, n) (R[:, k] is column k of
+        every pose's rotation, contiguous rows), origin (3, n).
+
+        With ``dE`` (n, dof, 6) it also records, per joint i: its axis and origin before
+        the joint, and (for joints with joint-dependent errors) the velocity v and angular
+        velocity w (3, n) its error components give per unit of q_i and their pivot.
+        """
         n, dof = q.shape
-        theta = q @ self._C.T + self._theta_off
-        R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
-        o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
-        R, o = _apply_error_fast(R, o, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)))
-        R, o = _fixed(R, o, self._T_base)
+        theta = (q @ self._C.T + self._theta_off).T            # (dof, n)
+        Et = np.ascontiguousarray(E.reshape(n, dof * 6).T)     # (6 dof, n)
+        dEt = None if dE is None else np.ascontiguousarray(dE.reshape(n, dof * 6).T)
+        R = np.repeat(self.T_ref[:3, :3, None], n, axis=2)
+        o = np.repeat(self.T_ref[:3, 3, None], n, axis=1)
+        _soa_error(R, o, x[ParameterLayout.BASE][:, None])
+        if self._T_base is not None:
+            R, o = _soa_fixed(R, o, self._T_base)
+        rec: list[tuple[int, Array, Array, Array, Array]] = []
         for i in range(dof):
-            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
-            R, o = _apply_error_fast(R, o, E[:, i, :])
+            z_i, o_i = R[:, 2].copy(), o.copy()
+            _soa_rot(R, 0, 1, np.cos(theta[i]), np.sin(theta[i]))
+            e = Et[6 * i:6 * i + 6]
+            if dEt is not None and i in self._dep_joints:
+                de = dEt[6 * i:6 * i + 6]
+                v = _soa_apply(R, de[:3])
+                w = _soa_error(R, o, e, de)
+                rec.append((i, z_i, o_i, np.concatenate([v, w]), o.copy()))
+            else:
+                _soa_error(R, o, e)
+                if dEt is not None:
+                    rec.append((i, z_i, o_i, np.empty((0, n)), o))
             d, a, ca, sa = self._dh[i]
-            o = o + d * R[:, :, 2] + a * R[:, :, 0]
-            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
-        R, o = _fixed(R, o, self._T_flange)
-        p = o + R @ x[ParameterLayout.TOOL]
-        return p, R, o
+            o += d * R[:, 2] + a * R[:, 0]
+            _soa_rot(R, 1, 2, ca, sa)
+        if self._T_flange is not None:
+            R, o = _soa_fixed(R, o, self._T_flange)
+        return R, o, rec
 
     def jacobian(self, q: Array, x: Array) -> tuple[Array, Array]:
         """Reflector positions (n, 3) and d position / d parameters (n, 3, n_params)."""
@@ -309,48 +337,26 @@ class KinematicModel:
 
     def _joint_chain(self, q: Array, x: Array, E: Array, dE: Array
                      ) -> tuple[Array, Array, Array]:
-        """Forward pass recording only what the 6 x dof joint Jacobian needs: the joint
-        axes, and per joint with joint-dependent errors the velocity its error components
-        give per unit of the joint value (not a column per error component)."""
+        """Positions, flange rotations and the 6 x dof joint Jacobian from one pass that
+        records only the joint axes and, per joint with joint-dependent errors, the velocity
+        its error components give per unit of the joint value (no column per component)."""
         n, dof = q.shape
-        theta = q @ self._C.T + self._theta_off
-        R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
-        o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
-        R, o = _apply_error_fast(R, o, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)))
-        R, o = _fixed(R, o, self._T_base)
-        axes = np.empty((n, 3, dof))
-        origins = np.empty((n, dof, 3))
-        moved: list[tuple[int, Array, Array, Array]] = []     # joint, v, w, pivot
-        for i in range(dof):
-            axes[:, :, i] = R[:, :, 2]
-            origins[:, i] = o
-            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
-            e = E[:, i, :]
-            if i in self._dep_joints:
-                de = dE[:, i, :]
-                v = np.einsum("nij,nj->ni", R, de[:, :3])
-                o = o + np.einsum("nij,nj->ni", R, e[:, :3])
-                w = R[:, :, 0] * de[:, 3:4]
-                _cols_rot(R, 1, 2, np.cos(e[:, 3]), np.sin(e[:, 3]))       # Rx(ex)
-                w += R[:, :, 1] * de[:, 4:5]
-                _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))       # Ry(ey)
-                w += R[:, :, 2] * de[:, 5:6]
-                _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))       # Rz(ez)
-                moved.append((i, v, w, o))
-            else:
-                R, o = _apply_error_fast(R, o, e)
-            d, a, ca, sa = self._dh[i]
-            o = o + d * R[:, :, 2] + a * R[:, :, 0]
-            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
-        R, o = _fixed(R, o, self._T_flange)
-        p = o + R @ x[ParameterLayout.TOOL]
-        J = np.empty((n, 6, dof))
-        J[:, :3] = _cross_axis1(axes, (p[:, None, :] - origins).transpose(0, 2, 1)) @ self._C
-        J[:, 3:] = axes @ self._C
-        for i, v, w, piv in moved:
-            J[:, :3, i] += v + np.cross(w, p - piv)
-            J[:, 3:, i] += w
-        return p, R, J
+        R, o, rec = self._soa_pass(q, x, E, dE)
+        p = o + _soa_apply(R, x[ParameterLayout.TOOL])            # (3, n)
+        lin = np.empty((3, dof, n))
+        ang = np.empty((3, dof, n))
+        for i, z_i, o_i, _, _ in rec:
+            ang[:, i] = z_i
+            lin[:, i] = _soa_cross(z_i, p - o_i)
+        Jt = np.concatenate([lin, ang])                           # (6, dof, n), per theta
+        Jt = np.einsum("rjn,jk->rkn", Jt, self._C) if self._coupled else Jt
+        for i, _, _, vw, piv in rec:
+            if vw.size:
+                w = vw[3:]
+                Jt[:3, i] += vw[:3] + _soa_cross(w, p - piv)
+                Jt[3:, i] += w
+        return (p.T.copy(), np.ascontiguousarray(R.transpose(2, 0, 1)),
+                np.ascontiguousarray(Jt.transpose(2, 0, 1)))
 
     def state(self, q: Array, x: Array) -> ChainState:
         """Full chain state, for callers that need the component sensitivities."""
@@ -395,3 +401,48 @@ def _apply_error_fast(R: Array, o: Array, e: Array) -> tuple[Array, Array]:
     _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))
     _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))
     return R, o
+
+
+# -- structure-of-arrays helpers: R (3, 3, n) with R[:, k] column k, vectors (3, n) ----------
+def _soa_rot(R: Array, i: int, j: int, c: Array | float, s: Array | float) -> None:
+    """In place: columns (i, j) <- (c Ri + s Rj, -s Ri + c Rj), a rotation about axis k."""
+    ri = R[:, i].copy()
+    rj = R[:, j]
+    R[:, i] = c * ri + s * rj
+    R[:, j] = -s * ri + c * rj
+
+
+def _soa_apply(R: Array, v: Array) -> Array:
+    """R v for v (3,), (3, 1) or (3, n): (3, n)."""
+    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+def _soa_cross(a: Array, b: Array) -> Array:
+    """Cross products of (3, n) vectors."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+def _soa_fixed(R: Array, o: Array, T: Array) -> tuple[Array, Array]:
+    """Frame followed by the fixed transform T (4, 4)."""
+    Rn = np.einsum("imn,mk->ikn", R, T[:3, :3])
+    return Rn, o + _soa_apply(R, T[:3, 3])
+
+
+def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None) -> Array | None:
+    """In place: apply E(e) (e (6, n) or (6, 1)) to frame (R, o).
+
+    With ``de`` (6, n): also return the angular velocity (3, n) of the frame per unit of
+    the joint value whose error components change by ``de`` (rotation axes as they are when
+    each rotation acts).
+    """
+    o += _soa_apply(R, e[:3])
+    w = None if de is None else R[:, 0] * de[3]
+    _soa_rot(R, 1, 2, np.cos(e[3]), np.sin(e[3]))       # Rx(ex)
+    if w is not None and de is not None:
+        w += R[:, 1] * de[4]
+    _soa_rot(R, 2, 0, np.cos(e[4]), np.sin(e[4]))       # Ry(ey)
+    if w is not None and de is not None:
+        w += R[:, 2] * de[5]
+    _soa_rot(R, 0, 1, np.cos(e[5]), np.sin(e[5]))       # Rz(ez)
+    return w
