@@ -482,6 +482,8 @@ class _Superset:
     base_cols: IntArray
     cv: _CV
     scale: Array            # column scale of the per-fold normal matrices (P,)
+    model: KinematicModel   # the superset model and the point it is linearised at
+    x_c: Array
     ridge_sigma: float
     tie_sigma: float
     weak_sigma: float
@@ -521,7 +523,8 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
     groups = [g for g in groups if len(g.cols)]
     cv, s = _fold_normals(f, prob, x_c, rows, msup.size)
-    sup = _Superset(groups, base_terms, base_cols, cv, s, math.radians(opts.map_ridge_deg),
+    sup = _Superset(groups, base_terms, base_cols, cv, s, msup, x_c,
+                    math.radians(opts.map_ridge_deg),
                     math.radians(opts.map_tie_deg), math.radians(opts.map_weak_deg))
     for g in groups:
         if g.is_map:
@@ -744,9 +747,34 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     label = "auto:" + ",".join(sel.chosen) if sel.chosen else "auto:constant"
     spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots), label=label)
     mf = KinematicModel(f.robot, spec_f, const.model.T_ref)
-    x0 = const.model.transfer(const.x, mf)
+    x0 = _start(f, sup, sel, const, mf, rows)
+    log = sel.log
+    log.append({"action": "final", "groups": list(sel.chosen),
+                "cv_evaluations": sel.cv.evaluations,
+                "selection_s": time.perf_counter() - t0})
+    # the per-fold normal matrices (folds x P x P over ~1,600 candidate columns) are not
+    # needed by the final solve: let them go before it allocates its own
+    del sel, sup
     sol = f.engine.solve(mf, x0, priors=priors, inliers=inl, what="auto model")
-    sel.log.append({"action": "final", "groups": list(sel.chosen),
-                    "cv_evaluations": sel.cv.evaluations,
-                    "selection_s": time.perf_counter() - t0})
-    return sol, sel.log
+    return sol, log
+
+
+def _start(f: _Fitter, sup: _Superset, sel: _Selection, const: Solution, mf: KinematicModel,
+           rows: IntArray) -> Array:
+    """Start of the final solve: the selection's linearised solution (one Gauss-Newton step
+    of the chosen columns from the constant solution, with the CV's priors), unless the
+    constant solution fits the poses better."""
+    x_const = const.model.transfer(const.x, mf)
+    cols, pen = sel.assemble(sel.chosen)
+    ix = np.ix_(cols, cols)
+    try:
+        d = _spd_or_lstsq(sup.cv.G[ix] + pen, sup.cv.b[cols])
+    except np.linalg.LinAlgError:
+        return x_const
+    x_sup = sup.x_c.copy()
+    x_sup[cols] += d / sup.scale[cols]
+    x_lin = sup.model.transfer(x_sup, mf)
+    prob = Problem(mf, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
+    if not np.isfinite(x_lin).all() or prob.cost(x_lin, rows) >= prob.cost(x_const, rows):
+        return x_const
+    return x_lin

@@ -106,10 +106,12 @@ class BasisPlan:
     across the six error components and between cosine and sine: ``freq`` (U,) and
     ``joint`` (U,) list each distinct harmonic once; ``h_terms`` (H,) are the harmonic
     terms, ``h_feature`` (H,) the harmonic each uses and ``h_cos`` (H,) whether it is the
-    cosine. ``rest`` are the other terms' indices and ``rest_spec`` a spec of them alone.
+    cosine. ``const`` are the constant terms, ``rest`` the other terms' indices and
+    ``rest_spec`` a spec of them alone.
     """
 
     n_terms: int
+    const: NDArray[np.intp]
     joint: NDArray[np.intp]
     freq: Array
     h_terms: NDArray[np.intp]
@@ -122,8 +124,11 @@ class BasisPlan:
 def basis_plan(spec: ErrorModelSpec, robot: RobotDescription) -> BasisPlan:
     """The :class:`BasisPlan` of ``spec`` on ``robot``."""
     feats: dict[tuple[int, float], int] = {}
-    h_terms, h_feat, h_cos, rest = [], [], [], []
+    h_terms, h_feat, h_cos, rest, const = [], [], [], [], []
     for k, t in enumerate(spec.terms):
+        if t.family == "const":
+            const.append(k)
+            continue
         if t.family not in _HARMONIC:
             rest.append(k)
             continue
@@ -135,7 +140,7 @@ def basis_plan(spec: ErrorModelSpec, robot: RobotDescription) -> BasisPlan:
         h_cos.append(t.family.endswith("cos"))
     keys = list(feats)
     return BasisPlan(
-        n_terms=len(spec.terms),
+        n_terms=len(spec.terms), const=np.array(const, dtype=np.intp),
         joint=np.array([j for j, _ in keys], dtype=np.intp),
         freq=np.array([f for _, f in keys], dtype=float),
         h_terms=np.array(h_terms, dtype=np.intp), h_feature=np.array(h_feat, dtype=np.intp),
@@ -153,35 +158,40 @@ def _harmonic_values(plan: BasisPlan, q: Array) -> tuple[Array, Array]:
 def error_components(plan: BasisPlan, robot: RobotDescription, q: Array, coef: Array,
                      cols: NDArray[np.intp], width: int, *, derivative: bool = False
                      ) -> tuple[Array, Array | None]:
-    """``B @ S`` and ``dB @ S`` (n, width) without forming B: S scatters term k, weighted by
-    ``coef[k]``, into column ``cols[k]`` (error component joint * 6 + axis).
+    """``(B @ S).T`` and ``(dB @ S).T`` (width, n) without forming B: S scatters term k,
+    weighted by ``coef[k]``, into column ``cols[k]`` (error component joint * 6 + axis).
 
-    The harmonics are combined by two matrix products with their cosines and sines; the
-    other terms go through :func:`evaluate_basis` of ``plan.rest_spec``.
+    The harmonics are combined by two matrix products with their cosines and sines
+    (computed once per distinct argument, as (U, n) rows), the constants are added as they
+    are, and the other terms go through :func:`evaluate_basis` of ``plan.rest_spec``.
     """
     n = q.shape[0]
-    E = np.zeros((n, width))
-    dE = np.zeros((n, width)) if derivative else None
+    E = np.zeros((width, n))
+    dE = np.zeros((width, n)) if derivative else None
+    if plan.const.size:
+        e0 = np.zeros(width)
+        np.add.at(e0, cols[plan.const], coef[plan.const])
+        E += e0[:, None]
     if plan.h_terms.size:
-        c, s = _harmonic_values(plan, q)
+        arg = plan.freq[:, None] * q.T[plan.joint]                   # (U, n)
+        c, s = np.cos(arg), np.sin(arg)
         U = plan.freq.size
-        Mc = np.zeros((U, width))
-        Ms = np.zeros((U, width))
+        Mc = np.zeros((width, U))
+        Ms = np.zeros((width, U))
         hc = plan.h_cos
         w = coef[plan.h_terms]
-        np.add.at(Mc, (plan.h_feature[hc], cols[plan.h_terms[hc]]), w[hc])
-        np.add.at(Ms, (plan.h_feature[~hc], cols[plan.h_terms[~hc]]), w[~hc])
-        E += c @ Mc + s @ Ms
+        np.add.at(Mc, (cols[plan.h_terms[hc]], plan.h_feature[hc]), w[hc])
+        np.add.at(Ms, (cols[plan.h_terms[~hc]], plan.h_feature[~hc]), w[~hc])
+        E += Mc @ c + Ms @ s
         if dE is not None:
-            f = plan.freq[:, None]
-            dE += c @ (f * Ms) - s @ (f * Mc)
+            dE += (Ms * plan.freq) @ c - (Mc * plan.freq) @ s
     if plan.rest.size:
         Br, dBr = evaluate_basis(plan.rest_spec, robot, q, derivative=derivative)
-        S = np.zeros((plan.rest.size, width))
-        S[np.arange(plan.rest.size), cols[plan.rest]] = coef[plan.rest]
-        E += Br @ S
+        S = np.zeros((width, plan.rest.size))
+        S[cols[plan.rest], np.arange(plan.rest.size)] = coef[plan.rest]
+        E += S @ Br.T
         if dE is not None and dBr is not None:
-            dE += dBr @ S
+            dE += S @ dBr.T
     return E, dE
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import DataError
-from robocal.identification import fit
+from robocal.identification import FitOptions, fit
 from robocal.identification._fit import looks_like_radians, sanity_check
 from robocal.kinematics import ErrorModelSpec, KinematicModel, RobotDescription, load_robot
 from robocal.kinematics._robot import Joint
@@ -86,3 +86,19 @@ def test_model_digest_differs_with_and_without_sigma_columns(paper_data) -> None
     without = fit(d.cell.robot, d.train, "constant").calibrated
     assert with_s.data["digest"] == train.digest() != without.data["digest"]
     assert with_s.fit["options"]["use_point_sigma"] is True
+
+
+def test_sigma_columns_get_the_model_error_they_leave_out(paper_data) -> None:
+    """Tracker-like sigmas (a few um) far below what the constant model leaves: the fit adds
+    the estimated model-error component; consistent sigmas are left as they are."""
+    d = paper_data
+    rng = np.random.default_rng(8)
+    train = replace(d.train, sigma=rng.uniform(2e-6, 30e-6, d.train.p.shape))
+    est = fit(d.cell.robot, train, "constant", validation=d.val)
+    raw = fit(d.cell.robot, train, "constant", validation=d.val,
+              options=FitOptions(point_sigma_floor_m=0.0))
+    assert "model error in quadrature" in est.calibrated.data["sigma_source"]
+    assert raw.calibrated.data["sigma_source"] == "per-point sx,sy,sz"
+    assert est.variance_factor < 3.0 < 30.0 < raw.variance_factor
+    assert est.validation is not None and raw.validation is not None
+    assert est.validation.rms_m < raw.validation.rms_m
