@@ -514,7 +514,10 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     # each of them well posed in the CV instead
     map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
-    _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
+    # one pass over the superset Jacobian: the fold normals and the rank analysis's factor
+    cv, s, factor = _fold_normals(f, prob, x_c, rows, msup.size, unpen)
+    _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol, factor=factor)
+    del factor
     kept = set(int(c) for c in unpen[keep])
     base_cols = np.array([i for i in range(ParameterLayout.OFFSET + len(base_terms)) if i in kept],
                          dtype=np.intp)
@@ -522,7 +525,6 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
         if not (g.is_map or g.is_ripple):
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
     groups = [g for g in groups if len(g.cols)]
-    cv, s = _fold_normals(f, prob, x_c, rows, msup.size)
     sup = _Superset(groups, base_terms, base_cols, cv, s, msup, x_c,
                     math.radians(opts.map_ridge_deg),
                     math.radians(opts.map_tie_deg), math.radians(opts.map_weak_deg))
@@ -539,18 +541,23 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     return sup
 
 
-def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int
-                  ) -> tuple[_CV, Array]:
+def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
+                  unpen: IntArray) -> tuple[_CV, Array, tuple[Array, Array]]:
     """Per-fold normal matrices of the whitened superset Jacobian at ``x_c``, column-scaled
-    (scaled so that the Schur complements compare columns of metres and radians)."""
+    (scaled so that the Schur complements compare columns of metres and radians), and from
+    the same Jacobian chunks the normal matrix and an R factor of the ``unpen`` columns for
+    :func:`analyse_jacobian` (unscaled)."""
     opts = f.opts
     fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
                        math.radians(opts.cv_group_tol_deg))
     G_f = np.zeros((opts.cv_folds, P, P))
     b_f = np.zeros((opts.cv_folds, P))
     c_f = np.zeros(opts.cv_folds)
+    R_un: Array | None = None
     for ch in prob.chunks(np.arange(len(rows))):
         Jw, rw = prob.whitened_jacobian(x_c, rows[ch], np.arange(P))
+        Ju = Jw[:, unpen] if R_un is None else np.vstack([R_un, Jw[:, unpen]])
+        R_un = np.linalg.qr(Ju, mode="r")  # type: ignore[assignment]
         fo = np.repeat(fold_of[ch], 3)
         for k in range(opts.cv_folds):
             sel = fo == k
@@ -559,11 +566,15 @@ def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int
                 G_f[k] += Js.T @ Js
                 b_f[k] += Js.T @ rw[sel]
                 c_f[k] += float(rw[sel] @ rw[sel])
-    s = np.sqrt(np.clip(np.diagonal(G_f.sum(axis=0)), 0.0, None))
+    G = G_f.sum(axis=0)
+    A_un = G[np.ix_(unpen, unpen)]
+    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None))
+    del G
     s[s <= 1e-300] = 1.0
     G_f /= np.outer(s, s)[None]
     b_f /= s[None]
-    return _CV(G_f, b_f, c_f), s
+    assert R_un is not None
+    return _CV(G_f, b_f, c_f), s, (A_un, R_un)
 
 
 class _Selection:
