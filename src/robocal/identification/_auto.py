@@ -184,9 +184,14 @@ class _CV:
                     return bases
                 g = base_cols[k0:]
                 gpen = base_pen[k0:, k0:]
-                new = [self._extend(f, old_cols, fb, g, gpen) for f, fb in enumerate(bases)]
-                self._cache = (base_cols.copy(), base_pen.copy(), new)
-                return new
+                # replaced fold by fold, so that only one fold's old and new factors (k x P
+                # each, hundreds of MB over all folds with maps) are held at once
+                self._cache = None
+                for f in range(len(bases)):
+                    bases[f] = self._extend(f, old_cols, bases[f], g, gpen)
+                self._cache = (base_cols.copy(), base_pen.copy(), bases)
+                return bases
+        self._cache = c = None                              # let the old factors go first
         ixb = np.ix_(base_cols, base_cols)
         Gb = self.G[ixb] + base_pen
         bases = []
@@ -302,6 +307,15 @@ class _CV:
         by_size: dict[int, list[int]] = {}
         for i, (gcols, _) in enumerate(options):
             by_size.setdefault(len(gcols), []).append(i)
+        # groups of one size in batches of at most ~32 MB of stacked temporaries (the map
+        # groups have hundreds of columns and each is tried with several priors)
+        k = len(base_cols)
+        batches = []
+        for idx_all in by_size.values():
+            g = len(options[idx_all[0]][0])
+            n_opt = max(len(options[i][1]) for i in idx_all)
+            step = max(1, int(32e6 // (8 * (4 * k * g + 4 * n_opt * g * g))))
+            batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
         bases = self.fold_bases(base_cols, base_pen)
         for f, fb in enumerate(bases):
             Gf = self.G_f[f]
@@ -313,7 +327,7 @@ class _CV:
             GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
             const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
             Gf_b = Gf[base_cols]
-            for idx in by_size.values():
+            for idx in batches:
                 C = np.stack([options[i][0] for i in idx])          # (m, g)
                 cc = (C[:, :, None], C[:, None, :])
                 X = fb.X[:, C].transpose(1, 0, 2)                   # (m, k, g)
@@ -507,7 +521,10 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     idx = {n: i for i, n in enumerate(msup.names)}
     for g in groups:
         g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
-    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
+    # the superset has ~1,600 columns: chunks of at most ~32 MB of whitened Jacobian keep the
+    # peak memory of the pass below bounded on thousands of poses
+    chunk = max(64, min(f.opts.chunk, int(32e6 // (8 * 3 * msup.size))))
+    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=chunk)
     # identifiable unpenalised columns (tiers keep low orders first); maps and ripple stay
     # out of the rank analysis: hundreds of ripple columns would make the superset rank
     # deficient on a few hundred poses and push out the physical terms; a weak ridge keeps
