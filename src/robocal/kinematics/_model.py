@@ -191,13 +191,18 @@ class KinematicModel:
                   else np.zeros((n, dof * 6))).reshape(n, dof, 6)
         return E.reshape(n, dof, 6), dE, B
 
+    def _errors_t(self, q: Array, x: Array, *, derivative: bool = False
+                  ) -> tuple[Array, Array | None]:
+        """E and optionally dE/dq_i as (6 dof, n) rows, without the basis matrix."""
+        return error_components(self._plan, self.robot, q, x[_OFF:], self._cols,
+                                self.robot.dof * 6, derivative=derivative)
+
     def _errors(self, q: Array, x: Array, *, derivative: bool = False
                 ) -> tuple[Array, Array | None]:
         """E (n, dof, 6) and optionally dE/dq_i (n, dof, 6), without the basis matrix."""
         n, dof = q.shape
-        E, dE = error_components(self._plan, self.robot, q, x[_OFF:], self._cols, dof * 6,
-                                 derivative=derivative)
-        return E.reshape(n, dof, 6), None if dE is None else dE.reshape(n, dof, 6)
+        E, dE = self._errors_t(q, x, derivative=derivative)
+        return E.T.reshape(n, dof, 6), None if dE is None else dE.T.reshape(n, dof, 6)
 
     def _chain(self, q: Array, x: Array, E: Array) -> ChainState:
         n, dof = q.shape
@@ -239,13 +244,13 @@ class KinematicModel:
     def positions(self, q: Array, x: Array) -> Array:
         """Reflector positions (n, 3) m in the tracker frame for joint values ``q`` (n, dof)."""
         q, x = self._check(q, x)
-        E, _ = self._errors(q, x)
+        E, _ = self._errors_t(q, x)
         return self._fk_fast(q, x, E)[0]
 
     def flange_poses(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
         """Return reflector positions (n, 3), flange rotations (n, 3, 3) and origins (n, 3)."""
         q, x = self._check(q, x)
-        E, _ = self._errors(q, x)
+        E, _ = self._errors_t(q, x)
         return self._fk_fast(q, x, E)
 
     def _fk_fast(self, q: Array, x: Array, E: Array) -> tuple[Array, Array, Array]:
@@ -256,16 +261,16 @@ class KinematicModel:
     def _soa_pass(self, q: Array, x: Array, E: Array, dE: Array | None
                   ) -> tuple[Array, Array, list[tuple[int, Array, Array, Array, Array]]]:
         """Forward pass in structure-of-arrays layout: R (3, 3, n) (R[:, k] is column k of
-        every pose's rotation, contiguous rows), origin (3, n).
+        every pose's rotation, contiguous rows), origin (3, n); error components ``E`` as
+        (6 dof, n) rows.
 
-        With ``dE`` (n, dof, 6) it also records, per joint i: its axis and origin before
+        With ``dE`` (6 dof, n) it also records, per joint i: its axis and origin before
         the joint, and (for joints with joint-dependent errors) the velocity v and angular
         velocity w (3, n) its error components give per unit of q_i and their pivot.
         """
         n, dof = q.shape
         theta = (q @ self._C.T + self._theta_off).T            # (dof, n)
-        Et = np.ascontiguousarray(E.reshape(n, dof * 6).T)     # (6 dof, n)
-        dEt = None if dE is None else np.ascontiguousarray(dE.reshape(n, dof * 6).T)
+        Et, dEt = E, dE                                         # (6 dof, n) rows
         R = np.repeat(self.T_ref[:3, :3, None], n, axis=2)
         o = np.repeat(self.T_ref[:3, 3, None], n, axis=1)
         _soa_error(R, o, x[ParameterLayout.BASE][:, None])
@@ -331,7 +336,7 @@ class KinematicModel:
         unit of joint value (rad), including the joint-dependent error terms and couplings.
         """
         q, x = self._check(q, x)
-        E, dE = self._errors(q, x, derivative=True)
+        E, dE = self._errors_t(q, x, derivative=True)
         assert dE is not None
         return self._joint_chain(q, x, E, dE)
 
