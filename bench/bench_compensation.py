@@ -15,7 +15,6 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from _machine import header
 from tests.unit.compensation._helpers import fitted_model
 
 from robocal.compensation import (
@@ -78,7 +78,7 @@ def main() -> int:
     def rms(a: np.ndarray) -> float:
         return float(np.sqrt(np.mean(a**2)) * 1e6)
 
-    print(f"machine: {os.cpu_count()} cores, numpy {np.__version__}")
+    print(header())
     print(f"model fit ({cal.kind}, {cal.model.size} parameters): {t_fit:.2f} s")
     print(f"compensate {args.n} targets: wall {wall:.3f} s, cpu {cpu:.3f} s "
           f"({wall / args.n * 1e6:.1f} us/target), best of {args.repeat}")

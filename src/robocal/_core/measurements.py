@@ -120,11 +120,24 @@ class MeasurementSet:
         """The same poses with positions only."""
         return MeasurementSet(self.q, self.p, self.sigma, self.pose_id)
 
-    def digest(self) -> str:
-        """SHA-256 of the numerical content (joint values and points), hex."""
+    def digest(self, *, sigma: bool = True, orientation: bool = True) -> str:
+        """SHA-256 (hex) of the numerical content: joint values, points, and the per-point
+        sigmas (``sigma``) and probe orientations with their sigmas (``orientation``) where
+        present. Each optional block is tagged, so a set without it (the digest of joints and
+        points alone, as before these columns counted) never collides with one with it.
+        """
         h = hashlib.sha256()
         h.update(np.ascontiguousarray(self.q).tobytes())
         h.update(np.ascontiguousarray(self.p).tobytes())
+        blocks = []
+        if sigma:
+            blocks.append((b"sigma", self.sigma))
+        if orientation:
+            blocks += [(b"rot", self.rot), (b"rot_sigma", self.rot_sigma)]
+        for tag, v in blocks:
+            if v is not None:
+                h.update(b"\0" + tag + b"\0")
+                h.update(np.ascontiguousarray(v, dtype=float).tobytes())
         return h.hexdigest()
 
     # -- files --------------------------------------------------------------------------------

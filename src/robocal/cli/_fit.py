@@ -57,6 +57,10 @@ def register(sub: Any) -> None:
     p.add_argument("--map-spacing-deg", type=float, help="joint-angle map knot spacing (auto)")
     p.add_argument("--cv-folds", type=int, help="cross-validation folds (auto)")
     p.add_argument("--seed", type=int, help="seed of the CV folds (auto)")
+    p.add_argument("--point-sigma-floor-mm", type=float, metavar="MM",
+                   help="model error combined in quadrature with the data's sx,sy,sz "
+                        "(default: estimated from the constant model's residuals; 0 weights "
+                        "by the raw per-point sigmas)")
     p.add_argument("--no-fallback", action="store_true",
                    help="do not store the constant-model fallback")
     p.set_defaults(handler=run)
@@ -78,6 +82,8 @@ def _options(args: argparse.Namespace) -> Any:
                         transverse_per_m=0.0)
     kw["noise"] = noise
     kw["use_point_sigma"] = not args.ignore_point_sigma
+    if args.point_sigma_floor_mm is not None:
+        kw["point_sigma_floor_m"] = args.point_sigma_floor_mm * 1e-3
     kw["detect_outliers"] = not args.no_outliers
     if args.outlier_sigma is not None:
         kw["outlier_sigma"] = args.outlier_sigma

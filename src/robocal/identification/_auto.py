@@ -182,9 +182,14 @@ class _CV:
                     return bases
                 g = base_cols[k0:]
                 gpen = base_pen[k0:, k0:]
-                new = [self._extend(f, old_cols, fb, g, gpen) for f, fb in enumerate(bases)]
-                self._cache = (base_cols.copy(), base_pen.copy(), new)
-                return new
+                # replaced fold by fold, so that only one fold's old and new factors (k x P
+                # each, hundreds of MB over all folds with maps) are held at once
+                self._cache = None
+                for f in range(len(bases)):
+                    bases[f] = self._extend(f, old_cols, bases[f], g, gpen)
+                self._cache = (base_cols.copy(), base_pen.copy(), bases)
+                return bases
+        self._cache = c = None                              # let the old factors go first
         ixb = np.ix_(base_cols, base_cols)
         Gb = self.G[ixb] + base_pen
         bases = []
@@ -300,6 +305,15 @@ class _CV:
         by_size: dict[int, list[int]] = {}
         for i, (gcols, _) in enumerate(options):
             by_size.setdefault(len(gcols), []).append(i)
+        # groups of one size in batches of at most ~32 MB of stacked temporaries (the map
+        # groups have hundreds of columns and each is tried with several priors)
+        k = len(base_cols)
+        batches = []
+        for idx_all in by_size.values():
+            g = len(options[idx_all[0]][0])
+            n_opt = max(len(options[i][1]) for i in idx_all)
+            step = max(1, int(32e6 // (8 * (4 * k * g + 4 * n_opt * g * g))))
+            batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
         bases = self.fold_bases(base_cols, base_pen)
         for f, fb in enumerate(bases):
             Gf = self.G_f[f]
@@ -311,7 +325,7 @@ class _CV:
             GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
             const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
             Gf_b = Gf[base_cols]
-            for idx in by_size.values():
+            for idx in batches:
                 C = np.stack([options[i][0] for i in idx])          # (m, g)
                 cc = (C[:, :, None], C[:, None, :])
                 X = fb.X[:, C].transpose(1, 0, 2)                   # (m, k, g)
@@ -480,6 +494,8 @@ class _Superset:
     base_cols: IntArray
     cv: _CV
     scale: Array            # column scale of the per-fold normal matrices (P,)
+    model: KinematicModel   # the superset model and the point it is linearised at
+    x_c: Array
     ridge_sigma: float
     tie_sigma: float
     weak_sigma: float
@@ -503,14 +519,20 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     idx = {n: i for i, n in enumerate(msup.names)}
     for g in groups:
         g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
-    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
+    # the superset has ~1,600 columns: chunks of at most ~32 MB of whitened Jacobian keep the
+    # peak memory of the pass below bounded on thousands of poses
+    chunk = max(64, min(f.opts.chunk, int(32e6 // (8 * 3 * msup.size))))
+    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=chunk)
     # identifiable unpenalised columns (tiers keep low orders first); maps and ripple stay
     # out of the rank analysis: hundreds of ripple columns would make the superset rank
     # deficient on a few hundred poses and push out the physical terms; a weak ridge keeps
     # each of them well posed in the CV instead
     map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
-    _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol)
+    # one pass over the superset Jacobian: the fold normals and the rank analysis's factor
+    cv, s, factor = _fold_normals(f, prob, x_c, rows, msup.size, unpen)
+    _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol, factor=factor)
+    del factor
     kept = set(int(c) for c in unpen[keep])
     base_cols = np.array([i for i in range(ParameterLayout.OFFSET + len(base_terms)) if i in kept],
                          dtype=np.intp)
@@ -518,8 +540,8 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
         if not (g.is_map or g.is_ripple):
             g.cols = np.array([c for c in g.cols if int(c) in kept], dtype=np.intp)
     groups = [g for g in groups if len(g.cols)]
-    cv, s = _fold_normals(f, prob, x_c, rows, msup.size)
-    sup = _Superset(groups, base_terms, base_cols, cv, s, math.radians(opts.map_ridge_deg),
+    sup = _Superset(groups, base_terms, base_cols, cv, s, msup, x_c,
+                    math.radians(opts.map_ridge_deg),
                     math.radians(opts.map_tie_deg), math.radians(opts.map_weak_deg))
     for g in groups:
         if g.is_map:
@@ -534,18 +556,23 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     return sup
 
 
-def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int
-                  ) -> tuple[_CV, Array]:
+def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
+                  unpen: IntArray) -> tuple[_CV, Array, tuple[Array, Array]]:
     """Per-fold normal matrices of the whitened superset Jacobian at ``x_c``, column-scaled
-    (scaled so that the Schur complements compare columns of metres and radians)."""
+    (scaled so that the Schur complements compare columns of metres and radians), and from
+    the same Jacobian chunks the normal matrix and an R factor of the ``unpen`` columns for
+    :func:`analyse_jacobian` (unscaled)."""
     opts = f.opts
     fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
                        math.radians(opts.cv_group_tol_deg))
     G_f = np.zeros((opts.cv_folds, P, P))
     b_f = np.zeros((opts.cv_folds, P))
     c_f = np.zeros(opts.cv_folds)
+    R_un: Array | None = None
     for ch in prob.chunks(np.arange(len(rows))):
         Jw, rw = prob.whitened_jacobian(x_c, rows[ch], np.arange(P))
+        Ju = Jw[:, unpen] if R_un is None else np.vstack([R_un, Jw[:, unpen]])
+        R_un = np.linalg.qr(Ju, mode="r")  # type: ignore[assignment]
         fo = np.repeat(fold_of[ch], 3)
         for k in range(opts.cv_folds):
             sel = fo == k
@@ -554,11 +581,15 @@ def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int
                 G_f[k] += Js.T @ Js
                 b_f[k] += Js.T @ rw[sel]
                 c_f[k] += float(rw[sel] @ rw[sel])
-    s = np.sqrt(np.clip(np.diagonal(G_f.sum(axis=0)), 0.0, None))
+    G = G_f.sum(axis=0)
+    A_un = G[np.ix_(unpen, unpen)]
+    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None))
+    del G
     s[s <= 1e-300] = 1.0
     G_f /= np.outer(s, s)[None]
     b_f /= s[None]
-    return _CV(G_f, b_f, c_f), s
+    assert R_un is not None
+    return _CV(G_f, b_f, c_f), s, (A_un, R_un)
 
 
 class _Selection:
@@ -742,9 +773,34 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     label = "auto:" + ",".join(sel.chosen) if sel.chosen else "auto:constant"
     spec_f = ErrorModelSpec(f.robot.dof, tuple(final_terms), tuple(final_knots), label=label)
     mf = KinematicModel(f.robot, spec_f, const.model.T_ref)
-    x0 = const.model.transfer(const.x, mf)
+    x0 = _start(f, sup, sel, const, mf, rows)
+    log = sel.log
+    log.append({"action": "final", "groups": list(sel.chosen),
+                "cv_evaluations": sel.cv.evaluations,
+                "selection_s": time.perf_counter() - t0})
+    # the per-fold normal matrices (folds x P x P over ~1,600 candidate columns) are not
+    # needed by the final solve: let them go before it allocates its own
+    del sel, sup
     sol = f.engine.solve(mf, x0, priors=priors, inliers=inl, what="auto model")
-    sel.log.append({"action": "final", "groups": list(sel.chosen),
-                    "cv_evaluations": sel.cv.evaluations,
-                    "selection_s": time.perf_counter() - t0})
-    return sol, sel.log
+    return sol, log
+
+
+def _start(f: _Fitter, sup: _Superset, sel: _Selection, const: Solution, mf: KinematicModel,
+           rows: IntArray) -> Array:
+    """Start of the final solve: the selection's linearised solution (one Gauss-Newton step
+    of the chosen columns from the constant solution, with the CV's priors), unless the
+    constant solution fits the poses better."""
+    x_const = const.model.transfer(const.x, mf)
+    cols, pen = sel.assemble(sel.chosen)
+    ix = np.ix_(cols, cols)
+    try:
+        d = _spd_or_lstsq(sup.cv.G[ix] + pen, sup.cv.b[cols])
+    except np.linalg.LinAlgError:
+        return x_const
+    x_sup = sup.x_c.copy()
+    x_sup[cols] += d / sup.scale[cols]
+    x_lin = sup.model.transfer(x_sup, mf)
+    prob = Problem(mf, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
+    if not np.isfinite(x_lin).all() or prob.cost(x_lin, rows) >= prob.cost(x_const, rows):
+        return x_const
+    return x_lin

@@ -41,6 +41,7 @@ class EngineSettings:
 
     noise: TrackerSigma = field(default_factory=TrackerSigma)
     use_point_sigma: bool = True
+    point_sigma_floor_m: float | None = None
     rank_tol: float = 3e-4
     max_iter: int = 300
     ftol: float = 1e-10
@@ -54,6 +55,35 @@ class EngineSettings:
     outlier_max_fraction: float = 0.2
     min_redundancy: float = 0.1
     chunk: int = 2048
+
+
+def point_sigmas(data: MeasurementSet, settings: EngineSettings, floor_m: float = 0.0
+                 ) -> Array | None:
+    """Per-point sigmas (n, 3) m the fit weights with, or None (tracker model): the data's
+    ``sx, sy, sz`` combined in quadrature with ``floor_m`` (see :meth:`Engine.reweight`)."""
+    if not settings.use_point_sigma or data.sigma is None:
+        return None
+    return np.hypot(data.sigma, floor_m) if floor_m > 0 else data.sigma
+
+
+def model_error_sigma(data: MeasurementSet, sol: Solution) -> float:
+    """Per-coordinate sigma (m) of what the per-point sigmas leave out: the variance
+    component ``max(0, r^T r / (m - p) - mean(s^2))`` of the inlier residuals of ``sol``
+    (m coordinates, p free parameters), 0 without per-point sigmas.
+
+    A tracker's sigmas (about 0.01 mm) describe its own scatter; a robot model leaves
+    0.05-0.1 mm of model error that no sigma column carries, so weighting by the sigmas alone
+    trusts some poses far more than the model deserves (docs/adr/0032).
+    """
+    if data.sigma is None:
+        return 0.0
+    inl = sol.inliers
+    r = sol.model.positions(data.q[inl], sol.x) - data.p[inl]
+    m = r.size
+    if m <= sol.n_free:
+        return 0.0
+    tau2 = float(np.sum(r * r)) / (m - sol.n_free) - float(np.mean(data.sigma[inl] ** 2))
+    return math.sqrt(tau2) if tau2 > 0 else 0.0
 
 
 def min_poses(identifiable: int, *, min_redundancy: float = 0.1) -> int:
@@ -106,15 +136,23 @@ class Engine:
         self.robot = robot
         self.data = data
         self.s = settings
-        sig = data.sigma if settings.use_point_sigma else None
-        self.W = whitening(data.p, settings.noise, sig)
-        self.sigma_source = "per-point sx,sy,sz" if sig is not None else "tracker model"
+        self.sigma_floor_m = settings.point_sigma_floor_m or 0.0
+        self.reweight(self.sigma_floor_m)
         # 6-DoF probe: orientation residuals weighted by their own sigmas
         self.R_probe = self.W_rot = None
         if data.rot is not None:
             self.R_probe = euler_xyz_matrices(data.rot)
             self.W_rot = orientation_whitening(
                 data.rot, data.rot_sigma if settings.use_point_sigma else None)
+
+    def reweight(self, floor_m: float) -> None:
+        """Whiten with the per-point sigmas combined with ``floor_m`` (m) in quadrature."""
+        self.sigma_floor_m = floor_m
+        sig = point_sigmas(self.data, self.s, floor_m)
+        self.W = whitening(self.data.p, self.s.noise, sig)
+        self.sigma_source = "tracker model" if sig is None else "per-point sx,sy,sz"
+        if sig is not None and floor_m > 0:
+            self.sigma_source += f" + {floor_m * 1e3:.3g} mm model error in quadrature"
 
     @property
     def n(self) -> int:
@@ -286,7 +324,7 @@ def screen(engine: Engine, sol: Solution, data: MeasurementSet) -> Array:
     Uses the solution's robust scale, so values compare directly with
     ``engine.threshold(...)``; large values are gross measurement errors of the new poses.
     """
-    W = whitening(data.p, engine.s.noise, data.sigma if engine.s.use_point_sigma else None)
+    W = whitening(data.p, engine.s.noise, point_sigmas(data, engine.s, engine.sigma_floor_m))
     prob = Problem(sol.model, data.q, data.p, W, chunk=engine.s.chunk)
     vf = sol.variance_factor if sol.variance_factor > 0 else 1.0
     Ninv = sol.covariance[np.ix_(sol.free, sol.free)] / vf

@@ -184,16 +184,43 @@ def _check_inputs(robot: RobotDescription | str, data: MeasurementSet,
 
 _MAX_JOINT_RAD = 100 * 2 * math.pi
 _MAX_POSITION_M = 1e3
-#: every joint within this of zero looks like radians written where degrees belong
-_RADIANS_LOOK_RAD = math.radians(2 * 180 / math.pi + 0.1)   # |q| <= 2 pi "degrees"
+#: A revolute joint's value in radians lies within +-(2 pi + margin): read as degrees, that
+#: is this many radians (6.38 deg).
+_RADIANS_LOOK_RAD = math.radians(2 * math.pi + 0.1)
+#: ... and the robot must be one whose joints range over far more than that
+_RADIANS_WIDE_RAD = math.radians(60.0)
+
+
+def looks_like_radians(robot: RobotDescription, q: Array) -> bool:
+    """Whether joint values ``q`` (n, dof), read from a file as degrees, are radians.
+
+    The rule (docs/adr/0032): every value, read as degrees, lies within +-(2 pi + 0.1) deg
+    = +-6.38 deg (a radian value of a revolute joint within one turn each way); the
+    robot's widest joint range exceeds 60 deg (so degree data of its workspace would spread
+    further); the data move at all; and read as radians the values lie within the robot's
+    joint limits (+-1 deg), so the reading in radians is a plausible one. Data of a small
+    robot whose joints stay within, say, +-114 deg are far outside the first bound and are
+    never refused.
+    """
+    if q.size == 0:
+        return False
+    lim = robot.joint_limits
+    if float(np.max(lim[:, 1] - lim[:, 0])) <= _RADIANS_WIDE_RAD:
+        return False
+    if float(np.abs(q).max()) > _RADIANS_LOOK_RAD or float(np.ptp(q, axis=0).max()) <= 0:
+        return False
+    as_rad = q * (180.0 / math.pi)
+    tol = math.radians(1.0)
+    return bool(np.all(as_rad >= lim[:, 0] - tol) and np.all(as_rad <= lim[:, 1] + tol))
 
 
 def sanity_check(robot: RobotDescription, data: MeasurementSet, *, what: str = "data",
                  tool: Array | None = None) -> None:
     """Refuse data whose units look wrong, with a one-line hint (:class:`DataError`).
 
-    * Joints: if every joint value lies within +-6.4 deg although the robot's joints range
-      over far more, the file most likely holds radians where degrees belong.
+    * Joints: see :func:`looks_like_radians` (every joint value within +-6.38 deg although
+      the robot's joints range over far more, and the values are within the limits when
+      read as radians: the file most likely holds radians where degrees belong).
     * Positions: the spread of the measured points is compared with the spread of the
       nominal reflector positions for the same joints; about 1/1000 of it means metres where
       millimetres belong, about 1000 times micrometres.
@@ -201,10 +228,8 @@ def sanity_check(robot: RobotDescription, data: MeasurementSet, *, what: str = "
     if len(data) < 6:
         return
     q = data.q
-    lim = robot.joint_limits
-    wide = float(np.max(lim[:, 1] - lim[:, 0])) > math.radians(60.0)
-    qmax = float(np.abs(q).max())
-    if wide and qmax <= _RADIANS_LOOK_RAD and float(np.ptp(q, axis=0).max()) > 0:
+    if looks_like_radians(robot, q):
+        qmax = float(np.abs(q).max())
         raise DataError(
             f"{what}: every joint value lies within +-{math.degrees(qmax):.2f} deg; the joints "
             "look like radians, but robocal's files give joints in degrees (convert, or "
@@ -440,6 +465,7 @@ def _finish(f: Fitter, kind: str, final: Solution, const: Solution | None,
     warnings = _warnings(cal, data.q[inl], validation, val_out, val_all)
     cal.fit["warnings"] = warnings
     cal.data = {
+        # every column of the data (sigmas and orientation too; options say which weighted)
         "digest": data.digest(),
         "n_poses": len(data),
         "n_used": int(inl.sum()),

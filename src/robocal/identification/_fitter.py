@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import ConfigError, DataError
-from robocal.identification._engine import Engine, EngineSettings, Solution
+from robocal.identification._engine import Engine, EngineSettings, Solution, model_error_sigma
 from robocal.identification._linalg import median
 from robocal.identification._models import constant_spec, high_order_spec
 from robocal.kinematics import (
@@ -37,7 +37,10 @@ class FitOptions(EngineSettings):
 
     Measurement model
         ``noise``: tracker sigma model (whitening, ML weights). ``use_point_sigma``: use the
-        data's per-point ``sx, sy, sz`` where given (diagonal covariance).
+        data's per-point ``sx, sy, sz`` where given (diagonal covariance), each combined in
+        quadrature with the model error they leave out: ``point_sigma_floor_m`` (m), or when
+        None, a variance component estimated from the constant model's residuals
+        (``max(0, r'r/(m - p) - mean(s^2)``, zero when the sigmas explain the residuals).
     Start
         ``tool_m``: flange -> reflector offset to start from (default: the robot file's).
     Solver
@@ -131,6 +134,8 @@ class FitOptions(EngineSettings):
             raise ConfigError("orders must not be negative")
         if self.cv_folds < 2:
             raise ConfigError("cv_folds must be at least 2")
+        if self.point_sigma_floor_m is not None and not 0 <= self.point_sigma_floor_m < 1e-2:
+            raise ConfigError("point_sigma_floor_m must be in [0, 0.01) m")
         if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0 or self.map_tie_deg <= 0 \
                 or self.map_weak_deg <= 0:
             raise ConfigError("map_spacing_deg, map_ridge_deg and map_tie_deg must be positive")
@@ -193,7 +198,16 @@ class Fitter:
 
     def constant(self, start: Solution) -> Solution:
         m = self.model(constant_spec(self.robot))
-        return self.engine.solve(m, start.model.transfer(start.x, m), what="constant model")
+        sol = self.engine.solve(m, start.model.transfer(start.x, m), what="constant model")
+        if self.opts.point_sigma_floor_m is None and self.opts.use_point_sigma:
+            # per-point sigmas plus the model error they leave out, estimated from the
+            # constant model's residuals (a variance component), then solved again
+            tau = model_error_sigma(self.data, sol)
+            if tau > 0:
+                self.engine.reweight(tau)
+                self._baselines.clear()
+                sol = self.engine.solve(m, sol.x, what="constant model")
+        return sol
 
     def high_order(self, start: Solution) -> Solution:
         spec = high_order_spec(self.robot, order=self.opts.order, pitch=self.opts.pitch,

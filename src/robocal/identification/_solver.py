@@ -396,8 +396,14 @@ def _tsqr(prob: Problem, x: Array, rows: IntArray, cols: IntArray, scale: Array)
 
 
 def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
-                     tol: float = 1e-6) -> tuple[Identifiability, BoolArray, Array]:
+                     tol: float = 1e-6, factor: tuple[Array, Array] | None = None
+                     ) -> tuple[Identifiability, BoolArray, Array]:
     """Rank analysis of the columns ``cols`` at ``x`` over poses ``rows``.
+
+    ``factor``: ``(A, R)`` already accumulated by the caller in its own pass over the
+    Jacobian: the normal matrix ``J^T J`` (k, k) of ``cols`` and an R factor (<= k, k) of
+    the unscaled whitened Jacobian of ``cols`` (``R^T R = J^T J``); then no Jacobian is
+    evaluated here.
 
     Returns the report, a mask over ``cols`` of the kept (identifiable) columns, and the
     column norms. Redundant columns are removed in order of :func:`term_tier` (higher-order
@@ -408,7 +414,7 @@ def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
     names = prob.model.names
     cols = np.asarray(cols, dtype=np.intp)
     k = len(cols)
-    A, _, _ = prob.normal_equations(x, rows, cols)
+    A = prob.normal_equations(x, rows, cols)[0] if factor is None else factor[0]
     norms = np.sqrt(np.clip(np.diag(A), 0.0, None))
     nz = norms > 1e-12 * max(float(norms.max()), 1e-300)
     keep = np.zeros(k, dtype=bool)
@@ -422,7 +428,10 @@ def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
     # rank from the R factor of J itself, not from J^T J: the normal matrix squares the
     # singular values, so a direction at 1e-8 of the largest would sink to 1e-16, i.e. into
     # rounding, and tol could not be resolved
-    R = _tsqr(prob, x, rows, sub, norms[nz])
+    # Householder QR is invariant to column scaling up to rounding, so a factor of the
+    # unscaled Jacobian, scaled afterwards, serves as well
+    R = (_tsqr(prob, x, rows, sub, norms[nz]) if factor is None
+         else factor[1][:, nz] / norms[nz])
     try:
         _, S, Vt = np.linalg.svd(R, full_matrices=False)
     except np.linalg.LinAlgError:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -94,13 +95,115 @@ def gravity_torques(robot: RobotDescription, q: Array) -> Array:
     return tau
 
 
+_HARMONIC = ("cos", "sin", "swcos", "swsin")
+
+
+@dataclass(frozen=True)
+class BasisPlan:
+    """What :func:`evaluate_basis` and :func:`error_components` need of a spec, once.
+
+    Harmonic terms (``cos``/``sin``/``swcos``/``swsin``) share their argument ``f q_j``
+    across the six error components and between cosine and sine: ``freq`` (U,) and
+    ``joint`` (U,) list each distinct harmonic once; ``h_terms`` (H,) are the harmonic
+    terms, ``h_feature`` (H,) the harmonic each uses and ``h_cos`` (H,) whether it is the
+    cosine. ``const`` are the constant terms, ``rest`` the other terms' indices and
+    ``rest_spec`` a spec of them alone.
+    """
+
+    n_terms: int
+    const: NDArray[np.intp]
+    joint: NDArray[np.intp]
+    freq: Array
+    h_terms: NDArray[np.intp]
+    h_feature: NDArray[np.intp]
+    h_cos: NDArray[np.bool_]
+    rest: NDArray[np.intp]
+    rest_spec: ErrorModelSpec
+
+
+def basis_plan(spec: ErrorModelSpec, robot: RobotDescription) -> BasisPlan:
+    """The :class:`BasisPlan` of ``spec`` on ``robot``."""
+    feats: dict[tuple[int, float], int] = {}
+    h_terms, h_feat, h_cos, rest, const = [], [], [], [], []
+    for k, t in enumerate(spec.terms):
+        if t.family == "const":
+            const.append(k)
+            continue
+        if t.family not in _HARMONIC:
+            rest.append(k)
+            continue
+        f = float(t.index)
+        if t.family.startswith("sw"):
+            f *= robot.joints[t.joint].gear_ratio or 0.0
+        h_terms.append(k)
+        h_feat.append(feats.setdefault((t.joint, f), len(feats)))
+        h_cos.append(t.family.endswith("cos"))
+    keys = list(feats)
+    return BasisPlan(
+        n_terms=len(spec.terms), const=np.array(const, dtype=np.intp),
+        joint=np.array([j for j, _ in keys], dtype=np.intp),
+        freq=np.array([f for _, f in keys], dtype=float),
+        h_terms=np.array(h_terms, dtype=np.intp), h_feature=np.array(h_feat, dtype=np.intp),
+        h_cos=np.array(h_cos, dtype=bool), rest=np.array(rest, dtype=np.intp),
+        rest_spec=ErrorModelSpec(spec.dof, tuple(spec.terms[k] for k in rest),
+                                 spec.map_knots, spec.label))
+
+
+def _harmonic_values(plan: BasisPlan, q: Array) -> tuple[Array, Array]:
+    """cos and sin (n, U) of each distinct harmonic argument, each evaluated once."""
+    arg = q[:, plan.joint] * plan.freq
+    return np.cos(arg), np.sin(arg)
+
+
+def error_components(plan: BasisPlan, robot: RobotDescription, q: Array, coef: Array,
+                     cols: NDArray[np.intp], width: int, *, derivative: bool = False
+                     ) -> tuple[Array, Array | None]:
+    """``(B @ S).T`` and ``(dB @ S).T`` (width, n) without forming B: S scatters term k,
+    weighted by ``coef[k]``, into column ``cols[k]`` (error component joint * 6 + axis).
+
+    The harmonics are combined by two matrix products with their cosines and sines
+    (computed once per distinct argument, as (U, n) rows), the constants are added as they
+    are, and the other terms go through :func:`evaluate_basis` of ``plan.rest_spec``.
+    """
+    n = q.shape[0]
+    E = np.zeros((width, n))
+    dE = np.zeros((width, n)) if derivative else None
+    if plan.const.size:
+        e0 = np.zeros(width)
+        np.add.at(e0, cols[plan.const], coef[plan.const])
+        E += e0[:, None]
+    if plan.h_terms.size:
+        arg = plan.freq[:, None] * q.T[plan.joint]                   # (U, n)
+        c, s = np.cos(arg), np.sin(arg)
+        U = plan.freq.size
+        Mc = np.zeros((width, U))
+        Ms = np.zeros((width, U))
+        hc = plan.h_cos
+        w = coef[plan.h_terms]
+        np.add.at(Mc, (cols[plan.h_terms[hc]], plan.h_feature[hc]), w[hc])
+        np.add.at(Ms, (cols[plan.h_terms[~hc]], plan.h_feature[~hc]), w[~hc])
+        E += Mc @ c + Ms @ s
+        if dE is not None:
+            dE += (Ms * plan.freq) @ c - (Mc * plan.freq) @ s
+    if plan.rest.size:
+        Br, dBr = evaluate_basis(plan.rest_spec, robot, q, derivative=derivative)
+        S = np.zeros((width, plan.rest.size))
+        S[cols[plan.rest], np.arange(plan.rest.size)] = coef[plan.rest]
+        E += S @ Br.T
+        if dE is not None and dBr is not None:
+            dE += S @ dBr.T
+    return E, dE
+
+
 def evaluate_basis(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
-                   *, derivative: bool = False) -> tuple[Array, Array | None]:
+                   *, derivative: bool = False, plan: BasisPlan | None = None
+                   ) -> tuple[Array, Array | None]:
     """Evaluate every term's basis function at joint values ``q`` (n, dof) rad.
 
     Returns ``B`` (n, n_terms) and, if asked, ``dB`` (n, n_terms): the derivative of each
     basis function with respect to its own joint value (zero for ``gravity``, whose
     configuration dependence is left out of joint Jacobians; it is micro-radians).
+    ``plan``: :func:`basis_plan` of ``spec`` (computed when not given).
     """
     q = np.asarray(q, dtype=float)
     n = q.shape[0]
@@ -113,29 +216,20 @@ def evaluate_basis(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
     joints = np.array([t.joint for t in terms])
     fam = np.array([t.family for t in terms])
     order = np.array([t.index for t in terms], dtype=float)
-    qt = q[:, joints]  # (n, T): each term's own joint value
 
     m = fam == "const"
     B[:, m] = 1.0
 
-    for cosfam, sinfam, use_gear in (("cos", "sin", False), ("swcos", "swsin", True)):
-        for f, is_cos in ((cosfam, True), (sinfam, False)):
-            m = fam == f
-            if not m.any():
-                continue
-            k = order[m]
-            if use_gear:
-                ratios = np.array([robot.joints[j].gear_ratio or 0.0 for j in joints[m]])
-                k = k * ratios
-            arg = qt[:, m] * k
-            if is_cos:
-                B[:, m] = np.cos(arg)
-                if dB is not None:
-                    dB[:, m] = -k * np.sin(arg)
-            else:
-                B[:, m] = np.sin(arg)
-                if dB is not None:
-                    dB[:, m] = k * np.cos(arg)
+    if np.isin(fam, _HARMONIC).any():
+        plan = plan if plan is not None else basis_plan(spec, robot)
+        c, s = _harmonic_values(plan, q)
+        hc, u = plan.h_cos, plan.h_feature
+        B[:, plan.h_terms[hc]] = c[:, u[hc]]
+        B[:, plan.h_terms[~hc]] = s[:, u[~hc]]
+        if dB is not None:
+            f = plan.freq[u]
+            dB[:, plan.h_terms[hc]] = -f[hc] * s[:, u[hc]]
+            dB[:, plan.h_terms[~hc]] = f[~hc] * c[:, u[~hc]]
 
     m = fam == "poly"
     if m.any():

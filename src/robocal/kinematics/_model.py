@@ -21,7 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
-from robocal.kinematics._basis import component_columns, evaluate_basis
+from robocal.kinematics._basis import (
+    basis_plan,
+    component_columns,
+    error_components,
+    evaluate_basis,
+)
 from robocal.kinematics._robot import RobotDescription
 from robocal.kinematics._spec import ErrorModelSpec, ParameterLayout
 
@@ -114,8 +119,13 @@ class KinematicModel:
         self.layout = ParameterLayout(spec)
         self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
         self._cols = component_columns(spec)
+        self._plan = basis_plan(spec, robot)
+        # joints with a joint-dependent error term (the others add nothing to dE/dq)
+        self._dep_joints = frozenset(t.joint for t in spec.terms
+                                     if t.family not in ("const", "gravity"))
         self._theta_off = np.array([j.theta_offset for j in robot.joints])
         self._C = robot.coupling_matrix
+        self._coupled = not np.array_equal(self._C, np.eye(robot.dof))
         self._dh = [(j.d, j.a, math.cos(j.alpha), math.sin(j.alpha)) for j in robot.joints]
         # fixed robot root -> DH frame 0 and DH frame n -> flange transforms (None: identity)
         self._T_base = robot.T_root_dh0 if robot.has_base else None
@@ -167,7 +177,8 @@ class KinematicModel:
         """Error component values E (n, dof, 6), optional dE/dq_i (n, dof, 6), and basis B."""
         q, x = self._check(q, x)
         n, dof = q.shape
-        B, dB = evaluate_basis(self.spec, self.robot, q, derivative=derivative)
+        B, dB = evaluate_basis(self.spec, self.robot, q, derivative=derivative,
+                               plan=self._plan)
         coef = x[_OFF:]
         E = np.zeros((n, dof * 6))
         if coef.size:
@@ -179,6 +190,19 @@ class KinematicModel:
             dE = (_scatter_columns(dB * coef, self._cols, dof * 6) if coef.size
                   else np.zeros((n, dof * 6))).reshape(n, dof, 6)
         return E.reshape(n, dof, 6), dE, B
+
+    def _errors_t(self, q: Array, x: Array, *, derivative: bool = False
+                  ) -> tuple[Array, Array | None]:
+        """E and optionally dE/dq_i as (6 dof, n) rows, without the basis matrix."""
+        return error_components(self._plan, self.robot, q, x[_OFF:], self._cols,
+                                self.robot.dof * 6, derivative=derivative)
+
+    def _errors(self, q: Array, x: Array, *, derivative: bool = False
+                ) -> tuple[Array, Array | None]:
+        """E (n, dof, 6) and optionally dE/dq_i (n, dof, 6), without the basis matrix."""
+        n, dof = q.shape
+        E, dE = self._errors_t(q, x, derivative=derivative)
+        return E.T.reshape(n, dof, 6), None if dE is None else dE.T.reshape(n, dof, 6)
 
     def _chain(self, q: Array, x: Array, E: Array) -> ChainState:
         n, dof = q.shape
@@ -220,31 +244,58 @@ class KinematicModel:
     def positions(self, q: Array, x: Array) -> Array:
         """Reflector positions (n, 3) m in the tracker frame for joint values ``q`` (n, dof)."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors_t(q, x)
         return self._fk_fast(q, x, E)[0]
 
     def flange_poses(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
         """Return reflector positions (n, 3), flange rotations (n, 3, 3) and origins (n, 3)."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors_t(q, x)
         return self._fk_fast(q, x, E)
 
     def _fk_fast(self, q: Array, x: Array, E: Array) -> tuple[Array, Array, Array]:
+        R, o, _ = self._soa_pass(q, x, E, None)
+        p = o + _soa_apply(R, x[ParameterLayout.TOOL])
+        return p.T.copy(), np.ascontiguousarray(R.transpose(2, 0, 1)), o.T.copy()
+
+    def _soa_pass(self, q: Array, x: Array, E: Array, dE: Array | None
+                  ) -> tuple[Array, Array, list[tuple[int, Array, Array, Array, Array]]]:
+        """Forward pass in structure-of-arrays layout: R (3, 3, n) (R[:, k] is column k of
+        every pose's rotation, contiguous rows), origin (3, n); error components ``E`` as
+        (6 dof, n) rows.
+
+        With ``dE`` (6 dof, n) it also records, per joint i: its axis and origin before
+        the joint, and (for joints with joint-dependent errors) the velocity v and angular
+        velocity w (3, n) its error components give per unit of q_i and their pivot.
+        """
         n, dof = q.shape
-        theta = q @ self._C.T + self._theta_off
-        R = np.broadcast_to(self.T_ref[:3, :3], (n, 3, 3)).copy()
-        o = np.broadcast_to(self.T_ref[:3, 3], (n, 3)).copy()
-        R, o = _apply_error_fast(R, o, np.broadcast_to(x[ParameterLayout.BASE], (n, 6)))
-        R, o = _fixed(R, o, self._T_base)
+        theta = (q @ self._C.T + self._theta_off).T            # (dof, n)
+        Et, dEt = E, dE                                         # (6 dof, n) rows
+        R = np.repeat(self.T_ref[:3, :3, None], n, axis=2)
+        o = np.repeat(self.T_ref[:3, 3, None], n, axis=1)
+        _soa_error(R, o, x[ParameterLayout.BASE][:, None])
+        if self._T_base is not None:
+            R, o = _soa_fixed(R, o, self._T_base)
+        rec: list[tuple[int, Array, Array, Array, Array]] = []
         for i in range(dof):
-            _cols_rot(R, 0, 1, np.cos(theta[:, i]), np.sin(theta[:, i]))
-            R, o = _apply_error_fast(R, o, E[:, i, :])
+            z_i, o_i = R[:, 2].copy(), o.copy()
+            _soa_rot(R, 0, 1, np.cos(theta[i]), np.sin(theta[i]))
+            e = Et[6 * i:6 * i + 6]
+            if dEt is not None and i in self._dep_joints:
+                de = dEt[6 * i:6 * i + 6]
+                v = _soa_apply(R, de[:3])
+                w = _soa_error(R, o, e, de)
+                rec.append((i, z_i, o_i, np.concatenate([v, w]), o.copy()))
+            else:
+                _soa_error(R, o, e)
+                if dEt is not None:
+                    rec.append((i, z_i, o_i, np.empty((0, n)), o))
             d, a, ca, sa = self._dh[i]
-            o = o + d * R[:, :, 2] + a * R[:, :, 0]
-            _cols_rot(R, 1, 2, np.full(n, ca), np.full(n, sa))
-        R, o = _fixed(R, o, self._T_flange)
-        p = o + R @ x[ParameterLayout.TOOL]
-        return p, R, o
+            o += d * R[:, 2] + a * R[:, 0]
+            _soa_rot(R, 1, 2, ca, sa)
+        if self._T_flange is not None:
+            R, o = _soa_fixed(R, o, self._T_flange)
+        return R, o, rec
 
     def jacobian(self, q: Array, x: Array) -> tuple[Array, Array]:
         """Reflector positions (n, 3) and d position / d parameters (n, 3, n_params)."""
@@ -285,23 +336,37 @@ class KinematicModel:
         unit of joint value (rad), including the joint-dependent error terms and couplings.
         """
         q, x = self._check(q, x)
-        E, dE, _ = self.joint_errors(q, x, derivative=True)
+        E, dE = self._errors_t(q, x, derivative=True)
         assert dE is not None
-        st = self._chain(q, x, E)
+        return self._joint_chain(q, x, E, dE)
+
+    def _joint_chain(self, q: Array, x: Array, E: Array, dE: Array
+                     ) -> tuple[Array, Array, Array]:
+        """Positions, flange rotations and the 6 x dof joint Jacobian from one pass that
+        records only the joint axes and, per joint with joint-dependent errors, the velocity
+        its error components give per unit of the joint value (no column per component)."""
         n, dof = q.shape
-        J = np.empty((n, 6, dof))
-        J[:, :3] = st.jlin @ self._C
-        J[:, 3:] = st.jang @ self._C
-        for i in range(dof):
-            sl = slice(6 + 6 * i, 12 + 6 * i)
-            J[:, :3, i] += np.einsum("nkc,nc->nk", st.lin[:, :, sl], dE[:, i])
-            J[:, 3:, i] += np.einsum("nkc,nc->nk", st.ang[:, :, sl], dE[:, i])
-        return st.p, st.R, J
+        R, o, rec = self._soa_pass(q, x, E, dE)
+        p = o + _soa_apply(R, x[ParameterLayout.TOOL])            # (3, n)
+        lin = np.empty((3, dof, n))
+        ang = np.empty((3, dof, n))
+        for i, z_i, o_i, _, _ in rec:
+            ang[:, i] = z_i
+            lin[:, i] = _soa_cross(z_i, p - o_i)
+        Jt = np.concatenate([lin, ang])                           # (6, dof, n), per theta
+        Jt = np.einsum("rjn,jk->rkn", Jt, self._C) if self._coupled else Jt
+        for i, _, _, vw, piv in rec:
+            if vw.size:
+                w = vw[3:]
+                Jt[:3, i] += vw[:3] + _soa_cross(w, p - piv)
+                Jt[3:, i] += w
+        return (p.T.copy(), np.ascontiguousarray(R.transpose(2, 0, 1)),
+                np.ascontiguousarray(Jt.transpose(2, 0, 1)))
 
     def state(self, q: Array, x: Array) -> ChainState:
         """Full chain state, for callers that need the component sensitivities."""
         q, x = self._check(q, x)
-        E, _, _ = self.joint_errors(q, x)
+        E, _ = self._errors(q, x)
         return self._chain(q, x, E)
 
     def base_transform(self, x: Array) -> Array:
@@ -341,3 +406,48 @@ def _apply_error_fast(R: Array, o: Array, e: Array) -> tuple[Array, Array]:
     _cols_rot(R, 2, 0, np.cos(e[:, 4]), np.sin(e[:, 4]))
     _cols_rot(R, 0, 1, np.cos(e[:, 5]), np.sin(e[:, 5]))
     return R, o
+
+
+# -- structure-of-arrays helpers: R (3, 3, n) with R[:, k] column k, vectors (3, n) ----------
+def _soa_rot(R: Array, i: int, j: int, c: Array | float, s: Array | float) -> None:
+    """In place: columns (i, j) <- (c Ri + s Rj, -s Ri + c Rj), a rotation about axis k."""
+    ri = R[:, i].copy()
+    rj = R[:, j]
+    R[:, i] = c * ri + s * rj
+    R[:, j] = -s * ri + c * rj
+
+
+def _soa_apply(R: Array, v: Array) -> Array:
+    """R v for v (3,), (3, 1) or (3, n): (3, n)."""
+    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+def _soa_cross(a: Array, b: Array) -> Array:
+    """Cross products of (3, n) vectors."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+def _soa_fixed(R: Array, o: Array, T: Array) -> tuple[Array, Array]:
+    """Frame followed by the fixed transform T (4, 4)."""
+    Rn = np.einsum("imn,mk->ikn", R, T[:3, :3])
+    return Rn, o + _soa_apply(R, T[:3, 3])
+
+
+def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None) -> Array | None:
+    """In place: apply E(e) (e (6, n) or (6, 1)) to frame (R, o).
+
+    With ``de`` (6, n): also return the angular velocity (3, n) of the frame per unit of
+    the joint value whose error components change by ``de`` (rotation axes as they are when
+    each rotation acts).
+    """
+    o += _soa_apply(R, e[:3])
+    w = None if de is None else R[:, 0] * de[3]
+    _soa_rot(R, 1, 2, np.cos(e[3]), np.sin(e[3]))       # Rx(ex)
+    if w is not None and de is not None:
+        w += R[:, 1] * de[4]
+    _soa_rot(R, 2, 0, np.cos(e[4]), np.sin(e[4]))       # Ry(ey)
+    if w is not None and de is not None:
+        w += R[:, 2] * de[5]
+    _soa_rot(R, 0, 1, np.cos(e[5]), np.sin(e[5]))       # Rz(ez)
+    return w

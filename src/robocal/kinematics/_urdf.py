@@ -22,8 +22,10 @@ in exact arithmetic but its lengths grow as 1/angle, and so does rounding (the u
 for Hayati's parameters); robocal imports them as they are.
 
 Not representable (one :class:`ConfigError` naming the joint): prismatic, planar and
-floating joints, ``mimic`` joints, movable joints outside one serial chain. ``continuous``
-joints get +-360 deg limits. Links' inertials, visuals and collisions are ignored.
+floating joints, ``mimic`` joints, movable joints outside one serial chain. A ``tip`` link
+cuts the chain there: joints below it (a gripper's jaw, of any type) are left out, so
+an arm whose URDF carries a movable gripper imports with ``tip`` = the gripper's base.
+``continuous`` joints get +-360 deg limits. Links' inertials, visuals and collisions are ignored.
 
 Export (:func:`robot_to_urdf`, :func:`calibrated_to_urdf`) writes a chain whose joint i
 turns about ``(0, 0, sign_i)`` of its frame: the joint origins hold everything constant
@@ -80,6 +82,7 @@ class _UJoint:
     lower: float
     upper: float
     velocity: float | None
+    problem: str | None = None   # why it cannot be represented (raised unless cut off)
 
 
 def _floats(text: str | None, n: int, default: Sequence[float], where: str,
@@ -119,12 +122,12 @@ def _joints(root: ET.Element, source: str) -> list[_UJoint]:
         kind = el.get("type", "")
         if kind not in _KNOWN:
             raise ConfigError(f"unknown joint type {kind!r}", source=source, key=where)
+        problem = None
         if kind in ("prismatic", "planar", "floating"):
-            raise ConfigError(f"{kind} joints cannot be represented: robocal's robot model "
-                              "has revolute joints only", source=source, key=where)
-        if el.find("mimic") is not None:
-            raise ConfigError("mimic joints cannot be represented (use coupled_to in the "
-                              "robot TOML)", source=source, key=where)
+            problem = (f"{kind} joints cannot be represented: robocal's robot model has "
+                       "revolute joints only")
+        elif el.find("mimic") is not None:
+            problem = "mimic joints cannot be represented (use coupled_to in the robot TOML)"
         parent, child = el.find("parent"), el.find("child")
         if parent is None or child is None or not parent.get("link") or not child.get("link"):
             raise ConfigError("needs <parent link=...> and <child link=...>", source=source,
@@ -160,13 +163,30 @@ def _joints(root: ET.Element, source: str) -> list[_UJoint]:
                 vel = vel if vel > 0 else None
         out.append(_UJoint(name, kind, str(parent.get("link")), str(child.get("link")),
                            transform((xyz[0], xyz[1], xyz[2]), (rpy[0], rpy[1], rpy[2])),
-                           axis, lower, upper, vel))
+                           axis, lower, upper, vel, problem))
     return out
 
 
 def _chain(joints: list[_UJoint], links: set[str], tip: str | None,
            source: str) -> list[_UJoint]:
     """The joints from the root link to the tip, checked to be one serial chain."""
+    if tip is not None and tip not in links | {j.parent for j in joints} | {j.child
+                                                                         for j in joints}:
+        raise ConfigError(f"no link named {tip!r}", source=source, key="tip")
+    below: set[str] = set()           # joints below the tip: cut off with it (a gripper)
+    todo = [] if tip is None else [tip]
+    while todo:
+        link = todo.pop()
+        for j in joints:
+            if j.parent == link and j.name not in below:
+                below.add(j.name)
+                todo.append(j.child)
+    for j in joints:
+        if j.problem is not None and j.name not in below:
+            raise ConfigError(j.problem, source=source, key=f"joint {j.name}")
+    cut = {j.child for j in joints if j.name in below} - {tip}
+    joints = [j for j in joints if j.name not in below]
+    links = links - cut
     by_child: dict[str, _UJoint] = {}
     for j in joints:
         if j.child in by_child:
@@ -194,12 +214,9 @@ def _chain(joints: list[_UJoint], links: set[str], tip: str | None,
             link = by_child[link].parent
         return out[::-1]
 
-    if tip is not None:
-        if tip not in names:
-            raise ConfigError(f"no link named {tip!r}", source=source, key="tip")
-        candidates = [tip]
-    else:
-        candidates = sorted(n for n in names if n not in parents)  # leaves
+    # the tip, else the leaves
+    candidates = [tip] if tip is not None else sorted(n for n in names if n not in parents)
+
     def covers(link: str) -> bool:
         return {j.name for j in path(link)} >= movable
 
@@ -303,7 +320,7 @@ def urdf_to_robot(text: str, *, source: str = "<urdf>", tip: str | None = None,
         Name used in error messages.
     tip
         Link ending the chain; default ``tool0``, else ``flange``, else the deepest leaf
-        below the last movable joint.
+        below the last movable joint. Joints below the tip are left out.
     tool_mm
         Default flange -> reflector point of the description (flange = the tip link), mm.
 
