@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import NDArray
 
 from robocal._core.model_names import MODELS
@@ -284,7 +285,6 @@ class DesignSpace:
         Js = Jfull / scale
         sub = np.unique(np.linspace(0, n - 1, min(n, self.rank_sample)).astype(int))
         A = Js[sub][:, :, live].reshape(-1, int(live.sum()))
-        import scipy.linalg  # lazy: 0.4 s of import for three calls
         _, R, piv = scipy.linalg.qr(A, mode="economic", pivoting=True)
         d = np.abs(np.diag(R))
         rank = int(np.count_nonzero(d > self.rank_tol * d[0])) if d.size else 0
@@ -499,7 +499,6 @@ def _exchange_within(J: Array, labels: Index, chosen: Index, passes: int, delta:
     I3 = np.eye(3)
     for _ in range(passes):
         Js = J[chosen].reshape(-1, L)
-        import scipy.linalg  # lazy: 0.4 s of import for three calls
         cf = scipy.linalg.cho_factor(delta * np.eye(L) + Js.T @ Js)
         Minv = scipy.linalg.cho_solve(cf, np.eye(L))
         swapped = False
@@ -552,7 +551,6 @@ def _fedorov(J: Array, chosen: list[int], passes: int, delta: float) -> list[int
     for _ in range(passes):
         # refresh from scratch once per pass: bounds the drift of the rank-3 updates
         Js = J[np.array(chosen)].reshape(-1, L)
-        import scipy.linalg  # lazy: 0.4 s of import for three calls
         cf = scipy.linalg.cho_factor(delta * np.eye(L) + Js.T @ Js)
         Minv = scipy.linalg.cho_solve(cf, np.eye(L))
         blocks = _Blocks(Jt, Minv)
