@@ -9,7 +9,11 @@ strictly (:func:`plan_from_poses` writes it).
 
 Motion safety is recomputed here (:func:`unsafe_moves`): the flags a plan carries
 (``move_clear``, margins) are not trusted, and nothing in a plan can switch the check off.
-The first move of every run starts where the robot actually stands, never at the plan's
+A plan found safe is remembered by a digest of exactly what was checked (its moves, the
+robot description, the cell and the limits; :func:`unsafe_moves`): submitting it again to
+the same daemon process is not swept again (the swept-path check costs seconds). The
+digest lives in the process only; a restarted daemon checks again. The first move of every
+run starts where the robot actually stands, never at the plan's
 declared home: :func:`check_first_legs` checks it from the joints read from the controller.
 """
 
@@ -17,11 +21,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from robocal.daemon.store import PoseRow
@@ -29,6 +36,7 @@ from robocal.errors import ConfigError, MotionRejected
 from robocal.kinematics import RobotDescription
 from robocal.planning import (
     PLAN_FORMAT,
+    SAMPLE_FRACTION,
     Cell,
     MotionChecker,
     Plan,
@@ -40,6 +48,11 @@ __all__ = ["PlanDoc", "check_first_legs", "first_stops", "parse_plan", "plan_fro
            "stored_plan", "unsafe_moves"]
 
 _PURPOSE: Final = r"^[a-z][a-z0-9-]*$"
+
+#: plans this process found safe, by :func:`_check_key` (most recent last, bounded)
+_VERIFIED: OrderedDict[str, None] = OrderedDict()
+_VERIFIED_MAX: Final = 64
+_VERIFIED_LOCK = threading.Lock()
 
 
 class _BarePose(BaseModel):
@@ -168,9 +181,38 @@ def unsafe_moves(plan: PlanDoc, robot: RobotDescription, cell: Cell,
     if q.shape[1] != robot.dof:
         raise ConfigError(f"the plan has {q.shape[1]} joints, robot {robot.name!r} has "
                           f"{robot.dof}", source="plan", key="poses")
-    checker = MotionChecker(robot, cell, limits=np.asarray(limits_rad, dtype=float))
+    limits = np.asarray(limits_rad, dtype=float)
     home = None if plan.home_deg is None else np.radians(np.asarray(plan.home_deg))
-    return checker.check_sequence(q, home, [p.purpose for p in plan.poses])
+    key = _check_key(q, home, robot, cell, limits)
+    with _VERIFIED_LOCK:
+        if key in _VERIFIED:
+            _VERIFIED.move_to_end(key)
+            return []
+    checker = MotionChecker(robot, cell, limits=limits)
+    unsafe = checker.check_sequence(q, home, [p.purpose for p in plan.poses])
+    if not unsafe:
+        with _VERIFIED_LOCK:
+            _VERIFIED[key] = None
+            while len(_VERIFIED) > _VERIFIED_MAX:
+                _VERIFIED.popitem(last=False)
+    return unsafe
+
+
+def _check_key(q: NDArray[np.float64], home: NDArray[np.float64] | None,
+               robot: RobotDescription, cell: Cell, limits: NDArray[np.float64]) -> str:
+    """Digest of everything a swept-path check of moves ``q`` (n, dof) rad depends on: the
+    targets and home as checked (rad bytes), the robot description, the cell, the limits
+    (rad) and the sampling fraction."""
+    h = hashlib.sha256()
+    for part in (np.ascontiguousarray(q, dtype=float).tobytes(),
+                 b"-" if home is None else np.ascontiguousarray(home, dtype=float).tobytes(),
+                 json.dumps(robot.to_dict(), sort_keys=True, default=str).encode(),
+                 cell.model_dump_json().encode(),
+                 np.ascontiguousarray(limits, dtype=float).tobytes(),
+                 repr(SAMPLE_FRACTION).encode()):
+        h.update(len(part).to_bytes(8, "little"))
+        h.update(part)
+    return h.hexdigest()
 
 
 def stored_plan(text: str, *, source: str = "stored plan") -> PlanDoc:

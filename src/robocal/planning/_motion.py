@@ -39,6 +39,12 @@ Index = NDArray[np.intp]
 #: Largest capsule travel between two samples, as a fraction of the capsule's radius.
 SAMPLE_FRACTION = 0.25
 
+# every _COARSE-th sample of a move is checked first
+_COARSE = 8
+# margin kept back when a sample's margin vouches for its neighbours, m (and rad for limits):
+# far above the rounding of the distances and the golden-section box search (2e-7 m per m)
+_ROOM_SLACK = 1e-5
+
 # per-sample failure kinds, in the order they are reported
 _LIMIT, _FLOOR, _BOX, _SELF = 0, 1, 2, 3
 
@@ -156,6 +162,10 @@ class MotionChecker:
         #: swept-path verdicts of legs the planner has checked: (start, end, max step) bytes
         #: -> (safe, reason or "" when not explained); a leg is checked once per plan
         self.leg_verdicts: dict[bytes, tuple[bool, str]] = {}
+        # moves check_moves found safe (start + end bytes), valid for the limits they were
+        # checked against (the planner narrows the limits in place once)
+        self._safe_moves: set[bytes] = set()
+        self._safe_limits = self.limits.tobytes()
 
     # -- sampling --------------------------------------------------------------------------------
     def intervals(self, q_from: Array, q_to: Array) -> NDArray[np.int64]:
@@ -196,6 +206,9 @@ class MotionChecker:
         q_from = np.atleast_2d(np.asarray(q_from, dtype=float))
         q_to = np.atleast_2d(np.asarray(q_to, dtype=float))
         m = len(q_from)
+        if m == 0:
+            return MoveCheck(safe=np.ones(0, dtype=bool), samples=np.zeros(0, dtype=np.int64),
+                             at=np.zeros(0), q_bad=np.zeros((0, self.robot.dof)), reasons=[])
         q, owner, s = self.samples(q_from, q_to)
         bad = np.zeros(len(q), dtype=bool)
         # coarse pass first (every 8th sample and the ends): most unsafe moves fail there, and
@@ -203,13 +216,35 @@ class MotionChecker:
         n = self.intervals(q_from, q_to)
         first = np.concatenate([[0], np.cumsum(n + 1)[:-1]])
         offset = np.arange(len(q)) - np.repeat(first, n + 1)
-        coarse = (offset % 8 == 0) | (s == 1.0)
-        for part in (coarse, ~coarse):
-            failed = np.zeros(m, dtype=bool)
-            failed[owner[bad]] = True
-            idx = np.flatnonzero(part & ~failed[owner])
+        coarse = (offset % _COARSE == 0) | (s == 1.0)
+        room = np.full(len(q), -np.inf)      # samples of clearance to spare (coarse samples)
+        idx = np.flatnonzero(coarse)
+        for i in range(0, len(idx), chunk):
+            part = idx[i:i + chunk]
+            room[part] = self._room(q[part], owner[part], q_from, q_to, n)
+        bad[idx] = room[idx] < 0.0
+        failed = np.zeros(m, dtype=bool)
+        failed[owner[bad]] = True
+        # a sample within ``room`` intervals of a checked sample that passes passes too (see
+        # _room), so it needs no check of its own. The fine samples are visited by halving
+        # (offsets 4, then 2, 6, then the odd ones between checked or vouched-for samples), and
+        # a vouched-for sample passes on what is left of its voucher's room. Every sample of a
+        # move that passed the coarse pass is thus checked or shown to pass: the verdicts and
+        # first failing samples are those of checking every sample.
+        base = first[owner]
+        end = base + n[owner]
+        for h in (_COARSE // 2, _COARSE // 4, 1):
+            at_h = np.flatnonzero((offset % (2 * h) == h) & ~coarse & ~failed[owner])
+            prev_i = at_h - h
+            next_i = np.minimum(at_h + h, end[at_h])
+            room_v = np.maximum(room[prev_i] - h, room[next_i] - (next_i - at_h))
+            vouched = room_v >= 0.0
+            room[at_h[vouched]] = room_v[vouched]
+            idx = at_h[~vouched]
             for i in range(0, len(idx), chunk):
-                bad[idx[i:i + chunk]] = self._bad(q[idx[i:i + chunk]])
+                part = idx[i:i + chunk]
+                room[part] = self._room(q[part], owner[part], q_from, q_to, n)
+            bad[idx] = room[idx] < 0.0
         safe = np.ones(m, dtype=bool)
         at = np.full(m, np.nan)
         q_bad = np.full((m, self.robot.dof), np.nan)
@@ -224,8 +259,22 @@ class MotionChecker:
             if explain:
                 for mv, text in zip(moves, self.explain(q[where]), strict=True):
                     reasons[int(mv)] = text
+        self._remember(q_from[safe], q_to[safe])
         return MoveCheck(safe=safe, samples=n, at=at, q_bad=q_bad,
                          reasons=reasons)
+
+    def _move_keys(self, q_from: Array, q_to: Array) -> list[bytes]:
+        both = np.ascontiguousarray(np.hstack([q_from, q_to]), dtype=float)
+        return [row.tobytes() for row in both]
+
+    def _known_safe(self) -> set[bytes]:
+        if self._safe_limits != self.limits.tobytes():
+            self._safe_moves.clear()
+            self._safe_limits = self.limits.tobytes()
+        return self._safe_moves
+
+    def _remember(self, q_from: Array, q_to: Array) -> None:
+        self._known_safe().update(self._move_keys(q_from, q_to))
 
     def moves_safe(self, q_from: Array, q_to: Array) -> Mask:
         """Whether each move q_from[k] -> q_to[k] is safe (m,) (see :meth:`check_moves`)."""
@@ -239,13 +288,21 @@ class MotionChecker:
         """
         q = np.atleast_2d(np.asarray(q, dtype=float))
         start = q[:1] if home is None else np.asarray(home, dtype=float)[None, :]
-        res = self.check_moves(np.vstack([start, q[:-1]]), q)
+        q_from = np.vstack([start, q[:-1]])
+        # a move this checker has already found safe (exactly these end points, these
+        # limits) is not swept again: the planner's final check costs nothing for the legs
+        # it routed
+        known = self._known_safe()
+        todo = np.array([k not in known for k in self._move_keys(q_from, q)], dtype=bool)
+        res = self.check_moves(q_from[todo], q[todo])
         out = []
-        for i in np.flatnonzero(~res.safe):
+        rows = np.flatnonzero(todo)
+        for j in np.flatnonzero(~res.safe):
+            i = int(rows[j])
             out.append(UnsafeMove(
-                index=int(i), purpose=None if purposes is None else purposes[int(i)],
-                reason=res.reasons[i], at=float(res.at[i]),
-                q_deg=tuple(round(float(v), 4) for v in np.degrees(res.q_bad[i])),
+                index=i, purpose=None if purposes is None else purposes[i],
+                reason=res.reasons[j], at=float(res.at[j]),
+                q_deg=tuple(round(float(v), 4) for v in np.degrees(res.q_bad[j])),
                 target_deg=tuple(round(float(v), 4) for v in np.degrees(q[i]))))
         return out
 
@@ -300,6 +357,28 @@ class MotionChecker:
         for i in range(0, len(q), chunk):
             out[i:i + chunk] = self._bad(q[i:i + chunk])
         return out
+
+    def _room(self, q: Array, owner: Index, q_from: Array, q_to: Array,
+              n: NDArray[np.int64]) -> Array:
+        """Whole sampling intervals each sample ``q`` (S, dof) of move ``owner`` can be moved
+        along its move and still pass (S,), -inf where it fails itself.
+
+        Per interval a capsule travels at most ``t = max_k travel_k / n`` (see
+        :meth:`intervals`), so a floor or box margin shrinks by at most ``t`` and a self margin
+        by at most ``2 t``; a joint's distance to its limits shrinks by at most its own step.
+        """
+        lim, floor, box, selfm = self.margins(q)
+        fails = (lim < -1e-12) | (floor < 0) | (box < 0) | (selfm < 0)
+        d = np.abs(q_to[owner] - q_from[owner]) / n[owner][:, None]          # (S, dof) rad
+        t = np.max((d @ self._C_abs.T) @ self.lever, axis=1)                # (S,) m
+        gap = np.minimum(np.minimum(floor, box), selfm) - _ROOM_SLACK
+        with np.errstate(divide="ignore", invalid="ignore"):
+            by_space = np.where(t > 0.0, gap / (2.0 * t), np.inf)
+            by_limit = np.where(d.max(axis=1) > 0.0,
+                                (lim - _ROOM_SLACK) / d.max(axis=1), np.inf)
+        room = np.floor(np.minimum(by_space, by_limit))
+        room[fails] = -np.inf
+        return np.maximum(room, np.where(fails, -np.inf, 0.0))
 
     def _bad(self, q: Array) -> Mask:
         lim, floor, box, selfm = self.margins(q)
