@@ -182,6 +182,10 @@ async def _demo(args: argparse.Namespace) -> int:
             configure_logging("info", "json", stream=sys.stderr)
     (out / "summary.json").write_text(json.dumps(figures, indent=1, default=str))
     _print_summary(figures)
+    # the demo runs the whole job: a push that was refused or failed is a failed demo
+    push = figures.get("push")
+    if isinstance(push, dict) and push.get("error"):
+        return 1
     return 0 if figures.get("state") in ("pushed", "fitted", "approved") else 1
 
 
@@ -315,7 +319,12 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
             comp[name] = {"error": "no target converged"}
             continue
         q_cmd = np.degrees(res.q[ok])
-        doc = plan_from_poses(q_cmd.tolist(), purpose="verification", robot=args.robot)
+        # each target from home and back: the planner chose every validation pose reachable
+        # from home, while a straight move between two of them may not be safe
+        home = [float(v) for v in plan_doc["motion"]["home_deg"]]
+        legs = [q for t in q_cmd.tolist() for q in (home, t)]
+        doc = plan_from_poses(legs, robot=args.robot,
+                              purposes=["via", "verification"] * len(q_cmd))
         vst = await svc.create(parse_plan(doc, source="verification", strict=False),
                                actor="demo", name=f"verify {name}", measure_only=True)
         vst = await _follow(svc, vst["id"], progress, f"verifying {name:10s}", ("measured",),

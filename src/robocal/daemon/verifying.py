@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
@@ -224,6 +225,19 @@ class VerificationRuns:
                     "joint targets again would not test it")
         return None
 
+    def _home_deg(self, cid: object) -> list[float] | None:
+        """The home (deg) of the plan campaign ``cid`` was created from, if it declares one."""
+        if not isinstance(cid, str):
+            return None
+        try:
+            doc = json.loads(self.store.plan_json(cid))
+            home = doc["motion"]["home_deg"]
+        except (RobocalError, ValueError, KeyError, TypeError):
+            return None
+        if not isinstance(home, list) or len(home) != self.robot.dof:
+            return None
+        return [float(v) for v in home]
+
     async def _start(self, key: str) -> bool:
         e = self.journal.get(key)
         program = e.detail.get("program_q_deg")
@@ -238,13 +252,19 @@ class VerificationRuns:
                 if isinstance(entry, CompensationTable) else list(range(len(q_program))))
         idx = [rows[k] for k in pushing.verification_indices(
             len(rows), self.config.compensation.verify_count)]
+        model_campaign = e.campaign or e.detail.get("model_campaign")
+        home = self._home_deg(model_campaign)
         q_deg: list[list[float]] = []
         purposes: list[str] = []
         for i in idx:
+            # each target from the plan's home when it has one: the planner chose its poses
+            # reachable from home, while a straight move between two targets may not be safe
+            if home is not None:
+                q_deg.append(home)
+                purposes.append("via")
             q_deg += [np.degrees(q_program[i]).tolist(), np.degrees(q_cmd[i]).tolist()]
             purposes += ["verify-before", "verify-after"]
         doc = plan_from_poses(q_deg, purposes=purposes, robot=self.robot.name)
-        model_campaign = e.campaign or e.detail.get("model_campaign")
         # a child created by a daemon that stopped before recording it is taken up again
         earlier = [r for r in self.store.campaigns(parent=key) if r.state not in FINAL]
         if earlier:
@@ -285,9 +305,11 @@ class VerificationRuns:
         q_program = np.radians(np.asarray(e.detail["program_q_deg"], dtype=float))
         target_p = e.detail.get("target_p_mm")
         idx = [int(i) for i in v["indices"]]
-        rows = {m.pose_idx: m for m in self.store.measurements(vcid)}
-        p_before = np.array([rows[2 * k].p_mm for k in range(len(idx))]) * 1e-3
-        p_after = np.array([rows[2 * k + 1].p_mm for k in range(len(idx))]) * 1e-3
+        # the k-th verify-before and verify-after poses in plan order (via poses between
+        # targets are moved through, not measured)
+        rows = sorted(self.store.measurements(vcid), key=lambda m: m.pose_idx)
+        p_before = np.array([m.p_mm for m in rows if m.purpose == "verify-before"]) * 1e-3
+        p_after = np.array([m.p_mm for m in rows if m.purpose == "verify-after"]) * 1e-3
         # TARGETS.csv positions where the program gives them, else where the error-free
         # robot would be at the program joints
         p_ideal = (np.asarray(target_p, dtype=float)[idx] * 1e-3 if target_p

@@ -733,6 +733,13 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
     rest = np.setdiff1d(np.arange(n_c), cal)
+    # validation poses stand for the program: drawn inside the joint ranges the calibration
+    # poses span, where the model is meant to be used (a pose beyond them is extrapolation,
+    # which fit warns about and a push refuses); all candidates when too few lie inside
+    lo, hi = q_c[cal].min(axis=0), q_c[cal].max(axis=0)
+    inside = rest[np.all((q_c[rest] >= lo) & (q_c[rest] <= hi), axis=1)]
+    if len(inside[allowed[inside]]) >= 2 * validation:
+        rest = inside
     rng_val = np.random.default_rng([seed, 1])
     val = np.zeros(0, dtype=np.intp)
     for _ in range(4):
