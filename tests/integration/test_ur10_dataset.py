@@ -75,11 +75,6 @@ def test_series_b_auto_detects_the_gross_outliers(series):
     assert auto.validation.rms_m <= 0.15e-3
 
 
-# The tests of source_a share one worker (pytest's --dist loadgroup), so the ~50 s fit of
-# series A is made once per run, not once per xdist worker.
-_SOURCE_A = pytest.mark.xdist_group("ur10-source-a")
-
-
 @pytest.fixture(scope="module")
 def source_a(series):
     # the physically structured auto model (maps + gravity + pitch, no harmonics and no fine
@@ -88,7 +83,6 @@ def source_a(series):
                options=FitOptions(auto_max_order=0, auto_ripple_orders=()))
 
 
-@_SOURCE_A
 @pytest.mark.parametrize("target", ["D", "B"])
 def test_cross_session_maps_with_refitted_constants(series, source_a, target):
     train, val = series[target].split(0.5, seed=0)
@@ -102,7 +96,6 @@ def test_cross_session_maps_with_refitted_constants(series, source_a, target):
     assert frozen.calibrated.fit["refreshed_map_knots"]
 
 
-@_SOURCE_A
 @pytest.mark.parametrize("target", ["D", "B"])
 def test_reuse_from_fifty_new_poses(series, source_a, target):
     """Issue 14's workflow: maps from A, constants from 50 poses of B or D.
