@@ -171,10 +171,7 @@ def _state(daemon: Daemon, cid: str) -> dict[str, Any]:
     return daemon.status(cid)
 
 
-@pytest.mark.slow
-def test_kill9_at_every_journaled_point_of_approve_push_and_rollback(tmp_path, sims,
-                                                                       monkeypatch):
-    extra = """
+_EXTRA = """
 [limits]
 max_joint_correction_deg = 10.0
 
@@ -182,13 +179,17 @@ max_joint_correction_deg = 10.0
 kind = "targets"
 verify_count = 0
 """
-    config = write_config(tmp_path, sims.ports, extra=extra)
+
+
+def _cell(tmp_path: Path, sims: SimThread) -> tuple[Daemon, Path, dict[int, tuple[float, ...]]]:
+    """A started daemon against ``sims`` (FANUC targets table at PR_BASE), the plan to run,
+    and the robot program's own targets, written into the registers robocal will write."""
+    config = write_config(tmp_path, sims.ports, extra=_EXTRA)
     text = config.read_text().replace(
         'options = { host = "127.0.0.1", connect_port',
         f'options = {{ pr_base = {PR_BASE}, host = "127.0.0.1", connect_port')
     config.write_text(text)
     plan = small_plan(tmp_path, count=36, validation=6)
-    # the robot program's own targets, in the registers robocal will write
     originals: dict[int, tuple[float, ...]] = {}
     for n in range(PR_BASE, PR_BASE + 40):
         values = [n + 0.5, -n - 0.25, 100.0 + n, 0.0, 0.0, 0.0]
@@ -196,17 +197,32 @@ verify_count = 0
         originals[n] = tuple(values)
     daemon = Daemon(tmp_path, config)
     daemon.start()
-    sock = str(tmp_path / "api.sock")
+    return daemon, plan, originals
+
+
+def _fitted(daemon: Daemon, tmp_path: Path, plan: Path) -> str:
+    """Run one campaign of ``plan`` to ``fitted``; its id."""
+    out = daemon.cli("campaign", "start", "--socket", str(tmp_path / "api.sock"), "--plan",
+                     str(plan))
+    cid = out.stdout.strip()
+    wait_for(lambda: _state(daemon, cid)["state"] in ("fitted", "faulted"), 180,
+             f"campaign {cid} fitted")
+    assert _state(daemon, cid)["state"] == "fitted", daemon.log_tail()
+    return cid
+
+
+def _story(tmp_path: Path) -> list[str]:
+    return [a["action"] for a in _audit(tmp_path)
+            if a["action"].startswith(("campaign.approve", "compensation."))]
+
+
+# The journal's points are split over two tests with a campaign each, so that xdist runs
+# them side by side (one test restarting the daemon 18 times was the suite's longest).
+@pytest.mark.slow
+def test_kill9_at_every_journaled_point_of_approve_and_push(tmp_path, sims, monkeypatch):
+    daemon, plan, originals = _cell(tmp_path, sims)
     try:
-        cids = []
-        for _ in range(2):
-            out = daemon.cli("campaign", "start", "--socket", sock, "--plan", str(plan))
-            cid = out.stdout.strip()
-            wait_for(lambda c=cid: _state(daemon, c)["state"] in ("fitted", "faulted"), 180,
-                     f"campaign {cid} fitted")
-            assert _state(daemon, cid)["state"] == "fitted", daemon.log_tail()
-            cids.append(cid)
-        first, second = cids
+        first = _fitted(daemon, tmp_path, plan)
         fits = _state(daemon, first)["fits"]
 
         # --- approve -------------------------------------------------------------------------
@@ -224,7 +240,7 @@ verify_count = 0
         with pytest.raises(ApiError):
             daemon.client.request("POST", f"/campaigns/{first}/approve", {"model": "constant"})
 
-        # --- push, first campaign: killed before, at and after the controller write ----------
+        # --- push: killed before, at and after the controller write --------------------------
         assert sims.writes == []
         _crash(daemon, monkeypatch, "push:after-snapshot", "POST", f"/campaigns/{first}/push")
         assert _state(daemon, first)["state"] == "approved" and sims.writes == []
@@ -252,6 +268,30 @@ verify_count = 0
         done = [a for a in _audit(tmp_path) if a["action"] == "compensation.push"]
         assert len(done) == 1 and done[0]["detail"]["model_id"] == fits["constant"]["model_id"]
         assert done[0]["detail"]["reconciled_by"] == "daemon"
+
+        # --- the audit log tells the whole story, in order ----------------------------------
+        assert _story(tmp_path) == [
+            "campaign.approve",
+            "compensation.push-intended", "compensation.push-abandoned",
+            "compensation.push-intended", "compensation.push",
+        ]
+    finally:
+        daemon.stop()
+
+
+@pytest.mark.slow
+def test_kill9_after_a_completed_push_and_at_every_journaled_point_of_rollback(
+        tmp_path, sims, monkeypatch):
+    daemon, plan, originals = _cell(tmp_path, sims)
+    try:
+        first = _fitted(daemon, tmp_path, plan)
+        second = _fitted(daemon, tmp_path, plan)
+        daemon.client.request("POST", f"/campaigns/{first}/approve", {"model": "constant"})
+        daemon.client.request("POST", f"/campaigns/{first}/push")
+        wait_for(lambda: _state(daemon, first)["state"] == "pushed", 60, "first push done")
+        push1 = _state(daemon, first)["push"]
+        t1 = next(t for t in _tables(tmp_path).values() if t["checksum"] == push1["checksum"])
+        assert _writes_of(sims, _rows(t1["table_json"])) == 1
 
         # --- second campaign: killed after the completing transaction -----------------------
         daemon.client.request("POST", f"/campaigns/{second}/approve")
@@ -281,17 +321,14 @@ verify_count = 0
             assert held[n] == pytest.approx(v, abs=1e-5), n
 
         # --- the audit log tells the whole story, in order ----------------------------------
-        actions = [a["action"] for a in _audit(tmp_path)
-                   if a["action"].startswith(("campaign.approve", "compensation."))]
-        assert actions == [
+        assert _story(tmp_path) == [
             "campaign.approve",
-            "compensation.push-intended", "compensation.push-abandoned",
             "compensation.push-intended", "compensation.push",
             "campaign.approve",
             "compensation.push-intended", "compensation.push",
             "compensation.rollback-intended", "compensation.rollback-abandoned",
             "compensation.rollback-intended", "compensation.rollback",
             "compensation.rollback-intended", "compensation.rollback",
-        ], actions
+        ], _story(tmp_path)
     finally:
         daemon.stop()

@@ -88,7 +88,6 @@ def test_cross_session_maps_with_refitted_constants(series, source_a, target):
     train, val = series[target].split(0.5, seed=0)
     frozen = refit_frozen(source_a.calibrated, train, validation=val)
     const = fit("ur10", train, "constant", validation=val)
-    const = fit("ur10", train, "constant", validation=val)
     # measured (1,500-pose subset of A): A->D 0.164 mm, A->B 0.116 mm with the gaps of A's
     # maps filled and the links held (ADR 0022); strictly frozen 0.307 / 0.24 mm
     assert frozen.validation.rms_m <= 0.20e-3

@@ -1,8 +1,12 @@
-"""The daemon's embedded store: one SQLite file in ``data_dir``, WAL mode, ``synchronous=FULL``.
+"""The daemon's embedded store: one SQLite file in ``data_dir``, WAL mode.
 
-Every write is one ``BEGIN IMMEDIATE ... COMMIT`` transaction, so a measurement is on disk
-before the next motion starts, and a kill -9 at any moment loses at most the pose in
-progress. ``UNIQUE(campaign, pose_idx)`` makes a duplicated measurement impossible. The
+Every write is one ``BEGIN IMMEDIATE ... COMMIT`` transaction. A committed transaction is in
+the WAL file when COMMIT returns, so a kill -9 at any moment loses at most the pose in
+progress. Commits are ``synchronous=FULL`` (the WAL fsynced: durable against a power cut)
+except a measurement's, which is ``synchronous=NORMAL`` (no fsync): a power cut may roll back
+the last measurements, never a state change, push or audit record, because the WAL is
+append-only and the next FULL commit syncs every frame before it (ADR 0036).
+``UNIQUE(campaign, pose_idx)`` makes a duplicated measurement impossible. The
 ``audit`` and ``pushes`` tables are append-only (triggers refuse UPDATE and DELETE).
 
 Units in the store are those of robocal's files: millimetres and degrees.
@@ -261,7 +265,7 @@ class Store:
     Notes
     -----
     Not thread-safe: the daemon uses it from the event-loop thread only. Each call is short
-    (a commit with ``synchronous=FULL`` costs one fsync).
+    (a durable commit costs one fsync; a measurement's none).
     """
 
     def __init__(self, path: Path) -> None:
@@ -274,6 +278,7 @@ class Store:
         self.fault_hook: Callable[[str], None] | None = None
         # cid -> (state on disk, state held in memory, reason, actor, time)
         self._pending: dict[str, tuple[CampaignState, CampaignState, str, str, str]] = {}
+        self._sync = "FULL"
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> Store:
@@ -295,6 +300,7 @@ class Store:
         if str(mode).lower() != "wal":
             raise ConfigError(f"cannot enable WAL (got {mode})", source=str(self.path))
         db.execute("PRAGMA synchronous=FULL")
+        self._sync = "FULL"
         db.execute("PRAGMA foreign_keys=ON")
         db.executescript(_SCHEMA)
         columns = {r[1] for r in db.execute("PRAGMA table_info(measurements)")}
@@ -390,14 +396,20 @@ class Store:
         return self._db
 
     @contextlib.contextmanager
-    def transaction(self) -> Iterator[sqlite3.Connection]:
+    def transaction(self, *, durable: bool = True) -> Iterator[sqlite3.Connection]:
         """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error).
 
+        ``durable``: fsync the WAL on commit (``synchronous=FULL``); otherwise the commit
+        survives a crash of the process but a power cut may roll it back (``NORMAL``).
         Transitions held in memory by a storage fault (see :meth:`transition`) are written
-        first, in the same transaction. A full disk or an I/O error raises
-        :class:`StorageError`; the connection is left usable (rolled back).
+        first, in the same transaction, and always durably. A full disk or an I/O error
+        raises :class:`StorageError`; the connection is left usable (rolled back).
         """
         db = self.db
+        sync = "FULL" if durable or self._pending else "NORMAL"
+        if sync != self._sync and not db.in_transaction:  # applies to the next transaction
+            db.execute(f"PRAGMA synchronous={sync}")
+            self._sync = sync
         try:
             if self.fault_hook is not None:
                 self.fault_hook("begin")
@@ -674,9 +686,13 @@ class Store:
         return {int(r[0]) for r in rows}
 
     def add_measurement(self, cid: str, m: MeasurementRow) -> bool:
-        """Persist one measurement in its own transaction; False if the pose already has one."""
+        """Persist one measurement in its own transaction; False if the pose already has one.
+
+        Not fsynced (see the module's docstring): a measurement lost to a power cut is
+        measured again on resume, as the pose in progress at a kill -9 is.
+        """
         try:
-            with self.transaction() as db:
+            with self.transaction(durable=False) as db:
                 db.execute(
                     "INSERT INTO measurements(campaign, pose_idx, purpose, q_cmd_deg, q_act_deg, "
                     "x_mm, y_mm, z_mm, sx_mm, sy_mm, sz_mm, rms_mm, samples, attempts, "

@@ -39,7 +39,7 @@ def _plot(entry: Mapping[str, Any]) -> Plot | None:
     import matplotlib
 
     with matplotlib.rc_context(_RC):
-        fig = _new(7.0, 2.6)
+        fig = _new(7.0, 2.6, (0.65, 0.1, 0.45, 0.3))
         ax = fig.add_subplot(1, 1, 1)
         x = list(range(len(rows)))
         ax.bar([i - 0.2 for i in x], [r["before_mm"] for r in rows], width=0.4,

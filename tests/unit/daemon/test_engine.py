@@ -32,6 +32,28 @@ def test_predictor_aligns_the_nominal_model_to_the_tracker():
     assert abs(pred.distance(q[7], p[7] + [0.0, 0.02, 0.0]) - 0.02) < 1e-9
 
 
+def test_a_primed_predictor_answers_near_planned_poses_without_calling_the_model():
+    """Planned poses predicted in one batch; actual joints a little off the plan get the same
+    distances (to 0.1 µm) as the model called pose by pose, without a single-pose call."""
+    robot, q, p = _cell()
+    q_act = q + np.random.default_rng(3).normal(0.0, 1e-4, q.shape)
+    plain, primed = Predictor(robot, min_poses=6), Predictor(robot, min_poses=6)
+    primed.prime(q)
+    calls = []
+    model_call = primed._predict
+    primed._predict = lambda x: calls.append(np.shape(x)) or model_call(x)
+    for i in range(len(q)):
+        a, b = plain.distance(q_act[i], p[i]), primed.distance(q_act[i], p[i])
+        assert (a is None) == (b is None) and (a is None or abs(a - b) < 1e-7)
+        plain.add(q_act[i], p[i])
+        primed.add(q_act[i], p[i])
+    assert calls == []
+    assert len(primed) == len(q)
+    far = q[0] + 0.1  # beyond the first-order step: the model answers
+    assert abs(primed.distance(far, p[0]) - plain.distance(far, p[0])) < 1e-7
+    assert calls == [(robot.dof,)]
+
+
 def test_limits_with_margin():
     robot = load_robot("fanuc_lrmate200i")
     lim = limits_with_margin(robot, 2.0)

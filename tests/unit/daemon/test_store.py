@@ -37,6 +37,24 @@ def test_wal_and_full_sync(store):
     assert store.db.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
 
 
+def test_only_measurements_commit_without_fsync(store):
+    """A measurement commits at synchronous=NORMAL (1), every other write at FULL (2)."""
+    seen: list[tuple[str, int]] = []
+
+    def hook(stage: str) -> None:
+        if stage == "commit":
+            seen.append((stage, store.db.execute("PRAGMA synchronous").fetchone()[0]))
+
+    rec = _campaign(store)
+    store.fault_hook = hook
+    store.transition(rec.id, CampaignState.RUNNING, actor="me")
+    assert store.add_measurement(rec.id, _row(0))
+    store.audit(actor="me", action="a", campaign=rec.id)
+    assert store.add_measurement(rec.id, _row(1))
+    store.transition(rec.id, CampaignState.PAUSED, actor="me")
+    assert [level for _, level in seen] == [2, 1, 2, 1, 2]
+
+
 def test_measurements_are_unique_per_pose(store):
     rec = _campaign(store)
     assert rec.poses_total == 3  # the via-point is not measured
