@@ -424,7 +424,7 @@ def coverage_plot(cov: Coverage) -> Plot:
     """Per joint: robot limits (grey), calibrated range (blue), measured range (black line)
     and the program's targets (orange ticks; red outside the calibrated range)."""
     n = len(cov.rows)
-    fig = _new(WIDE, 0.36 * n + 0.9)
+    fig = _new(WIDE, 0.36 * n + 0.9, (0.5, 0.15, 0.45, 0.3))
     ax = fig.add_subplot()
     for k, r in enumerate(cov.rows):
         y = n - 1 - k
