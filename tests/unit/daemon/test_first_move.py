@@ -24,7 +24,7 @@ from tests.unit.daemon.conftest import ROBOT
 
 # an LR Mate pose beside the pedestal of the demo cell: safe where it stands, but the straight
 # joint move from it to the demo plan's first pose takes the tool into the pedestal clearance
-BESIDE_PEDESTAL = [110.0, 103.0, -140.0, -8.0, -64.0, -86.0]
+BESIDE_PEDESTAL = [136.0, 91.0, -140.0, -44.0, -12.0, -122.0]
 
 
 @pytest.fixture
