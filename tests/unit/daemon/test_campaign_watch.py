@@ -122,8 +122,10 @@ async def test_watch_follows_on_when_the_event_stream_ends(make_config, tmp_path
                 return  # the stream ends early, twice
 
     monkeypatch.setattr(DaemonClient, "events", flaky)
+    # moves slow enough (40 x 0.05 s) that the campaign still runs when the stream is cut:
+    # with per-pose commits that no longer wait for fsync, 0.01 s moves ended it before
     svc, api, sock = await _served(
-        make_config, tmp_path, robot={"options": {"move_time_s": 0.01}})
+        make_config, tmp_path, robot={"options": {"move_time_s": 0.05}})
     try:
         st = await svc.create(random_plan(40, seed=6), actor="test")
         rc, out = await _watch(sock, st["id"], capsys=capsys)
