@@ -15,6 +15,7 @@ from aiohttp.test_utils import TestClient, TestServer
 from hypothesis import given
 from hypothesis import strategies as hs
 
+from robocal.daemon import station
 from robocal.daemon.api import make_app
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.station import next_url
@@ -76,9 +77,12 @@ async def test_pages_need_sign_in_and_api_stays_bearer_only(client):
     assert r.status == 401
 
 
-async def test_sign_in_sets_a_strict_httponly_cookie_and_never_shows_the_token(client, svc):
+async def test_sign_in_sets_a_strict_httponly_cookie_and_never_shows_the_token(client, svc,
+                                                                             monkeypatch):
     cap = structlog.testing.LogCapture()
     structlog.configure(processors=[cap])
+    # a fresh logger: structlog caches one on first use, under an earlier test's configuration
+    monkeypatch.setattr(station, "_log", structlog.get_logger("robocal.daemon.station"))
     try:
         r = await client.get("/station/login")
         form = await r.text()
