@@ -40,6 +40,19 @@ def port_of(server: asyncio.Server) -> int:
     return int(server.sockets[0].getsockname()[1])
 
 
+async def received(reader: asyncio.StreamReader, chunk: int = 65536) -> AsyncIterator[bytes]:
+    """What the client sends, ``chunk`` bytes at most at a time, until it closes the
+    connection or the connection breaks."""
+    while True:
+        try:
+            data = await reader.read(chunk)
+        except ConnectionError:
+            return
+        if not data:
+            return
+        yield data
+
+
 class SimServer:
     """Base of the simulators: their listening sockets and every task they run.
 

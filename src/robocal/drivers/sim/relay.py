@@ -38,7 +38,13 @@ from typing import IO, Any, Literal
 
 import structlog
 
-from robocal.drivers.sim._server import SimServer, port_of, publish_ports, until_signalled
+from robocal.drivers.sim._server import (
+    SimServer,
+    port_of,
+    publish_ports,
+    received,
+    until_signalled,
+)
 from robocal.errors import ConfigError, FramingError, UnexpectedReply
 from robocal.protocols import emscon
 
@@ -214,13 +220,7 @@ class EmsconRelay(SimServer):
         rec = self._writer
         assert rec is not None
         annotate = _Annotator("from_client" if direction == "c2s" else "from_server")
-        while True:
-            try:
-                data = await reader.read(65536)
-            except ConnectionError:
-                return
-            if not data:
-                return
+        async for data in received(reader):
             rec.write({"t": rec.now(), "conn": conn, "dir": direction, "hex": data.hex(),
                        "packets": annotate(data)})
             writer.write(data)

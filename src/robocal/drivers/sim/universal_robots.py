@@ -33,7 +33,7 @@ from typing import Any
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from robocal.drivers.sim._server import SimServer, port_of
+from robocal.drivers.sim._server import SimServer, port_of, received
 from robocal.drivers.sim.faults import FaultConfig, FaultInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError
@@ -402,13 +402,7 @@ class UrSimulator(SimServer):
         framer = LineFramer(max_length=dash.MAX_LINE)
         writer.write(dash.encode(dash.GREETING))
         await writer.drain()
-        while True:
-            try:
-                data = await reader.read(4096)
-            except ConnectionError:
-                return
-            if not data:
-                return
+        async for data in received(reader, 4096):
             framer.feed(data)
             for line in framer.lines():
                 if isinstance(line, FramingError):
@@ -558,19 +552,17 @@ class UrSimulator(SimServer):
         session = _RtdeSession(self, writer)
         framer = rtde.RtdeFramer()
         try:
-            while not session.closed:
-                try:
-                    data = await reader.read(65536)
-                except ConnectionError:
-                    return
-                if not data:
-                    return
+            if session.closed:
+                return
+            async for data in received(reader):
                 framer.feed(data)
                 try:
                     for pkg in framer.packages():
                         await session.handle(pkg)
                 except FramingError:
                     return  # the stream cannot be resynchronised: drop the client
+                if session.closed:
+                    return
         finally:
             await session.stop()
             for name in [n for n, s in self._input_owners.items() if s is session]:
@@ -602,13 +594,7 @@ class UrSimulator(SimServer):
         self._state_writers.add(writer)
         buffer = ""
         try:
-            while True:
-                try:
-                    data = await reader.read(65536)
-                except ConnectionError:
-                    return
-                if not data:
-                    return
+            async for data in received(reader):
                 buffer += data.decode("utf-8", errors="replace").replace("\r", "")
                 programs, buffer = prim.split_programs(buffer)
                 for program in programs:
