@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal._core.measurements import read_joints_csv
+from robocal._core.measurements import read_joints_csv, read_table
 from robocal.compensation import read_targets_csv
 from robocal.kinematics import RobotDescription
 from robocal.planning._feasibility import FeasibilityChecker, one_revolution
@@ -35,9 +35,8 @@ def read_program_joints(path: str | Path, *, dof: int) -> Array:
     """Joint values (n, dof) rad of a production program: a TARGETS.csv (``x, y, z`` and the
     seed joints ``q1..qN``) or a JOINTS.csv (``q1..qN``), both as in
     ``docs/compensation-tables.md``; raises :class:`robocal.errors.DataError` naming the row."""
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        head = fh.readline().lower().replace(";", ",").replace("\t", ",")
-    if {"x", "y", "z"} <= {c.strip() for c in head.split(",")}:
+    header, _ = read_table(path)  # a missing or unreadable file is a DataError naming it
+    if {"x", "y", "z"} <= set(header):
         return read_targets_csv(path, dof=dof).q_seed
     return read_joints_csv(path, dof=dof)
 

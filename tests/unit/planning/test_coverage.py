@@ -187,3 +187,15 @@ def test_candidates_unreachable_from_home_are_counted() -> None:
     assert unreachable and len(set(unreachable)) == len(unreachable) and len(cal) == 15
     fresh = MotionChecker(robot, demo, limits=checker.ranges)     # no cached verdicts
     assert not fresh.moves_safe(np.zeros((len(unreachable), 6)), q[unreachable]).any()
+
+
+def test_program_file_missing_is_one_data_error_and_semicolons_are_read(tmp_path) -> None:
+    from robocal.errors import DataError
+    from robocal.planning._coverage import read_program_joints
+
+    with pytest.raises(DataError, match="file not found"):
+        read_program_joints(tmp_path / "missing.csv", dof=6)
+    prog = tmp_path / "TARGETS.csv"
+    prog.write_text("pose_id;x;y;z;q1;q2;q3;q4;q5;q6\nA;1;2;3;0;-90;0;-90;0;250\n")
+    q = read_program_joints(prog, dof=6)
+    assert q.shape == (1, 6) and np.degrees(q[0, 5]) == pytest.approx(250.0)
