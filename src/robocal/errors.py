@@ -71,15 +71,21 @@ class DriverTimeout(DriverError, TimeoutError):
 
 
 class OperationError(DriverError):
-    """A device refused or failed an operation."""
+    """A device refused or failed an operation.
+
+    What the device said, where a subclass has it: ``code``, the controller's error code
+    (:class:`MotionRejected`); ``diff``, the differences read back (:class:`VerificationMismatch`).
+    """
+
+    def __init__(self, message: str, *, kind: str | None = None, code: Any = None,
+                 diff: Any = None):
+        self.code = code
+        self.diff = diff
+        super().__init__(message, kind=kind)
 
 
 class MotionRejected(OperationError):
     """The controller refused or faulted a motion. ``code`` is the controller's code."""
-
-    def __init__(self, message: str, *, kind: str | None = None, code: Any = None):
-        self.code = code
-        super().__init__(message, kind=kind)
 
 
 class MotionStopped(OperationError):
@@ -108,10 +114,6 @@ class Unstable(MeasurementError):
 
 class VerificationMismatch(OperationError):
     """Data read back from a device differs from what was written. ``diff`` holds details."""
-
-    def __init__(self, message: str, *, kind: str | None = None, diff: Any = None):
-        self.diff = diff
-        super().__init__(message, kind=kind)
 
 
 # --- emScon tracker status errors (raised by robocal.drivers.emscon) -----------------------

@@ -14,7 +14,7 @@ from robocal.daemon.campaign import TRANSITIONS, CampaignState, check_transition
 from robocal.daemon.config import AppConfig, config_errors, load_config, parse_config
 
 if TYPE_CHECKING:
-    from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+    from robocal.daemon._plan import CampaignPlan, parse_plan, plan_from_poses
     from robocal.daemon.main import serve
     from robocal.daemon.service import CalibrationService
 
@@ -22,8 +22,8 @@ __all__ = [
     "TRANSITIONS",
     "AppConfig",
     "CalibrationService",
+    "CampaignPlan",
     "CampaignState",
-    "PlanDoc",
     "check_transition",
     "config_errors",
     "load_config",
@@ -41,10 +41,11 @@ __all__ = [
 # importtime: robocal.daemon.client 0.25 s alone, 1.5 s with service and main; _plan 1.3 s).
 def __getattr__(name: str) -> object:
     found: dict[str, object]
-    if name in ("PlanDoc", "parse_plan", "plan_from_poses"):
-        from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+    if name in ("CampaignPlan", "parse_plan", "plan_from_poses"):
+        from robocal.daemon._plan import CampaignPlan, parse_plan, plan_from_poses
 
-        found = {"PlanDoc": PlanDoc, "parse_plan": parse_plan, "plan_from_poses": plan_from_poses}
+        found = {"CampaignPlan": CampaignPlan, "parse_plan": parse_plan,
+                 "plan_from_poses": plan_from_poses}
     elif name in ("CalibrationService", "serve"):
         from robocal.daemon.main import serve
         from robocal.daemon.service import CalibrationService

@@ -32,7 +32,7 @@ import asyncio
 import hmac
 import itertools
 import random
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from aiohttp import web, web_runner
@@ -363,6 +363,19 @@ def _body_length(head: str) -> int | None:
     return length
 
 
+_Listen = Callable[[Callable[[], asyncio.Protocol]], Awaitable[asyncio.Server]]
+
+
+async def _listen(site: web_runner.BaseSite, gate: ConnectionGate,
+                  listen: _Listen) -> asyncio.Server:
+    """Start ``site`` as aiohttp does, but serve through ``gate``: ``listen`` opens the
+    listening socket with the protocol factory it is given."""
+    await web_runner.BaseSite.start(site)
+    server = site._runner.server
+    assert server is not None
+    return await listen(gate.factory(server))
+
+
 class GatedTCPSite(web.TCPSite):
     """``web.TCPSite`` whose connections pass a :class:`ConnectionGate` first."""
 
@@ -372,13 +385,10 @@ class GatedTCPSite(web.TCPSite):
         self.gate = gate
 
     async def start(self) -> None:
-        await web_runner.BaseSite.start(self)
-        server = self._runner.server
-        assert server is not None
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(
-            self.gate.factory(server), self._host, self._port, backlog=self._backlog,
-            reuse_address=self._reuse_address)
+        self._server = await _listen(self, self.gate, lambda protocol: loop.create_server(
+            protocol, self._host, self._port, backlog=self._backlog,
+            reuse_address=self._reuse_address))
         sockets = self._server.sockets
         self.bound: int = int(sockets[0].getsockname()[1]) if sockets else int(self._port or 0)
         self._bound_port = self.bound
@@ -398,9 +408,6 @@ class GatedUnixSite(web.UnixSite):
         self.gate = gate
 
     async def start(self) -> None:
-        await web_runner.BaseSite.start(self)
-        server = self._runner.server
-        assert server is not None
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_unix_server(
-            self.gate.factory(server), self._path, backlog=self._backlog)
+        self._server = await _listen(self, self.gate, lambda protocol: loop.create_unix_server(
+            protocol, self._path, backlog=self._backlog))

@@ -44,7 +44,7 @@ from robocal.planning import (
     pydantic_config_error,
 )
 
-__all__ = ["PlanDoc", "check_first_legs", "first_stops", "parse_plan", "plan_from_poses",
+__all__ = ["CampaignPlan", "check_first_legs", "first_stops", "parse_plan", "plan_from_poses",
            "stored_plan", "unsafe_moves"]
 
 _PURPOSE: Final = r"^[a-z][a-z0-9-]*$"
@@ -74,7 +74,7 @@ class _BarePlan(BaseModel):
 
 
 @dataclass(frozen=True)
-class PlanDoc:
+class CampaignPlan:
     """A validated plan reduced to what the daemon executes.
 
     ``cell`` and ``home_deg`` come from a full ``robocal.plan/1`` document (None for the bare
@@ -95,7 +95,7 @@ class PlanDoc:
 
 
 def parse_plan(data: Mapping[str, Any] | str | bytes, *, source: str = "plan",
-               strict: bool = True) -> PlanDoc:
+               strict: bool = True) -> CampaignPlan:
     """Validate a PLAN.json document (mapping or JSON text) and list its poses.
 
     With ``strict`` (the default) the document must be a complete ``robocal.plan/1`` plan
@@ -157,10 +157,10 @@ def parse_plan(data: Mapping[str, Any] | str | bytes, *, source: str = "plan",
         raise ConfigError("the plan has no pose to measure", source=source, key="poses")
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     digest = hashlib.sha256(text.encode()).hexdigest()[:16]
-    return PlanDoc(robot, tuple(poses), doc, digest, cell=cell, home_deg=home)
+    return CampaignPlan(robot, tuple(poses), doc, digest, cell=cell, home_deg=home)
 
 
-def unsafe_moves(plan: PlanDoc, robot: RobotDescription, cell: Cell,
+def unsafe_moves(plan: CampaignPlan, robot: RobotDescription, cell: Cell,
                  limits_rad: Sequence[tuple[float, float]]) -> list[UnsafeMove]:
     """Every move of ``plan`` that is not safe for ``robot`` in ``cell``, along its swept path.
 
@@ -215,14 +215,14 @@ def _check_key(q: NDArray[np.float64], home: NDArray[np.float64] | None,
     return h.hexdigest()
 
 
-def stored_plan(text: str, *, source: str = "stored plan") -> PlanDoc:
+def stored_plan(text: str, *, source: str = "stored plan") -> CampaignPlan:
     """A campaign's stored plan document (full ``robocal.plan/1`` or the bare form) parsed
     again."""
     doc = json.loads(text)
     return parse_plan(doc, source=source, strict=isinstance(doc, dict) and "motion" in doc)
 
 
-def first_stops(plan: PlanDoc, target: PoseRow, *, via_home: bool
+def first_stops(plan: CampaignPlan, target: PoseRow, *, via_home: bool
                 ) -> list[tuple[str, tuple[float, ...]]]:
     """Where a run's first moves go, as (label, joints deg): home first when ``via_home`` and
     the plan has one (a fresh run), then ``target``, the first pose still to run."""

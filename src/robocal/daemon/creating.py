@@ -17,7 +17,7 @@ from typing import Any
 
 import structlog
 
-from robocal.daemon._plan import PlanDoc, parse_plan, unsafe_moves
+from robocal.daemon._plan import CampaignPlan, parse_plan, unsafe_moves
 from robocal.daemon.config import AppConfig
 from robocal.daemon.engine import limits_with_margin
 from robocal.daemon.hub import DriverHub
@@ -31,7 +31,7 @@ __all__ = ["check_plan", "checked_plan", "preflight"]
 _log = structlog.get_logger(__name__)
 
 
-def check_plan(plan: PlanDoc, robot: RobotDescription, config: AppConfig) -> None:
+def check_plan(plan: CampaignPlan, robot: RobotDescription, config: AppConfig) -> None:
     """Refuse (ConfigError, naming the pose) a plan for another robot, with a pose outside
     the joint limits less the margin, or with an unsafe move in the cell."""
     if plan.robot and plan.robot not in (robot.name, config.robot_description):
@@ -62,10 +62,10 @@ def check_plan(plan: PlanDoc, robot: RobotDescription, config: AppConfig) -> Non
             key=f"poses[{unsafe[0].index}]")
 
 
-async def checked_plan(plan: Mapping[str, Any] | str | PlanDoc, robot: RobotDescription,
-                       config: AppConfig) -> PlanDoc:
+async def checked_plan(plan: Mapping[str, Any] | str | CampaignPlan, robot: RobotDescription,
+                       config: AppConfig) -> CampaignPlan:
     """:func:`parse_plan` and :func:`check_plan`, off the event loop (which keeps serving)."""
-    doc = plan if isinstance(plan, PlanDoc) else await asyncio.to_thread(parse_plan, plan)
+    doc = plan if isinstance(plan, CampaignPlan) else await asyncio.to_thread(parse_plan, plan)
     # the swept-path check takes a while on long plans: off the event loop, in a thread
     # that ends with it
     with ThreadPoolExecutor(1, thread_name_prefix="plan-check") as pool:

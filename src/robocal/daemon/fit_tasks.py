@@ -13,6 +13,7 @@ import contextlib
 import sqlite3
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ S = CampaignState
 _log = structlog.get_logger(__name__)
 
 
+@dataclass(kw_only=True, eq=False)
 class FitTasks:
     """Fit tasks by campaign id.
 
@@ -40,20 +42,17 @@ class FitTasks:
     (stored, announced and logged: the service's own).
     """
 
-    def __init__(self, *, config: AppConfig, robot: RobotDescription, store: Store,
-                 events: EventBus, fitter: FitRunner, secret: bytes | None,
-                 campaign_dir: Callable[[str], Path],
-                 transition: Callable[..., object]) -> None:
-        self.config = config
-        self.robot = robot
-        self.store = store
-        self.events = events
-        self.fitter = fitter
-        self._secret = secret
-        self._campaign_dir = campaign_dir
-        self._transition = transition
-        self._tasks: dict[str, asyncio.Task[None]] = {}
-        self._started: dict[str, tuple[str, float]] = {}  # ISO time, monotonic s
+    config: AppConfig
+    robot: RobotDescription
+    store: Store
+    events: EventBus
+    fitter: FitRunner
+    secret: bytes | None
+    campaign_dir: Callable[[str], Path]
+    transition: Callable[..., object]
+    _tasks: dict[str, asyncio.Task[None]] = field(default_factory=dict, init=False)
+    _started: dict[str, tuple[str, float]] = field(  # ISO time, monotonic s
+        default_factory=dict, init=False)
 
     def __contains__(self, cid: str) -> bool:
         return cid in self._tasks
@@ -111,7 +110,7 @@ class FitTasks:
         log = _log.bind(campaign=cid)
         job = build_fit_job(campaign=cid, robot=self.robot, rows=rows,
                             models=self.config.fit.models, cpa=self.config.fit.cpa,
-                            out_dir=self._campaign_dir(cid), report=self.config.fit.report,
+                            out_dir=self.campaign_dir(cid), report=self.config.fit.report,
                             log=self.measurement_log(cid, rows),
                             options=self.config.fit.options,
                             acceptance=self.config.fit.acceptance,
@@ -140,7 +139,7 @@ class FitTasks:
         fits = {name: (summ, mj) for name, (summ, mj) in result["fits"].items()}
         for name, msg in result["errors"].items():
             fits.setdefault(name, ({"model": name, "error": msg}, None))
-        fits = sign_fits(fits, self._secret, self.robot)
+        fits = sign_fits(fits, self.secret, self.robot)
         self.store.save_fits(cid, fits)
         select = self.config.fit.select
         chosen = result.get("selected_hint") if select == "best" else select
@@ -152,7 +151,7 @@ class FitTasks:
         report = result.get("report")
         if self.store.campaign(cid).state != S.MEASURED:
             return  # aborted while fitting
-        self._transition(cid, S.FITTED, actor="daemon",
+        self.transition(cid, S.FITTED, actor="daemon",
                          reason=f"fitted {', '.join(result['fits'])}; proposed {chosen}")
         summary = result["fits"][chosen][0].get("validation") or {}
         self.events.emit("fit", cid, phase="done", selected=chosen,
@@ -174,7 +173,7 @@ class FitTasks:
         text = self.store.model_json(cid, name)
         if text is None:
             raise IdentificationError(f"campaign {cid} has no fitted model {name!r}")
-        return load_model(text, source=f"campaign {cid}", secret=self._secret,
+        return load_model(text, source=f"campaign {cid}", secret=self.secret,
                           nominal=self.robot)
 
     def reference_model(self, exclude: str) -> CalibratedModel | None:
@@ -186,10 +185,10 @@ class FitTasks:
             if text:
                 with contextlib.suppress(RobocalError, ValueError, KeyError):
                     return load_model(text, source=f"campaign {rec.id}",
-                                      secret=self._secret, nominal=self.robot)
+                                      secret=self.secret, nominal=self.robot)
         return None
 
     def _fault(self, cid: str, reason: str) -> None:
         if self.store.campaign(cid).state == S.MEASURED:
-            self._transition(cid, S.FAULTED, actor="daemon", reason=reason)
+            self.transition(cid, S.FAULTED, actor="daemon", reason=reason)
         self.events.emit("fit", cid, phase="failed", reason=reason)

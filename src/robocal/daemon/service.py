@@ -28,7 +28,7 @@ from robocal._core.files import private_dir
 from robocal.compensation import CompensationTable
 from robocal.daemon import _fingerprint, creating, pushing, storage_faults
 from robocal.daemon._journal import PushJournal
-from robocal.daemon._plan import PlanDoc
+from robocal.daemon._plan import CampaignPlan
 from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.compensating import CompensationManager
@@ -221,7 +221,7 @@ class CalibrationService:
         (:func:`~robocal.daemon.creating.preflight`: ConnectFailed names the one that fails)."""
         return await creating.preflight(self.hub, self.config)
 
-    async def create(self, plan: Mapping[str, Any] | str | PlanDoc, *, actor: str,
+    async def create(self, plan: Mapping[str, Any] | str | CampaignPlan, *, actor: str,
                      name: str | None = None, start: bool = True,
                      measure_only: bool = False, parent: str | None = None
                      ) -> dict[str, Any]:

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import json
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -22,7 +23,7 @@ import structlog
 from robocal.compensation import CompensationTable
 from robocal.daemon import pushing
 from robocal.daemon._journal import PushJournal
-from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+from robocal.daemon._plan import CampaignPlan, parse_plan, plan_from_poses
 from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig
@@ -71,7 +72,7 @@ class CampaignSide(Protocol):
         """Connect robot and tracker."""
         ...
 
-    async def create(self, plan: PlanDoc, *, actor: str, name: str | None = None,
+    async def create(self, plan: CampaignPlan, *, actor: str, name: str | None = None,
                      measure_only: bool = False, parent: str | None = None
                      ) -> dict[str, Any]:
         """Create and start a campaign."""
@@ -91,6 +92,7 @@ class CampaignSide(Protocol):
         ...
 
 
+@dataclass(kw_only=True, eq=False)
 class VerificationRuns:
     """The verification runs of pushes and rollbacks, one task per journal key.
 
@@ -98,21 +100,16 @@ class VerificationRuns:
     stopping (a run cut then stays open in the journal and is resumed on the next start).
     """
 
-    def __init__(self, *, config: AppConfig, robot: RobotDescription, store: Store,
-                 journal: PushJournal, events: EventBus, reports: ReportKeeper,
-                 campaigns: CampaignSide,
-                 entry: Callable[[int], CompensationTable | ControllerSnapshot],
-                 closing: Callable[[], bool]) -> None:
-        self.config = config
-        self.robot = robot
-        self.store = store
-        self.journal = journal
-        self.events = events
-        self.reports = reports
-        self.campaigns = campaigns
-        self._entry = entry
-        self._closing = closing
-        self._tasks: dict[str, asyncio.Task[None]] = {}
+    config: AppConfig
+    robot: RobotDescription
+    store: Store
+    journal: PushJournal
+    events: EventBus
+    reports: ReportKeeper
+    campaigns: CampaignSide
+    entry: Callable[[int], CompensationTable | ControllerSnapshot]
+    closing: Callable[[], bool]
+    _tasks: dict[str, asyncio.Task[None]] = field(default_factory=dict, init=False)
 
     def spawn(self, key: str) -> None:
         """Start (or resume) the run of ``key`` unless it is under way."""
@@ -148,7 +145,7 @@ class VerificationRuns:
         except asyncio.CancelledError:
             raise
         except Exception as err:  # a verification bug must not take the daemon down
-            if self._closing():  # cut by shutdown: still open in the journal, resumed on start
+            if self.closing():  # cut by shutdown: still open in the journal, resumed on start
                 _log.info("verification interrupted by shutdown", key=key, error=str(err))
                 return
             _log.exception("verification failed", key=key)
@@ -241,7 +238,7 @@ class VerificationRuns:
     async def _start(self, key: str) -> bool:
         e = self.journal.get(key)
         program = e.detail.get("program_q_deg")
-        entry = self._entry(e.table_id)
+        entry = self.entry(e.table_id)
         skip = self._skip_reason(program, entry)
         if skip is not None:
             self.journal.set_verification(key, state="skipped", result={"reason": skip})
@@ -276,7 +273,7 @@ class VerificationRuns:
                     parse_plan(doc, source="verification", strict=False), actor="daemon",
                     name=f"verify {e.action} {key}", measure_only=True, parent=key)
             except RobocalError as err:
-                if self._closing():
+                if self.closing():
                     raise
                 self.journal.set_verification(key, state="skipped",
                                               result={"reason": f"not measured: {err}"})

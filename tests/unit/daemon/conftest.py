@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+from robocal.daemon._plan import CampaignPlan, parse_plan, plan_from_poses
 from robocal.daemon.config import AppConfig, parse_config
 from robocal.kinematics import load_robot
 
@@ -50,7 +50,7 @@ def make_config(tmp_path: Path) -> Callable[..., AppConfig]:
     return make
 
 
-def random_plan(n: int, *, seed: int = 0, validation: int = 0, via_every: int = 0) -> PlanDoc:
+def random_plan(n: int, *, seed: int = 0, validation: int = 0, via_every: int = 0) -> CampaignPlan:
     """A bare plan of ``n`` random poses well inside the limits (last ``validation`` held out)."""
     robot = load_robot(ROBOT)
     rng = np.random.default_rng(seed)

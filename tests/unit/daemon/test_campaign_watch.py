@@ -170,8 +170,17 @@ async def test_client_waits_for_a_daemon_that_is_starting(make_config, tmp_path)
     with pytest.raises(DaemonUnavailable, match="robocal daemon --config"):
         await asyncio.to_thread(c.request, "GET", "/health")
     c.wait_s = 20.0
+    attempts: list[object] = []
+    connection = c._connection
+
+    def counted(timeout: float | None = None) -> Any:  # one call per connection attempt
+        attempts.append(None)
+        return connection(timeout)
+
+    c._connection = counted  # type: ignore[method-assign]
     pending = asyncio.create_task(asyncio.to_thread(c.request, "GET", "/health"))
-    await asyncio.sleep(0.05)
+    # refused, and trying again: the client waits instead of giving up
+    await eventually(lambda: len(attempts) >= 2, 10, what="a second connection attempt")
     assert not pending.done()
     svc, api, _ = await _served(make_config, tmp_path)  # the daemon comes up late
     try:

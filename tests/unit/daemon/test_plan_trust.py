@@ -17,7 +17,7 @@ from tests.unit.daemon.conftest import ROBOT
 
 
 @pytest.fixture(scope="module")
-def plan_doc() -> _plan.PlanDoc:
+def plan_doc() -> _plan.CampaignPlan:
     plan = plan_campaign(ROBOT, "demo", count=12, validation=0, cpa=False, iso=False, seed=1,
                          candidates=64)
     return parse_plan(json.loads(plan.to_json()))

@@ -25,7 +25,7 @@ import hmac
 import json
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -49,6 +49,7 @@ from robocal.errors import RobocalError
 __all__ = ["SessionStore", "auth_middleware", "next_url", "register"]
 
 _log = structlog.get_logger(__name__)
+_Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 _SERVICE: web.AppKey[CalibrationService] = web.AppKey("station_service", CalibrationService)
 _SESSIONS: web.AppKey[SessionStore] = web.AppKey("station_sessions", SessionStore)
 _LOCAL: web.AppKey[bool] = web.AppKey("station_local", bool)
@@ -447,17 +448,21 @@ def register(app: web.Application, service: CalibrationService, sessions: Sessio
     app[_TOKENS] = tokens
     app[_PEER] = peer
     app[_RESIDUALS] = {}
-    r = app.router
-    r.add_get("/", index, name="station.index")
-    r.add_get("/station", index, name="station.redirect")
-    r.add_get("/station/", list_view, name="station.list_view")
-    r.add_get("/station/login", login_form, name="station.login_form")
-    r.add_post("/station/login", login, name="station.login")
-    r.add_post("/station/logout", logout, name="station.logout")
-    r.add_get("/station/static/{name}", static, name="station.static")
-    r.add_post("/station/campaigns", start_from_plan, name="station.start_plan")
-    r.add_get("/station/campaigns/{cid}", campaign_view, name="station.campaign_view")
-    r.add_get("/station/campaigns/{cid}/points", points, name="station.points")
-    r.add_post("/station/campaigns/{cid}/{action}", action, name="station.action")
-    r.add_get("/campaigns/{cid}/report", report, name="station.report")
+    pages: tuple[tuple[str, str, _Handler, str], ...] = (
+        ("GET", "/", index, "index"),
+        ("GET", "/station", index, "redirect"),
+        ("GET", "/station/", list_view, "list_view"),
+        ("GET", "/station/login", login_form, "login_form"),
+        ("POST", "/station/login", login, "login"),
+        ("POST", "/station/logout", logout, "logout"),
+        ("GET", "/station/static/{name}", static, "static"),
+        ("POST", "/station/campaigns", start_from_plan, "start_plan"),
+        ("GET", "/station/campaigns/{cid}", campaign_view, "campaign_view"),
+        ("GET", "/station/campaigns/{cid}/points", points, "points"),
+        ("POST", "/station/campaigns/{cid}/{action}", action, "action"),
+        ("GET", "/campaigns/{cid}/report", report, "report"),
+    )
+    for method, path, handler, name in pages:  # add_get: HEAD too, as aiohttp does
+        add = app.router.add_get if method == "GET" else app.router.add_post
+        add(path, handler, name=f"station.{name}")
 
