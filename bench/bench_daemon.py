@@ -30,8 +30,9 @@ import numpy as np
 from robocal.daemon._plan import parse_plan, plan_from_poses
 from robocal.daemon.config import parse_config
 from robocal.daemon.logging import configure_logging
+from robocal.daemon.schemas import Measurement
 from robocal.daemon.service import CalibrationService
-from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
+from robocal.daemon.store import PoseRow, Store, now_iso
 from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import FanucSimOptions, LtpSimOptions, SimCell
 from robocal.kinematics import load_robot as load_description
@@ -107,7 +108,7 @@ def _store_commit(data_dir: Path, n: int = 300) -> tuple[float, float]:
             plan_json="{}", plan_digest="d", config_digest="c", actor="bench")
         t0 = time.perf_counter()
         for i in range(n):
-            store.add_measurement(rec.id, MeasurementRow(
+            store.add_measurement(rec.id, Measurement(
                 pose_idx=i, purpose="calibration", q_cmd_deg=(0.0,) * 6, q_act_deg=(0.0,) * 6,
                 p_mm=(1.0, 2.0, 3.0), sigma_mm=(0.01,) * 3, rms_mm=0.001, samples=5,
                 attempts=1, distance_mm=None, weather={}, measured_at=now_iso()))

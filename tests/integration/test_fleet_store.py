@@ -27,7 +27,8 @@ from robocal.cli.main import main as cli_main
 from robocal.daemon.campaign import CampaignState as S
 from robocal.daemon.config import FleetConfig
 from robocal.daemon.fleet import REPLICATED, FleetReplicator, detach, install
-from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
+from robocal.daemon.schemas import Measurement
+from robocal.daemon.store import PoseRow, Store, now_iso
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -48,7 +49,7 @@ def _campaign(store: Store, poses: int, *, push: bool = False) -> str:
         plan_json=json.dumps({"poses": poses}), plan_digest="p", config_digest="c", actor="t")
     store.transition(rec.id, S.RUNNING, actor="t")
     for i in range(poses):
-        store.add_measurement(rec.id, MeasurementRow(
+        store.add_measurement(rec.id, Measurement(
             pose_idx=i, purpose="calibration", q_cmd_deg=(float(i),) * 6,
             q_act_deg=(float(i),) * 6, p_mm=(1000.0 + i, 2.0, 3.0), sigma_mm=(0.01,) * 3,
             rms_mm=0.005, samples=10, attempts=1, distance_mm=None,

@@ -137,7 +137,8 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
     from robocal.daemon.fitting import measurement_set, rows_by_purpose
-    from robocal.daemon.store import MeasurementRow, Store
+    from robocal.daemon.schemas import Measurement
+    from robocal.daemon.store import Store
     from robocal.errors import ConfigError
     from robocal.kinematics import CalibratedModel
     from robocal.report import MeasurementLog, ReportInput, model_entry
@@ -171,7 +172,7 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
             status=str(summ.get("status", "")) or base.status,
             stored=stored or dict(cm.metrics))
 
-    def mset(sel: list[MeasurementRow], *, commanded: bool = False) -> MeasurementSet | None:
+    def mset(sel: list[Measurement], *, commanded: bool = False) -> MeasurementSet | None:
         return measurement_set(sel, commanded=commanded) if sel else None
 
     by_purpose = rows_by_purpose(rows)

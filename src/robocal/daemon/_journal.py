@@ -22,14 +22,14 @@ from __future__ import annotations
 import json
 import sqlite3
 import uuid
-from dataclasses import dataclass
 from typing import Any
 
 from robocal.daemon.campaign import CampaignState, check_transition
+from robocal.daemon.schemas import JournalRow, PushDetail, RollbackDetail
 from robocal.daemon.store import Store, now_iso
 from robocal.errors import CampaignError
 
-__all__ = ["JournalEntry", "PushJournal", "new_key"]
+__all__ = ["PushJournal", "new_key"]
 
 
 def new_key() -> str:
@@ -63,36 +63,8 @@ CREATE TABLE IF NOT EXISTS push_verifications(
 """
 
 
-@dataclass(frozen=True)
-class JournalEntry:
-    """One journal row (``table_id``: the table written; for a rollback, the one restored)."""
-
-    key: str
-    action: str
-    state: str
-    campaign: str | None
-    actor: str
-    table_id: int
-    baseline_id: int | None
-    rolled_back_id: int | None
-    intended_at: str
-    finished_at: str | None
-    outcome: str
-    detail: dict[str, Any]
-
-    def to_json(self) -> dict[str, Any]:
-        """JSON-ready form."""
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-
-def _entry(row: sqlite3.Row) -> JournalEntry:
-    return JournalEntry(
-        key=row["key"], action=row["action"], state=row["state"], campaign=row["campaign"],
-        actor=row["actor"], table_id=int(row["table_id"]),
-        baseline_id=None if row["baseline_id"] is None else int(row["baseline_id"]),
-        rolled_back_id=None if row["rolled_back_id"] is None else int(row["rolled_back_id"]),
-        intended_at=row["intended_at"], finished_at=row["finished_at"], outcome=row["outcome"],
-        detail=json.loads(row["detail"]))
+def _entry(row: sqlite3.Row) -> JournalRow:
+    return JournalRow.model_validate({**dict(row), "detail": json.loads(row["detail"])})
 
 
 class PushJournal:
@@ -109,7 +81,7 @@ class PushJournal:
     def intend(self, *, key: str, action: str, campaign: str | None, actor: str,
                table: tuple[str, str, str] | None = None, table_id: int | None = None,
                baseline: tuple[str, str] | None = None, rolled_back_id: int | None = None,
-               detail: dict[str, Any]) -> JournalEntry:
+               detail: PushDetail | RollbackDetail) -> JournalRow:
         """Record the intent, with the table ``(kind, checksum, json)`` to write (or the id of
         a stored one) and the ``baseline`` snapshot ``(checksum, json)``; one transaction.
 
@@ -119,6 +91,7 @@ class PushJournal:
             If ``key`` was used before.
         """
         t = now_iso()
+        facts = detail.model_dump(mode="json", exclude_unset=True)
         try:
             with self.store.transaction() as db:
                 if table is not None:
@@ -142,18 +115,18 @@ class PushJournal:
                     "baseline_id, rolled_back_id, intended_at, detail) "
                     "VALUES(?,?,?,?,?,?,?,?,?,?)",
                     (key, action, "intended", campaign, actor, table_id, baseline_id,
-                     rolled_back_id, t, json.dumps(detail, default=str)))
+                     rolled_back_id, t, json.dumps(facts)))
                 checksum = db.execute("SELECT checksum FROM tables WHERE id=?",
                                       (table_id,)).fetchone()[0]
                 Store._audit(db, actor, f"compensation.{action}-intended", campaign, checksum,
                              {"key": key, "table_id": table_id, "baseline_id": baseline_id,
-                              **detail})
+                              **facts})
         except sqlite3.IntegrityError as err:
             raise CampaignError(f"idempotency key {key!r} was used before") from err
         return self.get(key)
 
     def complete(self, key: str, *, actor: str, outcome: str = "written, read back, verified",
-                 extra: dict[str, Any] | None = None) -> JournalEntry:
+                 extra: dict[str, Any] | None = None) -> JournalRow:
         """Finish an intended entry: history, audit, campaign ``pushed``; one transaction."""
         e = self.get(key)
         if e.state != "intended":
@@ -162,7 +135,8 @@ class PushJournal:
         with self.store.transaction() as db:
             checksum = db.execute("SELECT checksum FROM tables WHERE id=?",
                                   (e.table_id,)).fetchone()[0]
-            detail = {"key": key, "table_id": e.table_id, **e.detail, **(extra or {})}
+            detail = {"key": key, "table_id": e.table_id,
+                      **e.detail.model_dump(mode="json", exclude_unset=True), **(extra or {})}
             if e.action == "push":
                 if e.baseline_id is not None:
                     db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
@@ -170,9 +144,9 @@ class PushJournal:
                 db.execute("INSERT INTO pushes(at, action, table_id, campaign, actor) "
                            "VALUES(?,?,?,?,?)", (t, "push", e.table_id, e.campaign, actor))
                 if e.campaign is not None:
+                    kind = e.detail.kind if isinstance(e.detail, PushDetail) else "table"
                     note = self._to_pushed(db, e.campaign, actor,
-                                           f"push {key} ({e.detail.get('kind', 'table')} "
-                                           f"table {checksum[:12]})")
+                                           f"push {key} ({kind} table {checksum[:12]})")
                     if note:
                         outcome = f"{outcome}; {note}"
                         detail["campaign_note"] = note
@@ -215,7 +189,7 @@ class PushJournal:
         return None
 
     def abandon(self, key: str, *, actor: str, reason: str, what: str = "abandoned",
-                extra: dict[str, Any] | None = None) -> JournalEntry:
+                extra: dict[str, Any] | None = None) -> JournalRow:
         """Close an intended entry without a history row (nothing, or the original, is on the
         controller); audit ``compensation.<action>-<what>`` with the reason."""
         e = self.get(key)
@@ -231,7 +205,7 @@ class PushJournal:
         return self.get(key)
 
     # --- queries ---------------------------------------------------------------------------
-    def get(self, key: str) -> JournalEntry:
+    def get(self, key: str) -> JournalRow:
         """One entry; raise CampaignError when unknown."""
         row = self.store.db.execute("SELECT * FROM push_journal WHERE key=?",
                                     (key,)).fetchone()
@@ -239,19 +213,19 @@ class PushJournal:
             raise CampaignError(f"no journal entry {key!r}")
         return _entry(row)
 
-    def find(self, key: str) -> JournalEntry | None:
+    def find(self, key: str) -> JournalRow | None:
         """One entry or None."""
         row = self.store.db.execute("SELECT * FROM push_journal WHERE key=?",
                                     (key,)).fetchone()
         return None if row is None else _entry(row)
 
-    def pending(self) -> list[JournalEntry]:
+    def pending(self) -> list[JournalRow]:
         """Entries still ``intended`` (a write may or may not have happened), oldest first."""
         rows = self.store.db.execute(
             "SELECT * FROM push_journal WHERE state='intended' ORDER BY rowid").fetchall()
         return [_entry(r) for r in rows]
 
-    def entries(self, *, campaign: str | None = None) -> list[JournalEntry]:
+    def entries(self, *, campaign: str | None = None) -> list[JournalRow]:
         """Every entry (of one campaign), oldest first."""
         if campaign is None:
             rows = self.store.db.execute("SELECT * FROM push_journal ORDER BY rowid").fetchall()

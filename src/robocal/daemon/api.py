@@ -290,7 +290,7 @@ async def get_campaign(request: web.Request) -> web.Response:
 
 async def get_measurements(request: web.Request) -> web.Response:
     rows = request.app[_SERVICE].measurements(request.match_info["cid"])
-    return _reply(list[Measurement], [r.to_json() for r in rows])
+    return _reply(list[Measurement], rows)
 
 
 async def _report(request: web.Request, name: str) -> web.Response:

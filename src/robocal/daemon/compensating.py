@@ -21,13 +21,14 @@ import structlog
 
 from robocal.compensation import CompensationTable, describe_table, improvement_refusal
 from robocal.daemon import _fingerprint, pushing
-from robocal.daemon._journal import JournalEntry, PushJournal, new_key
+from robocal.daemon._journal import PushJournal, new_key
 from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import load_model
 from robocal.daemon.hub import DriverHub
+from robocal.daemon.schemas import BULKY_DETAIL, JournalRow, PushDetail, RollbackDetail
 from robocal.daemon.store import Store
 from robocal.daemon.verifying import CampaignSide, VerificationRuns
 from robocal.drivers import ControllerSnapshot, RobotDriver
@@ -39,8 +40,6 @@ __all__ = ["CompensationManager"]
 S = CampaignState
 Entry = CompensationTable | ControllerSnapshot
 _log = structlog.get_logger(__name__)
-#: journal detail keys too long to show (program joints and target positions)
-_BULKY = ("program_q_deg", "target_p_mm")
 
 
 class CompensationManager:
@@ -298,9 +297,10 @@ class CompensationManager:
             # checked and about to write: an earlier push's re-measurement ends here
             await self.runs.stop_run("a new push was asked for")
             push_key = key or new_key()
-            detail = {**summary, "forced": forced["forced"], "refusal": forced["refusal"],
-                      "reason": reason, "controller_calibration": forced["controller_calibration"],
-                      "program_q_deg": desc["program_q_deg"]}
+            detail = PushDetail.model_validate({
+                **summary, "forced": forced["forced"], "refusal": forced["refusal"],
+                "reason": reason, "controller_calibration": forced["controller_calibration"],
+                "program_q_deg": desc["program_q_deg"]})
 
             async def intend(robot: RobotDriver) -> None:
                 snap = None
@@ -325,12 +325,12 @@ class CompensationManager:
         return self.campaigns.status(cid)
 
     # --- reconcile -----------------------------------------------------------------------------
-    async def reconcile(self) -> list[dict[str, Any]]:
+    async def reconcile(self) -> list[JournalRow]:
         """Settle journal entries left ``intended`` by a crash, by reading the controller."""
         async with self.lock:
             return await self._reconcile_locked()
 
-    async def _reconcile_locked(self) -> list[dict[str, Any]]:
+    async def _reconcile_locked(self) -> list[JournalRow]:
         out = []
         for e in self.journal.pending():
             target = self.entry(e.table_id)
@@ -356,27 +356,27 @@ class CompensationManager:
                       outcome=done.outcome)
             self.events.emit("compensation", e.campaign, action=f"{e.action}-reconciled",
                              key=e.key, state=done.state)
-            out.append(done.to_json())
+            out.append(done)
         if out:
             self.reports.refresh()
         return out
 
     # --- rollback ------------------------------------------------------------------------------
     def _rollback_detail(self, reason: str, entry: Entry, previous_id: int,
-                         current_id: int) -> dict[str, Any]:
+                         current_id: int) -> RollbackDetail:
         """The journal detail of a rollback from ``current_id`` to ``previous_id``: what is
         measured again afterwards, the restored table's own targets, or (restoring the
         controller's original) the rolled-back table's targets, now uncompensated."""
         source_id = previous_id if isinstance(entry, CompensationTable) else current_id
         pushed = [j for j in self.journal.entries()
                   if j.action == "push" and j.table_id == source_id]
-        return {"reason": reason, "restored_table_id": previous_id,
-                "rolled_back_table_id": current_id,
-                "program_q_deg": pushed[-1].detail.get("program_q_deg") if pushed else None,
-                "model_campaign": self.store.table(source_id)["campaign"],
-                "target_p_mm": pushed[-1].detail.get("target_p_mm") if pushed else None,
-                "restores": ("controller original" if isinstance(entry, ControllerSnapshot)
-                             else f"{entry.kind} table")}
+        return RollbackDetail(
+            reason=reason, restored_table_id=previous_id, rolled_back_table_id=current_id,
+            program_q_deg=pushed[-1].detail.program_q_deg if pushed else None,
+            model_campaign=self.store.table(source_id)["campaign"],
+            target_p_mm=pushed[-1].detail.target_p_mm if pushed else None,
+            restores=("controller original" if isinstance(entry, ControllerSnapshot)
+                      else f"{entry.kind} table"))
 
     async def rollback(self, *, actor: str, reason: str = "", key: str | None = None
                        ) -> dict[str, Any]:
@@ -460,7 +460,7 @@ class CompensationManager:
         out = []
         for e in self.journal.entries(campaign=cid):
             row = self.store.table(e.table_id)
-            d = {k: v for k, v in e.detail.items() if k not in _BULKY}
+            d = e.detail.model_dump(exclude=set(BULKY_DETAIL), exclude_unset=True)
             out.append({"key": e.key, "action": e.action, "state": e.state, "actor": e.actor,
                         "at": e.finished_at or e.intended_at, "outcome": e.outcome,
                         "checksum": row["checksum"], "table_id": e.table_id, **d,
@@ -517,7 +517,7 @@ class CompensationManager:
         active = self._active(stack)
         journal = self.journal.entries()
         fates = self.push_fates()
-        by_table: dict[tuple[str, int | None], JournalEntry] = {}
+        by_table: dict[tuple[str, int | None], JournalRow] = {}
         for j in journal:
             if j.state == "completed":
                 by_table[(j.action, j.rolled_back_id if j.action == "rollback"
@@ -527,17 +527,15 @@ class CompensationManager:
             hj = by_table.get((str(h["action"]), int(h["table_id"])))
             if hj is not None:
                 h = {**h, "key": hj.key,
-                     **{k: hj.detail.get(k) for k in ("predicted_residual_mm",
-                                                      "nominal_residual_mm", "forced",
-                                                      "refusal", "reason")},
+                     **{k: getattr(hj.detail, k, None) for k in (
+                         "predicted_residual_mm", "nominal_residual_mm", "forced", "refusal",
+                         "reason")},
                      "verification": self.journal.verification(hj.key)}
                 if hj.action == "push":
                     h.update(fates.get(hj.key, {}))
             history.append(h)
         return {"active": active, "stack": stack, "history": history,
-                "journal": [{**j.to_json(), "detail": {k: v for k, v in j.detail.items()
-                                                        if k not in _BULKY}}
-                            for j in journal[-50:]]}
+                "journal": [j.shown() for j in journal[-50:]]}
 
 
 def _push_summary(entries: list[dict[str, Any]]) -> dict[str, Any] | None:

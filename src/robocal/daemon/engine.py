@@ -42,7 +42,8 @@ from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.hub import DriverHub
-from robocal.daemon.store import MeasurementRow, PoseRow, Store, now_iso
+from robocal.daemon.schemas import Measurement
+from robocal.daemon.store import PoseRow, Store, now_iso
 from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target, with_retry
 from robocal.errors import (
     BeamLost,
@@ -390,7 +391,7 @@ class CampaignRunner:
                             timeout=self.config.measurement.move_timeout_s)
 
     async def _measure_pose(self, cid: str, pose: PoseRow, predictor: Predictor
-                            ) -> MeasurementRow:
+                            ) -> Measurement:
         cfg = self.config.measurement
         tracker = await self.hub.tracker()
         q_cmd = await self._move(pose)
@@ -447,8 +448,8 @@ class CampaignRunner:
     @staticmethod
     def _row(pose: PoseRow, q_cmd: Sequence[float], q_act: Sequence[float],
              r: TrackerReading, attempts: int, distance_mm: float | None,
-             beam_losses: int = 0) -> MeasurementRow:
-        return MeasurementRow(
+             beam_losses: int = 0) -> Measurement:
+        return Measurement(
             pose_idx=pose.idx, purpose=pose.purpose,
             q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
             q_act_deg=tuple(math.degrees(v) for v in q_act),

@@ -24,7 +24,8 @@ from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import FitRunner, build_fit_job, load_model, sign_fits
-from robocal.daemon.store import MeasurementRow, Store, now_iso
+from robocal.daemon.schemas import Measurement
+from robocal.daemon.store import Store, now_iso
 from robocal.errors import IdentificationError, RobocalError, StorageError
 from robocal.kinematics import CalibratedModel, RobotDescription
 
@@ -94,7 +95,7 @@ class FitTasks:
             with contextlib.suppress(RobocalError, sqlite3.Error):
                 self._fault(cid, f"storage fault while saving the fit: {err}")
 
-    def measurement_log(self, cid: str, rows: list[MeasurementRow]) -> dict[str, Any]:
+    def measurement_log(self, cid: str, rows: list[Measurement]) -> dict[str, Any]:
         """What the report says of the measuring: poses planned and measured, retries, beam
         losses, devices and the last weather reading."""
         retries = sum(max(0, r.attempts - 1) for r in rows)
@@ -105,7 +106,7 @@ class FitTasks:
                 "tracker": self.config.tracker.kind, "controller": self.config.robot.kind,
                 "weather": weather[0] if weather else {}}
 
-    async def _run(self, cid: str, rows: list[MeasurementRow]) -> dict[str, Any] | None:
+    async def _run(self, cid: str, rows: list[Measurement]) -> dict[str, Any] | None:
         """The fit job's result, or None when it failed (the campaign faulted)."""
         log = _log.bind(campaign=cid)
         job = build_fit_job(campaign=cid, robot=self.robot, rows=rows,

@@ -28,7 +28,7 @@ import structlog
 from robocal._core.files import atomic_write_text, json_default
 from robocal._core.measurements import MeasurementSet
 from robocal._core.model_names import CPA, NOMINAL
-from robocal.daemon.store import MeasurementRow
+from robocal.daemon.schemas import Measurement
 from robocal.errors import ConfigError, IdentificationError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
 
@@ -71,7 +71,7 @@ def sign_fits(fits: dict[str, tuple[dict[str, Any], str | None]], secret: bytes 
     return out
 
 
-def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
+def measurement_set(rows: Sequence[Measurement], *, commanded: bool = False
                     ) -> MeasurementSet:
     """Stored rows (mm, deg) as a :class:`MeasurementSet` (SI), pose ids ``P<index>``.
 
@@ -106,7 +106,7 @@ def fit_options(options: Mapping[str, Any] | None) -> FitOptions:
         raise ConfigError(str(err), source="fit.options") from err
 
 
-def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[MeasurementRow],
+def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Measurement],
                   models: Sequence[str], cpa: bool, out_dir: Path | None, report: bool,
                   log: Mapping[str, Any] | None = None,
                   options: Mapping[str, Any] | None = None,
@@ -120,7 +120,7 @@ def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Meas
         "options": dict(options or {}),
         "campaign": campaign,
         "robot": robot.to_dict(),
-        "rows": [r.to_json() for r in rows],
+        "rows": [r.model_dump(mode="json") for r in rows],
         "models": list(models),
         "cpa": cpa,
         "out_dir": None if out_dir is None else str(out_dir),
@@ -129,14 +129,8 @@ def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Meas
     }
 
 
-def _rows(job: Mapping[str, Any]) -> list[MeasurementRow]:
-    return [MeasurementRow(
-        pose_idx=int(r["pose_idx"]), purpose=str(r["purpose"]), q_cmd_deg=tuple(r["q_cmd_deg"]),
-        q_act_deg=tuple(r["q_act_deg"]), p_mm=tuple(r["p_mm"]),
-        sigma_mm=None if r["sigma_mm"] is None else tuple(r["sigma_mm"]),
-        rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
-        distance_mm=r["distance_mm"], weather=dict(r["weather"]), measured_at=r["measured_at"],
-    ) for r in job["rows"]]
+def _rows(job: Mapping[str, Any]) -> list[Measurement]:
+    return [Measurement.model_validate(r) for r in job["rows"]]
 
 
 def _summary(name: str, cal: CalibratedModel, seconds: float, *,
@@ -181,19 +175,19 @@ class RowsByPurpose:
     ``iso-Pk`` rows, ``cpa`` the ``cpa-jK`` sweeps by K (1-based joint number).
     """
 
-    calibration: list[MeasurementRow]
-    validation: list[MeasurementRow]
-    iso: list[MeasurementRow]
-    cpa: dict[int, list[MeasurementRow]]
+    calibration: list[Measurement]
+    validation: list[Measurement]
+    iso: list[Measurement]
+    cpa: dict[int, list[Measurement]]
 
 
-def rows_by_purpose(rows: Sequence[MeasurementRow]) -> RowsByPurpose:
+def rows_by_purpose(rows: Sequence[Measurement]) -> RowsByPurpose:
     """Split ``rows`` by purpose; the one reader of campaign data for fits and reports."""
-    calibration: list[MeasurementRow] = []
-    validation: list[MeasurementRow] = []
-    iso: list[MeasurementRow] = []
-    unmarked: list[MeasurementRow] = []
-    cpa: dict[int, list[MeasurementRow]] = {}
+    calibration: list[Measurement] = []
+    validation: list[Measurement] = []
+    iso: list[Measurement] = []
+    unmarked: list[Measurement] = []
+    cpa: dict[int, list[Measurement]] = {}
     for r in rows:
         purpose = r.purpose.lower()
         m = _CPA.match(purpose)

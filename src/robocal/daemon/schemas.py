@@ -1,9 +1,13 @@
-"""Typed shapes of what the daemon's HTTP API returns and of its progress events.
+"""Typed shapes of the daemon's records, of what its HTTP API returns and of its events.
 
-:class:`~robocal.daemon.service.CalibrationService` returns plain dicts; the API validates
-and serialises every JSON response through these models (a key renamed in the service
-fails a test instead of surprising a client), and :class:`~robocal.daemon.events.EventBus`
-validates every event against its kind's model. ``openapi_spec()`` is generated from them.
+A record the daemon stores has one type here, used by the store, the service, the API and
+the CLI alike: :class:`Measurement`, :class:`JournalRow` (with its :class:`PushDetail` or
+:class:`RollbackDetail`). The composite answers (campaign status, compensation state) are
+still assembled as mappings by :class:`~robocal.daemon.service.CalibrationService`; the API
+validates and serialises every JSON response through these models (a key renamed in the
+service fails a test instead of surprising a client), and
+:class:`~robocal.daemon.events.EventBus` validates every event against its kind's model.
+``openapi_spec()`` is generated from them (ADR 0044).
 
 Units follow the wire convention: mm, degrees, seconds; times are ISO 8601 strings (UTC)
 except the event ``time`` (Unix seconds).
@@ -13,7 +17,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 __all__ = [
     "EVENT_MODELS",
@@ -28,10 +32,13 @@ __all__ = [
     "FitEvent",
     "Health",
     "LogEvent",
+    "JournalRow",
     "Measurement",
     "PoseEvent",
+    "PushDetail",
     "ReportEvent",
     "RetryEvent",
+    "RollbackDetail",
     "StateEvent",
     "event_adapter",
 ]
@@ -215,21 +222,24 @@ class CampaignStatus(CampaignSummary):
 
 
 class Measurement(_Closed):
-    """A stored measurement (mm, degrees)."""
+    """A stored measurement (mm, degrees): the one type of it, from the campaign runner to
+    the store, the fit, the API and ``robocal report``."""
+
+    model_config = ConfigDict(frozen=True)
 
     pose_idx: int
     purpose: str
-    q_cmd_deg: list[float]
-    q_act_deg: list[float]
-    p_mm: list[float] = Field(min_length=3, max_length=3)
-    sigma_mm: list[float] | None = Field(min_length=3, max_length=3)
+    q_cmd_deg: tuple[float, ...]
+    q_act_deg: tuple[float, ...]
+    p_mm: tuple[float, float, float]
+    sigma_mm: tuple[float, float, float] | None
     rms_mm: float | None
     samples: int
     attempts: int
     distance_mm: float | None
     weather: dict[str, float]
     measured_at: str
-    beam_losses: int
+    beam_losses: int = 0
 
 
 # --- health ----------------------------------------------------------------------------------
@@ -302,8 +312,61 @@ class PushHistoryEntry(_Closed):
     rolled_back_at: str | None = None
 
 
+class PushDetail(_Closed):
+    """What a push journals beside its row: the table's description and what was forced.
+
+    The program's joints (``program_q_deg``, deg, one row per target) are what its
+    verification run measures again; they are not shown in the API's journal (too long).
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    kind: str
+    purpose: str
+    predicted_residual_mm: float | None = None
+    nominal_residual_mm: float | None = None
+    model_accuracy_mm: float | None = None
+    ratio: float | None = None
+    warnings: list[str] = Field(default_factory=list)
+    model: str | None = None
+    model_id: str | None = None
+    coverage: dict[str, Any] | None = Field(
+        default=None, description="program targets outside the fitted model's coverage")
+    forced: bool = False
+    refusal: str | None = Field(default=None, description="why it was refused unforced")
+    reason: str = ""
+    controller_calibration: dict[str, Any] | None = None
+    program_q_deg: list[list[float]] | None = None
+    target_p_mm: list[list[float]] | None = Field(
+        default=None, description="the program's target positions (mm), where it gives them")
+
+
+class RollbackDetail(_Closed):
+    """What a rollback journals: the tables swapped and what its verification run measures
+    again (the restored table's targets, or the rolled-back one's, now uncompensated)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    reason: str = ""
+    restored_table_id: int | None = None
+    rolled_back_table_id: int | None = None
+    program_q_deg: list[list[float]] | None = None
+    model_campaign: str | None = Field(
+        default=None, description="the campaign whose fitted model built those targets' table")
+    target_p_mm: list[list[float]] | None = None
+    restores: str | None = Field(default=None,
+                                 description="'controller original' or '<kind> table'")
+
+
+#: Bulky detail fields left out of the API's journal and campaign views.
+BULKY_DETAIL = frozenset({"program_q_deg", "target_p_mm"})
+
+
 class JournalRow(_Closed):
-    """One row of the push journal."""
+    """One row of the push journal (``table_id``: the table written; for a rollback, the one
+    restored), as stored and as the API shows it."""
+
+    model_config = ConfigDict(frozen=True)
 
     key: str
     action: Literal["push", "rollback"]
@@ -316,8 +379,28 @@ class JournalRow(_Closed):
     intended_at: str
     finished_at: str | None
     outcome: str
-    # open: what was journaled differs by action (table description, rollback ids, reason)
-    detail: dict[str, Any]
+    detail: PushDetail | RollbackDetail
+
+    @model_validator(mode="before")
+    @classmethod
+    def _detail_of_action(cls, data: Any) -> Any:
+        """A detail given as a mapping is read as the model of the row's action."""
+        if isinstance(data, dict) and isinstance(data.get("detail"), dict):
+            shape = RollbackDetail if data.get("action") == "rollback" else PushDetail
+            data = {**data, "detail": shape.model_validate(data["detail"])}
+        return data
+
+    def model_campaign(self) -> str | None:
+        """The campaign whose fitted model built the targets this entry's verification run
+        measures: a push's own, or the one a rollback's detail names."""
+        if self.campaign is not None or isinstance(self.detail, PushDetail):
+            return self.campaign
+        return self.detail.model_campaign
+
+    def shown(self) -> dict[str, Any]:
+        """The row as the API's journal shows it (the bulky detail fields left out)."""
+        return {**self.model_dump(exclude={"detail"}),
+                "detail": self.detail.model_dump(exclude=set(BULKY_DETAIL), exclude_unset=True)}
 
 
 class CompensationState(_Closed):

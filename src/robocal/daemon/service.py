@@ -38,7 +38,8 @@ from robocal.daemon.events import EventBus
 from robocal.daemon.fit_tasks import FitTasks
 from robocal.daemon.fitting import FitRunner, fit_options
 from robocal.daemon.hub import DriverHub
-from robocal.daemon.store import CampaignRecord, MeasurementRow, Store
+from robocal.daemon.schemas import JournalRow, Measurement
+from robocal.daemon.store import CampaignRecord, Store
 from robocal.drivers import ControllerSnapshot
 from robocal.errors import CampaignError, InvalidTransition, RobocalError, StorageError
 from robocal.kinematics import CalibratedModel, RobotDescription, load_robot
@@ -199,12 +200,12 @@ class CalibrationService:
         """:meth:`push_states` with ``superseded_by``, ``rolled_back_by``, ``rolled_back_at``."""
         return self.compensator.push_fates()
 
-    def measurements(self, cid: str) -> builtins.list[MeasurementRow]:
+    def measurements(self, cid: str) -> builtins.list[Measurement]:
         """Stored measurements of a campaign."""
         self.store.campaign(cid)
         return self.store.measurements(cid)
 
-    def _measurement_log(self, cid: str, rows: builtins.list[MeasurementRow]) -> dict[str, Any]:
+    def _measurement_log(self, cid: str, rows: builtins.list[Measurement]) -> dict[str, Any]:
         return self.fits.measurement_log(cid, rows)
 
     def _overhead(self) -> float | None:
@@ -454,7 +455,7 @@ class CalibrationService:
         return await self.compensator.push(cid, actor=actor, force=force, key=key,
                                            reason=reason)
 
-    async def reconcile(self) -> builtins.list[dict[str, Any]]:
+    async def reconcile(self) -> builtins.list[JournalRow]:
         """Settle journal entries left ``intended`` by a crash, by reading the controller."""
         return await self.compensator.reconcile()
 

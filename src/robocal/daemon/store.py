@@ -27,6 +27,7 @@ from typing import Any
 
 from robocal._core.files import private_file
 from robocal.daemon.campaign import CampaignState, check_transition
+from robocal.daemon.schemas import Measurement
 from robocal.errors import (
     CampaignError,
     ConfigError,
@@ -35,7 +36,7 @@ from robocal.errors import (
     UnknownCampaign,
 )
 
-__all__ = ["CampaignRecord", "MeasurementRow", "PoseRow", "Store", "is_storage_fault", "now_iso"]
+__all__ = ["CampaignRecord", "PoseRow", "Store", "is_storage_fault", "now_iso"]
 
 SCHEMA_VERSION = 1
 
@@ -215,43 +216,6 @@ class PoseRow:
     purpose: str
     q_deg: tuple[float, ...]
     measure: bool = True
-
-
-@dataclass(frozen=True)
-class MeasurementRow:
-    """A persisted measurement (mm, degrees)."""
-
-    pose_idx: int
-    purpose: str
-    q_cmd_deg: tuple[float, ...]
-    q_act_deg: tuple[float, ...]
-    p_mm: tuple[float, float, float]
-    sigma_mm: tuple[float, float, float] | None
-    rms_mm: float | None
-    samples: int
-    attempts: int
-    distance_mm: float | None
-    weather: dict[str, float]
-    measured_at: str
-    beam_losses: int = 0
-
-    def to_json(self) -> dict[str, Any]:
-        """JSON-ready form."""
-        return {
-            "pose_idx": self.pose_idx,
-            "purpose": self.purpose,
-            "q_cmd_deg": list(self.q_cmd_deg),
-            "q_act_deg": list(self.q_act_deg),
-            "p_mm": list(self.p_mm),
-            "sigma_mm": None if self.sigma_mm is None else list(self.sigma_mm),
-            "rms_mm": self.rms_mm,
-            "samples": self.samples,
-            "attempts": self.attempts,
-            "distance_mm": self.distance_mm,
-            "weather": self.weather,
-            "measured_at": self.measured_at,
-            "beam_losses": self.beam_losses,
-        }
 
 
 class Store:
@@ -685,7 +649,7 @@ class Store:
             "SELECT pose_idx FROM measurements WHERE campaign=?", (cid,)).fetchall()
         return {int(r[0]) for r in rows}
 
-    def add_measurement(self, cid: str, m: MeasurementRow) -> bool:
+    def add_measurement(self, cid: str, m: Measurement) -> bool:
         """Persist one measurement in its own transaction; False if the pose already has one.
 
         Not fsynced (see the module's docstring): a measurement lost to a power cut is
@@ -709,7 +673,7 @@ class Store:
             return False
         return True
 
-    def measurements(self, cid: str) -> list[MeasurementRow]:
+    def measurements(self, cid: str) -> list[Measurement]:
         """Every measurement of the campaign, by pose index."""
         rows = self.db.execute(
             "SELECT * FROM measurements WHERE campaign=? ORDER BY pose_idx", (cid,)
@@ -719,7 +683,7 @@ class Store:
             sig = None
             if r["sx_mm"] is not None:
                 sig = (float(r["sx_mm"]), float(r["sy_mm"]), float(r["sz_mm"]))
-            out.append(MeasurementRow(
+            out.append(Measurement(
                 pose_idx=int(r["pose_idx"]), purpose=r["purpose"],
                 q_cmd_deg=tuple(json.loads(r["q_cmd_deg"])),
                 q_act_deg=tuple(json.loads(r["q_act_deg"])),

@@ -237,7 +237,7 @@ class VerificationRuns:
 
     async def _start(self, key: str) -> bool:
         e = self.journal.get(key)
-        program = e.detail.get("program_q_deg")
+        program = e.detail.program_q_deg
         entry = self.entry(e.table_id)
         skip = self._skip_reason(program, entry)
         if skip is not None:
@@ -249,7 +249,7 @@ class VerificationRuns:
                 if isinstance(entry, CompensationTable) else list(range(len(q_program))))
         idx = [rows[k] for k in pushing.verification_indices(
             len(rows), self.config.compensation.verify_count)]
-        model_campaign = e.campaign or e.detail.get("model_campaign")
+        model_campaign = e.model_campaign()
         home = self._home_deg(model_campaign)
         q_deg: list[list[float]] = []
         purposes: list[str] = []
@@ -299,8 +299,8 @@ class VerificationRuns:
             return
         e = self.journal.get(key)
         cal = self.campaigns.fitted_model(str(v["model_campaign"]))
-        q_program = np.radians(np.asarray(e.detail["program_q_deg"], dtype=float))
-        target_p = e.detail.get("target_p_mm")
+        q_program = np.radians(np.asarray(e.detail.program_q_deg, dtype=float))
+        target_p = e.detail.target_p_mm
         idx = [int(i) for i in v["indices"]]
         # the k-th verify-before and verify-after poses in plan order (via poses between
         # targets are moved through, not measured)

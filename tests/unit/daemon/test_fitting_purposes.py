@@ -11,12 +11,12 @@ import math
 import numpy as np
 
 from robocal.daemon.fitting import build_fit_job, rows_by_purpose, run_fit_job
-from robocal.daemon.store import MeasurementRow
+from robocal.daemon.schemas import Measurement
 from robocal.simulation import VirtualCell
 
 
 def _rows(purposes: list[str], *, seed: int = 5,
-          offset_mm: dict[str, float]) -> list[MeasurementRow]:
+          offset_mm: dict[str, float]) -> list[Measurement]:
     rng = np.random.default_rng(seed)
     cell = VirtualCell.create("fanuc_lrmate200i", "paper", seed=seed)
     q = cell.random_joints(len(purposes), rng)
@@ -25,7 +25,7 @@ def _rows(purposes: list[str], *, seed: int = 5,
     for i, purpose in enumerate(purposes):
         p_mm = p[i] * 1e3 + offset_mm.get(purpose, 0.0)
         q_deg = tuple(float(v) for v in np.degrees(qc[i]))
-        rows.append(MeasurementRow(
+        rows.append(Measurement(
             pose_idx=i, purpose=purpose, q_cmd_deg=q_deg, q_act_deg=q_deg,
             p_mm=(float(p_mm[0]), float(p_mm[1]), float(p_mm[2])), sigma_mm=None, rms_mm=None,
             samples=1, attempts=1, distance_mm=None, weather={}, measured_at="2026-01-01"))

@@ -7,12 +7,13 @@ import sqlite3
 import pytest
 
 from robocal.daemon.campaign import CampaignState
-from robocal.daemon.store import MeasurementRow, PoseRow, Store, UnknownCampaign, now_iso
+from robocal.daemon.schemas import Measurement
+from robocal.daemon.store import PoseRow, Store, UnknownCampaign, now_iso
 from robocal.errors import InvalidTransition
 
 
-def _row(idx: int) -> MeasurementRow:
-    return MeasurementRow(pose_idx=idx, purpose="calibration", q_cmd_deg=(0.0,) * 6,
+def _row(idx: int) -> Measurement:
+    return Measurement(pose_idx=idx, purpose="calibration", q_cmd_deg=(0.0,) * 6,
                           q_act_deg=(0.0,) * 6, p_mm=(1.0, 2.0, 3.0), sigma_mm=(0.01,) * 3,
                           rms_mm=0.001, samples=5, attempts=1, distance_mm=None,
                           weather={"temp_c": 20.0}, measured_at=now_iso())

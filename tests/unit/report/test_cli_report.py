@@ -76,7 +76,8 @@ def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
 
 def test_campaign_from_the_store(campaign: Campaign, tmp_path: Path,
                                  capsys: pytest.CaptureFixture[str]) -> None:
-    from robocal.daemon.store import MeasurementRow, PoseRow, Store
+    from robocal.daemon.schemas import Measurement
+    from robocal.daemon.store import PoseRow, Store
 
     cfg = tmp_path / "c.toml"
     prog = tmp_path / "JOINTS.csv"
@@ -99,7 +100,7 @@ def test_campaign_from_the_store(campaign: Campaign, tmp_path: Path,
                                 actor="test")
     for i, (pur, q, p) in enumerate(rows):
         qd = tuple(float(v) for v in np.degrees(q))
-        store.add_measurement(rec.id, MeasurementRow(
+        store.add_measurement(rec.id, Measurement(
             pose_idx=i, purpose=pur, q_cmd_deg=qd, q_act_deg=qd,
             p_mm=tuple(float(v) for v in p * 1e3), sigma_mm=None, rms_mm=0.001, samples=5,
             attempts=2 if i == 3 else 1, distance_mm=None,
