@@ -31,14 +31,14 @@ from robocal.daemon.hub import DriverHub
 from robocal.daemon.schemas import BULKY_DETAIL, JournalRow, PushDetail, RollbackDetail
 from robocal.daemon.store import Store
 from robocal.daemon.verifying import CampaignSide, VerificationRuns
-from robocal.drivers import ControllerSnapshot, RobotDriver
+from robocal.drivers import RobotDriver
 from robocal.errors import ApprovalRequired, CampaignError, CompensationError, RobocalError
 from robocal.kinematics import RobotDescription
 
 __all__ = ["CompensationManager"]
 
 S = CampaignState
-Entry = CompensationTable | ControllerSnapshot
+Entry = pushing.Entry
 _log = structlog.get_logger(__name__)
 
 
@@ -107,7 +107,7 @@ class CompensationManager:
         kinds: set[str] = set()
         for tid in stack:
             entry = self.entry(tid)
-            kinds.add(entry.covers if isinstance(entry, ControllerSnapshot) else entry.kind)
+            kinds.add(entry.covers if isinstance(entry, pushing.Baseline) else entry.kind)
         return kinds
 
     def build_push_table(self, cid: str) -> tuple[CompensationTable, dict[str, Any]]:
@@ -310,8 +310,8 @@ class CompensationManager:
                 self.journal.intend(
                     key=push_key, action="push", campaign=cid, actor=actor,
                     table=(table.kind, table.checksum, table.model_dump_json()),
-                    baseline=None if snap is None else (snap.checksum(),
-                                                        snap.model_dump_json()),
+                    baseline=None if snap is None else (snap.stored().checksum(),
+                                                        snap.stored().model_dump_json()),
                     detail=detail)
 
             await self._journaled_write(
@@ -375,7 +375,7 @@ class CompensationManager:
             program_q_deg=pushed[-1].detail.program_q_deg if pushed else None,
             model_campaign=self.store.table(source_id)["campaign"],
             target_p_mm=pushed[-1].detail.target_p_mm if pushed else None,
-            restores=("controller original" if isinstance(entry, ControllerSnapshot)
+            restores=("controller original" if isinstance(entry, pushing.Baseline)
                       else f"{entry.kind} table"))
 
     async def rollback(self, *, actor: str, reason: str = "", key: str | None = None

@@ -23,6 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict
 
 from robocal._core.measurements import read_joints_csv
 from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
@@ -43,7 +44,9 @@ from robocal.planning import targets_outside
 
 __all__ = [
     "FAULT_POINTS",
+    "Baseline",
     "Capabilities",
+    "Entry",
     "build_campaign_table",
     "capabilities",
     "check_bounds",
@@ -333,39 +336,73 @@ async def read_like(robot: RobotDriver, table: CompensationTable) -> Compensatio
     return await _sink(robot).read_compensation()
 
 
-async def holds(robot: RobotDriver, entry: CompensationTable | ControllerSnapshot) -> bool:
+#: The item of a stored snapshot that holds :attr:`Baseline.template` (as table JSON text).
+_TEMPLATE_ITEM = "template"
+
+
+class Baseline(BaseModel):
+    """The controller's own values, read before robocal first wrote these slots, and the
+    table whose slots they are (the drivers read slots from a table: ``template``; None in a
+    snapshot stored without it, which cannot be read again).
+
+    Stored as one :class:`ControllerSnapshot` whose ``items`` hold the template's JSON under
+    ``"template"`` (:meth:`stored`, :meth:`from_stored`): the format of every store so far.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    snapshot: ControllerSnapshot
+    template: CompensationTable | None
+
+    @property
+    def covers(self) -> str:
+        """The table kind whose slots were read."""
+        return self.snapshot.covers
+
+    @classmethod
+    def from_stored(cls, snap: ControllerSnapshot) -> Baseline:
+        """Split a stored snapshot into its values and its template."""
+        items = dict(snap.items)
+        raw = items.pop(_TEMPLATE_ITEM, None)
+        template = CompensationTable.model_validate_json(raw) if isinstance(raw, str) else None
+        return cls(snapshot=snap.model_copy(update={"items": items}), template=template)
+
+    def stored(self) -> ControllerSnapshot:
+        """The snapshot as stored (and checksummed): the template inside its items."""
+        if self.template is None:
+            return self.snapshot
+        return self.snapshot.model_copy(update={"items": {
+            **self.snapshot.items, _TEMPLATE_ITEM: self.template.model_dump_json()}})
+
+    def slots(self) -> CompensationTable:
+        """The template, or CompensationError when the snapshot does not say its slots."""
+        if self.template is None:
+            raise CompensationError("snapshot does not say which slots it covers")
+        return self.template
+
+
+Entry = CompensationTable | Baseline
+
+
+async def holds(robot: RobotDriver, entry: Entry) -> bool:
     """Whether the controller holds ``entry`` (a table or a snapshot) right now."""
-    if isinstance(entry, ControllerSnapshot):
+    if isinstance(entry, Baseline):
         snapshots = capabilities(robot).snapshots
         if snapshots is None:
             return False
-        current = await snapshots.snapshot_compensation(_template_for(entry))
-        saved = entry.model_copy(update={"items": {k: v for k, v in entry.items.items()
-                                                   if k != "template"}})
-        return not snapshot_diff(saved, current)
+        current = await snapshots.snapshot_compensation(entry.slots())
+        return not snapshot_diff(entry.snapshot, current)
     back = await read_like(robot, entry)
     return back is not None and not table_diff(entry, back, tol=1e-3)
 
 
-def _template_for(snap: ControllerSnapshot) -> CompensationTable:
-    """A table with the snapshot's slots (the drivers read slots from a table)."""
-    raw = snap.items.get("template")
-    if isinstance(raw, str):
-        return CompensationTable.model_validate_json(raw)
-    raise CompensationError("snapshot does not say which slots it covers")
-
-
-async def take_snapshot(robot: RobotDriver, table: CompensationTable
-                        ) -> ControllerSnapshot | None:
+async def take_snapshot(robot: RobotDriver, table: CompensationTable) -> Baseline | None:
     """:func:`snapshot`, remembering the slots (a copy of ``table``) to read them again."""
     snap = await snapshot(robot, table)
-    if snap is None:
-        return None
-    return snap.model_copy(update={"items": {**snap.items, "template": table.model_dump_json()}})
+    return None if snap is None else Baseline(snapshot=snap, template=table)
 
 
-async def restore(robot: RobotDriver, entry: CompensationTable | ControllerSnapshot
-                  ) -> CompensationTable | None:
+async def restore(robot: RobotDriver, entry: Entry) -> CompensationTable | None:
     """Write ``entry`` back (a table: :func:`write_and_verify`; a snapshot: the driver's
     ``restore_snapshot``, which verifies the read-back)."""
     if isinstance(entry, CompensationTable):
@@ -373,15 +410,14 @@ async def restore(robot: RobotDriver, entry: CompensationTable | ControllerSnaps
     snapshots = capabilities(robot).snapshots
     if snapshots is None:
         raise CompensationError(f"{type(robot).__name__} cannot restore controller snapshots")
-    items = {k: v for k, v in entry.items.items() if k != "template"}
-    await snapshots.restore_snapshot(entry.model_copy(update={"items": items}))
+    await snapshots.restore_snapshot(entry.snapshot)
     return None
 
 
-def parse_entry(kind: str, text: str) -> CompensationTable | ControllerSnapshot:
+def parse_entry(kind: str, text: str) -> Entry:
     """A stored ``tables`` row: a snapshot (kind ``snapshot``) or a sealed table."""
     if kind == "snapshot":
-        return ControllerSnapshot.model_validate_json(text)
+        return Baseline.from_stored(ControllerSnapshot.model_validate_json(text))
     return CompensationTable.model_validate_json(text)
 
 
@@ -395,7 +431,7 @@ def verification_indices(n: int, count: int) -> list[int]:
     return sorted({int(x) for x in np.rint(np.linspace(0, n - 1, count))})
 
 
-def commanded_joints(entry: CompensationTable | ControllerSnapshot | None, q_program: Array
+def commanded_joints(entry: Entry | None, q_program: Array
                      ) -> tuple[Array, NDArray[np.bool_]]:
     """Joints (n, dof) rad the robot runs for program joints ``q_program`` under ``entry``,
     and which rows are compensated.

@@ -40,7 +40,6 @@ from robocal.daemon.fitting import FitRunner, fit_options
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.schemas import JournalRow, Measurement
 from robocal.daemon.store import CampaignRecord, Store
-from robocal.drivers import ControllerSnapshot
 from robocal.errors import CampaignError, InvalidTransition, RobocalError, StorageError
 from robocal.kinematics import CalibratedModel, RobotDescription, load_robot
 
@@ -435,7 +434,7 @@ class CalibrationService:
                             raise CampaignError("the service stopped")
 
     # --- compensation: the component beside the service (robocal.daemon.compensating) ----------
-    def _entry(self, table_id: int) -> CompensationTable | ControllerSnapshot:
+    def _entry(self, table_id: int) -> pushing.Entry:
         """A stored table or controller snapshot."""
         return self.compensator.entry(table_id)
 

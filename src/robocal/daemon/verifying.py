@@ -29,7 +29,6 @@ from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.store import CampaignRecord, Store
-from robocal.drivers import ControllerSnapshot
 from robocal.errors import CampaignError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
 
@@ -107,7 +106,7 @@ class VerificationRuns:
     events: EventBus
     reports: ReportKeeper
     campaigns: CampaignSide
-    entry: Callable[[int], CompensationTable | ControllerSnapshot]
+    entry: Callable[[int], pushing.Entry]
     closing: Callable[[], bool]
     _tasks: dict[str, asyncio.Task[None]] = field(default_factory=dict, init=False)
 
@@ -211,7 +210,7 @@ class VerificationRuns:
             self.campaigns.spawn_measure(vcid)
 
     def _skip_reason(self, program: object,
-                     entry: CompensationTable | ControllerSnapshot) -> str | None:
+                     entry: pushing.Entry) -> str | None:
         """Why the targets of a push are not measured again, or None."""
         if self.config.compensation.verify_count <= 0:
             return "verification disabled (compensation.verify_count = 0)"
