@@ -19,6 +19,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
+from robocal.daemon.campaign import CampaignState
+
 __all__ = [
     "EVENT_MODELS",
     "AuditEntry",
@@ -59,11 +61,14 @@ CompensationStateName = Literal["active", "superseded", "rolled back"]
 
 
 class CampaignSummary(_Closed):
-    """One campaign (``GET /campaigns`` entries; the head of a campaign status)."""
+    """One campaign: the store's record of it (:meth:`Store.campaign
+    <robocal.daemon.store.Store.campaign>`), ``GET /campaigns`` entries and the head of a
+    campaign status. ``compensation_state`` and ``push_key`` are the service's view (the
+    journal's), unset in the store's record."""
 
     id: str
     name: str
-    state: CampaignStateName
+    state: CampaignState
     reason: str
     robot: str
     poses_total: int = Field(ge=0)

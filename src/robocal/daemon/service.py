@@ -38,8 +38,8 @@ from robocal.daemon.events import EventBus
 from robocal.daemon.fit_tasks import FitTasks
 from robocal.daemon.fitting import FitRunner, fit_options
 from robocal.daemon.hub import DriverHub
-from robocal.daemon.schemas import JournalRow, Measurement
-from robocal.daemon.store import CampaignRecord, Store
+from robocal.daemon.schemas import CampaignSummary, JournalRow, Measurement
+from robocal.daemon.store import Store
 from robocal.errors import CampaignError, InvalidTransition, RobocalError, StorageError
 from robocal.kinematics import CalibratedModel, RobotDescription, load_robot
 
@@ -165,7 +165,7 @@ class CalibrationService:
     def status(self, cid: str) -> dict[str, Any]:
         """Campaign status with fits and state history."""
         rec = self.store.campaign(cid)
-        out = rec.to_json()
+        out = rec.model_dump(mode="json", exclude_unset=True)
         out["fits"] = self.store.fits(cid)
         out["transitions"] = self.store.transitions(cid)
         out["pose_overhead_s"] = self._overhead()
@@ -184,7 +184,7 @@ class CalibrationService:
         pushed = self.compensator.pushed_campaigns()
         out = []
         for r in self.store.campaigns():
-            d = r.to_json()
+            d = r.model_dump(mode="json", exclude_unset=True)
             if r.id in pushed:
                 d["push_key"], d["compensation_state"] = pushed[r.id]
             out.append(d)
@@ -258,7 +258,7 @@ class CalibrationService:
         """Raise CampaignError naming the campaign measuring now, unless none or ``cid``."""
         other = self.measuring()
         if other is not None and other != cid:
-            parent = self.store.campaign(other).parent
+            parent = self.store.campaign(other).verifies
             if parent is not None:  # not a campaign the operator started: say what it is
                 raise CampaignError(f"the robot is re-measuring the targets of push or "
                                     f"rollback {parent} (run {other}); wait for it, or "
@@ -268,7 +268,7 @@ class CalibrationService:
     def transition(self, cid: str, to: CampaignState, *, actor: str, reason: str = "",
                    only_from: Iterable[CampaignState] | None = None,
                    selected_model: str | None = None,
-                   audit: tuple[str, dict[str, Any]] | None = None) -> CampaignRecord:
+                   audit: tuple[str, dict[str, Any]] | None = None) -> CampaignSummary:
         """Move ``cid`` to ``to`` in the store, announce it and log it."""
         rec = self.store.transition(cid, to, actor=actor, reason=reason,
                                     only_from=None if only_from is None else list(only_from),

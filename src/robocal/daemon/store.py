@@ -27,7 +27,7 @@ from typing import Any
 
 from robocal._core.files import private_file
 from robocal.daemon.campaign import CampaignState, check_transition
-from robocal.daemon.schemas import Measurement
+from robocal.daemon.schemas import CampaignSummary, Measurement
 from robocal.errors import (
     CampaignError,
     ConfigError,
@@ -36,7 +36,7 @@ from robocal.errors import (
     UnknownCampaign,
 )
 
-__all__ = ["CampaignRecord", "PoseRow", "Store", "is_storage_fault", "now_iso"]
+__all__ = ["PoseRow", "Store", "is_storage_fault", "now_iso"]
 
 SCHEMA_VERSION = 1
 
@@ -160,49 +160,6 @@ def is_storage_fault(err: BaseException) -> bool:
 def now_iso() -> str:
     """Current UTC time, ISO 8601 with milliseconds."""
     return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
-
-
-@dataclass(frozen=True)
-class CampaignRecord:
-    """One row of ``campaigns`` plus the measured-pose count."""
-
-    id: str
-    name: str
-    created: str
-    updated: str
-    state: CampaignState
-    reason: str
-    robot: str
-    poses_total: int
-    poses_measured: int
-    measure_only: bool
-    plan_digest: str
-    config_digest: str
-    selected_model: str | None
-    created_by: str
-    #: The journal key of the push or rollback this run verifies (a child of it, not a
-    #: campaign of its own); None for an operator's campaign.
-    parent: str | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """JSON-ready summary (the API's campaign status)."""
-        return {
-            "id": self.id,
-            "name": self.name,
-            "state": self.state.value,
-            "reason": self.reason,
-            "robot": self.robot,
-            "poses_total": self.poses_total,
-            "poses_measured": self.poses_measured,
-            "measure_only": self.measure_only,
-            "created": self.created,
-            "updated": self.updated,
-            "created_by": self.created_by,
-            "plan_digest": self.plan_digest,
-            "config_digest": self.config_digest,
-            "selected_model": self.selected_model,
-            "verifies": self.parent,
-        }
 
 
 @dataclass(frozen=True)
@@ -469,7 +426,7 @@ class Store:
         actor: str,
         measure_only: bool = False,
         parent: str | None = None,
-    ) -> CampaignRecord:
+    ) -> CampaignSummary:
         """Insert a campaign in state ``created`` with its poses; return it.
 
         ``poses_total`` counts the poses to measure (via-points excluded). ``parent``: the
@@ -500,7 +457,7 @@ class Store:
                         {"name": name, "poses": len(poses), "plan_digest": plan_digest})
         return self.campaign(cid)
 
-    def _record(self, row: sqlite3.Row) -> CampaignRecord:
+    def _record(self, row: sqlite3.Row) -> CampaignSummary:
         n = self.db.execute(
             "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
         ).fetchone()[0]
@@ -508,16 +465,16 @@ class Store:
         held = self._pending.get(row["id"])
         if held is not None:
             state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
-        return CampaignRecord(
+        return CampaignSummary(
             id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
             state=state, reason=reason, robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
-            created_by=row["created_by"], parent=row["parent"],
+            created_by=row["created_by"], verifies=row["parent"],
         )
 
-    def campaign(self, cid: str) -> CampaignRecord:
+    def campaign(self, cid: str) -> CampaignSummary:
         """Return one campaign; raise CampaignError (a LookupError too) when unknown."""
         row = self.db.execute("SELECT * FROM campaigns WHERE id=?", (cid,)).fetchone()
         if row is None:
@@ -525,7 +482,7 @@ class Store:
         return self._record(row)
 
     def campaigns(self, *, states: Sequence[CampaignState] | None = None,
-                  parent: str | None = None, children: bool = False) -> list[CampaignRecord]:
+                  parent: str | None = None, children: bool = False) -> list[CampaignSummary]:
         """Return the operators' campaigns, oldest first, optionally only those in ``states``;
         with ``parent``, the verification runs of that journal key instead; with
         ``children``, both."""
@@ -559,7 +516,7 @@ class Store:
         only_from: Sequence[CampaignState] | None = None,
         selected_model: str | None = None,
         audit: tuple[str, dict[str, Any]] | None = None,
-    ) -> CampaignRecord:
+    ) -> CampaignSummary:
         """Move ``cid`` to state ``to`` atomically, checking the transition table.
 
         ``selected_model`` (when given) and the ``audit`` entry ``(action, detail)`` are
@@ -595,7 +552,7 @@ class Store:
 
     def _transition(self, cid: str, to: CampaignState, *, actor: str, reason: str,
                     only_from: Sequence[CampaignState] | None, selected_model: str | None,
-                    audit: tuple[str, dict[str, Any]] | None) -> CampaignRecord:
+                    audit: tuple[str, dict[str, Any]] | None) -> CampaignSummary:
         with self.transaction() as db:
             row = db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:

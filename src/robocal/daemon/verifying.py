@@ -28,7 +28,8 @@ from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
-from robocal.daemon.store import CampaignRecord, Store
+from robocal.daemon.schemas import CampaignSummary
+from robocal.daemon.store import Store
 from robocal.errors import CampaignError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
 
@@ -54,7 +55,7 @@ class CampaignSide(Protocol):
         ...
 
     def transition(self, cid: str, to: CampaignState, *, actor: str,
-                   reason: str = "") -> CampaignRecord:
+                   reason: str = "") -> CampaignSummary:
         """Move a campaign to ``to`` (stored, announced, logged)."""
         ...
 
@@ -158,7 +159,7 @@ class VerificationRuns:
         cid = self.campaigns.measuring()
         if cid is None:
             return None
-        return cid if self.store.campaign(cid).parent is not None else None
+        return cid if self.store.campaign(cid).verifies is not None else None
 
     async def stop_run(self, why: str) -> None:
         """Stop the verification run measuring now, if any (push lock held): a new push or a
@@ -168,9 +169,9 @@ class VerificationRuns:
         if cid is None:
             return
         rec = self.store.campaign(cid)
-        if rec.parent is None:
+        if rec.verifies is None:
             return  # an operator's campaign: the caller refuses, naming it
-        key = rec.parent
+        key = rec.verifies
         verifying = self._tasks.get(key)
         if verifying is not None:
             verifying.cancel()
