@@ -79,9 +79,8 @@ class OperationError(DriverError):
 
     def __init__(self, message: str, *, kind: str | None = None, code: Any = None,
                  diff: Any = None):
-        self.code = code
-        self.diff = diff
         super().__init__(message, kind=kind)
+        self.code, self.diff = code, diff
 
 
 class MotionRejected(OperationError):

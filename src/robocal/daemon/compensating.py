@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,7 @@ Entry = pushing.Entry
 _log = structlog.get_logger(__name__)
 
 
+@dataclass(kw_only=True, eq=False)
 class CompensationManager:
     """Pushes, rollbacks and the journal's view of them for one robot cell.
 
@@ -49,23 +51,26 @@ class CompensationManager:
     ``campaigns`` is the service itself, seen as :class:`CampaignSide`.
     """
 
-    def __init__(self, *, config: AppConfig, robot: RobotDescription, store: Store,
-                 hub: DriverHub, journal: PushJournal, events: EventBus,
-                 reports: ReportKeeper, campaigns: CampaignSide, secret: bytes | None) -> None:
-        self.config = config
-        self.robot = robot
-        self.store = store
-        self.hub = hub
-        self.journal = journal
-        self.events = events
-        self.reports = reports
-        self.campaigns = campaigns
-        self._secret = secret
-        self.lock = asyncio.Lock()  # the push lock: one write at a time, drained at shutdown
-        self.closing = False  # set when the daemon stops: nothing new is written
-        self.runs = VerificationRuns(config=config, robot=robot, store=store, journal=journal,
-                                     events=events, reports=reports, campaigns=campaigns,
-                                     entry=self.entry, closing=lambda: self.closing)
+    config: AppConfig
+    robot: RobotDescription
+    store: Store
+    hub: DriverHub
+    journal: PushJournal
+    events: EventBus
+    reports: ReportKeeper
+    campaigns: CampaignSide
+    secret: bytes | None
+    #: the push lock: one write at a time, drained at shutdown
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock, init=False)
+    #: set when the daemon stops: nothing new is written
+    closing: bool = field(default=False, init=False)
+    runs: VerificationRuns = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.runs = VerificationRuns(
+            config=self.config, robot=self.robot, store=self.store, journal=self.journal,
+            events=self.events, reports=self.reports, campaigns=self.campaigns,
+            entry=self.entry, closing=lambda: self.closing)
 
     async def resume(self) -> None:
         """At start: settle the journal with the controller, resume open verification runs."""
@@ -123,7 +128,7 @@ class CompensationManager:
         text = self.store.model_json(cid, model)
         if text is None:
             raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
-        cal = load_model(text, source=f"campaign {cid}", secret=self._secret,
+        cal = load_model(text, source=f"campaign {cid}", secret=self.secret,
                          nominal=self.robot)
         kind = self.config.compensation.kind
         program = self._program(cid)

@@ -69,9 +69,9 @@ class CampaignSummary(_Closed):
     id: str
     name: str
     state: CampaignState
-    reason: str
+    reason: str = Field(description="why it is in this state (the last transition's reason)")
     robot: str
-    poses_total: int = Field(ge=0)
+    poses_total: int = Field(ge=0, description="poses to measure (via-points not counted)")
     poses_measured: int = Field(ge=0)
     measure_only: bool
     created: str
@@ -296,14 +296,15 @@ class PushHistoryEntry(_Closed):
 
     id: int
     at: str
-    action: Literal["push", "rollback", "baseline"]
-    table_id: int
+    action: Literal["push", "rollback", "baseline"] = Field(
+        description="baseline: the controller's own values, read before the first push")
+    table_id: int = Field(description="the table (or snapshot) on the controller after it")
     campaign: str | None
     actor: str
-    kind: str
+    kind: str = Field(description="targets, joint, frames, or snapshot")
     checksum: str
-    origin: str
-    key: str | None = None
+    origin: str = Field(description="campaign (a robocal table) or controller (a snapshot)")
+    key: str | None = Field(default=None, description="journal key of the push or rollback")
     predicted_residual_mm: float | None = None
     nominal_residual_mm: float | None = None
     forced: bool | None = None

@@ -25,7 +25,7 @@ import hmac
 import json
 import secrets
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -49,7 +49,8 @@ from robocal.errors import RobocalError
 __all__ = ["SessionStore", "auth_middleware", "next_url", "register"]
 
 _log = structlog.get_logger(__name__)
-_Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+#: The station's pages, registered on the API's application by :func:`register`.
+_PAGES = web.RouteTableDef()
 _SERVICE: web.AppKey[CalibrationService] = web.AppKey("station_service", CalibrationService)
 _SESSIONS: web.AppKey[SessionStore] = web.AppKey("station_sessions", SessionStore)
 _LOCAL: web.AppKey[bool] = web.AppKey("station_local", bool)
@@ -182,10 +183,13 @@ def _list_rows(svc: CalibrationService, comp: dict[str, Any]) -> list[dict[str, 
     return rows
 
 
+@_PAGES.get("/", name="station.index")
+@_PAGES.get("/station", name="station.redirect")
 async def index(request: web.Request) -> web.StreamResponse:
     raise web.HTTPSeeOther("/station/")
 
 
+@_PAGES.get("/station/", name="station.list_view")
 async def list_view(request: web.Request) -> web.StreamResponse:
     s, new = _require(request)
     svc = request.app[_SERVICE]
@@ -223,6 +227,7 @@ def _campaign_live(svc: CalibrationService, st: dict[str, Any], s: Session,
         has_report=_report_path(st).is_file())
 
 
+@_PAGES.get("/station/campaigns/{cid}", name="station.campaign_view")
 async def campaign_view(request: web.Request) -> web.StreamResponse:
     s, new = _require(request)
     svc = request.app[_SERVICE]
@@ -268,6 +273,7 @@ async def _residuals(request: web.Request, cid: str, model: str) -> list[list[fl
     return cache[key]
 
 
+@_PAGES.get("/station/campaigns/{cid}/points", name="station.points")
 async def points(request: web.Request) -> web.StreamResponse:
     """Plot data: per pose ``[index, reading spread mm, held out?]``, and per fitted model
     ``[index, |residual| mm]``."""
@@ -290,6 +296,7 @@ async def points(request: web.Request) -> web.StreamResponse:
     return _finish(_headers(resp), s, new)
 
 
+@_PAGES.get("/campaigns/{cid}/report", name="station.report")
 async def report(request: web.Request) -> web.StreamResponse:
     _require(request)
     st = request.app[_SERVICE].status(request.match_info["cid"])
@@ -302,6 +309,7 @@ async def report(request: web.Request) -> web.StreamResponse:
     return _headers(resp, _REPORT_CSP)
 
 
+@_PAGES.get("/station/static/{name}", name="station.static")
 async def static(request: web.Request) -> web.StreamResponse:
     name = request.match_info["name"]
     if name not in _STATIC:
@@ -324,6 +332,7 @@ def next_url(url: str) -> str:
     return url
 
 
+@_PAGES.get("/station/login", name="station.login_form")
 async def login_form(request: web.Request) -> web.StreamResponse:
     s, _new = _session(request)
     if s is not None and not _new:
@@ -337,6 +346,7 @@ async def login_form(request: web.Request) -> web.StreamResponse:
     return resp
 
 
+@_PAGES.post("/station/login", name="station.login")
 async def login(request: web.Request) -> web.StreamResponse:
     check_same_origin(request)
     store = request.app[_SESSIONS]
@@ -370,6 +380,7 @@ async def login(request: web.Request) -> web.StreamResponse:
     return resp
 
 
+@_PAGES.post("/station/logout", name="station.logout")
 async def logout(request: web.Request) -> web.StreamResponse:
     s, _form = await _post(request, operator=False)
     request.app[_SESSIONS].drop(s.id)
@@ -380,6 +391,7 @@ async def logout(request: web.Request) -> web.StreamResponse:
 
 
 # --- actions ------------------------------------------------------------------------------
+@_PAGES.post("/station/campaigns", name="station.start_plan")
 async def start_from_plan(request: web.Request) -> web.StreamResponse:
     s, form = await _post(request)
     svc = request.app[_SERVICE]
@@ -404,6 +416,7 @@ async def start_from_plan(request: web.Request) -> web.StreamResponse:
     return _redirect(f"/station/campaigns/{st['id']}")
 
 
+@_PAGES.post("/station/campaigns/{cid}/{action}", name="station.action")
 async def action(request: web.Request) -> web.StreamResponse:
     s, form = await _post(request)
     svc = request.app[_SERVICE]
@@ -448,21 +461,5 @@ def register(app: web.Application, service: CalibrationService, sessions: Sessio
     app[_TOKENS] = tokens
     app[_PEER] = peer
     app[_RESIDUALS] = {}
-    pages: tuple[tuple[str, str, _Handler, str], ...] = (
-        ("GET", "/", index, "index"),
-        ("GET", "/station", index, "redirect"),
-        ("GET", "/station/", list_view, "list_view"),
-        ("GET", "/station/login", login_form, "login_form"),
-        ("POST", "/station/login", login, "login"),
-        ("POST", "/station/logout", logout, "logout"),
-        ("GET", "/station/static/{name}", static, "static"),
-        ("POST", "/station/campaigns", start_from_plan, "start_plan"),
-        ("GET", "/station/campaigns/{cid}", campaign_view, "campaign_view"),
-        ("GET", "/station/campaigns/{cid}/points", points, "points"),
-        ("POST", "/station/campaigns/{cid}/{action}", action, "action"),
-        ("GET", "/campaigns/{cid}/report", report, "report"),
-    )
-    for method, path, handler, name in pages:  # add_get: HEAD too, as aiohttp does
-        add = app.router.add_get if method == "GET" else app.router.add_post
-        add(path, handler, name=f"station.{name}")
+    app.router.add_routes(_PAGES)
 
