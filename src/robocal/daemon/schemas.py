@@ -275,6 +275,12 @@ class Health(_Closed):
 
 
 # --- compensation ----------------------------------------------------------------------------
+#: A table's predicted figures (mm), as :func:`robocal.compensation.describe_table` gives them.
+PredictedMm = Annotated[float | None, Field(
+    description="RMS error the fit predicts with the table (mm)")]
+NominalMm = Annotated[float | None, Field(description="RMS error the fit predicts without it (mm)")]
+ModelAccuracyMm = Annotated[float | None, Field(
+    description="held-out RMS error of the fitted model (mm)")]
 class ActiveTable(_Closed):
     """The table (or controller snapshot) active on the controller."""
 
@@ -283,11 +289,11 @@ class ActiveTable(_Closed):
     checksum: str
     campaign: str | None
     origin: str
-    purpose: str
-    predicted_residual_mm: float | None = None
-    nominal_residual_mm: float | None = None
-    model_accuracy_mm: float | None = None
-    ratio: float | None = None
+    purpose: str = Field(description="what the table corrects, in words")
+    predicted_residual_mm: PredictedMm = None
+    nominal_residual_mm: NominalMm = None
+    model_accuracy_mm: ModelAccuracyMm = None
+    ratio: float | None = Field(default=None, description="predicted / nominal residual")
     warnings: list[str] | None = None
 
 
@@ -305,10 +311,10 @@ class PushHistoryEntry(_Closed):
     checksum: str
     origin: str = Field(description="campaign (a robocal table) or controller (a snapshot)")
     key: str | None = Field(default=None, description="journal key of the push or rollback")
-    predicted_residual_mm: float | None = None
-    nominal_residual_mm: float | None = None
-    forced: bool | None = None
-    refusal: str | None = None
+    predicted_residual_mm: PredictedMm = None
+    nominal_residual_mm: NominalMm = None
+    forced: bool | None = Field(default=None, description="pushed over a refusal (audited)")
+    refusal: str | None = Field(default=None, description="why it was refused unforced")
     reason: str | None = None
     verification: Verification | None = None
     compensation_state: CompensationStateName | None = Field(
@@ -329,9 +335,9 @@ class PushDetail(_Closed):
 
     kind: str
     purpose: str
-    predicted_residual_mm: float | None = None
-    nominal_residual_mm: float | None = None
-    model_accuracy_mm: float | None = None
+    predicted_residual_mm: PredictedMm = None
+    nominal_residual_mm: NominalMm = None
+    model_accuracy_mm: ModelAccuracyMm = None
     ratio: float | None = None
     warnings: list[str] = Field(default_factory=list)
     model: str | None = None
@@ -495,10 +501,11 @@ class FitEvent(_EventBase):
     kind: Literal["fit"]
     phase: Literal["started", "done", "failed"]
     models: list[str] | None = None
-    selected: str | None = None
-    validation_rms_mm: float | None = None
+    selected: str | None = Field(default=None, description="the model proposed for approval")
+    validation_rms_mm: float | None = Field(
+        default=None, description="held-out RMS error of the selected model (mm)")
     report: ReportFiles | None = None
-    seconds: float | None = None
+    seconds: float | None = Field(default=None, description="how long the fit took (s)")
     reason: str | None = None
 
 
@@ -510,9 +517,11 @@ class CompensationEvent(_EventBase):
                     "rollback-reconciled"]
     key: str
     checksum: str | None = None
-    state: str | None = None
-    before_rms_mm: float | None = None
-    after_rms_mm: float | None = None
+    state: str | None = Field(default=None, description="a reconciled entry's journal state")
+    before_rms_mm: float | None = Field(
+        default=None, description="verified: RMS error of the targets before (mm)")
+    after_rms_mm: float | None = Field(
+        default=None, description="verified: RMS error of the targets after (mm)")
 
 
 class ReportEvent(_EventBase):
