@@ -31,7 +31,15 @@ import urllib.parse
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeFloat,
+    PositiveFloat,
+    ValidationError,
+    model_validator,
+)
 
 from robocal._core.files import read_toml
 from robocal._core.model_names import MODELS, FitModel
@@ -138,10 +146,10 @@ class LimitsConfig(_Model):
     speed_pct: float = Field(default=20.0, gt=0.0, le=100.0)
     # a targets table's 6-D corrections reach a degree where the joint zero offsets are off
     # by tenths of a degree and near the wrist singularity; the demo cell needs up to ~1.5
-    max_joint_correction_deg: float = Field(default=2.0, gt=0.0)
-    max_frame_translation_mm: float = Field(default=10.0, gt=0.0)
-    max_frame_rotation_deg: float = Field(default=1.0, gt=0.0)
-    max_base_distance_mm: float = Field(default=50_000.0, gt=0.0)
+    max_joint_correction_deg: PositiveFloat = 2.0
+    max_frame_translation_mm: PositiveFloat = 10.0
+    max_frame_rotation_deg: PositiveFloat = 1.0
+    max_base_distance_mm: PositiveFloat = 50_000.0
 
 
 class MeasurementConfig(_Model):
@@ -154,17 +162,17 @@ class MeasurementConfig(_Model):
     """
 
     samples: int = Field(default=10, ge=1, le=10_000)
-    timeout_s: float = Field(default=10.0, gt=0.0)
-    settle_s: float = Field(default=0.2, ge=0.0)
-    move_timeout_s: float = Field(default=120.0, gt=0.0)
+    timeout_s: PositiveFloat = 10.0
+    settle_s: NonNegativeFloat = 0.2
+    move_timeout_s: PositiveFloat = 120.0
     retries: int = Field(default=4, ge=0, le=100)
-    backoff_s: float = Field(default=0.1, ge=0.0)
+    backoff_s: NonNegativeFloat = 0.1
     backoff_factor: float = Field(default=2.0, ge=1.0)
-    max_backoff_s: float = Field(default=5.0, ge=0.0)
-    max_rms_mm: float = Field(default=0.05, gt=0.0)
-    max_distance_mm: float = Field(default=25.0, gt=0.0)
+    max_backoff_s: NonNegativeFloat = 5.0
+    max_rms_mm: PositiveFloat = 0.05
+    max_distance_mm: PositiveFloat = 25.0
     min_poses_for_distance: int = Field(default=6, ge=4)
-    max_joint_deviation_deg: float = Field(default=0.5, gt=0.0)
+    max_joint_deviation_deg: PositiveFloat = 0.5
 
 
 class FitConfig(_Model):
