@@ -40,6 +40,7 @@ from robocal.errors import (
 )
 from robocal.protocols import emscon
 from robocal.protocols.emscon import Cmd
+from tests._waiting import eventually
 
 
 @pytest.fixture
@@ -279,9 +280,12 @@ async def test_a_client_waits_for_the_previous_session_to_end(world):
         await first.connect(timeout=5.0)
         second = EmsconTracker({"host": "127.0.0.1", "port": sim.port,
                                 "request_timeout_s": 2.0})
+        sent = len(sim.commands)
         pending = asyncio.create_task(second.connect(timeout=5.0))
-        await asyncio.sleep(0.05)
-        assert not pending.done()          # refused with 10011 and retrying
+        # a second command from it: its first was refused with 10011 and it tries again
+        await eventually(lambda: len(sim.commands) >= sent + 2, 5,
+                         what="the refused client to try again")
+        assert not pending.done()
         await first.close()
         await asyncio.wait_for(pending, 5.0)
         reading = await second.measure(samples=2, timeout=5.0)
