@@ -29,6 +29,7 @@ from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import load_model
 from robocal.daemon.hub import DriverHub
+from robocal.daemon.pushing import Entry
 from robocal.daemon.schemas import BULKY_DETAIL, JournalRow, PushDetail, RollbackDetail
 from robocal.daemon.store import Store
 from robocal.daemon.verifying import CampaignSide, VerificationRuns
@@ -39,7 +40,6 @@ from robocal.kinematics import RobotDescription
 __all__ = ["CompensationManager"]
 
 S = CampaignState
-Entry = pushing.Entry
 _log = structlog.get_logger(__name__)
 
 
