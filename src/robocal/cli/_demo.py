@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
+from robocal.cli._command import command
 from robocal.cli._defaults import (
     DEFAULT_SEED,
     SCENARIO_HELP,
@@ -43,11 +44,7 @@ from robocal.cli._defaults import (
 
 def register(sub: Any) -> None:
     """Add the ``demo`` subcommand."""
-    p = sub.add_parser("demo", help="run a whole calibration campaign against simulators",
-                       description="Plan, measure (simulated FANUC RMI controller and LTP/1 "
-                                   "tracker, through the real drivers and the daemon's "
-                                   "campaign engine), fit constant / high-order / auto models, "
-                                   "compare with CPA, compensate, verify, report.")
+    p = command(sub, "demo", run)
     p.add_argument("--out", type=Path, default=Path("robocal-demo"),
                    help="output directory (default ./robocal-demo; replaced)")
     p.add_argument("--poses", type=int, default=250,
@@ -64,7 +61,6 @@ def register(sub: Any) -> None:
                    help="virtual robot: fanuc_lrmate200i (default; FANUC RMI simulator) or ur10 "
                         "(Universal Robots simulator: Dashboard, RTDE, primary interface)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

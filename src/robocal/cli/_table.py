@@ -20,18 +20,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``table`` subcommand."""
-    p = sub.add_parser(
-        "table", help="build, check or compare compensation tables",
-        description="Build a sealed compensation table from a calibrated model: 'targets' "
-                    "(corrected joints for TARGETS.csv: the only kind that compensates the "
-                    "whole model), 'joint' (per-joint correction grids) or 'frames' (user and "
-                    "tool frames: base/tool alignment, not compensation); 'vendor' exports "
-                    "the constant errors as zero offsets and DH deltas for the controller's "
-                    "own calibration. --check verifies a table file's checksum; --diff "
-                    "compares two tables.")
+    p = command(sub, "table", run)
     p.add_argument("--model", metavar="MODEL.json", help="calibrated model")
     p.add_argument("--kind", choices=("targets", "joint", "frames", "vendor"),
                    help="table kind (vendor: zero offsets and DH deltas, not a table)")
@@ -54,7 +48,6 @@ def register(sub: Any) -> None:
     p.add_argument("--check", metavar="TABLE.json", help="verify a table file and summarise it")
     p.add_argument("--diff", nargs=2, metavar=("A.json", "B.json"), help="compare two tables")
     p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.set_defaults(handler=run)
 
 
 def _summary(table: Any) -> dict[str, Any]:
