@@ -114,14 +114,11 @@ def _on_one(verbs: Any, name: str, run: Any, json_help: str, **defaults: Any
 
 
 def _read_plan(path: Path) -> Any:
+    from robocal._core.files import read_text
     from robocal.errors import ConfigError
 
     try:
-        return json.loads(path.read_text())
-    except FileNotFoundError as err:
-        raise ConfigError("file not found", source=str(path)) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=str(path)) from err
+        return json.loads(read_text(path))
     except json.JSONDecodeError as err:
         raise ConfigError(f"not valid JSON: {err}", source=str(path)) from err
 

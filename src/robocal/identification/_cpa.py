@@ -174,11 +174,14 @@ class CPAResult:
     the held-out poses.
     """
 
-    calibrated: CalibratedModel
-    classical: CalibratedModel
+    calibrated: CalibratedModel  # kind "cpa"
+    classical: CalibratedModel  # kind "cpa-classical"
+    #: one circle per swept joint
     circles: list[CircleFit]
+    #: joint values of the home pose (dof,) rad, and its circle point (3,) m
     home_q: Array
     home_point: Array
+    #: RMS residual of the circles -> DH conversion (noise-free fit over random poses), m
     conversion_rms_m: float
     validation: Accuracy | None = None
     classical_validation: Accuracy | None = None

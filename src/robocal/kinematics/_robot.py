@@ -106,15 +106,18 @@ def transform(xyz: tuple[float, float, float], rpy: tuple[float, float, float]
 class Joint:
     """One revolute joint, SI units (m, rad, kg)."""
 
-    a: float
-    d: float
-    alpha: float
-    theta_offset: float
-    q_min: float
+    a: float  # DH link length, m
+    d: float  # DH link offset, m
+    alpha: float  # DH twist, rad
+    theta_offset: float  # chain angle at joint value 0, rad
+    q_min: float  # joint limits, rad
     q_max: float
+    #: gear ratio (strain-wave terms), None where unknown
     gear_ratio: float | None = None
+    #: link mass (kg) and centre of mass (m, link frame), for gravity torsion
     mass: float | None = None
     com: tuple[float, float, float] | None = None
+    #: the chain angle turns with ``sign * (q + coupling * q[coupled_to])``
     sign: int = 1
     coupled_to: int | None = None  # 0-based index of the joint this one is coupled to
     coupling: float = 0.0

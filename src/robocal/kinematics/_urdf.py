@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.files import read_text
 from robocal.errors import ConfigError
 from robocal.kinematics._calibrated import CalibratedModel
 from robocal.kinematics._robot import (
@@ -439,14 +440,7 @@ def _with_collision_radii(robot: RobotDescription, root: ET.Element, chain: list
 
 def load_urdf(path: str | Path, *, tip: str | None = None) -> RobotDescription:
     """Read a URDF file and import it with :func:`urdf_to_robot`."""
-    src = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError as err:
-        raise ConfigError("file not found", source=src) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=src) from err
-    return urdf_to_robot(text, source=src, tip=tip)
+    return urdf_to_robot(read_text(path), source=str(path), tip=tip)
 
 
 # -- export ---------------------------------------------------------------------------------
