@@ -18,6 +18,7 @@ order declared. The key of the error is a dotted path with 1-based list position
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NoReturn, TypeVar
 
@@ -82,9 +83,17 @@ def table(cls: type[T]) -> Callable[[Any], T]:
     return lambda v: parse(cls, v)
 
 
-def list_of(check: Check) -> Callable[[Any], list[Any]]:
-    """Check of a list whose items pass ``check`` (call it on a list only)."""
-    return lambda v: [_below(i, check, item) for i, item in enumerate(v)]
+def list_of(check: Callable[..., Any], *, numbered: bool = False
+            ) -> Callable[[Any], list[Any]]:
+    """Check of a list whose items pass ``check`` (call it on a list only); ``numbered``:
+    ``check(item, number)`` with the item's 1-based number."""
+    def items(v: Any) -> list[Any]:
+        if not numbered:
+            return [_below(i, check, item) for i, item in enumerate(v)]
+        return [_below(i, functools.partial(lambda x, n: check(x, n), n=i + 1), item)
+                for i, item in enumerate(v)]
+
+    return items
 
 
 def load(cls: type[T], data: Any, source: str) -> T:

@@ -59,7 +59,7 @@ from robocal._core.robot_names import (
     builtin_robot_key,
     check_robot_spec,
 )
-from robocal._core.schema import fail, key, list_of, load, table
+from robocal._core.schema import fail, key, list_of, load, parse
 from robocal.errors import ConfigError
 
 _ZERO3 = (0.0, 0.0, 0.0)
@@ -342,8 +342,20 @@ def _convention(v: Any) -> str:
 def _joint_tables(v: Any) -> list[_JointFile]:
     if not isinstance(v, list) or not v:
         fail("at least one [[joints]] table is required")
-    checked: list[_JointFile] = list_of(table(_JointFile))(v)
-    return checked
+    return list_of(lambda j, i: _coupled_in(parse(_JointFile, j), i, len(v)), numbered=True)(v)
+
+
+def _coupled_in(j: _JointFile, i: int, n: int) -> _JointFile:
+    """``coupled_to`` of joint ``i``: another joint 1..n."""
+    c = j.coupled_to
+    if c is not None and (not isinstance(c, int) or isinstance(c, bool)
+                          or not 1 <= c <= n or c == i):
+        fail(f"must name another joint 1..{n}", key="coupled_to")
+    return j
+
+
+def _collision_table(v: Any) -> _CollisionFile | None:
+    return None if v is None else parse(_CollisionFile, v)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -399,8 +411,8 @@ class _CollisionFile:
 class _RobotFile:
     """The robot TOML (module docstring)."""
 
-    name: str = key(_robot_name, missing="required non-empty string")
     convention: str = key(_convention, "standard")
+    name: str = key(_robot_name, missing="required non-empty string")
     joints: list[_JointFile] = key(_joint_tables,
                                    missing="at least one [[joints]] table is required")
     tool_mm: tuple[float, float, float] = key(_vector3, (0.0, 0.0, 50.0))
@@ -410,17 +422,12 @@ class _RobotFile:
     base_rpy_deg: tuple[float, float, float] = key(_vector3, _ZERO3)
     flange_xyz_mm: tuple[float, float, float] = key(_vector3, _ZERO3)
     flange_rpy_deg: tuple[float, float, float] = key(_vector3, _ZERO3)
-    collision: _CollisionFile | None = key(table(_CollisionFile), None)
-    source: Any = key(None, None)
+    collision: _CollisionFile | None = key(_collision_table, None)
+    source: str | None = key(str, None)
     notes: Any = key(None, None)
 
     def __post_init__(self) -> None:
         n = len(self.joints)
-        for i, j in enumerate(self.joints, start=1):
-            c = j.coupled_to
-            if c is not None and (not isinstance(c, int) or isinstance(c, bool)
-                                  or not 1 <= c <= n or c == i):
-                fail(f"must name another joint 1..{n}", key=f"joints[{i}].coupled_to")
         radii = None if self.collision is None else self.collision.link_radii_mm
         if self.collision is not None and (
                 not isinstance(radii, list) or len(radii) != n
@@ -466,7 +473,7 @@ def _parse(data: dict[str, Any], src: str) -> RobotDescription:
     return RobotDescription(
         name=f.name, joints=tuple(joints), manufacturer=f.manufacturer,
         tool=_scaled(f.tool_mm, 1e-3), gravity=f.gravity,
-        source=str(src if f.source is None else f.source), link_radii=radii,
+        source=src if f.source is None else f.source, link_radii=radii,
         collision_source="" if f.collision is None else f.collision.source,
         base_xyz=fixed["base"][0], base_rpy=fixed["base"][1],
         flange_xyz=fixed["flange"][0], flange_rpy=fixed["flange"][1],
