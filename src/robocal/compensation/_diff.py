@@ -113,8 +113,11 @@ def _frames(a: CompensationTable, b: CompensationTable, tol_deg: float, tol_mm: 
         Ta = _frame_matrix(getattr(a.frames, name))
         Tb = _frame_matrix(getattr(b.frames, name))
         dt = float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))
-        c = (np.trace(Ta[:3, :3].T @ Tb[:3, :3]) - 1.0) * 0.5
-        dr = math.degrees(math.acos(max(-1.0, min(1.0, c))))
+        R = Ta[:3, :3].T @ Tb[:3, :3]
+        # angle of R from its sine and cosine: acos of the cosine alone loses small angles to
+        # rounding (a frame against itself turned by 1e-6 deg)
+        s = 0.5 * math.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
+        dr = math.degrees(math.atan2(s, (np.trace(R) - 1.0) * 0.5))
         out.max_t, out.max_r = max(out.max_t, dt), max(out.max_r, dr)
         if dt > tol_mm or dr > tol_deg:
             out.lines.append(f"{name} frame: moves {dt:.6f} mm, turns {dr:.6f} deg")
