@@ -73,7 +73,7 @@ class MeasurementSet:
                                                     "poses"))
 
     def __len__(self) -> int:
-        return int(self.q.shape[0])
+        return len(self.q)
 
     @property
     def dof(self) -> int:

@@ -176,11 +176,9 @@ class CPAResult:
 
     calibrated: CalibratedModel  # kind "cpa"
     classical: CalibratedModel  # kind "cpa-classical"
-    #: one circle per swept joint
-    circles: list[CircleFit]
-    #: joint values of the home pose (dof,) rad, and its circle point (3,) m
-    home_q: Array
-    home_point: Array
+    circles: list[CircleFit]  # one per swept joint
+    home_q: Array  # (dof,) rad: the pose every sweep starts from
+    home_point: Array  # (3,) m: its circle point
     #: RMS residual of the circles -> DH conversion (noise-free fit over random poses), m
     conversion_rms_m: float
     validation: Accuracy | None = None

@@ -42,9 +42,9 @@ class Accuracy:
     max_m: float
     n: int  # poses
     #: share of the baseline's error the model describes, %
-    percent_described_rms: float | None = None
-    percent_described_mean: float | None = None
-    percent_described_r2: float | None = None
+    percent_described_rms: float | None = None  # of the RMS
+    percent_described_mean: float | None = None  # of the mean
+    percent_described_r2: float | None = None  # of the summed squares (variance explained)
     #: the baseline's errors on the same poses, m
     baseline_rms_m: float | None = None
     baseline_mean_m: float | None = None
