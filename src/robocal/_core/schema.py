@@ -28,8 +28,9 @@ T = TypeVar("T")
 Check = Callable[[Any], Any]
 
 
-class Invalid(Exception):
-    """A refused value: ``message`` as the user reads it, ``path`` below the checked place."""
+class Invalid(ConfigError):
+    """A refused value: ``message`` as the user reads it, ``path`` below the checked place.
+    :func:`load` turns it into a plain ConfigError naming the source and the key path."""
 
     def __init__(self, message: str, path: tuple[str | int, ...] = ()):
         super().__init__(message)
