@@ -95,6 +95,17 @@ def json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def read_text(path: str | Path, *, error: type[ConfigError] = ConfigError,
+              encoding: str = "utf-8") -> str:
+    """A text file's content; a missing or unreadable file is one ``error`` naming it."""
+    try:
+        return Path(path).read_text(encoding=encoding)
+    except FileNotFoundError as err:
+        raise error("file not found", source=str(path)) from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise error(f"cannot read: {err}", source=str(path)) from err
+
+
 def read_toml(path: str | Path | Traversable) -> dict[str, Any]:
     """Parse a TOML file or package resource (robot descriptions, cells, the daemon's
     configuration); raise :class:`ConfigError` naming the file and the problem."""

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from robocal._core.files import atomic_write_text
+from robocal._core.files import atomic_write_text, read_text
 from robocal.errors import DataError
 
 Array = NDArray[np.float64]
@@ -69,13 +69,11 @@ class MeasurementSet:
                 object.__setattr__(self, name, v)
         if self.rot_sigma is not None and self.rot is None:
             raise DataError("rot_sigma given without rot")
-        if not self.pose_id:
-            object.__setattr__(self, "pose_id", tuple(f"P{i:04d}" for i in range(len(q))))
-        elif len(self.pose_id) != len(q):
-            raise DataError("pose_id length differs from the number of poses")
+        object.__setattr__(self, "pose_id", row_ids(self.pose_id, len(q), "P", "pose_id",
+                                                    "poses"))
 
     def __len__(self) -> int:
-        return int(self.q.shape[0])
+        return len(self.q)
 
     @property
     def dof(self) -> int:
@@ -227,17 +225,21 @@ def _orientation_columns(header: list[str], rows: list[list[str]], src: str
     return rot, rsig
 
 
+def row_ids(ids: Sequence[str], n: int, prefix: str, name: str, rows: str) -> tuple[str, ...]:
+    """``ids`` of ``n`` rows, or ``prefix0000``, ``prefix0001``... when there are none; a
+    count that differs is a :class:`DataError` naming ``name`` and what the ``rows`` are."""
+    if not ids:
+        return tuple(f"{prefix}{i:04d}" for i in range(n))
+    if len(ids) != n:
+        raise DataError(f"{name} length differs from the number of {rows}")
+    return tuple(ids)
+
+
 def read_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
     """Read one of robocal's CSV files into a lower-case header and data rows (see
     :func:`parse_table`); a column named twice is a :class:`DataError`."""
     src = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError as err:
-        raise DataError("file not found", source=src) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise DataError(f"cannot read: {err}", source=src) from err
-    header, rows = parse_table(text, src)
+    header, rows = parse_table(read_text(path, error=DataError, encoding="utf-8-sig"), src)
     seen: set[str] = set()
     for h in header:
         if h and h in seen:

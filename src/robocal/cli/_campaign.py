@@ -19,9 +19,11 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
 from robocal.cli._remeasure import add_wait_options, remeasured_text, wait_remeasured
 
 
@@ -54,59 +56,30 @@ def emit(obj: Any) -> None:
     sys.stdout.write(json.dumps(obj, indent=1, default=str) + "\n")
 
 
+def answer(args: argparse.Namespace, obj: Any, lines: Iterable[str]) -> int:
+    """``obj`` as JSON with ``--json``, else the (lazily made) ``lines``; exit code 0."""
+    if args.json:
+        emit(obj)
+    else:
+        sys.stdout.writelines(f"{line}\n" for line in lines)
+    return 0
+
+
 def register(sub: Any) -> None:
     """Add the ``campaign`` subcommand and its verbs."""
-    p = sub.add_parser("campaign", help="start, watch and control campaigns on the daemon",
-                       description="Control calibration campaigns on a running daemon.")
+    p = command(sub, "campaign", None)
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
 
-    s = verbs.add_parser("start", help="create a campaign from a plan and start it",
-                         description="Check that the robot and the tracker answer, create a "
-                                     "campaign from PLAN.json and start measuring; prints the "
-                                     "campaign id.")
+    s = command(verbs, "start", start, parent="campaign")
     s.add_argument("--plan", required=True, type=Path, help="PLAN.json")
     s.add_argument("--name", help="a label for the campaign")
     s.add_argument("--json", action="store_true", help="print the status as JSON")
-    add_client_options(s)
-    s.set_defaults(handler=start)
-
-    st = verbs.add_parser("status", help="show a campaign",
-                          description="Show a campaign: state and why, poses measured, the "
-                                      "fit in progress or the fitted models with their "
-                                      "held-out RMS, the report, and the push with its "
-                                      "measured before/after.")
-    st.add_argument("id", help="campaign id (see campaign list)")
-    st.add_argument("--json", action="store_true", help="print the status as JSON")
-    add_client_options(st)
-    st.set_defaults(handler=status)
-
-    ls = verbs.add_parser("list", help="list campaigns",
-                          description="List every campaign, oldest first: id, state, poses "
-                                      "measured/planned, when created, name.")
-    ls.add_argument("--json", action="store_true", help="print the list as JSON")
-    add_client_options(ls)
-    ls.set_defaults(handler=list_)
-
-    for verb, text, about in (
-            ("pause", "pause: the robot stops now; resume continues",
-             "Stop the robot at once and pause the campaign; 'resume' moves to the unfinished "
-             "pose again and goes on. Nothing measured is lost."),
-            ("resume", "resume a paused or faulted campaign",
-             "Continue a paused or faulted campaign at its first unmeasured pose."),
-            ("abort", "abort a campaign",
-             "Stop the robot and end the campaign for good (its measurements stay stored)."),
-            ("approve", "approve the fit (required before push)",
-             "Approve the proposed model (or --model another fitted one) after reading the "
-             "report; only an approved campaign can be pushed. While the fit still runs, "
-             "approve when it ends ('campaign watch' waits for it)."),
-            ("push", "push the approved compensation to the robot",
-             "Solve the program targets with the approved model, write the compensation to "
-             "the controller, read it back, and re-measure the targets (status shows the "
-             "measured before/after).")):
-        a = verbs.add_parser(verb, help=text, description=about)
-        a.add_argument("id", help="campaign id (see campaign list)")
-        a.add_argument("--json", action="store_true",
-                       help="print the campaign's status afterwards as JSON")
+    _on_one(verbs, "status", status, "print the status as JSON")
+    command(verbs, "list", list_, parent="campaign").add_argument(
+        "--json", action="store_true", help="print the list as JSON")
+    for verb in ("pause", "resume", "abort", "approve", "push"):
+        a = _on_one(verbs, verb, action, "print the campaign's status afterwards as JSON",
+                    action=verb)
         if verb in ("pause", "abort"):
             a.add_argument("--reason", default="",
                            help="why (kept in the campaign history and the audit log)")
@@ -122,46 +95,30 @@ def register(sub: Any) -> None:
             a.add_argument("--key", help="idempotency key: a retry with the same key never "
                                          "writes the controller twice")
             add_wait_options(a)
-        add_client_options(a)
-        a.set_defaults(handler=action, action=verb)
-
-    ev = verbs.add_parser("events", help="a campaign's history: states and audit entries",
-                          description="Print a campaign's history, oldest first: every state "
-                                      "change with its reason and actor, and every audit entry "
-                                      "(approve, push, rollback, motion stops) naming it.")
-    ev.add_argument("id", help="campaign id (see campaign list)")
-    ev.add_argument("--json", action="store_true", help="print the entries as JSON")
-    add_client_options(ev)
-    ev.set_defaults(handler=events)
-
-    w = verbs.add_parser(
-        "watch", help="follow a campaign's progress",
-        description="Follow a campaign until the daemon needs the operator: measuring, then "
-                    "fitting. In a terminal one line is updated in place (poses, elapsed time "
-                    "since the campaign first ran, poses per minute of measuring time, ETA "
-                    "while running, retries, beam losses, the fit and how long it has run); "
-                    "piped, a plain line per state change. A paused campaign is waited on "
-                    "until it is resumed (--exit-on-pause: exit 3 at once). Exit codes: 0 "
-                    "fitted, approved, pushed or a measure-only run measured; 1 faulted or "
-                    "aborted (the reason is printed); 3 paused, with --exit-on-pause.")
-    w.add_argument("id", help="campaign id (see campaign list)")
-    w.add_argument("--json", action="store_true", help="JSON lines instead of a progress bar")
+    _on_one(verbs, "events", events, "print the entries as JSON")
+    w = _on_one(verbs, "watch", watch, "JSON lines instead of a progress bar")
     w.add_argument("--exit-on-pause", action="store_true",
                    help="exit 3 when the campaign is (or becomes) paused instead of waiting "
                         "for the resume")
-    add_client_options(w)
-    w.set_defaults(handler=watch)
+    for parser in verbs.choices.values():  # last: the daemon group after the verb's own
+        add_client_options(parser)
+
+
+def _on_one(verbs: Any, name: str, run: Any, json_help: str, **defaults: Any
+            ) -> argparse.ArgumentParser:
+    """A verb acting on one campaign: its ``id`` and a ``--json`` flag."""
+    a = command(verbs, name, run, parent="campaign", **defaults)
+    a.add_argument("id", help="campaign id (see campaign list)")
+    a.add_argument("--json", action="store_true", help=json_help)
+    return a
 
 
 def _read_plan(path: Path) -> Any:
+    from robocal._core.files import read_text
     from robocal.errors import ConfigError
 
     try:
-        return json.loads(path.read_text())
-    except FileNotFoundError as err:
-        raise ConfigError("file not found", source=str(path)) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=str(path)) from err
+        return json.loads(read_text(path))
     except json.JSONDecodeError as err:
         raise ConfigError(f"not valid JSON: {err}", source=str(path)) from err
 
@@ -300,26 +257,17 @@ def events(args: argparse.Namespace) -> int:
             entries.append({"at": a["at"], "kind": "audit", "actor": a["actor"],
                             "what": a["action"], "detail": text})
     entries.sort(key=lambda e: str(e["at"]))
-    if args.json:
-        emit(entries)
-        return 0
-    for e in entries:
-        sys.stdout.write(f"{e['at']}  {e['kind']:5s} {e['what']:28s} {e['actor']:16s} "
-                         f"{e['detail']}\n")
-    return 0
+    return answer(args, entries, (f"{e['at']}  {e['kind']:5s} {e['what']:28s} "
+                                  f"{e['actor']:16s} {e['detail']}" for e in entries))
 
 
 def list_(args: argparse.Namespace) -> int:
     """Print every campaign."""
     out = client(args).request("GET", "/campaigns")
-    if args.json:
-        emit(out)
-        return 0
     width = max([9, *(len(_state_text(c)) for c in out)])
-    for c in out:
-        sys.stdout.write(f"{c['id']}  {_state_text(c):{width}s} {c['poses_measured']:5d}/"
-                         f"{c['poses_total']:<5d} {c['created']}  {c['name']}\n")
-    return 0
+    return answer(args, out, (f"{c['id']}  {_state_text(c):{width}s} {c['poses_measured']:5d}/"
+                              f"{c['poses_total']:<5d} {c['created']}  {c['name']}"
+                              for c in out))
 
 
 def action(args: argparse.Namespace) -> int:

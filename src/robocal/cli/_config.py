@@ -8,18 +8,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``config`` subcommand."""
-    p = sub.add_parser("config", help="check a daemon configuration or print its schema",
-                       description="Validate daemon configuration files (every error with "
-                                   "file and key path) or print the JSON schema.")
+    p = command(sub, "config", None)
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    c = verbs.add_parser("check", help="validate configuration files",
-                         description="Validate daemon configuration files (every key, type "
-                                     "and path); with --drivers also build each driver from "
-                                     "its options, without connecting. Exit 2 on the first "
-                                     "file with a problem.")
+    c = command(verbs, "check", check, parent="config")
     c.add_argument("files", nargs="*", type=Path, metavar="FILE")
     c.add_argument("--config", action="append", type=Path, default=[], metavar="FILE",
                    help="a configuration file (like the other commands; repeatable)")
@@ -28,11 +24,7 @@ def register(sub: Any) -> None:
     c.add_argument("--connect", action="store_true",
                    help="also connect to the robot and the tracker (pre-flight check of the "
                         "cell); implies --drivers")
-    c.set_defaults(handler=check)
-    s = verbs.add_parser("schema", help="print the configuration's JSON schema",
-                         description="Print the JSON schema of the daemon configuration (the "
-                                     "TOML file's keys, types, defaults and descriptions).")
-    s.set_defaults(handler=schema)
+    command(verbs, "schema", schema, parent="config")
 
 
 def check(args: argparse.Namespace) -> int:

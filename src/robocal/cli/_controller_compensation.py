@@ -7,43 +7,28 @@ import argparse
 import sys
 from typing import Any
 
-from robocal.cli._campaign import add_client_options, client, emit
+from robocal.cli._campaign import add_client_options, answer, client, emit
+from robocal.cli._command import command
 from robocal.cli._remeasure import add_wait_options, new_key, remeasured_text, wait_remeasured
 
 
 def register(sub: Any) -> None:
     """Add the ``compensation`` subcommand."""
-    p = sub.add_parser("compensation", help="list pushed compensation tables or roll back",
-                       description="Compensation tables on the robot, via the daemon: the "
-                                   "push history, and rollback to the previous table (written, "
-                                   "read back and verified; recorded in the audit log).")
+    p = command(sub, "compensation", None)
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    ls = verbs.add_parser("list", help="active table and push history",
-                          description="Show the table active on the controller and every "
-                                      "push and rollback: predicted and nominal residual, the "
-                                      "measured before/after of its re-measurement, who.")
+    ls = command(verbs, "list", list_, parent="compensation")
     ls.add_argument("--json", action="store_true", help="print the tables and pushes as JSON")
-    add_client_options(ls)
-    ls.set_defaults(handler=list_)
-    rb = verbs.add_parser("rollback", help="restore the previous table",
-                          description="Write the table the controller held before the last "
-                                      "push back to it, read it back, verify it and re-measure "
-                                      "the targets (audited).")
+    rb = command(verbs, "rollback", rollback, parent="compensation")
     rb.add_argument("--reason", default="", help="why (kept in the audit log)")
     rb.add_argument("--json", action="store_true", help="print the result as JSON")
     rb.add_argument("--key", help="idempotency key: a retry with the same key answers like "
                                   "the first rollback and writes nothing (default: a new one)")
     add_wait_options(rb)
-    add_client_options(rb)
-    rb.set_defaults(handler=rollback)
-    au = verbs.add_parser("audit", help="show the audit log",
-                          description="Print the newest entries of the daemon's append-only "
-                                      "audit log (every campaign; 'robocal campaign events ID' "
-                                      "shows one campaign's).")
+    au = command(verbs, "audit", audit, parent="compensation")
     au.add_argument("--limit", type=int, default=50, help="newest entries to show")
     au.add_argument("--json", action="store_true", help="print the entries as JSON")
-    add_client_options(au)
-    au.set_defaults(handler=audit)
+    for parser in verbs.choices.values():  # last: the daemon group after the verb's own
+        add_client_options(parser)
 
 
 def _mm(v: Any) -> str:
@@ -116,10 +101,6 @@ def rollback(args: argparse.Namespace) -> int:
 def audit(args: argparse.Namespace) -> int:
     """Print the audit log."""
     out = client(args).request("GET", "/audit", query={"limit": args.limit})
-    if args.json:
-        emit(out)
-        return 0
-    for a in out:
-        sys.stdout.write(f"{a['at']}  {a['action']:28s} {a['actor']:24s} "
-                         f"{a['campaign'] or '-':12s} {(a['checksum'] or '')[:16]}\n")
-    return 0
+    return answer(args, out, (f"{a['at']}  {a['action']:28s} {a['actor']:24s} "
+                              f"{a['campaign'] or '-':12s} {(a['checksum'] or '')[:16]}"
+                              for a in out))

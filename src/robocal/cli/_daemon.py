@@ -6,15 +6,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``daemon`` subcommand."""
-    p = sub.add_parser("daemon", help="run the calibration daemon (systemd Type=notify)",
-                       description="Run the long-running calibration service: drivers, "
-                                   "campaigns, fits, compensation, local HTTP API. Logs JSON "
-                                   "lines to stdout.")
+    p = command(sub, "daemon", run)
     p.add_argument("--config", required=True, type=Path, help="TOML configuration file")
-    p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

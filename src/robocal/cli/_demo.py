@@ -28,10 +28,12 @@ import math
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
+from robocal.cli._command import command
 from robocal.cli._defaults import (
     DEFAULT_SEED,
     SCENARIO_HELP,
@@ -42,11 +44,7 @@ from robocal.cli._defaults import (
 
 def register(sub: Any) -> None:
     """Add the ``demo`` subcommand."""
-    p = sub.add_parser("demo", help="run a whole calibration campaign against simulators",
-                       description="Plan, measure (simulated FANUC RMI controller and LTP/1 "
-                                   "tracker, through the real drivers and the daemon's "
-                                   "campaign engine), fit constant / high-order / auto models, "
-                                   "compare with CPA, compensate, verify, report.")
+    p = command(sub, "demo", run)
     p.add_argument("--out", type=Path, default=Path("robocal-demo"),
                    help="output directory (default ./robocal-demo; replaced)")
     p.add_argument("--poses", type=int, default=250,
@@ -63,7 +61,6 @@ def register(sub: Any) -> None:
                    help="virtual robot: fanuc_lrmate200i (default; FANUC RMI simulator) or ur10 "
                         "(Universal Robots simulator: Dashboard, RTDE, primary interface)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -368,6 +365,22 @@ def _print_summary(f: dict[str, Any]) -> None:
     if f.get("state") not in ("fitted", "approved", "pushed"):
         w(f"campaign {f.get('campaign', '?')} ended {f.get('state')}: {f.get('reason', '')}\n")
         return
+    _print_fits(w, f)
+    _print_compensation(w, f.get("compensation") or {})
+    _print_push(w, f.get("push") or {})
+    files = f.get("files") or {}
+    w(f"\nDone in {f.get('wall_time_s')} s (measuring {f.get('measure_s')} s, fitting "
+      f"{f.get('fit_s')} s).\n")
+    if files.get("report_html"):
+        w(f"Report:  {files['report_html']}\n         {files.get('report_json', '')}\n")
+    else:
+        w("Report:  not written (see daemon.log)\n")
+    w(f"Files:   {Path(files.get('plan', '.')).parent} (PLAN.json, summary.json, daemon.log, "
+      "state/ with the SQLite store and MODEL-*.json)\n")
+
+
+def _print_fits(w: Callable[[str], Any], f: dict[str, Any]) -> None:
+    """The held-out accuracy table of every fitted model."""
     fits = f.get("fits", {})
     w(f"Held-out accuracy ({f.get('poses_measured')} poses measured; validation poses not "
       "used for fitting)\n")
@@ -401,7 +414,10 @@ def _print_summary(f: dict[str, Any]) -> None:
           "  PLAN.json, 'cpa'), and short arcs, small radii and joint-dependent errors limit\n"
           "  what it can recover.")
     w("\n")
-    comp = f.get("compensation") or {}
+
+
+def _print_compensation(w: Callable[[str], Any], comp: dict[str, Any]) -> None:
+    """Errors measured again at the compensated validation targets."""
     if comp:
         w(f"\nCompensation of {comp.get('targets')} validation targets, measured again\n")
         w(f"  {'commands':22s} {'RMS mm':>9s} {'mean mm':>9s} {'max mm':>9s}\n")
@@ -415,7 +431,10 @@ def _print_summary(f: dict[str, Any]) -> None:
                 continue
             w(f"  {label:22s} {_fmt(e['rms_mm'], 4):>9s} {_fmt(e['mean_mm'], 4):>9s} "
               f"{_fmt(e['max_mm'], 4):>9s}\n")
-    push = f.get("push") or {}
+
+
+def _print_push(w: Callable[[str], Any], push: dict[str, Any]) -> None:
+    """What was pushed and what the robot measured after it."""
     if push:
         if "error" in push:
             w(f"\nPush: {push['error']}\n")
@@ -434,12 +453,3 @@ def _print_summary(f: dict[str, Any]) -> None:
                 v = push.get("verification_detail") or {}
                 w(f"  not measured after the push: {v.get('reason', push.get('verification'))}"
                   "\n")
-    files = f.get("files") or {}
-    w(f"\nDone in {f.get('wall_time_s')} s (measuring {f.get('measure_s')} s, fitting "
-      f"{f.get('fit_s')} s).\n")
-    if files.get("report_html"):
-        w(f"Report:  {files['report_html']}\n         {files.get('report_json', '')}\n")
-    else:
-        w("Report:  not written (see daemon.log)\n")
-    w(f"Files:   {Path(files.get('plan', '.')).parent} (PLAN.json, summary.json, daemon.log, "
-      "state/ with the SQLite store and MODEL-*.json)\n")

@@ -7,18 +7,16 @@ import json
 import sys
 from typing import Any, Literal
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``drivers`` subcommand."""
-    p = sub.add_parser("drivers", help="list installed drivers or show a driver's options",
-                       description="List robot and tracker drivers found through the "
-                                   "robocal.robots / robocal.trackers entry points, or print "
-                                   "the options schema of one.")
+    p = command(sub, "drivers", run)
     p.add_argument("kind", nargs="?", help="driver name, e.g. fanuc_rmi or ltp")
     p.add_argument("--role", choices=("robot", "tracker"), default=None,
                    help="which group to look in (default: robots, then trackers)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

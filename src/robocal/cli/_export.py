@@ -8,21 +8,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``export`` subcommand."""
-    p = sub.add_parser(
-        "export", help="export a calibrated model (URDF with a side table)",
-        description="Write the constant part of a calibrated model as URDF: constant joint "
-                    "errors folded into the joint origins (xyz/rpy), tracker -> base, flange "
-                    "and the reflector point (link 'tcp') as fixed joints. Joint-dependent "
-                    "terms, joint couplings and the fallback model cannot be expressed in "
-                    "URDF; they are listed in a side table OUT.joint_dependent.json.")
+    p = command(sub, "export", run)
     p.add_argument("--model", required=True, help="MODEL.json")
     p.add_argument("--format", choices=("urdf",), default="urdf", help="output format")
     p.add_argument("--out", required=True, help="file to write (atomically), e.g. robot.urdf")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(handler=run)
 
 
 def side_table_path(out: Path) -> Path:

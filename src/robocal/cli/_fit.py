@@ -10,17 +10,12 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
+from robocal.cli._command import command
 
 
 def register(sub: Any) -> None:
     """Add the ``fit`` subcommand."""
-    p = sub.add_parser(
-        "fit", help="fit an error model to tracker measurements",
-        description="Identify a constant, high-order or automatically chosen error model by "
-                    "maximum likelihood from a measurement CSV (pose_id,q1..qN [deg],x,y,z "
-                    "[mm][,sx,sy,sz]) and write MODEL.json. Percentages are relative to the "
-                    "nominal model with only the tracker<-base transform and the reflector "
-                    "offset fitted.")
+    p = command(sub, "fit", run)
     p.add_argument("--robot", help="built-in robot name or robot TOML file (required unless "
                                     "--reuse, which takes the earlier model's robot)")
     p.add_argument("--data", required=True, help="training measurements (CSV)")
@@ -63,7 +58,6 @@ def register(sub: Any) -> None:
                         "by the raw per-point sigmas)")
     p.add_argument("--no-fallback", action="store_true",
                    help="do not store the constant-model fallback")
-    p.set_defaults(handler=run)
 
 
 def _options(args: argparse.Namespace) -> Any:

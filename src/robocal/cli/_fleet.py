@@ -10,27 +10,21 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
 from robocal.daemon.fleet import fleet_report
 
 
 def register(sub: Any) -> None:
     """Add the ``fleet`` subcommand."""
-    p = sub.add_parser("fleet", help="report on the robots in the shared fleet database",
-                       description="The fleet store: PostgreSQL to which the daemons of many "
-                                   "cells replicate their campaigns, fits, checks, pushes and "
-                                   "audit (fleet.url in the daemon configuration).")
+    p = command(sub, "fleet", None)
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
-    rp = verbs.add_parser("report", help="robots by serial: calibration, checks, compensation",
-                          description="List every robot in the fleet database by serial: its "
-                                      "last calibration (held-out RMS), last check and drift "
-                                      "trend, and the compensation active on its controller.")
+    rp = command(verbs, "report", report, parent="fleet")
     rp.add_argument("--url", default=os.environ.get("ROBOCAL_FLEET_URL"),
                     help="PostgreSQL URI, e.g. postgresql://user@host/db?sslmode=verify-full "
                          "(default: $ROBOCAL_FLEET_URL)")
     rp.add_argument("--password-file", type=Path,
                     help="file holding the database password (mode 0600)")
     rp.add_argument("--json", action="store_true", help="print the robots as JSON")
-    rp.set_defaults(handler=report)
 
 
 def _mm(v: Any) -> str:

@@ -16,21 +16,13 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
+from robocal.cli._command import command
 from robocal.cli._defaults import DEFAULT_SEED, VALIDATION_HELP, default_validation
 
 
 def register(sub: Any) -> None:
     """Add the ``plan`` subcommand."""
-    p = sub.add_parser(
-        "plan", help="choose, check and order measurement poses; write PLAN.json",
-        description="Draw candidate poses (scrambled Sobol over the joint ranges), keep those "
-                    "feasible in the cell (reflector facing the tracker, clear line of sight, "
-                    "no collision), choose the calibration poses for the error model (by "
-                    "default one per stratum of the joint space, D-optimal within strata), "
-                    "add validation poses, CPA sweeps and ISO 9283 cube poses, order them "
-                    "for short moves, check every move along its swept path (detours "
-                    "where needed; targets with no safe route are dropped and listed) and "
-                    "write PLAN.json. Deterministic for a given seed.")
+    p = command(sub, "plan", run)
     p.add_argument("--robot", required=True, help="built-in robot name or robot TOML file")
     p.add_argument("--cell", required=True,
                    help="cell description TOML file, or a built-in cell name (demo)")
@@ -59,7 +51,6 @@ def register(sub: Any) -> None:
                         "docs/compensation-tables.md): its joint ranges, plus a margin, are "
                         "covered by the calibration poses")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.set_defaults(handler=run)
 
 
 def _summary(plan: Any, out: Path) -> dict[str, Any]:

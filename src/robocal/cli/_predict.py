@@ -10,18 +10,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``predict`` subcommand."""
-    p = sub.add_parser(
-        "predict", help="predict reflector positions with a calibrated model",
-        description="Read joint values (CSV with q1..qN in degrees, optional pose_id) and "
-                    "write predicted reflector positions x,y,z [mm] in the tracker frame, "
-                    "their 1-sigma uncertainty sx,sy,sz [mm] (when the model has a "
-                    "covariance) and whether the pose lies inside the calibrated joint range "
-                    "(outside, the model's low-order fallback is used). With --robot instead "
-                    "of --model: the nominal robot's reflector positions in its base frame "
-                    "(no calibration; the reflector offset from the robot file or --tool).")
+    p = command(sub, "predict", run)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--model", help="MODEL.json")
     src.add_argument("--robot", help="nominal robot: built-in name, robot TOML or URDF")
@@ -33,7 +27,6 @@ def register(sub: Any) -> None:
     p.add_argument("--joints", required=True, help="joint values (CSV)")
     p.add_argument("--out", required=True, help="PRED.csv to write (atomically)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(handler=run)
 
 
 def _pose_ids(path: str, n: int) -> list[str] | None:

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from robocal.cli._command import command
+
 if TYPE_CHECKING:
     from robocal.report import Acceptance, ReportInput
 
@@ -25,12 +27,7 @@ DEFAULT_CONFIG = "/etc/robocal/config.toml"
 
 def register(sub: Any) -> None:
     """Add the ``report`` subcommand."""
-    p = sub.add_parser(
-        "report", help="write the HTML calibration report (and a JSON summary)",
-        description="Write a self-contained HTML calibration report and report.json beside "
-                    "it. SOURCE is a MODEL.json file (richer with --data/--validate) or the id "
-                    "of a campaign in the daemon's store (found through --config). Exits 1 when "
-                    "the verdict is 'failed'.")
+    p = command(sub, "report", run)
     p.add_argument("source", metavar="MODEL.json|CAMPAIGN_ID", nargs="?",
                    help="a model file or a campaign id (or give --model)")
     p.add_argument("--model", metavar="MODEL.json",
@@ -62,7 +59,6 @@ def register(sub: Any) -> None:
                         "per-joint coverage")
     p.add_argument("--title", help="page title")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.set_defaults(handler=run)
 
 
 def _model_name(kind: str) -> str:

@@ -8,13 +8,12 @@ import math
 import sys
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``robots`` subcommand."""
-    p = sub.add_parser("robots", help="list built-in robots, or show/validate one",
-                       description="List built-in robot descriptions, or show one (by name, "
-                                   "TOML or URDF file) after validation; --from-urdf writes "
-                                   "the robot TOML of a URDF's serial chain.")
+    p = command(sub, "robots", run)
     p.add_argument("robot", nargs="?",
                    help="built-in name or path to a robot TOML or URDF file")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -26,7 +25,6 @@ def register(sub: Any) -> None:
                         "the deepest leaf)")
     p.add_argument("--out", metavar="FILE",
                    help="with --from-urdf: write the TOML here (default: standard output)")
-    p.set_defaults(handler=run)
 
 
 def _from_urdf(args: argparse.Namespace) -> int:

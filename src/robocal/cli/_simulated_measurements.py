@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from robocal.cli._command import command
 from robocal.cli._defaults import (
     DEFAULT_SEED,
     SCENARIO_HELP,
@@ -23,12 +24,7 @@ if TYPE_CHECKING:
 
 def register(sub: Any) -> None:
     """Add the ``simulate`` subcommand."""
-    p = sub.add_parser(
-        "simulate", help="write MEAS.csv files measured on the virtual robot",
-        description="Measure poses on robocal's virtual robot (planted errors, laser-tracker "
-                    "noise) and write measurement CSVs (q1..qN deg, x,y,z mm, sx,sy,sz mm), "
-                    "e.g. to try 'robocal fit'. Poses come from a PLAN.json (calibration and "
-                    "validation purposes) or are drawn at random within the joint limits.")
+    p = command(sub, "simulate", run)
     p.add_argument("--robot", default=None,
                    help="built-in name or robot TOML (default: the plan's robot with --plan, "
                         "else fanuc_lrmate200i); with --plan it must be the plan's robot")
@@ -51,7 +47,6 @@ def register(sub: Any) -> None:
                         "nominal kinematics wants it, with the program's joints; "
                         "'robocal compensate' corrects the joints towards it (default: OUT "
                         "with '-targets' before the suffix)")
-    p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:

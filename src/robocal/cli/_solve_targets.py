@@ -16,15 +16,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``compensate`` subcommand."""
-    p = sub.add_parser(
-        "compensate", help="corrected joint commands for program targets",
-        description="Solve each target of TARGETS.csv (x, y, z mm in the tracker frame, seed "
-                    "joints q1..qN deg, optional w, p, r deg) under the calibrated model and "
-                    "write JOINTS.csv (q1..qN deg, status, model_residual_mm). Exit 1 when "
-                    "some target could not be solved (its joints are left empty).")
+    p = command(sub, "compensate", run)
     p.add_argument("--model", required=True, metavar="MODEL.json", help="calibrated model")
     p.add_argument("--targets", required=True, metavar="TARGETS.csv", help="program targets")
     p.add_argument("--out", required=True, metavar="JOINTS.csv", help="output file")
@@ -37,7 +34,6 @@ def register(sub: Any) -> None:
                    help="position tolerance under the model, micrometres (default 0.1)")
     p.add_argument("--max-iter", type=int, default=20, help="iteration limit (default 20)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.set_defaults(handler=run)
 
 
 def _check_out(path: str, what: str) -> Path:

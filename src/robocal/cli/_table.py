@@ -20,18 +20,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from robocal.cli._command import command
+
 
 def register(sub: Any) -> None:
     """Add the ``table`` subcommand."""
-    p = sub.add_parser(
-        "table", help="build, check or compare compensation tables",
-        description="Build a sealed compensation table from a calibrated model: 'targets' "
-                    "(corrected joints for TARGETS.csv: the only kind that compensates the "
-                    "whole model), 'joint' (per-joint correction grids) or 'frames' (user and "
-                    "tool frames: base/tool alignment, not compensation); 'vendor' exports "
-                    "the constant errors as zero offsets and DH deltas for the controller's "
-                    "own calibration. --check verifies a table file's checksum; --diff "
-                    "compares two tables.")
+    p = command(sub, "table", run)
     p.add_argument("--model", metavar="MODEL.json", help="calibrated model")
     p.add_argument("--kind", choices=("targets", "joint", "frames", "vendor"),
                    help="table kind (vendor: zero offsets and DH deltas, not a table)")
@@ -54,7 +48,6 @@ def register(sub: Any) -> None:
     p.add_argument("--check", metavar="TABLE.json", help="verify a table file and summarise it")
     p.add_argument("--diff", nargs=2, metavar=("A.json", "B.json"), help="compare two tables")
     p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.set_defaults(handler=run)
 
 
 def _summary(table: Any) -> dict[str, Any]:
@@ -87,39 +80,69 @@ def _say(s: dict[str, Any], head: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Dispatch on the mode; return the exit code."""
-    from robocal.compensation import CompensationTable, build_table, diff_tables, read_targets_csv
     from robocal.errors import ConfigError
-    from robocal.kinematics import CalibratedModel
 
     build_opts = (args.model, args.kind, args.out, args.targets)
     modes = sum([args.check is not None, args.diff is not None, any(build_opts)])
     if modes != 1:
         raise ConfigError("give either --model/--kind/--out, or --check FILE, or --diff A B")
     if args.check:
-        table = CompensationTable.read(args.check)
-        s = _summary(table)
-        if args.json:
-            sys.stdout.write(json.dumps(s) + "\n")
-        else:
-            _say(s, f"{args.check}: checksum ok")
-        return 0
+        return _check(args)
     if args.diff:
-        a, b = (CompensationTable.read(f) for f in args.diff)
-        d = diff_tables(a, b)
-        if args.json:
-            sys.stdout.write(json.dumps({"identical": d.identical, "lines": list(d.lines),
-                                         "max_joint_deg": d.max_joint_deg,
-                                         "max_translation_mm": d.max_translation_mm,
-                                         "max_rotation_deg": d.max_rotation_deg}) + "\n")
-        else:
-            sys.stdout.write("tables agree\n" if d.identical else
-                             "".join(f"{line}\n" for line in d.lines))
-        return 0 if d.identical else 1
+        return _diff(args)
     for flag, value in (("--model", args.model), ("--kind", args.kind), ("--out", args.out)):
         if not value:
             raise ConfigError(f"{flag} is required to build a table")
     if args.kind == "vendor":
         return _vendor(args)
+    return _build(args)
+
+
+def _check(args: argparse.Namespace) -> int:
+    """``--check``: verify a table file and summarise it."""
+    from robocal.compensation import CompensationTable
+
+    s = _summary(CompensationTable.read(args.check))
+    if args.json:
+        sys.stdout.write(json.dumps(s) + "\n")
+    else:
+        _say(s, f"{args.check}: checksum ok")
+    return 0
+
+
+def _diff(args: argparse.Namespace) -> int:
+    """``--diff A B``: 0 when the tables agree, else 1 with the differences."""
+    from robocal.compensation import CompensationTable, diff_tables
+
+    a, b = (CompensationTable.read(f) for f in args.diff)
+    d = diff_tables(a, b)
+    if args.json:
+        sys.stdout.write(json.dumps({"identical": d.identical, "lines": list(d.lines),
+                                     "max_joint_deg": d.max_joint_deg,
+                                     "max_translation_mm": d.max_translation_mm,
+                                     "max_rotation_deg": d.max_rotation_deg}) + "\n")
+    else:
+        sys.stdout.write("tables agree\n" if d.identical else
+                         "".join(f"{line}\n" for line in d.lines))
+    return 0 if d.identical else 1
+
+
+def _out_path(args: argparse.Namespace) -> Path:
+    """``--out`` as a path whose folder exists."""
+    from robocal.errors import ConfigError
+
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        raise ConfigError("not a writable file path", source=args.out)
+    return out
+
+
+def _build(args: argparse.Namespace) -> int:
+    """Build, write and summarise a targets, joint or frames table."""
+    from robocal.compensation import build_table, read_targets_csv
+    from robocal.errors import ConfigError
+    from robocal.kinematics import CalibratedModel
+
     if args.kind == "targets" and not args.targets:
         raise ConfigError("--kind targets needs --targets TARGETS.csv")
     if args.kind != "targets" and args.targets:
@@ -128,9 +151,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--interp-tol-deg must be positive, got {args.interp_tol_deg}")
     if args.samples < 50:
         raise ConfigError(f"--samples must be at least 50, got {args.samples}")
-    out = Path(args.out)
-    if out.is_dir() or not out.parent.is_dir():
-        raise ConfigError("not a writable file path", source=args.out)
+    out = _out_path(args)
     cal = CalibratedModel.load(args.model)
     targets = read_targets_csv(args.targets, dof=cal.robot.dof) if args.targets else None
     table = build_table(cal, args.kind, targets=targets, interp_tol_deg=args.interp_tol_deg,
@@ -157,9 +178,7 @@ def _vendor(args: argparse.Namespace) -> int:
 
     if args.targets:
         raise ConfigError("--targets is only used with --kind targets, not vendor")
-    out = Path(args.out)
-    if out.is_dir() or not out.parent.is_dir():
-        raise ConfigError("not a writable file path", source=args.out)
+    out = _out_path(args)
     cal = CalibratedModel.load(args.model)
     try:
         doc = write_vendor_export(cal, out, style=args.vendor_style)

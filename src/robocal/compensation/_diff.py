@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,88 @@ def _frame_matrix(f: object) -> np.ndarray:
     return T
 
 
+@dataclass
+class _Changes:
+    """What one kind's comparison found (the kind-specific part of a :class:`TableDiff`)."""
+
+    lines: list[str] = field(default_factory=list)
+    rows: list[int] = field(default_factory=list)
+    max_q: float = 0.0
+    max_t: float = 0.0
+    max_r: float = 0.0
+
+
+def _targets(a: CompensationTable, b: CompensationTable, tol_deg: float, tol_mm: float
+             ) -> _Changes:
+    """Rows only in one table, joint counts, statuses and commands that changed."""
+    out = _Changes()
+    ra = {r.index: r for r in a.targets or []}
+    rb = {r.index: r for r in b.targets or []}
+    for i in sorted(set(ra) ^ set(rb)):
+        out.rows.append(i)
+        out.lines.append(f"target {i}: only in {'a' if i in ra else 'b'}")
+    for i in sorted(set(ra) & set(rb)):
+        x, y = ra[i], rb[i]
+        if len(x.q_deg) != len(y.q_deg):
+            out.rows.append(i)
+            out.lines.append(f"target {i}: {len(x.q_deg)} joints -> {len(y.q_deg)}")
+            continue
+        d = float(np.max(np.abs(np.subtract(x.q_deg, y.q_deg)))) if x.q_deg else 0.0
+        if x.status == "ok" and y.status == "ok":
+            out.max_q = max(out.max_q, d)
+        if x.status != y.status or d > tol_deg:
+            out.rows.append(i)
+            out.lines.append(f"target {i}: status {x.status} -> {y.status}, "
+                             f"max |dq| {d:.6f} deg")
+    return out
+
+
+def _joint(a: CompensationTable, b: CompensationTable, tol_deg: float, tol_mm: float
+           ) -> _Changes:
+    """Corrections compared on the union of their grids; entries only in one table."""
+    out = _Changes()
+    ea = {(e.joint, e.source): e for e in a.joints or []}
+    eb = {(e.joint, e.source): e for e in b.joints or []}
+    for key in sorted(set(ea) | set(eb)):
+        ca, cb = ea.get(key), eb.get(key)
+        grid = np.union1d(ca.q_deg if ca else [], cb.q_deg if cb else [])
+        va = ca.evaluate(grid) if ca else np.zeros_like(grid)
+        vb = cb.evaluate(grid) if cb else np.zeros_like(grid)
+        d = float(np.max(np.abs(va - vb))) if grid.size else 0.0
+        out.max_q = max(out.max_q, d)
+        if ca is None or cb is None or d > tol_deg:
+            what = "only in " + ("b" if ca is None else "a") if (ca is None or cb is None) \
+                else f"max change {d:.6f} deg"
+            out.lines.append(f"joint {key[0]} (from joint {key[1]}): {what}")
+    return out
+
+
+def _frames(a: CompensationTable, b: CompensationTable, tol_deg: float, tol_mm: float
+            ) -> _Changes:
+    """How far the base and tool frames move and turn."""
+    out = _Changes()
+    if a.frames is None or b.frames is None:
+        return out
+    for name in ("base", "tool"):
+        Ta = _frame_matrix(getattr(a.frames, name))
+        Tb = _frame_matrix(getattr(b.frames, name))
+        dt = float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))
+        R = Ta[:3, :3].T @ Tb[:3, :3]
+        # angle of R from its sine and cosine: acos of the cosine alone loses small angles to
+        # rounding (a frame against itself turned by 1e-6 deg)
+        s = 0.5 * math.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
+        dr = math.degrees(math.atan2(s, (np.trace(R) - 1.0) * 0.5))
+        out.max_t, out.max_r = max(out.max_t, dt), max(out.max_r, dr)
+        if dt > tol_mm or dr > tol_deg:
+            out.lines.append(f"{name} frame: moves {dt:.6f} mm, turns {dr:.6f} deg")
+    return out
+
+
+#: the comparison of each table kind (a kind not listed compares its frames, if any)
+_BY_KIND: dict[str, Callable[[CompensationTable, CompensationTable, float, float],
+                             _Changes]] = {"targets": _targets, "joint": _joint}
+
+
 def diff_tables(a: CompensationTable, b: CompensationTable, *, tol_deg: float = 1e-9,
                 tol_mm: float = 1e-9) -> TableDiff:
     """Compare two tables by meaning (joint commands, corrections, frames), not bytes.
@@ -57,57 +140,11 @@ def diff_tables(a: CompensationTable, b: CompensationTable, *, tol_deg: float = 
     tol_deg, tol_mm
         Changes at or below these are ignored.
     """
-    lines: list[str] = []
     meta = tuple(k for k in _META if getattr(a, k) != getattr(b, k))
-    for k in meta:
-        lines.append(f"{k}: {getattr(a, k)!r} -> {getattr(b, k)!r}")
+    lines = [f"{k}: {getattr(a, k)!r} -> {getattr(b, k)!r}" for k in meta]
     if a.kind != b.kind:
         return TableDiff(same_kind=False, metadata=meta, lines=tuple(lines))
-    max_q = max_t = max_r = 0.0
-    rows: list[int] = []
-    if a.kind == "targets":
-        ra = {r.index: r for r in a.targets or []}
-        rb = {r.index: r for r in b.targets or []}
-        for i in sorted(set(ra) ^ set(rb)):
-            rows.append(i)
-            lines.append(f"target {i}: only in {'a' if i in ra else 'b'}")
-        for i in sorted(set(ra) & set(rb)):
-            x, y = ra[i], rb[i]
-            if len(x.q_deg) != len(y.q_deg):
-                rows.append(i)
-                lines.append(f"target {i}: {len(x.q_deg)} joints -> {len(y.q_deg)}")
-                continue
-            d = float(np.max(np.abs(np.subtract(x.q_deg, y.q_deg)))) if x.q_deg else 0.0
-            if x.status == "ok" and y.status == "ok":
-                max_q = max(max_q, d)
-            if x.status != y.status or d > tol_deg:
-                rows.append(i)
-                lines.append(f"target {i}: status {x.status} -> {y.status}, "
-                             f"max |dq| {d:.6f} deg")
-    elif a.kind == "joint":
-        ea = {(e.joint, e.source): e for e in a.joints or []}
-        eb = {(e.joint, e.source): e for e in b.joints or []}
-        for key in sorted(set(ea) | set(eb)):
-            ca, cb = ea.get(key), eb.get(key)
-            grid = np.union1d(ca.q_deg if ca else [], cb.q_deg if cb else [])
-            va = ca.evaluate(grid) if ca else np.zeros_like(grid)
-            vb = cb.evaluate(grid) if cb else np.zeros_like(grid)
-            d = float(np.max(np.abs(va - vb))) if grid.size else 0.0
-            max_q = max(max_q, d)
-            if ca is None or cb is None or d > tol_deg:
-                what = "only in " + ("b" if ca is None else "a") if (ca is None or cb is None) \
-                    else f"max change {d:.6f} deg"
-                lines.append(f"joint {key[0]} (from joint {key[1]}): {what}")
-    elif a.frames is not None and b.frames is not None:
-        for name in ("base", "tool"):
-            Ta = _frame_matrix(getattr(a.frames, name))
-            Tb = _frame_matrix(getattr(b.frames, name))
-            dt = float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))
-            c = (np.trace(Ta[:3, :3].T @ Tb[:3, :3]) - 1.0) * 0.5
-            dr = math.degrees(math.acos(max(-1.0, min(1.0, c))))
-            max_t, max_r = max(max_t, dt), max(max_r, dr)
-            if dt > tol_mm or dr > tol_deg:
-                lines.append(f"{name} frame: moves {dt:.6f} mm, turns {dr:.6f} deg")
-    return TableDiff(same_kind=True, metadata=meta, max_joint_deg=max_q,
-                     max_translation_mm=max_t, max_rotation_deg=max_r,
-                     rows_changed=tuple(rows), lines=tuple(lines))
+    c = _BY_KIND.get(a.kind, _frames)(a, b, tol_deg, tol_mm)
+    return TableDiff(same_kind=True, metadata=meta, max_joint_deg=c.max_q,
+                     max_translation_mm=c.max_t, max_rotation_deg=c.max_r,
+                     rows_changed=tuple(c.rows), lines=tuple(lines + c.lines))

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 # The one CSV table reader and its column and number checks are _core's.
 from robocal._core.files import atomic_write_text
-from robocal._core.measurements import joint_columns, numeric_columns, read_table
+from robocal._core.measurements import joint_columns, numeric_columns, read_table, row_ids
 from robocal.compensation._solve import CompensationResult
 from robocal.errors import DataError
 from robocal.kinematics import matrix_to_wpr, wpr_to_matrix
@@ -69,10 +69,8 @@ class TargetSet:
             if R.shape != (p.shape[0], 3, 3):
                 raise DataError(f"orientations have shape {R.shape}, expected ({p.shape[0]}, 3, 3)")
             object.__setattr__(self, "R", R)
-        if not self.labels:
-            object.__setattr__(self, "labels", tuple(f"T{i:04d}" for i in range(p.shape[0])))
-        elif len(self.labels) != p.shape[0]:
-            raise DataError("labels length differs from the number of targets")
+        object.__setattr__(self, "labels", row_ids(self.labels, p.shape[0], "T", "labels",
+                                                   "targets"))
 
     def __len__(self) -> int:
         return int(self.p.shape[0])

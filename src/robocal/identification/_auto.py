@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.arrays import Array, IntArray
 from robocal.errors import IdentificationError
 from robocal.identification._engine import Solution
 from robocal.identification._fitter import Fitter as _Fitter
@@ -58,9 +59,6 @@ from robocal.kinematics import (
     Term,
     gravity_torques,
 )
-
-Array = NDArray[np.float64]
-IntArray = NDArray[np.intp]
 
 
 @dataclass

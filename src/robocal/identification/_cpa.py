@@ -174,11 +174,12 @@ class CPAResult:
     the held-out poses.
     """
 
-    calibrated: CalibratedModel
-    classical: CalibratedModel
-    circles: list[CircleFit]
-    home_q: Array
-    home_point: Array
+    calibrated: CalibratedModel  # kind "cpa"
+    classical: CalibratedModel  # kind "cpa-classical"
+    circles: list[CircleFit]  # one per swept joint
+    home_q: Array  # (dof,) rad: the pose every sweep starts from
+    home_point: Array  # (3,) m: its circle point
+    #: RMS residual of the circles -> DH conversion (noise-free fit over random poses), m
     conversion_rms_m: float
     validation: Accuracy | None = None
     classical_validation: Accuracy | None = None

@@ -7,8 +7,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
+from robocal._core.arrays import Array, BoolArray, IntArray
 from robocal._core.measurements import MeasurementSet
 from robocal.errors import NotConverged, NotIdentifiable
 from robocal.identification._linalg import CHI2_3_MEDIAN, chi2_3_isf, median
@@ -30,29 +30,30 @@ from robocal.identification._weights import (
 )
 from robocal.kinematics import KinematicModel, RobotDescription
 
-Array = NDArray[np.float64]
-IntArray = NDArray[np.intp]
-BoolArray = NDArray[np.bool_]
-
 
 @dataclass(frozen=True)
 class EngineSettings:
     """Numerical settings the engine needs (a subset of :class:`FitOptions`)."""
 
+    #: the tracker's noise, and whether the points' own sigmas (with this floor) weigh them
     noise: TrackerSigma = field(default_factory=TrackerSigma)
     use_point_sigma: bool = True
     point_sigma_floor_m: float | None = None
+    #: relative singular-value threshold of the identifiability analysis
     rank_tol: float = 3e-4
+    #: Levenberg-Marquardt: iterations and relative cost decrease at convergence; a run at
+    #: max_iter still creeping (decrease or remaining below these) is kept
     max_iter: int = 300
     ftol: float = 1e-10
     creep_ftol: float = 1e-7
     creep_remaining: float = 1e-3
+    #: outlier rejection
     detect_outliers: bool = True
-    outlier_alpha: float = 0.01
-    outlier_sigma: float | None = None
-    outlier_sigma_min: float = 8.0
+    outlier_alpha: float = 0.01  # family-wise false-rejection rate over the poses
+    outlier_sigma: float | None = None  # a fixed threshold instead, in sigmas
+    outlier_sigma_min: float = 8.0  # the threshold is never below this many sigmas
     outlier_max_rounds: int = 6
-    outlier_max_fraction: float = 0.2
+    outlier_max_fraction: float = 0.2  # of the poses, at most
     min_redundancy: float = 0.1
     chunk: int = 2048
 

@@ -37,16 +37,19 @@ class Accuracy:
     when no baseline was given.
     """
 
-    rms_m: float
+    rms_m: float  # of the position errors, m
     mean_m: float
     max_m: float
-    n: int
-    percent_described_rms: float | None = None
-    percent_described_mean: float | None = None
-    percent_described_r2: float | None = None
+    n: int  # poses
+    #: share of the baseline's error the model describes, %
+    percent_described_rms: float | None = None  # of the RMS
+    percent_described_mean: float | None = None  # of the mean
+    percent_described_r2: float | None = None  # of the summed squares (variance explained)
+    #: the baseline's errors on the same poses, m
     baseline_rms_m: float | None = None
     baseline_mean_m: float | None = None
     baseline_max_m: float | None = None
+    #: ids of poses left out of the figures
     excluded: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:

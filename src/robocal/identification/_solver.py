@@ -42,12 +42,15 @@ class Problem:
     """
 
     model: KinematicModel
-    q: Array
-    y: Array
-    W: Array
+    q: Array  # (n, dof) rad
+    y: Array  # (n, 3) m
+    W: Array  # (n, 3, 3) 1/m
+    #: the prior (None: none)
     penalty: Array | None = None
     target: Array | None = None
+    #: poses per Jacobian block (bounds the memory of one evaluation)
     chunk: int = 2048
+    #: Jacobians evaluated so far (bench/bench_solver.py counts them)
     n_jacobians: int = field(default=0, init=False)
     R_probe: Array | None = None
     W_rot: Array | None = None

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robocal._core.files import read_text
 from robocal._core.measurements import MeasurementSet, numeric_columns, parse_table
 from robocal.errors import DataError
 
@@ -138,14 +139,8 @@ def load_ipa_series(path: str | Path, *, with_sigma: bool = False,
         Joint values (n, 6) rad for the ``ur10`` robot and T-Mac positions (n, 3) m.
     """
     file, prefix = _resolve(path)
-    try:
-        text = file.read_text(encoding="utf-8")
-    except FileNotFoundError as err:
-        raise DataError("file not found", source=str(file)) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise DataError(f"cannot read: {err}", source=str(file)) from err
-    data = parse_ipa_csv(text, source=str(file), with_sigma=with_sigma, prefix=prefix,
-                         with_orientation=with_orientation)
+    data = parse_ipa_csv(read_text(file, error=DataError), source=str(file),
+                         with_sigma=with_sigma, prefix=prefix, with_orientation=with_orientation)
     if max_poses is not None and len(data) > max_poses:
         rng = np.random.default_rng(seed)
         data = data.subset(np.sort(rng.choice(len(data), size=max_poses, replace=False)))

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.files import atomic_write_text, json_default
+from robocal._core.schema import fail, key, list_of, load
 from robocal.errors import ConfigError
 from robocal.kinematics._integrity import (
     HASHED,
@@ -217,80 +218,32 @@ class CalibratedModel:
         if d.get("format") != MODEL_FORMAT:
             raise ConfigError(f"unsupported format {d.get('format')!r} (expected {MODEL_FORMAT})",
                               source=source, key="format")
-        for key in ("robot", "error_model", "T_tracker_base_ref_mm", "parameters"):
-            if key not in d:
-                raise ConfigError("required key is missing", source=source, key=key)
-        robot = RobotDescription.from_dict(d["robot"], source=f"{source}#robot")
+        f = load(_ModelFile, d, source)
+        robot = RobotDescription.from_dict(f.robot, source=f"{source}#robot")
         if verify:
             check_robot(robot, nominal if nominal is not None else builtin_nominal(robot),
                         source)
-        try:
-            spec = ErrorModelSpec.from_dict(d["error_model"])
-        except ConfigError as err:
-            raise ConfigError(str(err), source=source, key="error_model") from err
-        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
-            raise ConfigError(f"malformed error model: {type(err).__name__}: {err}",
-                              source=source, key="error_model") from err
-        try:
-            T = np.array(d["T_tracker_base_ref_mm"], dtype=float).reshape(4, 4)
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"not a 4x4 matrix: {err}", source=source,
-                              key="T_tracker_base_ref_mm") from err
+        T = f.T_tracker_base_ref_mm.copy()
         if verify:
             _check_transform(T, source)
         T[:3, 3] *= 1e-3
-        model = KinematicModel(robot, spec, T)
-        if not isinstance(d["parameters"], list):
-            raise ConfigError("must be a list of parameter entries", source=source,
-                              key="parameters")
-        byname = {}
-        for i, p in enumerate(d["parameters"]):
-            try:
-                byname[p["name"]] = (float(p["value"]), p["unit"])
-            except (KeyError, TypeError, ValueError) as err:
-                raise ConfigError(f"malformed parameter entry: {err}", source=source,
-                                  key=f"parameters[{i}]") from err
-        x = np.empty(model.size)
-        for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
-            if name not in byname:
-                raise ConfigError("parameter missing", source=source, key=f"parameters.{name}")
-            v, u = byname[name]
-            f, fu = _TO_FILE[unit]
-            if u != fu:
-                raise ConfigError(f"unit {u!r}, expected {fu!r}", source=source,
-                                  key=f"parameters.{name}")
-            x[k] = v / f
-        if not np.all(np.isfinite(x)):
-            raise ConfigError("parameters must be finite", source=source, key="parameters")
-        if verify:
-            for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
-                f, fu = _TO_FILE[unit]
-                bound = PARAMETER_BOUNDS.get((name.split(".")[0], fu), BOUNDS[fu])
-                if abs(x[k] * f) > bound:
-                    raise ConfigError(f"{x[k] * f:.6g} {fu} is not a plausible value (|v| <= "
-                                      f"{bound:g} {fu})", source=source,
-                                      key=f"parameters.{name}")
+        model = KinematicModel(robot, _error_model(f.error_model, source), T)
+        x = _parameters(model, f.parameters, source, verify)
         cov = None
-        if d.get("covariance") is not None:
+        if f.covariance is not None:
             scale = np.array([_TO_FILE[u][0] for u in model.layout.units])
-            cov = _decode_covariance(d["covariance"], model.size, source) / np.outer(scale, scale)
+            cov = _decode_covariance(f.covariance, model.size, source) / np.outer(scale, scale)
             if not np.all(np.isfinite(cov)):
                 raise ConfigError("covariance must be finite", source=source, key="covariance")
         cover = None
-        if d.get("coverage_deg") is not None:
-            cover = np.radians(_coverage(d["coverage_deg"], robot.dof, source))
-        fb = None
-        if d.get("fallback"):
-            # the parent's hash (and HMAC) covers the fallback section whole
-            fb = cls.from_dict(d["fallback"], source=f"{source}#fallback", verify=verify,
-                               nominal=nominal)
-        for key in ("metrics", "fit", "data"):
-            if not isinstance(d.get(key) or {}, dict):
-                raise ConfigError("must be a JSON object", source=source, key=key)
+        if f.coverage_deg is not None:
+            cover = np.radians(_coverage(f.coverage_deg, robot.dof, source))
+        # the parent's hash (and HMAC) covers the fallback section whole
+        fb = None if not f.fallback else cls.from_dict(
+            f.fallback, source=f"{source}#fallback", verify=verify, nominal=nominal)
         out = cls(model=model, params=x, covariance=cov, coverage=cover, fallback=fb,
-                  model_id=str(d.get("model_id", "")), kind=str(d.get("kind", "custom")),
-                  metrics=dict(d.get("metrics") or {}), fit=dict(d.get("fit") or {}),
-                  data=dict(d.get("data") or {}), created=str(d.get("created", "")))
+                  model_id=str(f.model_id), kind=str(f.kind), metrics=f.metrics, fit=f.fit,
+                  data=f.data, created=str(f.created))
         if verify:  # last, so that a malformed or implausible part is named first
             check_seal(d, source, secret)
         out._raw = (out._fingerprint(), {k: d.get(k) for k in HASHED})
@@ -331,6 +284,96 @@ PARAMETER_BOUNDS: dict[tuple[str, str], float] = {("base", "mm"): 1000.0,
 #: Farthest a tracker measures (the largest laser trackers reach 80 m in radius): the
 #: tracker <- base reference cannot be farther.
 TRACKER_RANGE_MM = 80_000.0
+
+
+def _matrix4(v: Any) -> Array:
+    try:
+        return np.array(v, dtype=float).reshape(4, 4)
+    except (TypeError, ValueError) as err:
+        fail(f"not a 4x4 matrix: {err}")
+
+
+def _entries(v: Any) -> list[tuple[str, float, str]]:
+    if not isinstance(v, list):
+        fail("must be a list of parameter entries")
+    checked: list[tuple[str, float, str]] = list_of(_entry)(v)
+    return checked
+
+
+def _entry(v: Any) -> tuple[str, float, str]:
+    try:
+        name, value, unit = v["name"], float(v["value"]), v["unit"]
+        hash(name)
+    except (KeyError, TypeError, ValueError) as err:
+        fail(f"malformed parameter entry: {err}")
+    return name, value, unit
+
+
+def _json_object(v: Any) -> dict[str, Any]:
+    if not isinstance(v or {}, dict):
+        fail("must be a JSON object")
+    return dict(v or {})
+
+
+@dataclass(frozen=True, kw_only=True)
+class _ModelFile:
+    """MODEL.json as written by :meth:`CalibratedModel.to_dict`. The robot and error-model
+    sections are checked by their own parsers, the seal by :func:`check_seal`; a new section
+    is one more key here (and in :data:`HASHED` when it changes predictions or limits)."""
+
+    format: str = key()
+    model_id: Any = key(None, "")
+    kind: Any = key(None, "custom")
+    created: Any = key(None, "")
+    robot: Any = key()
+    error_model: Any = key()
+    T_tracker_base_ref_mm: Array = key(_matrix4)
+    parameters: list[tuple[str, float, str]] = key(_entries)
+    coverage_deg: Any = key(None, None)
+    covariance: Any = key(None, None)
+    fallback: Any = key(None, None)
+    metrics: dict[str, Any] = key(_json_object, factory=dict)
+    fit: dict[str, Any] = key(_json_object, factory=dict)
+    data: dict[str, Any] = key(_json_object, factory=dict)
+    integrity: Any = key(None, None)
+
+
+def _error_model(value: Any, source: str) -> ErrorModelSpec:
+    """The ``error_model`` section; any problem is one ConfigError on that key."""
+    try:
+        return ErrorModelSpec.from_dict(value)
+    except ConfigError as err:
+        raise ConfigError(str(err), source=source, key="error_model") from err
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        raise ConfigError(f"malformed error model: {type(err).__name__}: {err}",
+                          source=source, key="error_model") from err
+
+
+def _parameters(model: KinematicModel, entries: list[tuple[str, float, str]], source: str,
+                verify: bool) -> Array:
+    """Parameter vector (P,) SI from the file entries (file units): each parameter present
+    once in its unit, finite; with ``verify`` within :data:`PARAMETER_BOUNDS`/:data:`BOUNDS`."""
+    byname = {name: (v, u) for name, v, u in entries}
+    x = np.empty(model.size)
+    for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
+        if name not in byname:
+            raise ConfigError("parameter missing", source=source, key=f"parameters.{name}")
+        v, u = byname[name]
+        f, fu = _TO_FILE[unit]
+        if u != fu:
+            raise ConfigError(f"unit {u!r}, expected {fu!r}", source=source,
+                              key=f"parameters.{name}")
+        x[k] = v / f
+    if not np.all(np.isfinite(x)):
+        raise ConfigError("parameters must be finite", source=source, key="parameters")
+    if verify:
+        for k, (name, unit) in enumerate(zip(model.names, model.layout.units, strict=True)):
+            f, fu = _TO_FILE[unit]
+            bound = PARAMETER_BOUNDS.get((name.split(".")[0], fu), BOUNDS[fu])
+            if abs(x[k] * f) > bound:
+                raise ConfigError(f"{x[k] * f:.6g} {fu} is not a plausible value (|v| <= "
+                                  f"{bound:g} {fu})", source=source, key=f"parameters.{name}")
+    return x
 
 
 def _check_transform(T: Array, source: str) -> None:

@@ -14,14 +14,14 @@ import hashlib
 import hmac
 import json
 import math
-from typing import Any, Final
+from typing import Any, Final, NoReturn
 
 import numpy as np
 
 from robocal._core.files import json_default
 from robocal._core.robot_names import builtin_robots
 from robocal.errors import ConfigError
-from robocal.kinematics._robot import RobotDescription, load_toml_robot
+from robocal.kinematics._robot import Joint, RobotDescription, load_toml_robot
 
 #: Sections of MODEL.json the hash covers (free-form ``metrics``, ``fit``, ``data``,
 #: ``kind`` and ``created`` describe the model and change no prediction).
@@ -111,33 +111,46 @@ def check_robot(robot: RobotDescription, nominal: RobotDescription | None, sourc
         Naming the robot key and how far it is off.
     """
     src = f"{source}#robot"
-
-    def refuse(key: str, what: str) -> None:
-        raise ConfigError(f"{what}: not a plausible description of this robot (refit with "
-                          "the right robot description)", source=src, key=key)
-
     tool_mm = 1e3 * math.dist(robot.tool, (0.0, 0.0, 0.0))
     if tool_mm > ROBOT_ABSOLUTE["tool_mm"]:
-        refuse("tool_mm", f"tool offset {tool_mm:.0f} mm beyond {ROBOT_ABSOLUTE['tool_mm']:g} mm")
+        _refuse(src, "tool_mm",
+                f"tool offset {tool_mm:.0f} mm beyond {ROBOT_ABSOLUTE['tool_mm']:g} mm")
     if nominal is None:
-        lengths = [("base_xyz_mm", 1e3 * math.dist(robot.base_xyz, (0.0, 0.0, 0.0))),
-                   ("flange_xyz_mm", 1e3 * math.dist(robot.flange_xyz, (0.0, 0.0, 0.0)))]
-        for i, j in enumerate(robot.joints):
-            lengths += [(f"joints[{i + 1}].a_mm", abs(j.a) * 1e3),
-                        (f"joints[{i + 1}].d_mm", abs(j.d) * 1e3)]
-        for key, v in lengths:
-            if v > ROBOT_ABSOLUTE["mm"]:
-                refuse(key, f"{v:.0f} mm beyond {ROBOT_ABSOLUTE['mm']:g} mm")
-        for i, j in enumerate(robot.joints):
-            widest = max(abs(math.degrees(j.q_min)), abs(math.degrees(j.q_max)))
-            if widest > ROBOT_ABSOLUTE["limit_deg"]:
-                refuse(f"joints[{i + 1}]", f"joint limit {widest:.1f} deg beyond "
-                       f"{ROBOT_ABSOLUTE['limit_deg']:g} deg")
-        return
+        _check_absolute(robot, src)
+    else:
+        _check_nominal(robot, nominal, src)
+
+
+def _refuse(src: str, key: str, what: str) -> NoReturn:
+    raise ConfigError(f"{what}: not a plausible description of this robot (refit with "
+                      "the right robot description)", source=src, key=key)
+
+
+def _check_absolute(robot: RobotDescription, src: str) -> None:
+    """Without a nominal robot: lengths and joint limits within :data:`ROBOT_ABSOLUTE`."""
+    lengths = [("base_xyz_mm", 1e3 * math.dist(robot.base_xyz, (0.0, 0.0, 0.0))),
+               ("flange_xyz_mm", 1e3 * math.dist(robot.flange_xyz, (0.0, 0.0, 0.0)))]
+    for i, j in enumerate(robot.joints):
+        lengths += [(f"joints[{i + 1}].a_mm", abs(j.a) * 1e3),
+                    (f"joints[{i + 1}].d_mm", abs(j.d) * 1e3)]
+    for key, v in lengths:
+        if v > ROBOT_ABSOLUTE["mm"]:
+            _refuse(src, key, f"{v:.0f} mm beyond {ROBOT_ABSOLUTE['mm']:g} mm")
+    for i, j in enumerate(robot.joints):
+        widest = max(abs(math.degrees(j.q_min)), abs(math.degrees(j.q_max)))
+        if widest > ROBOT_ABSOLUTE["limit_deg"]:
+            _refuse(src, f"joints[{i + 1}]", f"joint limit {widest:.1f} deg beyond "
+                    f"{ROBOT_ABSOLUTE['limit_deg']:g} deg")
+
+
+def _check_nominal(robot: RobotDescription, nominal: RobotDescription, src: str) -> None:
+    """Against a nominal robot: same name and joints, geometry within :data:`ROBOT_TOLERANCE`,
+    no wider joint limits."""
     if robot.name != nominal.name:
-        refuse("name", f"robot {robot.name!r}, the nominal description is {nominal.name!r}")
+        _refuse(src, "name",
+                f"robot {robot.name!r}, the nominal description is {nominal.name!r}")
     if robot.dof != nominal.dof:
-        refuse("joints", f"{robot.dof} joints, {nominal.name!r} has {nominal.dof}")
+        _refuse(src, "joints", f"{robot.dof} joints, {nominal.name!r} has {nominal.dof}")
     mm, deg = ROBOT_TOLERANCE["mm"], ROBOT_TOLERANCE["deg"]
     pairs: list[tuple[str, float, float, float, str]] = []
     for part in ("base", "flange"):
@@ -153,14 +166,20 @@ def check_robot(robot: RobotDescription, nominal: RobotDescription | None, sourc
                   (f"{k}.alpha_deg", math.degrees(j.alpha), math.degrees(n.alpha), deg, "deg"),
                   (f"{k}.theta_offset_deg", math.degrees(j.theta_offset),
                    math.degrees(n.theta_offset), deg, "deg")]
-        if (j.sign, j.coupled_to, j.coupling) != (n.sign, n.coupled_to, n.coupling):
-            refuse(k, "joint sign or coupling differs from the nominal description")
-        eps = ROBOT_TOLERANCE["limit_deg"]
-        if (math.degrees(j.q_min) < math.degrees(n.q_min) - eps
-                or math.degrees(j.q_max) > math.degrees(n.q_max) + eps):
-            refuse(f"{k}.min_deg", f"joint limits [{math.degrees(j.q_min):.2f}, "
-                   f"{math.degrees(j.q_max):.2f}] deg wider than the nominal "
-                   f"[{math.degrees(n.q_min):.2f}, {math.degrees(n.q_max):.2f}] deg")
+        _check_joint_vs_nominal(j, n, k, src)
     for key, v, nv, tol, unit in pairs:
         if not abs(v - nv) <= tol:
-            refuse(key, f"{v:.6g} {unit}, nominal {nv:.6g} {unit} (tolerance {tol:g} {unit})")
+            _refuse(src, key,
+                    f"{v:.6g} {unit}, nominal {nv:.6g} {unit} (tolerance {tol:g} {unit})")
+
+
+def _check_joint_vs_nominal(j: Joint, n: Joint, k: str, src: str) -> None:
+    """Same sign and coupling as the nominal joint, limits no wider."""
+    if (j.sign, j.coupled_to, j.coupling) != (n.sign, n.coupled_to, n.coupling):
+        _refuse(src, k, "joint sign or coupling differs from the nominal description")
+    eps = ROBOT_TOLERANCE["limit_deg"]
+    if (math.degrees(j.q_min) < math.degrees(n.q_min) - eps
+            or math.degrees(j.q_max) > math.degrees(n.q_max) + eps):
+        _refuse(src, f"{k}.min_deg", f"joint limits [{math.degrees(j.q_min):.2f}, "
+                f"{math.degrees(j.q_max):.2f}] deg wider than the nominal "
+                f"[{math.degrees(n.q_min):.2f}, {math.degrees(n.q_max):.2f}] deg")

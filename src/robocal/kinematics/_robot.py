@@ -59,16 +59,9 @@ from robocal._core.robot_names import (
     builtin_robot_key,
     check_robot_spec,
 )
+from robocal._core.schema import fail, key, list_of, load, parse
 from robocal.errors import ConfigError
 
-_JOINT_KEYS = {
-    "a_mm", "d_mm", "alpha_deg", "theta_offset_deg", "min_deg", "max_deg", "gear_ratio",
-    "mass_kg", "com_mm", "sign", "coupled_to", "coupling", "name", "max_speed_deg_s",
-}
-_TOP_KEYS = {"name", "manufacturer", "tool_mm", "gravity", "joints", "source", "notes",
-             "convention", "base_xyz_mm", "base_rpy_deg", "flange_xyz_mm", "flange_rpy_deg",
-             "collision"}
-_COLLISION_KEYS = {"link_radii_mm", "source"}
 _ZERO3 = (0.0, 0.0, 0.0)
 
 
@@ -113,15 +106,18 @@ def transform(xyz: tuple[float, float, float], rpy: tuple[float, float, float]
 class Joint:
     """One revolute joint, SI units (m, rad, kg)."""
 
-    a: float
-    d: float
-    alpha: float
-    theta_offset: float
-    q_min: float
+    a: float  # DH link length, m
+    d: float  # DH link offset, m
+    alpha: float  # DH twist, rad
+    theta_offset: float  # chain angle at joint value 0, rad
+    q_min: float  # joint limits, rad
     q_max: float
+    #: gear ratio (strain-wave terms), None where unknown
     gear_ratio: float | None = None
+    #: link mass (kg) and centre of mass (m, link frame), for gravity torsion
     mass: float | None = None
     com: tuple[float, float, float] | None = None
+    #: the chain angle turns with ``sign * (q + coupling * q[coupled_to])``
     sign: int = 1
     coupled_to: int | None = None  # 0-based index of the joint this one is coupled to
     coupling: float = 0.0
@@ -293,29 +289,156 @@ def _plausible(v: float) -> bool:
         return False
 
 
-def _num(d: dict[str, Any], key: str, src: str, default: float | None = None,
-         *, required: bool = True) -> float | None:
-    if key not in d:
-        if required and default is None:
-            raise ConfigError("required key is missing", source=src, key=key)
-        return default
-    v = d[key]
+def _number(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float) or not _plausible(v):
-        raise ConfigError(f"must be a finite number within +-{_MAX_ABS:g}, got {v!r}",
-                          source=src, key=key)
+        fail(f"must be a finite number within +-{_MAX_ABS:g}, got {v!r}")
     return float(v)
 
 
-def _vec3(d: dict[str, Any], key: str, src: str) -> tuple[float, float, float] | None:
-    if key not in d:
-        return None
-    v = d[key]
-    if (not isinstance(v, list) or len(v) != 3
+def _positive(v: Any) -> float:
+    if _number(v) <= 0:
+        fail("must be positive")
+    return float(v)
+
+
+def _not_negative(v: Any) -> float:
+    if _number(v) < 0:
+        fail("must not be negative")
+    return float(v)
+
+
+def _vector3(v: Any) -> tuple[float, float, float]:
+    if (not isinstance(v, list | tuple) or len(v) != 3
             or not all(isinstance(x, int | float) and not isinstance(x, bool)
                        and _plausible(x) for x in v)):
-        raise ConfigError(f"must be a list of 3 finite numbers within +-{_MAX_ABS:g}, got "
-                          f"{v!r}", source=src, key=key)
+        fail(f"must be a list of 3 finite numbers within +-{_MAX_ABS:g}, got {v!r}")
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _text(v: Any) -> str:
+    if not isinstance(v, str):
+        fail("must be a string")
+    return v
+
+
+def _sign(v: Any) -> int:
+    if isinstance(v, bool) or v not in (1, -1):
+        fail(f"must be 1 or -1, got {v!r}")
+    return int(v)
+
+
+def _robot_name(v: Any) -> str:
+    if not isinstance(v, str) or not v.strip():
+        fail("required non-empty string")
+    return v.strip()
+
+
+def _convention(v: Any) -> str:
+    if v not in ("standard", "modified"):
+        fail(f"must be \"standard\" or \"modified\", got {v!r}")
+    return str(v)
+
+
+def _joint_tables(v: Any) -> list[_JointFile]:
+    if not isinstance(v, list) or not v:
+        fail("at least one [[joints]] table is required")
+    return list_of(lambda j, i: _coupled_in(parse(_JointFile, j), i, len(v)), numbered=True)(v)
+
+
+def _coupled_in(j: _JointFile, i: int, n: int) -> _JointFile:
+    """``coupled_to`` of joint ``i``: another joint 1..n."""
+    c = j.coupled_to
+    if c is not None and (not isinstance(c, int) or isinstance(c, bool)
+                          or not 1 <= c <= n or c == i):
+        fail(f"must name another joint 1..{n}", key="coupled_to")
+    return j
+
+
+def _collision_table(v: Any) -> _CollisionFile | None:
+    return None if v is None else parse(_CollisionFile, v)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _JointFile:
+    """One ``[[joints]]`` table (mm, deg)."""
+
+    a_mm: float = key(_number)
+    d_mm: float = key(_number)
+    alpha_deg: float = key(_number)
+    theta_offset_deg: float = key(_number, 0.0)
+    min_deg: float = key(_number)
+    max_deg: float = key(_number)
+    gear_ratio: float | None = key(_positive, None)
+    mass_kg: float | None = key(_not_negative, None)
+    com_mm: tuple[float, float, float] | None = key(_vector3, None)
+    sign: int = key(_sign, 1)
+    coupled_to: Any = key(None, None)  # 1-based joint number, checked against the joint count
+    coupling: float | None = key(_number, None)
+    name: str = key(_text, "")
+    max_speed_deg_s: float = key(_positive, 180.0)
+
+    def __post_init__(self) -> None:
+        if self.min_deg >= self.max_deg:
+            fail(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})",
+                 key="min_deg")
+        if (self.mass_kg is None) != (self.com_mm is None):
+            fail("mass_kg and com_mm must be given together",
+                 key="com_mm" if self.com_mm is None else "mass_kg")
+
+    def joint(self) -> Joint:
+        """The joint in SI units (coupling 1 by default when coupled)."""
+        coupled = None if self.coupled_to is None else int(self.coupled_to) - 1
+        coupling = 0.0 if coupled is None else (1.0 if self.coupling is None else self.coupling)
+        return Joint(
+            a=self.a_mm * 1e-3, d=self.d_mm * 1e-3, alpha=math.radians(self.alpha_deg),
+            theta_offset=math.radians(self.theta_offset_deg),
+            q_min=math.radians(self.min_deg), q_max=math.radians(self.max_deg),
+            gear_ratio=self.gear_ratio, mass=self.mass_kg,
+            com=None if self.com_mm is None else _scaled(self.com_mm, 1e-3),
+            sign=self.sign, coupled_to=coupled, coupling=coupling, name=self.name,
+            max_speed=math.radians(self.max_speed_deg_s))
+
+
+@dataclass(frozen=True, kw_only=True)
+class _CollisionFile:
+    """``[collision]``: capsule radius per joint body (mm), checked against the joint count."""
+
+    link_radii_mm: Any = key(None, None)
+    source: str = key(_text, "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class _RobotFile:
+    """The robot TOML (module docstring)."""
+
+    convention: str = key(_convention, "standard")
+    name: str = key(_robot_name, missing="required non-empty string")
+    joints: list[_JointFile] = key(_joint_tables,
+                                   missing="at least one [[joints]] table is required")
+    tool_mm: tuple[float, float, float] = key(_vector3, (0.0, 0.0, 50.0))
+    gravity: tuple[float, float, float] = key(_vector3, (0.0, 0.0, -9.81))
+    manufacturer: str = key(_text, "")
+    base_xyz_mm: tuple[float, float, float] = key(_vector3, _ZERO3)
+    base_rpy_deg: tuple[float, float, float] = key(_vector3, _ZERO3)
+    flange_xyz_mm: tuple[float, float, float] = key(_vector3, _ZERO3)
+    flange_rpy_deg: tuple[float, float, float] = key(_vector3, _ZERO3)
+    collision: _CollisionFile | None = key(_collision_table, None)
+    source: str | None = key(str, None)
+    notes: Any = key(None, None)
+
+    def __post_init__(self) -> None:
+        n = len(self.joints)
+        radii = None if self.collision is None else self.collision.link_radii_mm
+        if self.collision is not None and (
+                not isinstance(radii, list) or len(radii) != n
+                or not all(isinstance(r, int | float) and not isinstance(r, bool)
+                           and math.isfinite(r) and r > 0 for r in radii)):
+            fail(f"must be {n} positive numbers (mm), one per joint body",
+                 key="collision.link_radii_mm")
+
+
+def _scaled(v: tuple[float, float, float], f: float) -> tuple[float, float, float]:
+    return (v[0] * f, v[1] * f, v[2] * f)
 
 
 def _tx_rx(a: float, alpha: float) -> NDArray[np.float64]:
@@ -333,112 +456,27 @@ def _split(T: NDArray[np.float64]) -> tuple[tuple[float, float, float],
 
 
 def _parse(data: dict[str, Any], src: str) -> RobotDescription:
-    unknown = set(data) - _TOP_KEYS
-    if unknown:
-        raise ConfigError(f"unknown key (allowed: {', '.join(sorted(_TOP_KEYS))})",
-                          source=src, key=sorted(unknown)[0])
-    convention = data.get("convention", "standard")
-    if convention not in ("standard", "modified"):
-        raise ConfigError(f"must be \"standard\" or \"modified\", got {convention!r}",
-                          source=src, key="convention")
-    name = data.get("name")
-    if not isinstance(name, str) or not name.strip():
-        raise ConfigError("required non-empty string", source=src, key="name")
-    raw_joints = data.get("joints")
-    if not isinstance(raw_joints, list) or not raw_joints:
-        raise ConfigError("at least one [[joints]] table is required", source=src, key="joints")
-    joints = []
-    for i, jd in enumerate(raw_joints, start=1):
-        where = f"joints[{i}]"
-        if not isinstance(jd, dict):
-            raise ConfigError("must be a table", source=src, key=where)
-        bad = set(jd) - _JOINT_KEYS
-        if bad:
-            raise ConfigError(f"unknown key (allowed: {', '.join(sorted(_JOINT_KEYS))})",
-                              source=src, key=f"{where}.{sorted(bad)[0]}")
-
-        def num(k: str, default: float | None = None, required: bool = True,
-                _jd: dict[str, Any] = jd, _w: str = where) -> float | None:
-            try:
-                return _num(_jd, k, src, default, required=required)
-            except ConfigError as err:
-                raise ConfigError(str(err).split(": ", 2)[-1], source=src,
-                                  key=f"{_w}.{k}") from None
-
-        a = num("a_mm")
-        d = num("d_mm")
-        alpha = num("alpha_deg")
-        off = num("theta_offset_deg", 0.0)
-        qmin = num("min_deg")
-        qmax = num("max_deg")
-        assert a is not None and d is not None and alpha is not None and off is not None
-        assert qmin is not None and qmax is not None
-        if qmin >= qmax:
-            raise ConfigError(f"min_deg ({qmin}) must be below max_deg ({qmax})",
-                              source=src, key=f"{where}.min_deg")
-        gear = num("gear_ratio", required=False)
-        if gear is not None and gear <= 0:
-            raise ConfigError("must be positive", source=src, key=f"{where}.gear_ratio")
-        mass = num("mass_kg", required=False)
-        if mass is not None and mass < 0:
-            raise ConfigError("must not be negative", source=src, key=f"{where}.mass_kg")
-        try:
-            com = _vec3(jd, "com_mm", src)
-        except ConfigError as err:
-            raise ConfigError(str(err).split(": ", 2)[-1], source=src,
-                              key=f"{where}.com_mm") from None
-        if (mass is None) != (com is None):
-            raise ConfigError("mass_kg and com_mm must be given together", source=src,
-                              key=f"{where}.{'com_mm' if com is None else 'mass_kg'}")
-        sign = jd.get("sign", 1)
-        if sign not in (1, -1) or isinstance(sign, bool):
-            raise ConfigError(f"must be 1 or -1, got {sign!r}", source=src, key=f"{where}.sign")
-        coupled = jd.get("coupled_to")
-        if coupled is not None and (
-                not isinstance(coupled, int) or isinstance(coupled, bool)
-                or not 1 <= coupled <= len(raw_joints) or coupled == i):
-            raise ConfigError(f"must name another joint 1..{len(raw_joints)}",
-                              source=src, key=f"{where}.coupled_to")
-        coupling = num("coupling", 1.0 if coupled is not None else 0.0)
-        speed = num("max_speed_deg_s", 180.0)
-        assert coupling is not None and speed is not None
-        if speed <= 0:
-            raise ConfigError("must be positive", source=src, key=f"{where}.max_speed_deg_s")
-        jname = jd.get("name", "")
-        if not isinstance(jname, str):
-            raise ConfigError("must be a string", source=src, key=f"{where}.name")
-        joints.append(Joint(
-            a=a * 1e-3, d=d * 1e-3, alpha=math.radians(alpha), theta_offset=math.radians(off),
-            q_min=math.radians(qmin), q_max=math.radians(qmax), gear_ratio=gear,
-            mass=mass, com=None if com is None else (com[0] * 1e-3, com[1] * 1e-3, com[2] * 1e-3),
-            sign=int(sign), coupled_to=None if coupled is None else coupled - 1,
-            coupling=coupling if coupled is not None else 0.0, name=jname,
-            max_speed=math.radians(speed),
-        ))
-    tool = _vec3(data, "tool_mm", src) or (0.0, 0.0, 50.0)
-    gravity = _vec3(data, "gravity", src) or (0.0, 0.0, -9.81)
-    manufacturer = data.get("manufacturer", "")
-    if not isinstance(manufacturer, str):
-        raise ConfigError("must be a string", source=src, key="manufacturer")
-    fixed = {}
-    for part in ("base", "flange"):
-        xyz = _vec3(data, f"{part}_xyz_mm", src) or _ZERO3
-        rpy = _vec3(data, f"{part}_rpy_deg", src) or _ZERO3
-        fixed[part] = (tuple(v * 1e-3 for v in xyz), tuple(math.radians(v) for v in rpy))
-    if convention == "modified":
+    f = load(_RobotFile, data, src)
+    joints = [j.joint() for j in f.joints]
+    fixed = {part: (_scaled(getattr(f, f"{part}_xyz_mm"), 1e-3),
+                    _scaled(getattr(f, f"{part}_rpy_deg"), math.pi / 180.0))
+             for part in ("base", "flange")}
+    if f.convention == "modified":
         # Craig: Rx(al0) Tx(a0) [Rz Tz Tx(a1) Rx(al1)] ... [Rz Tz]: regroup into standard DH
-        T_base = transform(*fixed["base"]) @ _tx_rx(joints[0].a, joints[0].alpha)  # type: ignore[arg-type]
+        T_base = transform(*fixed["base"]) @ _tx_rx(joints[0].a, joints[0].alpha)
         if not np.allclose(T_base, np.eye(4), rtol=0.0, atol=0.0):
             fixed["base"] = _split(T_base)
         nxt = [(j.a, j.alpha) for j in joints[1:]] + [(0.0, 0.0)]
         joints = [replace(j, a=a, alpha=al) for j, (a, al) in zip(joints, nxt, strict=True)]
-    radii, radii_source = _collision(data.get("collision"), len(joints), src)
+    radii = None if f.collision is None else tuple(
+        float(r) * 1e-3 for r in f.collision.link_radii_mm)
     return RobotDescription(
-        name=name.strip(), joints=tuple(joints), manufacturer=manufacturer,
-        tool=(tool[0] * 1e-3, tool[1] * 1e-3, tool[2] * 1e-3), gravity=gravity,
-        source=str(data.get("source", src)), link_radii=radii, collision_source=radii_source,
-        base_xyz=fixed["base"][0], base_rpy=fixed["base"][1],  # type: ignore[arg-type]
-        flange_xyz=fixed["flange"][0], flange_rpy=fixed["flange"][1],  # type: ignore[arg-type]
+        name=f.name, joints=tuple(joints), manufacturer=f.manufacturer,
+        tool=_scaled(f.tool_mm, 1e-3), gravity=f.gravity,
+        source=src if f.source is None else f.source, link_radii=radii,
+        collision_source="" if f.collision is None else f.collision.source,
+        base_xyz=fixed["base"][0], base_rpy=fixed["base"][1],
+        flange_xyz=fixed["flange"][0], flange_rpy=fixed["flange"][1],
     )
 
 
@@ -459,28 +497,6 @@ def load_toml_robot(spec: str | Path) -> RobotDescription:
         return _parse(read_toml(res), f"builtin:{key}")
     check_robot_spec(text_spec)
     return _parse(read_toml(Path(text_spec)), text_spec)
-
-
-def _collision(table: Any, dof: int, src: str) -> tuple[tuple[float, ...] | None, str]:
-    """``[collision]``: capsule radii (dof,) m and their source, or (None, "")."""
-    if table is None:
-        return None, ""
-    if not isinstance(table, dict):
-        raise ConfigError("must be a table", source=src, key="collision")
-    bad = set(table) - _COLLISION_KEYS
-    if bad:
-        raise ConfigError(f"unknown key (allowed: {', '.join(sorted(_COLLISION_KEYS))})",
-                          source=src, key=f"collision.{sorted(bad)[0]}")
-    radii = table.get("link_radii_mm")
-    if (not isinstance(radii, list) or len(radii) != dof
-            or not all(isinstance(r, int | float) and not isinstance(r, bool)
-                       and math.isfinite(r) and r > 0 for r in radii)):
-        raise ConfigError(f"must be {dof} positive numbers (mm), one per joint body",
-                          source=src, key="collision.link_radii_mm")
-    source = table.get("source", "")
-    if not isinstance(source, str):
-        raise ConfigError("must be a string", source=src, key="collision.source")
-    return tuple(float(r) * 1e-3 for r in radii), source
 
 
 def default_link_radii(robot: RobotDescription) -> list[float]:

@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.files import read_text
 from robocal.errors import ConfigError
 from robocal.kinematics._calibrated import CalibratedModel
 from robocal.kinematics._robot import (
@@ -167,13 +168,14 @@ def _joints(root: ET.Element, source: str) -> list[_UJoint]:
     return out
 
 
-def _chain(joints: list[_UJoint], links: set[str], tip: str | None,
-           source: str) -> list[_UJoint]:
-    """The joints from the root link to the tip, checked to be one serial chain."""
+def _cut_below(joints: list[_UJoint], links: set[str], tip: str | None, source: str
+               ) -> tuple[list[_UJoint], set[str]]:
+    """The joints and links without those below the ``tip`` link (a gripper); a problem of a
+    joint that stays is raised."""
     if tip is not None and tip not in links | {j.parent for j in joints} | {j.child
                                                                          for j in joints}:
         raise ConfigError(f"no link named {tip!r}", source=source, key="tip")
-    below: set[str] = set()           # joints below the tip: cut off with it (a gripper)
+    below: set[str] = set()
     todo = [] if tip is None else [tip]
     while todo:
         link = todo.pop()
@@ -185,14 +187,25 @@ def _chain(joints: list[_UJoint], links: set[str], tip: str | None,
         if j.problem is not None and j.name not in below:
             raise ConfigError(j.problem, source=source, key=f"joint {j.name}")
     cut = {j.child for j in joints if j.name in below} - {tip}
-    joints = [j for j in joints if j.name not in below]
-    links = links - cut
+    return [j for j in joints if j.name not in below], links - cut
+
+
+def _by_child(joints: list[_UJoint], source: str) -> dict[str, _UJoint]:
+    """Each link's parent joint; a link with two is refused."""
     by_child: dict[str, _UJoint] = {}
     for j in joints:
         if j.child in by_child:
             raise ConfigError(f"link {j.child!r} has two parent joints", source=source,
                               key=f"joint {j.name}")
         by_child[j.child] = j
+    return by_child
+
+
+def _chain(joints: list[_UJoint], links: set[str], tip: str | None,
+           source: str) -> list[_UJoint]:
+    """The joints from the root link to the tip, checked to be one serial chain."""
+    joints, links = _cut_below(joints, links, tip, source)
+    by_child = _by_child(joints, source)
     names = links | {j.parent for j in joints} | {j.child for j in joints}
     roots = sorted(names - set(by_child))
     if len(roots) != 1:
@@ -427,14 +440,7 @@ def _with_collision_radii(robot: RobotDescription, root: ET.Element, chain: list
 
 def load_urdf(path: str | Path, *, tip: str | None = None) -> RobotDescription:
     """Read a URDF file and import it with :func:`urdf_to_robot`."""
-    src = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError as err:
-        raise ConfigError("file not found", source=src) from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read: {err}", source=src) from err
-    return urdf_to_robot(text, source=src, tip=tip)
+    return urdf_to_robot(read_text(path), source=str(path), tip=tip)
 
 
 # -- export ---------------------------------------------------------------------------------

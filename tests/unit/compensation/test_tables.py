@@ -200,3 +200,18 @@ def test_diff_tables() -> None:
     assert d.max_rotation_deg == pytest.approx(0.25)
     other = diff_tables(a, frames(0.0, 0.0))
     assert not other.same_kind and "kind" in other.metadata
+
+
+@settings(max_examples=60, deadline=None)
+@given(tables(), tables())
+def test_a_diff_is_empty_against_itself_and_symmetric(a: CompensationTable,
+                                                      b: CompensationTable) -> None:
+    """Property: a table agrees with itself; from a to b finds what b to a finds (the same
+    largest changes, as many lines, the same rows)."""
+    assert diff_tables(a, a).identical and diff_tables(b, b).identical
+    ab, ba = diff_tables(a, b), diff_tables(b, a)
+    assert ab.identical == ba.identical and len(ab.lines) == len(ba.lines)
+    assert ab.same_kind == (a.kind == b.kind) and ab.metadata == ba.metadata
+    assert (ab.max_joint_deg, ab.max_translation_mm, ab.max_rotation_deg) == pytest.approx(
+        (ba.max_joint_deg, ba.max_translation_mm, ba.max_rotation_deg))
+    assert sorted(ab.rows_changed) == sorted(ba.rows_changed)
