@@ -20,6 +20,7 @@ __all__ = [
     "AuditEntry",
     "CampaignStatus",
     "CampaignSummary",
+    "CheckEvent",
     "CompensationEvent",
     "CompensationState",
     "ErrorBody",
@@ -442,13 +443,28 @@ class LogEvent(_EventBase):
     level: Literal["debug", "info", "warning", "error"] = "info"
 
 
+class CheckEvent(_EventBase):
+    """A drift check started, was judged or failed (ADR 0041); ``campaign`` is its
+    measure-only campaign."""
+
+    kind: Literal["check"]
+    check: int
+    state: Literal["measuring", "done", "failed"]
+    verdict: Literal["pass", "warn", "fail"] | None = None
+    rms_mm: float | None = None
+    max_mm: float | None = None
+    recommendation: Literal["none", "reuse", "full"] | None = None
+    reason: str | None = None
+
+
 Event = Annotated[StateEvent | PoseEvent | RetryEvent | FitEvent | CompensationEvent
-                  | ReportEvent | LogEvent, Field(discriminator="kind")]
+                  | ReportEvent | LogEvent | CheckEvent, Field(discriminator="kind")]
 
 #: The model of each event kind.
 EVENT_MODELS: dict[str, type[_EventBase]] = {
     "state": StateEvent, "pose": PoseEvent, "retry": RetryEvent, "fit": FitEvent,
-    "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent}
+    "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent,
+    "check": CheckEvent}
 
 event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
 
