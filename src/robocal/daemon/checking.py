@@ -34,7 +34,7 @@ from robocal.daemon.config import AppConfig, CheckConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.store import MeasurementRow, Store, now_iso
 from robocal.daemon.verifying import CampaignSide
-from robocal.errors import CampaignError, RobocalError
+from robocal.errors import CampaignError, RobocalError, UnknownCampaign
 from robocal.kinematics import CalibratedModel, RobotDescription
 
 __all__ = ["CheckLog", "CheckRuns", "Verdict", "constant_refit_rms_mm", "judge", "recommend",
@@ -226,10 +226,10 @@ class CheckLog:
                  json.dumps(dict(detail or {}), default=str), check_id))
 
     def get(self, check_id: int) -> dict[str, Any]:
-        """One check; CampaignError (a LookupError too) when unknown."""
+        """One check; UnknownCampaign (a LookupError: 404 on the API) when unknown."""
         row = self.store.db.execute("SELECT * FROM checks WHERE id=?", (check_id,)).fetchone()
         if row is None:
-            raise CampaignError(f"no check {check_id}")
+            raise UnknownCampaign(f"no check {check_id}")
         return _check(row)
 
     def history(self, *, limit: int = 1000) -> list[dict[str, Any]]:

@@ -21,6 +21,7 @@ __all__ = [
     "CampaignStatus",
     "CampaignSummary",
     "CheckEvent",
+    "CheckRecord",
     "CompensationEvent",
     "CompensationState",
     "ErrorBody",
@@ -455,6 +456,27 @@ class CheckEvent(_EventBase):
     max_mm: float | None = None
     recommendation: Literal["none", "reuse", "full"] | None = None
     reason: str | None = None
+
+
+class CheckRecord(_Closed):
+    """A drift check (``GET /checks``, ADR 0041): its measure-only campaign, the model it
+    checked, and once judged its verdict, errors (mm) and recommendation; ``detail`` holds
+    the reasons, the growth since the last check, the per-pose errors and the advice."""
+
+    id: int
+    campaign: str | None
+    created: str
+    updated: str
+    state: Literal["measuring", "done", "failed"]
+    actor: str
+    model_campaign: str
+    model: str
+    verdict: Literal["pass", "warn", "fail"] | None
+    rms_mm: float | None
+    max_mm: float | None
+    n: int | None
+    recommendation: Literal["none", "reuse", "full"] | None
+    detail: dict[str, Any]
 
 
 Event = Annotated[StateEvent | PoseEvent | RetryEvent | FitEvent | CompensationEvent

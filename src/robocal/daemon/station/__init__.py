@@ -194,7 +194,8 @@ async def list_view(request: web.Request) -> web.StreamResponse:
         resp: web.StreamResponse = web.json_response(
             {"live": _pages.list_rows(rows), "banner": _banner(svc, comp)})
         return _finish(_headers(resp), s, new)
-    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp))
+    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp),
+                            checks_html=_pages.checks_box(svc.checks.log.history(limit=10)))
     return _finish(_html(page.replace("data-live=", f'data-seq="{svc.events.last_seq}" '
                                                     "data-live=", 1)), s, new)
 
