@@ -30,6 +30,7 @@ import structlog
 from numpy.typing import NDArray
 
 from robocal.daemon._plan import PlanDoc, parse_plan, plan_from_poses
+from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.config import AppConfig, CheckConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.store import MeasurementRow, Store, now_iso
@@ -280,8 +281,10 @@ class CheckRuns:
     """
 
     def __init__(self, *, config: AppConfig, robot: RobotDescription, store: Store,
-                 events: EventBus, campaigns: _Campaigns) -> None:
+                 events: EventBus, campaigns: _Campaigns,
+                 reports: ReportKeeper | None = None) -> None:
         self.config = config
+        self.reports = reports
         self.robot = robot
         self.store = store
         self.events = events
@@ -401,6 +404,8 @@ class CheckRuns:
         _log.error("drift check failed", check=check_id, reason=reason)
         self.events.emit("check", c["campaign"], check=check_id, state="failed",
                          verdict="fail", reason=reason)
+        if self.reports is not None:
+            self.reports.refresh()
 
     def _previous(self, check_id: int, model_campaign: str, model: str
                   ) -> dict[str, Any] | None:
@@ -434,11 +439,32 @@ class CheckRuns:
         self.events.emit("check", cid, check=check_id, state="done", verdict=detail["verdict"],
                          rms_mm=detail["rms_mm"], max_mm=detail["max_mm"],
                          recommendation=rec["action"])
+        if self.reports is not None:
+            self.reports.refresh()  # the model's report shows its checks
         say = {"pass": _log.info, "warn": _log.warning, "fail": _log.error}[detail["verdict"]]
         say("drift check " + {"pass": "passed", "warn": "warns",
                               "fail": "failed"}[detail["verdict"]],
             check=check_id, rms_mm=detail["rms_mm"], max_mm=detail["max_mm"],
             reasons=detail["reasons"], recommendation=rec["action"])
+
+    def report_records(self, records: dict[str, dict[str, Any]]
+                       ) -> dict[str, dict[str, Any]]:
+        """``records`` (campaign id -> its report's compensation record) with the judged
+        checks of each campaign's model added (``checks``, oldest first, and the
+        ``check_thresholds``)."""
+        by_model: dict[str, list[dict[str, Any]]] = {}
+        for c in self.log.history(limit=1_000_000):
+            if c["state"] == "measuring":
+                continue
+            d = c.get("detail") or {}
+            by_model.setdefault(str(c["model_campaign"]), []).append(
+                {"id": c["id"], "created": c["created"], "state": c["state"],
+                 "verdict": c["verdict"], "rms_mm": c["rms_mm"], "max_mm": c["max_mm"],
+                 "n": c["n"], "growth_mm": d.get("growth_mm"),
+                 "recommendation": c["recommendation"]})
+        thresholds = self.config.check.model_dump(include={"warn_rms_mm", "fail_rms_mm"})
+        return {cid: ({**rec, "checks": by_model[cid], "check_thresholds": thresholds}
+                      if cid in by_model else rec) for cid, rec in records.items()}
 
     async def recalibrate(self, *, actor: str, check_id: int | None = None) -> dict[str, Any]:
         """Start the re-calibration with ``--reuse`` of the active model (or of the model

@@ -85,7 +85,7 @@ class CalibrationService:
             secret=self._secret)
         #: drift checks and the reuse refits they recommend (ADR 0041)
         self.checks = CheckRuns(config=config, robot=self.robot, store=self.store,
-                                events=self.events, campaigns=self)
+                                events=self.events, campaigns=self, reports=self.reports)
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
@@ -477,8 +477,9 @@ class CalibrationService:
         return await self.compensator.runs.wait(key, timeout=timeout)
 
     def report_records(self) -> dict[str, dict[str, Any]]:
-        """Campaign id -> its report's Compensation section: approval, pushes and their fates."""
-        return self.compensator.report_records()
+        """Campaign id -> its report's Compensation section: approval, pushes and their fates
+        (and the drift checks of its model)."""
+        return self.checks.report_records(self.compensator.report_records())
 
     def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
         """The pushes of ``cid``: journal state, table description, verification run."""

@@ -253,3 +253,32 @@ async def test_api_event_log_and_station_show_the_latest_check_and_trend(svc, mo
     assert "/checks/{check}/recalibrate" in openapi_spec()["paths"]
     audit = [a for a in svc.audit() if a["action"] == "check.done"]
     assert [a["detail"]["verdict"] for a in audit] == ["pass", "fail"]
+    # the model's report gets the checks (its Drift checks section)
+    record = svc.report_records()[last["model_campaign"]]
+    assert [c["verdict"] for c in record["checks"]] == ["pass", "fail"]
+    assert record["check_thresholds"] == {"warn_rms_mm": 0.05, "fail_rms_mm": 0.1}
+
+
+def test_report_section_shows_the_checks_and_their_trend(tmp_path):
+    from robocal.report import add_checks_section
+
+    (tmp_path / "report.html").write_text("<html><body><main><section id=\"verdict\">ok"
+                                          "</section></main></body></html>")
+    (tmp_path / "report.json").write_text(json.dumps({"format": "robocal.report/1"}))
+    checks = [{"id": i + 1, "created": f"2026-11-2{i}T05:30:00+00:00", "state": "done",
+               "verdict": v, "rms_mm": r, "max_mm": 2 * r, "n": 20, "growth_mm": None,
+               "recommendation": a}
+              for i, (v, r, a) in enumerate([("pass", 0.01, "none"), ("pass", 0.03, "none"),
+                                             ("warn", 0.06, "reuse")])]
+    th = {"warn_rms_mm": 0.05, "fail_rms_mm": 0.1}
+    assert add_checks_section(tmp_path, checks[:2], thresholds=th)
+    assert add_checks_section(tmp_path, checks, thresholds=th)
+    assert not add_checks_section(tmp_path, checks, thresholds=th)  # shows them already
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('<section id="checks">') == 1
+    section = page[page.index('<section id="checks">'):]
+    assert "Latest: check 3" in section and "<b>warn</b>" in section
+    assert "re-calibrate with --reuse" in section and "0.0600" in section
+    assert section.count("<tr>") == 4 and "<img src=\"data:image/" in section
+    assert json.loads((tmp_path / "report.json").read_text())["checks"] == checks
+    assert not add_checks_section(tmp_path / "none", [])
