@@ -4,8 +4,11 @@ configuration, and ``robocal check`` through the API, the CLI, the station and t
 from __future__ import annotations
 
 import asyncio
+import configparser
 import json
+import os
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -182,12 +185,16 @@ async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
                "--recalibrate 2" in out
         assert "drift check 2 warns" in err
         world.cell.sim_days = 8.0  # about 0.14 mm: over fail_rms_mm
-        rc, out, err = await cli("--json")
+        os.environ["JOURNAL_STREAM"] = "8:1234"  # as under systemd: journald priorities
+        try:
+            rc, out, err = await cli("--json")
+        finally:
+            del os.environ["JOURNAL_STREAM"]
         assert rc == 4
         doc = json.loads(out[out.index("{\n"):out.rindex("\n}") + 2])  # daemon logs around
         assert doc["verdict"] == "fail" and doc["recommendation"] == "reuse"
         assert doc["detail"]["growth_mm"] > 0.05 and len(doc["detail"]["per_pose_mm"]) == 12
-        assert "drift check 3 FAILED" in err
+        assert "\n<3>robocal check: drift check 3 FAILED" in "\n" + err
         rc, out, _ = await cli("--history")
         assert rc == 0
         rows = [ln.split() for ln in out.splitlines() if ln[:5].strip().isdigit()]
@@ -282,3 +289,23 @@ def test_report_section_shows_the_checks_and_their_trend(tmp_path):
     assert section.count("<tr>") == 4 and "<img src=\"data:image/" in section
     assert json.loads((tmp_path / "report.json").read_text())["checks"] == checks
     assert not add_checks_section(tmp_path / "none", [])
+
+
+def test_the_systemd_units_run_a_check_the_cli_takes():
+    from robocal.cli.main import build_parser
+
+    deploy = Path(__file__).resolve().parents[3] / "deploy" / "systemd"
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.optionxform = str  # type: ignore[assignment,method-assign]
+    unit.read(deploy / "robocal-check.service")
+    argv = unit["Service"]["ExecStart"].split()
+    assert argv[0].endswith("/robocal") and argv[1] == "check"
+    args = build_parser("check", lazy=True).parse_args(argv[1:])
+    assert args.config == Path("/etc/robocal/config.toml") and not args.no_wait
+    assert unit["Service"]["Type"] == "oneshot"
+    assert unit["Unit"]["Requisite"] == "robocal.service"
+    timer = configparser.ConfigParser(strict=False, interpolation=None)
+    timer.optionxform = str  # type: ignore[assignment,method-assign]
+    timer.read(deploy / "robocal-check.timer")
+    assert timer["Timer"]["Unit"] == "robocal-check.service"
+    assert timer["Timer"]["OnCalendar"] and timer["Timer"]["Persistent"] == "true"
