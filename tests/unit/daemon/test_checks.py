@@ -103,8 +103,8 @@ def test_spread_indices_are_distinct_and_start_with_the_held_out(n, count, seed)
 
 
 # --- on the simulated cell -----------------------------------------------------------------------
-def _config(make_config, **more):
-    return make_config(robot={"options": {"scenario": "constant"}},
+def _config(make_config, robot=None, **more):
+    return make_config(robot={"options": {"scenario": "constant", **(robot or {})}},
                        tracker={"options": {"scenario": "constant"}},
                        limits={"max_joint_correction_deg": 5.0},
                        compensation={"verify_count": 0},
@@ -309,3 +309,34 @@ def test_the_systemd_units_run_a_check_the_cli_takes():
     timer.read(deploy / "robocal-check.timer")
     assert timer["Timer"]["Unit"] == "robocal-check.service"
     assert timer["Timer"]["OnCalendar"] and timer["Timer"]["Persistent"] == "true"
+
+
+async def test_a_check_whose_campaign_ends_unmeasured_fails_loudly(svc):
+    await _pushed(svc)
+    started = await svc.checks.start(actor="t")
+    await svc.abort(started["campaign"], actor="t", reason="tracker knocked")
+    c = await svc.checks.wait(started["id"], timeout=30)
+    assert c["state"] == "failed" and c["verdict"] == "fail"
+    assert "aborted" in c["detail"]["reason"] and c["rms_mm"] is None
+    failed = [e for e in svc.events.history() if e["kind"] == "check"][-1]
+    assert failed["state"] == "failed" and "tracker knocked" in failed["reason"]
+
+
+async def test_a_check_cut_by_a_restart_is_measured_and_judged_after_it(make_config):
+    cfg = _config(make_config, robot={"move_time_s": 0.003})
+    svc = CalibrationService(cfg)
+    await svc.start()
+    try:
+        cid = await _pushed(svc)
+        started = await svc.checks.start(actor="timer")
+    finally:
+        await svc.stop()  # while the check measures: its campaign stays running
+    again = CalibrationService(cfg)
+    await again.start()
+    try:
+        assert again.checks.log.get(started["id"])["state"] == "measuring"
+        c = await again.checks.wait(started["id"], timeout=60)
+        assert c["state"] == "done" and c["verdict"] == "pass", c
+        assert c["model_campaign"] == cid and c["n"] == 12
+    finally:
+        await again.stop()
