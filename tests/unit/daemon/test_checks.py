@@ -340,3 +340,15 @@ async def test_a_check_cut_by_a_restart_is_measured_and_judged_after_it(make_con
         assert c["model_campaign"] == cid and c["n"] == 12
     finally:
         await again.stop()
+
+
+async def test_a_check_measures_the_poses_of_a_plan_given(svc, real_plan):
+    # calibrated from a planned campaign: the robot ends where the cell's moves are safe
+    st = await svc.wait((await svc.create(real_plan, actor="t"))["id"], ["fitted"], timeout=60)
+    await svc.approve(st["id"], actor="t")
+    await svc.push(st["id"], actor="t")
+    c = await svc.checks.wait((await svc.checks.start(actor="t", plan=real_plan))["id"],
+                              timeout=60)
+    assert c["state"] == "done" and c["n"] == 25  # every measured pose of the plan
+    poses = svc.store.poses(c["campaign"])
+    assert [p.q_deg for p in poses] == [tuple(p["joints_deg"]) for p in real_plan["poses"]]
