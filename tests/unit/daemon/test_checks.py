@@ -29,7 +29,7 @@ from robocal.daemon.config import CheckConfig
 from robocal.daemon.service import CalibrationService
 from robocal.errors import CampaignError, ConfigError
 from tests.unit.daemon.test_service import program_plan
-from tests.unit.daemon.test_station import TOKEN, VIEWER, _sign_in
+from tests.unit.daemon.test_station import TOKEN, VIEWER, _csrf, _sign_in
 
 CFG = CheckConfig(warn_rms_mm=0.05, fail_rms_mm=0.1, warn_max_mm=0.2, fail_max_mm=0.4,
                   warn_growth_mm=0.04, fail_growth_mm=0.1, full_rms_mm=0.5, reuse_poses=20,
@@ -244,6 +244,23 @@ async def test_api_event_log_and_station_show_the_latest_check_and_trend(svc, mo
             r = await http.post("/checks", json={"plan": {"poses": []}}, headers=auth)
             assert r.status == 422
             page = await _sign_in(http, VIEWER, "vic")
+        assert 'id="run-check"' not in page and 'id="recalibrate"' not in page  # read only
+        async with TestClient(TestServer(make_app(svc, token=TOKEN,
+                                                  viewer_token=VIEWER))) as op:
+            mine = await _sign_in(op, TOKEN, "olga")
+            assert 'id="run-check"' in mine and 'name="check" value="2"' in mine
+            r = await op.post("/station/checks/recalibrate",
+                              data={"csrf": _csrf(mine), "check": "2"})
+            assert r.status == 200 and r.url.path.startswith("/station/campaigns/")
+            refit = r.url.path.rsplit("/", 1)[-1]
+            assert checking.reuse_source(svc.store, refit) == (last["model_campaign"],
+                                                               "constant")
+            await svc.abort(refit, actor="t")
+            r = await op.post("/station/checks/run", data={"csrf": _csrf(mine)})
+            assert r.status == 200, await r.text()
+            third = svc.checks.log.get(3)
+            assert r.url.path == f"/station/campaigns/{third['campaign']}"
+            assert (await svc.checks.wait(3, timeout=60))["verdict"] == "fail"
         assert 'id="checks"' in page and "Latest check 2" in page
         assert '<span class="badge bad">fail</span>' in page
         assert "re-calibrate with --reuse (20 poses + 6 held out)" in page
@@ -252,17 +269,18 @@ async def test_api_event_log_and_station_show_the_latest_check_and_trend(svc, mo
     finally:
         structlog.reset_defaults()
     failed = [e for e in cap.entries if e["event"] == "drift check failed"]
-    assert len(failed) == 1 and failed[0]["log_level"] == "error"
+    assert len(failed) == 2 and failed[0]["log_level"] == "error"
     assert failed[0]["recommendation"] == "reuse"
     events = [e for e in svc.events.history() if e["kind"] == "check"]
     assert [(e["state"], e.get("verdict")) for e in events] == [
-        ("measuring", None), ("done", "pass"), ("measuring", None), ("done", "fail")]
+        ("measuring", None), ("done", "pass"), ("measuring", None), ("done", "fail"),
+        ("measuring", None), ("done", "fail")]
     assert "/checks/{check}/recalibrate" in openapi_spec()["paths"]
     audit = [a for a in svc.audit() if a["action"] == "check.done"]
-    assert [a["detail"]["verdict"] for a in audit] == ["pass", "fail"]
+    assert [a["detail"]["verdict"] for a in audit] == ["pass", "fail", "fail"]
     # the model's report gets the checks (its Drift checks section)
     record = svc.report_records()[last["model_campaign"]]
-    assert [c["verdict"] for c in record["checks"]] == ["pass", "fail"]
+    assert [c["verdict"] for c in record["checks"]] == ["pass", "fail", "fail"]
     assert record["check_thresholds"] == {"warn_rms_mm": 0.05, "fail_rms_mm": 0.1}
 
 

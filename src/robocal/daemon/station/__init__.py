@@ -195,7 +195,8 @@ async def list_view(request: web.Request) -> web.StreamResponse:
             {"live": _pages.list_rows(rows), "banner": _banner(svc, comp)})
         return _finish(_headers(resp), s, new)
     page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp),
-                            checks_html=_pages.checks_box(svc.checks.log.history(limit=10)))
+                            checks_html=_pages.checks_box(svc.checks.log.history(limit=10),
+                                                          session=s))
     return _finish(_html(page.replace("data-live=", f'data-seq="{svc.events.last_seq}" '
                                                     "data-live=", 1)), s, new)
 
@@ -435,6 +436,25 @@ async def action(request: web.Request) -> web.StreamResponse:
     return _redirect(f"/station/campaigns/{cid}")
 
 
+async def check_action(request: web.Request) -> web.StreamResponse:
+    """Run a drift check now, or (``recalibrate``) start the reuse refit a check recommends."""
+    s, form = await _post(request)
+    svc = request.app[_SERVICE]
+    try:
+        if request.match_info["what"] == "recalibrate":
+            check = _fields(form, "check", 18)
+            st = await svc.checks.recalibrate(actor=s.actor,
+                                              check_id=int(check) if check.isdigit() else None)
+            s.flash.append(("ok", f"Re-calibration with --reuse started: campaign {st['id']}."))
+            return _redirect(f"/station/campaigns/{st['id']}")
+        c = await svc.checks.start(actor=s.actor)
+    except RobocalError as err:
+        s.flash.append(("error", f"Not started: {err}"))
+        return _redirect("/station/")
+    s.flash.append(("ok", f"Drift check {c['id']} started (campaign {c['campaign']})."))
+    return _redirect(f"/station/campaigns/{c['campaign']}")
+
+
 def register(app: web.Application, service: CalibrationService, sessions: SessionStore, *,
              local: bool, tokens: dict[str, str], peer: Callable[[web.Request], str]) -> None:
     """Add the station's routes to the API's ``app``.
@@ -457,6 +477,7 @@ def register(app: web.Application, service: CalibrationService, sessions: Sessio
     r.add_post("/station/logout", logout, name="station.logout")
     r.add_get("/station/static/{name}", static, name="station.static")
     r.add_post("/station/campaigns", start_from_plan, name="station.start_plan")
+    r.add_post("/station/checks/{what:(run|recalibrate)}", check_action, name="station.check")
     r.add_get("/station/campaigns/{cid}", campaign_view, name="station.campaign_view")
     r.add_get("/station/campaigns/{cid}/points", points, name="station.points")
     r.add_post("/station/campaigns/{cid}/{action}", action, name="station.action")

@@ -157,13 +157,34 @@ _ADVICE = {"none": "nothing to do", "reuse": "re-calibrate with --reuse",
            "full": "full calibration"}
 
 
-def checks_box(checks: list[dict[str, Any]]) -> str:
+def _check_forms(checks: list[dict[str, Any]], session: Session | None) -> str:
+    """For an operator: run a check now; start the reuse refit the latest one recommends."""
+    if session is None or session.role != "operator":
+        return ""
+    out = _form(session, "/station/checks/run", "Run a drift check now",
+                "Run a drift check: the robot will move through the check's poses (from its "
+                "home) and the tracker will measure each one.", button_id="run-check")
+    last = checks[-1] if checks else {}
+    if last.get("recommendation") == "reuse":
+        out += _form(session, "/station/checks/recalibrate",
+                     f"Re-calibrate with --reuse (check {last['id']})",
+                     "Start the re-calibration with --reuse: the robot will move through the "
+                     "poses of the checked model's campaign; approve and push its result as "
+                     "any campaign's.",
+                     inputs=f'<input type="hidden" name="check" value="{e(last["id"])}">',
+                     button_id="recalibrate")
+    return f'<div class="actions">{out}</div>'
+
+
+def checks_box(checks: list[dict[str, Any]], *, session: Session | None = None) -> str:
     """The drift checks (ADR 0041): the latest with its verdict and recommendation, and the
-    trend of the RMS over the last checks (oldest first in ``checks``)."""
+    trend of the RMS over the last checks (oldest first in ``checks``); an operator's
+    ``session`` gets the buttons of :func:`_check_forms`."""
     if not checks:
         return ("<section class=\"card\" id=\"checks\" aria-labelledby=\"checks-h\">"
                 "<h2 id=\"checks-h\">Drift checks</h2><p>No check yet (<code>robocal check"
-                "</code>, or the robocal-check.timer).</p></section>")
+                "</code>, or the robocal-check.timer).</p>"
+                f"{_check_forms(checks, session)}</section>")
     last = checks[-1]
     verdict = str(last.get("verdict") or last["state"])
     rec = (last.get("detail") or {}).get("recommendation") or {}
@@ -192,7 +213,7 @@ def checks_box(checks: list[dict[str, Any]]) -> str:
         "<table class=\"checks\"><thead><tr><th scope=\"col\">Check</th>"
         "<th scope=\"col\">When</th><th scope=\"col\">Verdict</th><th scope=\"col\">RMS"
         "</th><th scope=\"col\">Max</th><th scope=\"col\">Model of campaign</th></tr>"
-        f"</thead><tbody>{rows}</tbody></table></section>")
+        f"</thead><tbody>{rows}</tbody></table>{_check_forms(checks, session)}</section>")
 
 
 def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str,
