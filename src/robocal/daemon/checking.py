@@ -34,8 +34,8 @@ from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.config import AppConfig, CheckConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.store import MeasurementRow, Store, now_iso
-from robocal.daemon.verifying import CampaignSide
-from robocal.errors import CampaignError, RobocalError, UnknownCampaign
+from robocal.daemon.verifying import CampaignSide, plan_home
+from robocal.errors import CampaignError, UnknownCampaign
 from robocal.kinematics import CalibratedModel, RobotDescription
 
 __all__ = ["CheckLog", "CheckRuns", "Verdict", "constant_refit_rms_mm", "judge", "recommend",
@@ -325,13 +325,6 @@ class CheckRuns:
             raise CampaignError(f"campaign {campaign} has no selected model")
         return str(campaign), model
 
-    def _home(self, cid: str) -> list[float] | None:
-        with contextlib.suppress(RobocalError, ValueError, KeyError, TypeError):
-            home = json.loads(self.store.plan_json(cid))["motion"]["home_deg"]
-            if isinstance(home, list) and len(home) == self.robot.dof:
-                return [float(v) for v in home]
-        return None
-
     def _poses_of(self, cid: str, count: int, *, validation: int = 0) -> PlanDoc:
         """A bare plan of ``count`` poses the model campaign measured (held-out ones first),
         spread over its joints, each from the plan's home when it has one; the last
@@ -342,7 +335,7 @@ class CheckRuns:
         q = np.array([r.q_cmd_deg for r in rows], dtype=float)
         held = [i for i, r in enumerate(rows) if r.purpose == "validation"]
         idx = spread_indices(q, count, first=held if not validation else ())
-        home = self._home(cid)
+        home = plan_home(self.store, cid, self.robot.dof)
         q_deg: list[list[float]] = []
         purposes: list[str] = []
         for k, i in enumerate(idx):
