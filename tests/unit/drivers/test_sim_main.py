@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as hs
 
 from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import main
@@ -164,3 +166,23 @@ async def test_the_drift_clock_advances_the_planted_drift():
     moved = np.linalg.norm(world.true_reflector_position() - before)
     assert moved > 1e-4  # the arm is elsewhere ...
     assert np.allclose(world.q_actual_rad, q, atol=1e-4)  # ... the joints read the same
+
+
+@given(hs.lists(hs.floats(allow_nan=False, allow_infinity=False), min_size=1, max_size=7))
+def test_drift_rates_parse_back_what_was_written(rates):
+    from robocal.drivers.sim import _rates
+
+    assert _rates(",".join(repr(r) for r in rates)) == tuple(rates)
+
+
+@given(hs.text(max_size=20))
+def test_drift_rates_refuse_anything_else_with_an_argparse_error(text):
+    import argparse
+
+    from robocal.drivers.sim import _rates
+
+    try:
+        out = _rates(text)
+    except argparse.ArgumentTypeError:
+        return
+    assert all(np.isfinite(out)) and len(out) == text.count(",") + 1
