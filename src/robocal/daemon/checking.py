@@ -325,6 +325,19 @@ class CheckRuns:
             raise CampaignError(f"campaign {campaign} has no selected model")
         return str(campaign), model
 
+    def _home(self, cid: str) -> list[float] | None:
+        """The home of ``cid``'s plan; a reuse refit's bare plan has none, so the home of the
+        campaign it refits (and so on back to the planned calibration)."""
+        seen: set[str] = set()
+        while cid not in seen:
+            seen.add(cid)
+            home = plan_home(self.store, cid, self.robot.dof)
+            source = reuse_source(self.store, cid)
+            if home is not None or source is None:
+                return home
+            cid = source[0]
+        return None
+
     def _poses_of(self, cid: str, count: int, *, validation: int = 0) -> PlanDoc:
         """A bare plan of ``count`` poses the model campaign measured (held-out ones first),
         spread over its joints, each from the plan's home when it has one; the last
@@ -335,7 +348,7 @@ class CheckRuns:
         q = np.array([r.q_cmd_deg for r in rows], dtype=float)
         held = [i for i, r in enumerate(rows) if r.purpose == "validation"]
         idx = spread_indices(q, count, first=held if not validation else ())
-        home = plan_home(self.store, cid, self.robot.dof)
+        home = self._home(cid)
         q_deg: list[list[float]] = []
         purposes: list[str] = []
         for k, i in enumerate(idx):

@@ -360,11 +360,43 @@ async def test_a_check_cut_by_a_restart_is_measured_and_judged_after_it(make_con
         await again.stop()
 
 
-async def test_a_check_measures_the_poses_of_a_plan_given(svc, real_plan):
-    # calibrated from a planned campaign: the robot ends where the cell's moves are safe
-    st = await svc.wait((await svc.create(real_plan, actor="t"))["id"], ["fitted"], timeout=60)
+async def _planned(svc: CalibrationService, plan) -> str:
+    """Calibrated from a planned campaign (the robot ends where the cell's moves are safe),
+    approved and pushed."""
+    st = await svc.wait((await svc.create(plan, actor="t"))["id"], ["fitted"], timeout=60)
     await svc.approve(st["id"], actor="t")
     await svc.push(st["id"], actor="t")
+    return str(st["id"])
+
+
+def _from_home(poses, home) -> bool:
+    """Every measured pose is visited from ``home`` (a via pose right before it)."""
+    return all(p.purpose == "via" and p.q_deg == tuple(home) for p in poses[::2]) and \
+        all(p.measure for p in poses[1::2]) and len(poses) % 2 == 0
+
+
+async def test_checks_and_reuse_refits_of_a_planned_campaign_go_through_its_home(svc,
+                                                                                 real_plan):
+    await _planned(svc, real_plan)
+    home = real_plan["motion"]["home_deg"]
+    refit = (await svc.checks.recalibrate(actor="t"))["id"]
+    assert _from_home(svc.store.poses(refit), home)
+    st = await svc.wait(refit, ["fitted"], timeout=60)
+    assert st["selected_model"] == "reuse", st["reason"]
+    await svc.approve(refit, actor="t")
+    await svc.push(refit, actor="t")
+    # the refit's own plan is bare: its check and its next refit go through the home of the
+    # planned campaign it refits
+    c = await svc.checks.wait((await svc.checks.start(actor="t"))["id"], timeout=60)
+    assert c["state"] == "done" and c["model_campaign"] == refit
+    assert _from_home(svc.store.poses(c["campaign"]), home)
+    again = (await svc.checks.recalibrate(actor="t"))["id"]
+    assert _from_home(svc.store.poses(again), home)
+    await svc.abort(again, actor="t")
+
+
+async def test_a_check_measures_the_poses_of_a_plan_given(svc, real_plan):
+    await _planned(svc, real_plan)
     c = await svc.checks.wait((await svc.checks.start(actor="t", plan=real_plan))["id"],
                               timeout=60)
     assert c["state"] == "done" and c["n"] == 25  # every measured pose of the plan
