@@ -25,6 +25,7 @@ from tests._waiting import eventually, eventually_sync
 
 from robocal.cli.main import main as cli_main
 from robocal.daemon.campaign import CampaignState as S
+from robocal.daemon.checking import CheckLog
 from robocal.daemon.config import FleetConfig
 from robocal.daemon.fleet import REPLICATED, FleetReplicator, detach, install
 from robocal.daemon.schemas import Measurement
@@ -252,11 +253,14 @@ async def test_report_lists_robots_by_serial(tmp_path: Path, fleet_url: str) -> 
     a, b = _store(tmp_path / "a"), _store(tmp_path / "b")
     pushed = _campaign(a, 10, push=True)
     _campaign(b, 10)
-    # a store with checks (their own deliverable): replicated once the table exists
-    b.db.execute("CREATE TABLE checks(id INTEGER PRIMARY KEY, created TEXT, rms_mm REAL, "
-                 "verdict TEXT)")
-    b.db.executemany("INSERT INTO checks(created, rms_mm, verdict) VALUES(?,?,?)",
-                     [("2026-01-01", 0.04, "pass"), ("2026-02-01", 0.09, "warn")])
+    # a store with drift checks (robocal check): two judged, one still measuring
+    checks = CheckLog(b)
+    checks.ensure_schema()
+    for rms, verdict, rec in ((0.04, "pass", "none"), (0.09, "warn", "reuse"), (None, "", "")):
+        k = checks.add(campaign="c", actor="timer", model_campaign="m", model="auto")
+        if verdict:
+            checks.finish(k, state="done", verdict=verdict, rms_mm=rms, max_mm=rms, n=20,
+                          recommendation=rec, detail={"reasons": []})
     reps = [FleetReplicator(s.path, _config(url=fleet_url, robot_serial=sn), robot="ur10")
             for s, sn in ((a, "SN-100"), (b, "SN-200"))]
     for rep in reps:
@@ -273,7 +277,8 @@ async def test_report_lists_robots_by_serial(tmp_path: Path, fleet_url: str) -> 
         section_a, section_b = text[first:second], text[second:]
         assert pushed in section_a and "0.0420" in section_a
         assert "no checks yet" in section_a and "table 1 (targets" in section_a
-        assert "warn" in section_b and "0.0400 -> 0.0900" in section_b
+        assert "warn" in section_b and "recommendation: reuse" in section_b
+        assert "drift trend (RMS mm, oldest first): 0.0400 -> 0.0900\n" in section_b
         assert "active compensation: none" in section_b
         out = io.StringIO()
         with redirect_stdout(out):

@@ -46,8 +46,10 @@ def _text(robot: dict[str, Any]) -> str:
         lines.append("  last check: no checks yet (no drift trend)")
     else:
         last = trend[-1]
+        advice = f"; recommendation: {last['recommendation']}" \
+            if last.get("recommendation") else ""
         lines.append(f"  last check: {last['at']}  {last['verdict'] or '-'}  RMS "
-                     f"{_mm(last['rms_mm'])} mm")
+                     f"{_mm(last['rms_mm'])} mm{advice}")
         lines.append("  drift trend (RMS mm, oldest first): "
                      + " -> ".join(_mm(t["rms_mm"]) for t in trend))
     act = robot["active_compensation"]

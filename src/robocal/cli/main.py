@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
     "drivers": "list installed drivers or show a driver's options",
     "config": "check a daemon configuration or print its schema",
     "fleet": "report on the robots in the shared fleet database",
+    "check": "run a drift check of the active model, or show the checks",
 }
 
 

@@ -38,9 +38,13 @@ Records = dict[str, dict[str, Any]]
 
 
 def _write(out_dir: Path, record: dict[str, Any]) -> bool:
-    from robocal.report import add_compensation_section
+    from robocal.report import add_checks_section, add_compensation_section
 
-    return add_compensation_section(out_dir, record["entries"], approval=record.get("approval"))
+    wrote = add_compensation_section(out_dir, record["entries"],
+                                     approval=record.get("approval"))
+    # the drift checks of the campaign's model (ADR 0041), when it was checked
+    return add_checks_section(out_dir, record.get("checks") or [],
+                              thresholds=record.get("check_thresholds")) or wrote
 
 
 class ReportKeeper:

@@ -22,6 +22,10 @@ Routes::
     GET  /compensation                 active table and push history
     POST /compensation/rollback        restore the previous table
     GET  /audit                        append-only audit log
+    GET  /checks                       drift checks, oldest first (ADR 0041)
+    POST /checks                       start a drift check of the active model
+    GET  /checks/{id}                  one check (verdict, errors, recommendation)
+    POST /checks/{id}/recalibrate      start the re-calibration with --reuse it recommends
 
 The operator's station (HTML pages under ``/station/``, ``/campaigns/{id}/report``, sign-in,
 sessions and CSRF) is :mod:`robocal.daemon.station`; on TCP a station session cookie may
@@ -59,6 +63,7 @@ from robocal.daemon.schemas import (
     AuditEntry,
     CampaignStatus,
     CampaignSummary,
+    CheckRecord,
     CompensationState,
     ErrorBody,
     Event,
@@ -127,6 +132,15 @@ class RollbackRequest(_Request):
     reason: str = Field(default="", max_length=1000)
     key: str | None = Field(default=None, min_length=8, max_length=64,
                             pattern=r"^[A-Za-z0-9_.:-]+$", description="idempotency key")
+
+
+class CheckRequest(_Request):
+    """Optional body of ``POST /checks``."""
+
+    plan: dict[str, Any] | None = Field(
+        default=None, description="a PLAN.json (robocal.plan/1) whose measured poses the "
+                                  "check measures (default: check.poses poses of the active "
+                                  "model's own campaign)")
 
 
 def _error(status: int, kind: str, message: str, **extra: Any) -> web.Response:
@@ -414,6 +428,34 @@ async def events_sse(request: web.Request) -> web.StreamResponse:
     return resp
 
 
+def _check_id(request: web.Request) -> int:
+    text = request.match_info["check"]
+    if not text.isdigit() or len(text) > 18:
+        raise web.HTTPNotFound(reason=f"no check {text!r}")
+    return int(text)
+
+
+async def list_checks(request: web.Request) -> web.Response:
+    limit = _int_query(request, "limit", 1000, 1, 100_000)
+    return _reply(list[CheckRecord], request.app[_SERVICE].checks.log.history(limit=limit))
+
+
+async def start_check(request: web.Request) -> web.Response:
+    body = await _body(request, CheckRequest, required=False)
+    out = await request.app[_SERVICE].checks.start(actor=_actor(request), plan=body.plan)
+    return _reply(CheckRecord, out, status=201)
+
+
+async def get_check(request: web.Request) -> web.Response:
+    return _reply(CheckRecord, request.app[_SERVICE].checks.log.get(_check_id(request)))
+
+
+async def recalibrate(request: web.Request) -> web.Response:
+    out = await request.app[_SERVICE].checks.recalibrate(actor=_actor(request),
+                                                          check_id=_check_id(request))
+    return _reply(CampaignStatus, out, status=201)
+
+
 @dataclass(frozen=True)
 class Route:
     """One route: what aiohttp serves and what ``openapi.json`` says about it.
@@ -467,6 +509,14 @@ ROUTES: tuple[Route, ...] = (
           CompensationState, body=RollbackRequest),
     Route("GET", "/audit", audit, "append-only audit log", list[AuditEntry],
           query=(("limit", "integer"),)),
+    Route("GET", "/checks", list_checks, "drift checks, oldest first", list[CheckRecord],
+          query=(("limit", "integer"),)),
+    Route("POST", "/checks", start_check, "start a drift check of the active model",
+          CheckRecord, status=201, body=CheckRequest),
+    Route("GET", "/checks/{check}", get_check, "one drift check", CheckRecord),
+    Route("POST", "/checks/{check}/recalibrate", recalibrate,
+          "start the re-calibration with --reuse of the checked model", CampaignStatus,
+          status=201),
 )
 
 

@@ -48,6 +48,7 @@ from robocal.errors import ConfigError
 __all__ = [
     "ApiConfig",
     "AppConfig",
+    "CheckConfig",
     "CompensationConfig",
     "DriverConfig",
     "FitConfig",
@@ -279,6 +280,45 @@ class FleetConfig(_Model):
         return self
 
 
+class CheckConfig(_Model):
+    """Scheduled drift checks (``robocal check``, ADR 0041): a short measure-only campaign
+    against the active compensation's model, judged against these thresholds (mm).
+
+    A check *fails* when its RMS or max error reaches ``fail_rms_mm`` / ``fail_max_mm`` or its
+    RMS grew by ``fail_growth_mm`` since the last check of the same model; it *warns* at the
+    ``warn_*`` values. A check that does not pass recommends a re-calibration with
+    ``--reuse`` on ``reuse_poses`` poses (plus ``reuse_validation_poses`` held out) when a
+    refit of the joint offsets and the tracker placement would bring its error back under
+    ``warn_rms_mm`` or within ``reuse_ratio`` times the model's own held-out RMS, else a full
+    calibration (also from ``full_rms_mm`` on).
+    """
+
+    poses: int = Field(default=20, ge=3, le=1000)
+    warn_rms_mm: float = Field(default=0.10, gt=0.0)
+    fail_rms_mm: float = Field(default=0.20, gt=0.0)
+    warn_max_mm: float = Field(default=0.30, gt=0.0)
+    fail_max_mm: float = Field(default=0.60, gt=0.0)
+    warn_growth_mm: float = Field(default=0.05, gt=0.0)
+    fail_growth_mm: float = Field(default=0.15, gt=0.0)
+    full_rms_mm: float = Field(default=1.0, gt=0.0)
+    reuse_ratio: float = Field(default=1.25, ge=1.0, le=10.0)
+    reuse_poses: int = Field(default=50, ge=11, le=10_000)
+    reuse_validation_poses: int = Field(default=10, ge=1, le=10_000)
+    timeout_s: float = Field(default=3600.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> CheckConfig:
+        for what in ("rms", "max", "growth"):
+            warn, fail = getattr(self, f"warn_{what}_mm"), getattr(self, f"fail_{what}_mm")
+            if not warn < fail:
+                raise ValueError(f"warn_{what}_mm ({warn}) must be below fail_{what}_mm "
+                                 f"({fail})")
+        if self.full_rms_mm < self.fail_rms_mm:
+            raise ValueError(f"full_rms_mm ({self.full_rms_mm}) must not be below "
+                             f"fail_rms_mm ({self.fail_rms_mm})")
+        return self
+
+
 def _default_data_dir() -> Path:
     state = os.environ.get("STATE_DIRECTORY")
     if state:
@@ -304,6 +344,7 @@ class AppConfig(_Model):
     compensation: CompensationConfig = CompensationConfig()
     logging: LoggingConfig = LoggingConfig()
     fleet: FleetConfig = FleetConfig()
+    check: CheckConfig = CheckConfig()
 
     @property
     def socket_path(self) -> Path | None:

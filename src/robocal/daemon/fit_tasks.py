@@ -19,7 +19,7 @@ from typing import Any
 
 import structlog
 
-from robocal.daemon import _fingerprint
+from robocal.daemon import _fingerprint, checking
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
@@ -118,6 +118,9 @@ class FitTasks:
                             model_data=_fingerprint.model_data(self.store, cid))
         if self.config.fit.select != "best":
             job["selected"] = self.config.fit.select
+        reuse = checking.reuse_source(self.store, cid)
+        if reuse is not None:  # a re-calibration with --reuse of that model (ADR 0041)
+            job["reuse"] = self.model(*reuse).to_dict()
         self.events.emit("fit", cid, phase="started", models=list(self.config.fit.models))
         log.info("fitting", models=list(self.config.fit.models), poses=len(rows))
         try:
@@ -143,7 +146,8 @@ class FitTasks:
         fits = sign_fits(fits, self.secret, self.robot)
         self.store.save_fits(cid, fits)
         select = self.config.fit.select
-        chosen = result.get("selected_hint") if select == "best" else select
+        chosen = result.get("selected_hint") if select == "best" or result.get("reused") \
+            else select
         if chosen not in result["fits"] or fits[str(chosen)][1] is None:
             errors = "; ".join(f"{k}: {v}" for k, v in result["errors"].items())
             self._fault(cid, f"model {chosen!r} could not be fitted ({errors or 'no model'})")

@@ -235,6 +235,8 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         skip reason; ``seconds``.
     """
     t_start = time.perf_counter()
+    if job.get("reuse"):
+        return _run_reuse_job(job, t_start)
     from robocal.identification import accuracy, fit
 
     robot = RobotDescription.from_dict(job["robot"], source="fit job")
@@ -295,6 +297,44 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
             out["report"] = _write_report(job, robot, results, train, validation, d)
     out["seconds"] = round(time.perf_counter() - t_start, 3)
     return out
+
+
+#: The name of a reuse refit's model in a campaign's fits (ADR 0041).
+REUSE = "reuse"
+
+
+def _run_reuse_job(job: Mapping[str, Any], t_start: float) -> dict[str, Any]:
+    """A re-calibration with ``--reuse`` (``job["reuse"]``: the earlier MODEL.json as a
+    dict): :func:`robocal.identification.refit_frozen` on the calibration rows, judged on
+    the validation rows; one model, :data:`REUSE`, proposed. No report is written."""
+    from robocal.identification import refit_frozen
+
+    robot = RobotDescription.from_dict(job["robot"], source="fit job")
+    by_purpose = rows_by_purpose(_rows(job))
+    train = measurement_set(by_purpose.calibration)
+    validation = measurement_set(by_purpose.validation) if by_purpose.validation else None
+    previous = CalibratedModel.from_dict(dict(job["reuse"]), source="reused model",
+                                         nominal=robot)
+    t0 = time.perf_counter()
+    fits: dict[str, tuple[dict[str, Any], str]] = {}
+    errors: dict[str, str] = {}
+    try:
+        res = refit_frozen(previous, train, options=fit_options(job.get("options")),
+                           validation=validation)
+        res.calibrated.data["reused"] = previous.model_id
+        fits[REUSE] = _fit_summary(REUSE, res, time.perf_counter() - t0)
+    except RobocalError as err:
+        errors[REUSE] = f"{type(err).__name__}: {err}"
+    if job.get("model_data"):
+        fits = {name: (summ, _with_data(mj, job["model_data"]))
+                for name, (summ, mj) in fits.items()}
+    if job.get("out_dir") and fits:
+        d = Path(job["out_dir"])
+        d.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(d / f"MODEL-{REUSE}.json", fits[REUSE][1])
+    return {"fits": fits, "errors": errors, "selected_hint": REUSE if fits else None,
+            "reused": previous.model_id, "report": {"skipped": "a reuse refit has no report"},
+            "seconds": round(time.perf_counter() - t_start, 3)}
 
 
 def _with_data(text: str, extra: Mapping[str, Any]) -> str:

@@ -588,10 +588,13 @@ def _robot_entry(cells: list[dict[str, Any]], rows: Mapping[str, list[dict[str, 
                      "held_out_rms_mm": _held_out_rms(fit.get("summary")),
                      "cell_id": c.get("_cell")}
             break
-    checks = sorted(rows["checks"], key=lambda d: str(_pick(d, "created", "at") or ""))
+    # checks still measuring have no result yet (robocal check, ADR 0041)
+    checks = sorted((d for d in rows["checks"] if d.get("state") != "measuring"),
+                    key=lambda d: str(_pick(d, "created", "at") or ""))
     trend = [{"at": _pick(d, "created", "at"),
               "rms_mm": _pick(d, "rms_mm", "held_out_rms_mm"),
-              "verdict": _pick(d, "verdict", "result", "status")} for d in checks]
+              "verdict": _pick(d, "verdict", "result", "status"),
+              "recommendation": d.get("recommendation")} for d in checks]
     active = None
     for cell in cells:  # the cell seen most recently holds the robot now
         pushes = sorted((p for p in rows["pushes"] if p["_cell"] == cell["cell_id"]),

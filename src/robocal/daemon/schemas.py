@@ -26,6 +26,8 @@ __all__ = [
     "AuditEntry",
     "CampaignStatus",
     "CampaignSummary",
+    "CheckEvent",
+    "CheckRecord",
     "CompensationEvent",
     "CompensationState",
     "ErrorBody",
@@ -540,13 +542,49 @@ class LogEvent(_EventBase):
     level: Literal["debug", "info", "warning", "error"] = "info"
 
 
+class CheckEvent(_EventBase):
+    """A drift check started, was judged or failed (ADR 0041); ``campaign`` is its
+    measure-only campaign."""
+
+    kind: Literal["check"]
+    check: int
+    state: Literal["measuring", "done", "failed"]
+    verdict: Literal["pass", "warn", "fail"] | None = None
+    rms_mm: float | None = None
+    max_mm: float | None = None
+    recommendation: Literal["none", "reuse", "full"] | None = None
+    reason: str | None = None
+
+
+class CheckRecord(_Closed):
+    """A drift check (``GET /checks``, ADR 0041): its measure-only campaign, the model it
+    checked, and once judged its verdict, errors (mm) and recommendation; ``detail`` holds
+    the reasons, the growth since the last check, the per-pose errors and the advice."""
+
+    id: int
+    campaign: str | None
+    created: str
+    updated: str
+    state: Literal["measuring", "done", "failed"]
+    actor: str
+    model_campaign: str
+    model: str
+    verdict: Literal["pass", "warn", "fail"] | None
+    rms_mm: float | None
+    max_mm: float | None
+    n: int | None
+    recommendation: Literal["none", "reuse", "full"] | None
+    detail: dict[str, Any]
+
+
 Event = Annotated[StateEvent | PoseEvent | RetryEvent | FitEvent | CompensationEvent
-                  | ReportEvent | LogEvent, Field(discriminator="kind")]
+                  | ReportEvent | LogEvent | CheckEvent, Field(discriminator="kind")]
 
 #: The model of each event kind.
 EVENT_MODELS: dict[str, type[_EventBase]] = {
     "state": StateEvent, "pose": PoseEvent, "retry": RetryEvent, "fit": FitEvent,
-    "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent}
+    "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent,
+    "check": CheckEvent}
 
 event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
 

@@ -31,6 +31,7 @@ from robocal.daemon._journal import PushJournal
 from robocal.daemon._plan import CampaignPlan
 from robocal.daemon._reports import ReportKeeper
 from robocal.daemon.campaign import FINAL, CampaignState
+from robocal.daemon.checking import CheckRuns
 from robocal.daemon.compensating import CompensationManager
 from robocal.daemon.config import AppConfig, config_digest
 from robocal.daemon.engine import CampaignRunner, halt_motion
@@ -82,6 +83,9 @@ class CalibrationService:
             config=config, robot=self.robot, store=self.store, hub=self.hub,
             journal=self.journal, events=self.events, reports=self.reports, campaigns=self,
             secret=self._secret)
+        #: drift checks and the reuse refits they recommend (ADR 0041)
+        self.checks = CheckRuns(config=config, robot=self.robot, store=self.store,
+                                events=self.events, campaigns=self, reports=self.reports)
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
@@ -92,6 +96,7 @@ class CalibrationService:
         private_dir(self.config.data_dir)
         self.store.open()
         self.journal.ensure_schema()
+        self.checks.ensure_schema()
         self.hub.validate()
         fit_options(self.config.fit.options)
         # after the checks above, so a start refused by them leaves no task behind
@@ -111,6 +116,7 @@ class CalibrationService:
             elif not rec.measure_only:
                 self.fits.spawn(rec.id)
         await self.compensator.resume()
+        self.checks.resume()
         self.reports.refresh()
 
     async def drain(self, timeout: float = 30.0) -> None:
@@ -132,6 +138,7 @@ class CalibrationService:
         await self.drain()
         tasks = [t for _, t in ([self._measure_task] if self._measure_task else [])]
         tasks += [*self.fits.tasks(), *self.compensator.runs.unfinished(),
+                  *self.checks.unfinished(),
                   *([self._storage_task] if self._storage_task is not None else [])]
         for t in tasks:
             t.cancel()
@@ -470,8 +477,9 @@ class CalibrationService:
         return await self.compensator.runs.wait(key, timeout=timeout)
 
     def report_records(self) -> dict[str, dict[str, Any]]:
-        """Campaign id -> its report's Compensation section: approval, pushes and their fates."""
-        return self.compensator.report_records()
+        """Campaign id -> its report's Compensation section: approval, pushes and their fates
+        (and the drift checks of its model)."""
+        return self.checks.report_records(self.compensator.report_records())
 
     def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
         """The pushes of ``cid``: journal state, table description, verification run."""

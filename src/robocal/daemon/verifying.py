@@ -33,7 +33,7 @@ from robocal.daemon.store import Store
 from robocal.errors import CampaignError, RobocalError
 from robocal.kinematics import CalibratedModel, RobotDescription
 
-__all__ = ["CampaignSide", "VerificationRuns"]
+__all__ = ["CampaignSide", "VerificationRuns", "plan_home"]
 
 S = CampaignState
 _log = structlog.get_logger(__name__)
@@ -90,6 +90,20 @@ class CampaignSide(Protocol):
     def fitted_model(self, cid: str, model: str | None = None) -> CalibratedModel:
         """A fitted model of a campaign."""
         ...
+
+
+def plan_home(store: Store, cid: object, dof: int) -> list[float] | None:
+    """The home (deg) of the plan campaign ``cid`` was created from, if it declares one for
+    ``dof`` joints (runs that measure a campaign's poses again visit each from there)."""
+    if not isinstance(cid, str):
+        return None
+    try:
+        home = json.loads(store.plan_json(cid))["motion"]["home_deg"]
+    except (RobocalError, ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(home, list) or len(home) != dof:
+        return None
+    return [float(v) for v in home]
 
 
 @dataclass(kw_only=True, eq=False)
@@ -224,16 +238,7 @@ class VerificationRuns:
 
     def _home_deg(self, cid: object) -> list[float] | None:
         """The home (deg) of the plan campaign ``cid`` was created from, if it declares one."""
-        if not isinstance(cid, str):
-            return None
-        try:
-            doc = json.loads(self.store.plan_json(cid))
-            home = doc["motion"]["home_deg"]
-        except (RobocalError, ValueError, KeyError, TypeError):
-            return None
-        if not isinstance(home, list) or len(home) != self.robot.dof:
-            return None
-        return [float(v) for v in home]
+        return plan_home(self.store, cid, self.robot.dof)
 
     async def _start(self, key: str) -> bool:
         e = self.journal.get(key)

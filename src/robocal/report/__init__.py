@@ -37,6 +37,7 @@ from robocal.report._metrics import (
 )
 
 if TYPE_CHECKING:
+    from robocal.report._checks import add_checks_section
     from robocal.report._compensation import add_compensation_section
     from robocal.report._write import REPORT_FORMAT, summary, write_report
 
@@ -54,6 +55,10 @@ def __getattr__(name: str) -> object:
         from robocal.report._compensation import add_compensation_section
 
         found = {name: add_compensation_section}
+    elif name == "add_checks_section":
+        from robocal.report._checks import add_checks_section
+
+        found = {name: add_checks_section}
     else:
         raise AttributeError(f"module 'robocal.report' has no attribute {name!r}")
     globals().update(found)  # each module is looked up once
@@ -76,6 +81,7 @@ __all__ = [
     "ModelEntry",
     "ReportInput",
     "Verdict",
+    "add_checks_section",
     "add_compensation_section",
     "analyse",
     "described",

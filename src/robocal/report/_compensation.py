@@ -22,7 +22,7 @@ from typing import Any
 
 from robocal._core.files import atomic_write_text
 from robocal.report._figures import _RC, Plot, _new, _render, _style
-from robocal.report._html import _fig, _table, esc, nice_date
+from robocal.report._html import _fig, _table, esc, nice_date, put_section
 
 __all__ = ["add_compensation_section", "compensation_html"]
 
@@ -202,13 +202,7 @@ def add_compensation_section(out_dir: str | Path, entries: Sequence[Mapping[str,
     wrote = False
     if hpath.exists():
         page = hpath.read_text(encoding="utf-8")
-        section = compensation_html(data, approval)
-        if _SECTION.search(page):
-            page = _SECTION.sub(lambda _m: section, page, count=1)
-        elif "</main>" in page:
-            page = page.replace("</main>", section + "</main>", 1)
-        else:
-            page = page.replace("</body>", section + "</body>", 1)
+        page = put_section(page, _SECTION, compensation_html(data, approval))
         atomic_write_text(hpath, _put_summary(page, push_summary_html(data)))
         wrote = True
     if doc is not None:

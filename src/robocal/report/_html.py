@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import html
 import math
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -114,6 +115,16 @@ def _table(head: Sequence[str], rows: Iterable[Sequence[Any]], *, raw: bool = Fa
                    for r in rows)
     c = f' class="{cls}"' if cls else ""
     return f"<table{c}><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def put_section(page: str, pattern: re.Pattern[str], section: str) -> str:
+    """``page`` with ``section`` in place of the one ``pattern`` finds, else at the end of
+    ``<main>`` (or of ``<body>``): how the daemon adds sections to a written report."""
+    if pattern.search(page):
+        return pattern.sub(lambda _m: section, page, count=1)
+    if "</main>" in page:
+        return page.replace("</main>", section + "</main>", 1)
+    return page.replace("</body>", section + "</body>", 1)
 
 
 def _fig(p: Plot | None, caption: str) -> str:

@@ -143,6 +143,10 @@ class VirtualCell:
     noise: TrackerNoise = field(default_factory=TrackerNoise)
     joint_noise_rad: float = 5e-6
     seed: int = 0
+    #: Planted drift (issue 31): joint zero offsets growing by these rates (deg/day, one
+    #: per joint; empty: none) over the simulated clock ``sim_days``, which tests advance.
+    drift_deg_per_day: tuple[float, ...] = ()
+    sim_days: float = 0.0
 
     @classmethod
     def create(cls, robot: str | RobotDescription = "fanuc_lrmate200i", scenario: str = "paper",
@@ -184,9 +188,22 @@ class VirtualCell:
         q_cmd = np.atleast_2d(np.asarray(q_cmd, dtype=float))
         return q_cmd + rng.normal(0.0, self.joint_noise_rad, q_cmd.shape)
 
+    def joint_drift_rad(self) -> Array:
+        """The planted joint zero drift now (dof,) rad: ``drift_deg_per_day * sim_days``.
+
+        The joints read back stay the commanded ones (an encoder does not see its own zero
+        move); only where the arm really is changes.
+        """
+        rate = np.zeros(self.robot.dof)
+        rate[:len(self.drift_deg_per_day)] = self.drift_deg_per_day
+        return np.radians(rate * self.sim_days)
+
     def reflector_position(self, q_actual: Array) -> Array:
         """True reflector positions (n, 3) m in the tracker frame."""
-        return self.truth_model.positions(np.atleast_2d(q_actual), self.truth_params)
+        q = np.atleast_2d(q_actual)
+        if self.drift_deg_per_day:
+            q = q + self.joint_drift_rad()
+        return self.truth_model.positions(q, self.truth_params)
 
     def nominal_position(self, q: Array) -> Array:
         """Where the nominal robot (true base and reflector) puts the reflector (n, 3) m,

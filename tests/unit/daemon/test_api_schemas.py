@@ -80,7 +80,7 @@ async def test_every_registered_route_is_documented_with_its_methods(svc):
             registered.setdefault(p, set()).add(route.method.lower())
     documented = {p: set(ops) for p, ops in SPEC["paths"].items()}
     assert registered == documented
-    assert len(documented) == 18
+    assert len(documented) == 21
 
 
 async def test_spec_components_are_the_models_and_served_as_generated(checker):
@@ -135,6 +135,17 @@ async def test_every_documented_answer_validates_a_real_one(checker, svc, real_p
     # the push's verification run filled in the campaign's compensation record
     status, st = await c.call("GET", f"/campaigns/{cid}", doc)
     assert st["compensation"][0]["verification"]["state"] == "done"
+    # a drift check of the model now active, and the reuse refit it would start
+    status, chk = await c.call("POST", "/checks", json={})
+    assert status == 201 and chk["state"] == "measuring"
+    await svc.checks.wait(chk["id"], timeout=60)
+    status, one = await c.call("GET", f"/checks/{chk['id']}", "/checks/{check}")
+    assert status == 200 and one["state"] == "done" and one["n"] == 20
+    assert (await c.call("GET", "/checks"))[1][-1]["id"] == chk["id"]
+    status, refit = await c.call("POST", f"/checks/{chk['id']}/recalibrate",
+                                 "/checks/{check}/recalibrate")
+    assert status == 201 and refit["state"] == "running"
+    await svc.abort(refit["id"], actor="t")
     status, comp = await c.call("GET", "/compensation")
     assert status == 200 and comp["active"]["campaign"] == cid
     status, comp = await c.call("POST", "/compensation/rollback", json={"reason": "typed"})

@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as hs
 
 from robocal.drivers import load_robot_driver, load_tracker_driver
 from robocal.drivers.sim import main
@@ -132,3 +134,55 @@ def test_ur_ports_keep_the_real_spacing():
     assert _fixed_ports("ur", 29999) == {"ur_dashboard": 29999, "ur_primary": 30001,
                                          "ur_secondary": 30002, "ur_rtde": 30004}
     assert _fixed_ports("all", 17001)["ur_rtde"] == 17011
+
+
+def test_drift_rates_are_checked():
+    with pytest.raises(SystemExit) as info:
+        main(["all", "--drift-deg-per-day", "0,x"])
+    assert info.value.code == 2
+    with pytest.raises(SystemExit):
+        main(["all", "--drift-deg-per-day", "0,nan"])
+
+
+async def test_the_drift_clock_advances_the_planted_drift():
+    from robocal.drivers.sim import drift_clock
+    from robocal.drivers.sim.world import SimWorld
+    from tests._waiting import eventually
+
+    world = SimWorld.create("fanuc_lrmate200i", "constant", seed=2)
+    world.cell.drift_deg_per_day = (0.0, 0.5)
+    q = np.zeros(6)
+    world.move(q)
+    before = world.true_reflector_position()
+    task = asyncio.create_task(drift_clock(world, 6000.0, period_s=0.005))  # 100 days/s
+    try:
+        await eventually(lambda: world.cell.sim_days > 0.1, 5)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    days = world.cell.sim_days
+    assert np.allclose(world.cell.joint_drift_rad(), np.radians([0, 0.5 * days, 0, 0, 0, 0]))
+    moved = np.linalg.norm(world.true_reflector_position() - before)
+    assert moved > 1e-4  # the arm is elsewhere ...
+    assert np.allclose(world.q_actual_rad, q, atol=1e-4)  # ... the joints read the same
+
+
+@given(hs.lists(hs.floats(allow_nan=False, allow_infinity=False), min_size=1, max_size=7))
+def test_drift_rates_parse_back_what_was_written(rates):
+    from robocal.drivers.sim import _rates
+
+    assert _rates(",".join(repr(r) for r in rates)) == tuple(rates)
+
+
+@given(hs.text(max_size=20))
+def test_drift_rates_refuse_anything_else_with_an_argparse_error(text):
+    import argparse
+
+    from robocal.drivers.sim import _rates
+
+    try:
+        out = _rates(text)
+    except argparse.ArgumentTypeError:
+        return
+    assert all(np.isfinite(out)) and len(out) == text.count(",") + 1

@@ -51,3 +51,22 @@ def test_outliers_are_millimetres(rng: np.random.Generator) -> None:
 def test_unknown_scenario() -> None:
     with pytest.raises(ConfigError, match="unknown scenario"):
         VirtualCell.create("ur10", "wobbly")
+
+
+def test_planted_joint_drift_moves_the_arm_not_the_joints_read_back():
+    import numpy as np
+
+    from robocal.simulation import VirtualCell
+
+    cell = VirtualCell.create("fanuc_lrmate200i", "constant", seed=1)
+    q = np.radians([[10.0, 20.0, -30.0, 40.0, -50.0, 60.0]])
+    p0 = cell.reflector_position(q)
+    cell.drift_deg_per_day = (0.0, 0.01)
+    assert np.allclose(cell.reflector_position(q), p0)  # day 0: no drift yet
+    cell.sim_days = 5.0
+    expected = cell.truth_model.positions(q + np.radians([0, 0.05, 0, 0, 0, 0]),
+                                          cell.truth_params)
+    assert np.allclose(cell.reflector_position(q), expected)
+    assert 1e-4 < np.linalg.norm(cell.reflector_position(q) - p0) < 2e-3
+    rng = np.random.default_rng(0)
+    assert np.allclose(cell.actual_joints(q, rng), q, atol=1e-4)

@@ -199,7 +199,9 @@ async def list_view(request: web.Request) -> web.StreamResponse:
         resp: web.StreamResponse = web.json_response(
             {"live": _pages.list_rows(rows), "banner": _banner(svc, comp)})
         return _finish(_headers(resp), s, new)
-    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp))
+    page = _pages.list_page(rows, session=s, banner_html=_banner(svc, comp),
+                            checks_html=_pages.checks_box(svc.checks.log.history(limit=10),
+                                                          session=s))
     return _finish(_html(page.replace("data-live=", f'data-seq="{svc.events.last_seq}" '
                                                     "data-live=", 1)), s, new)
 
@@ -446,6 +448,26 @@ async def action(request: web.Request) -> web.StreamResponse:
     else:
         s.flash.append(("ok", f"{act}: done in {time.monotonic() - t0:.1f} s."))
     return _redirect(f"/station/campaigns/{cid}")
+
+
+@_PAGES.post("/station/checks/{what:(run|recalibrate)}", name="station.check")
+async def check_action(request: web.Request) -> web.StreamResponse:
+    """Run a drift check now, or (``recalibrate``) start the reuse refit a check recommends."""
+    s, form = await _post(request)
+    svc = request.app[_SERVICE]
+    try:
+        if request.match_info["what"] == "recalibrate":
+            check = _fields(form, "check", 18)
+            st = await svc.checks.recalibrate(actor=s.actor,
+                                              check_id=int(check) if check.isdigit() else None)
+            s.flash.append(("ok", f"Re-calibration with --reuse started: campaign {st['id']}."))
+            return _redirect(f"/station/campaigns/{st['id']}")
+        c = await svc.checks.start(actor=s.actor)
+    except RobocalError as err:
+        s.flash.append(("error", f"Not started: {err}"))
+        return _redirect("/station/")
+    s.flash.append(("ok", f"Drift check {c['id']} started (campaign {c['campaign']})."))
+    return _redirect(f"/station/campaigns/{c['campaign']}")
 
 
 def register(app: web.Application, service: CalibrationService, sessions: SessionStore, *,

@@ -12,8 +12,8 @@ from typing import Any
 from robocal.daemon.station._auth import Session
 from robocal.daemon.station._facts import Progress, Step
 
-__all__ = ["campaign_live", "campaign_page", "layout", "list_page", "list_rows", "login_page",
-           "report_box"]
+__all__ = ["campaign_live", "campaign_page", "checks_box", "layout", "list_page", "list_rows",
+           "login_page", "report_box"]
 
 
 def e(x: object) -> str:
@@ -152,8 +152,74 @@ def list_rows(rows: list[dict[str, Any]]) -> str:
     return "".join(out)
 
 
-def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str) -> str:
-    """The campaigns list with, for an operator, the form that starts a campaign."""
+_VERDICT = {"pass": "ok", "warn": "warn", "fail": "bad"}
+_ADVICE = {"none": "nothing to do", "reuse": "re-calibrate with --reuse",
+           "full": "full calibration"}
+
+
+def _check_forms(checks: list[dict[str, Any]], session: Session | None) -> str:
+    """For an operator: run a check now; start the reuse refit the latest one recommends."""
+    if session is None or session.role != "operator":
+        return ""
+    out = _form(session, "/station/checks/run", "Run a drift check now",
+                "Run a drift check: the robot will move through the check's poses (from its "
+                "home) and the tracker will measure each one.", button_id="run-check")
+    last = checks[-1] if checks else {}
+    if last.get("recommendation") == "reuse":
+        out += _form(session, "/station/checks/recalibrate",
+                     f"Re-calibrate with --reuse (check {last['id']})",
+                     "Start the re-calibration with --reuse: the robot will move through the "
+                     "poses of the checked model's campaign; approve and push its result as "
+                     "any campaign's.",
+                     inputs=f'<input type="hidden" name="check" value="{e(last["id"])}">',
+                     button_id="recalibrate")
+    return f'<div class="actions">{out}</div>'
+
+
+def checks_box(checks: list[dict[str, Any]], *, session: Session | None = None) -> str:
+    """The drift checks (ADR 0041): the latest with its verdict and recommendation, and the
+    trend of the RMS over the last checks (oldest first in ``checks``); an operator's
+    ``session`` gets the buttons of :func:`_check_forms`."""
+    if not checks:
+        return ("<section class=\"card\" id=\"checks\" aria-labelledby=\"checks-h\">"
+                "<h2 id=\"checks-h\">Drift checks</h2><p>No check yet (<code>robocal check"
+                "</code>, or the robocal-check.timer).</p>"
+                f"{_check_forms(checks, session)}</section>")
+    last = checks[-1]
+    verdict = str(last.get("verdict") or last["state"])
+    rec = (last.get("detail") or {}).get("recommendation") or {}
+    advice = _ADVICE.get(str(last.get("recommendation")), "–")
+    if rec.get("action") == "reuse":
+        advice += f" ({rec.get('poses')} poses + {rec.get('validation_poses')} held out)"
+    reasons = "; ".join((last.get("detail") or {}).get("reasons") or []) or \
+        (last.get("detail") or {}).get("reason") or ""
+    rows = "".join(
+        f"<tr><td>{c['id']}</td><td>{_when(c['created'])}</td>"
+        f"<td><span class=\"badge {_VERDICT.get(str(c.get('verdict')), 'info')}\">"
+        f"{e(c.get('verdict') or c['state'])}</span></td>"
+        f"<td class=\"num\">{_mm(c.get('rms_mm'))}</td><td class=\"num\">"
+        f"{_mm(c.get('max_mm'))}</td><td>{e(c['model_campaign'])}</td></tr>"
+        for c in reversed(checks[-10:]))
+    return (
+        "<section class=\"card\" id=\"checks\" aria-labelledby=\"checks-h\">"
+        "<h2 id=\"checks-h\">Drift checks</h2>"
+        f"<p class=\"latest\">Latest check {last['id']} ({_when(last['created'])}): "
+        f"<span class=\"badge {_VERDICT.get(verdict, 'info')}\">{e(verdict)}</span> RMS "
+        f"{_mm(last.get('rms_mm'))}, max {_mm(last.get('max_mm'))}; "
+        f"recommendation: <strong>{e(advice)}</strong>"
+        f"{'. ' + e(reasons) if reasons else ''}</p>"
+        "<p class=\"trend\">Trend (RMS, oldest first): "
+        + " → ".join(_mm(c.get("rms_mm")) for c in checks[-10:]) + "</p>"
+        "<table class=\"checks\"><thead><tr><th scope=\"col\">Check</th>"
+        "<th scope=\"col\">When</th><th scope=\"col\">Verdict</th><th scope=\"col\">RMS"
+        "</th><th scope=\"col\">Max</th><th scope=\"col\">Model of campaign</th></tr>"
+        f"</thead><tbody>{rows}</tbody></table>{_check_forms(checks, session)}</section>")
+
+
+def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str,
+              checks_html: str = "") -> str:
+    """The campaigns list with, for an operator, the form that starts a campaign, and the
+    drift checks (``checks_html``, :func:`checks_box`)."""
     start = ""
     if session.role == "operator":
         start = (
@@ -172,7 +238,7 @@ def list_page(rows: list[dict[str, Any]], *, session: Session, banner_html: str)
     else:
         start = '<p class="note">Signed in as viewer: read only.</p>'
     body = (
-        "<h1>Campaigns</h1>" + start +
+        "<h1>Campaigns</h1>" + start + checks_html +
         "<section aria-labelledby=\"list-h\"><h2 id=\"list-h\">All campaigns</h2>"
         "<table class=\"campaigns\"><thead><tr><th scope=\"col\">Campaign</th>"
         "<th scope=\"col\">State</th><th scope=\"col\">Robot</th><th scope=\"col\">Created</th>"

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -356,6 +358,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="factor on the real duration of moves and waits: 1 = real time, "
                         "0.001 = 1000x faster than real time, 0 = instantaneous")
     p.add_argument("--ports-file", type=Path, help="write the bound ports as JSON here")
+    p.add_argument("--drift-deg-per-day", type=_rates, metavar="R1,R2,...",
+                   help="plant a drift: joint zero offsets growing by these rates (deg/day, "
+                        "per joint from J1) on a simulated clock (robocal check, ADR 0041)")
+    p.add_argument("--days-per-minute", type=float, default=1.0,
+                   help="the drift's simulated clock: days passing per real minute")
     p.add_argument("--robotware", type=int, choices=[6, 7], default=6,
                    help="abb: RobotWare 6 (RWS 1.0, digest) or 7 (RWS 2.0, basic)")
     p.add_argument("--replay", type=Path, help="emscon-tracker: answer from this recording")
@@ -363,6 +370,26 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--target", help="relay: the tracker's HOST:PORT (e.g. 192.168.0.1:700)")
     p.add_argument("--record", type=Path, help="relay: JSON-lines capture file to write")
     return p
+
+
+def _rates(text: str) -> tuple[float, ...]:
+    try:
+        rates = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not comma-separated numbers: {text!r}") from None
+    if not all(math.isfinite(r) for r in rates):
+        raise argparse.ArgumentTypeError(f"rates must be finite: {text!r}")
+    return rates
+
+
+async def drift_clock(world: SimWorld, days_per_minute: float, *, period_s: float = 1.0
+                      ) -> None:
+    """Advance the virtual robot's drift clock (``sim_days``) with real time until cancelled:
+    ``days_per_minute`` simulated days per real minute, updated every ``period_s``."""
+    t0 = time.monotonic()
+    while True:
+        world.cell.sim_days = (time.monotonic() - t0) / 60.0 * days_per_minute
+        await asyncio.sleep(period_s)
 
 
 def _fixed_ports(which: str, port: int) -> dict[str, int]:
@@ -430,7 +457,13 @@ async def _serve(args: argparse.Namespace) -> int:
     )
     async with until_signalled() as stop, cell:
         publish_ports(cell.ports, args.ports_file)
+        clock = None
+        if args.drift_deg_per_day:
+            cell.world.cell.drift_deg_per_day = args.drift_deg_per_day
+            clock = asyncio.create_task(drift_clock(cell.world, args.days_per_minute))
         await stop.wait()
+        if clock is not None:
+            clock.cancel()
     return 0
 
 
