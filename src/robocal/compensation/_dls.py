@@ -117,6 +117,7 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
     gamma = np.ones(n)
     lam = np.full(n, damping)
     iters = np.zeros(n, dtype=np.int_)
+    fresh = np.ones(n, dtype=bool)              # J was evaluated at the current q
     eye = np.eye(6)
     for _ in range(max_iter):
         act = np.flatnonzero(~conv & (gamma >= 1.0 / 64.0))
@@ -146,11 +147,14 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
         gamma[ir] *= 0.5
         lam[ir] *= 10.0
         iters[act] += 1
-        refresh = np.concatenate([ia[slow & ~conv[ia]], ir])
+        fresh[ia] = False
+        # a rejected step leaves q where it was: where J was evaluated there, it stays
+        refresh = np.concatenate([ia[slow & ~conv[ia]], ir[~fresh[ir]]])
         if refresh.size:
             _, _, Jr = evaluate(q[refresh], True)
             assert Jr is not None
             J[refresh] = Jr
+            fresh[refresh] = True
     span = 1e-9
     at_limit = np.any((q <= lo + span) | (q >= hi - span), axis=1)
     return PoseSolution(q=q, pos_residual=np.linalg.norm(e[:, :3], axis=1),
