@@ -308,9 +308,15 @@ class KinematicModel:
         R = np.repeat(prep.R0[:, :, None], n, axis=2)
         o = np.repeat(prep.o0[:, None], n, axis=1)
         rec: list[tuple[int, Array, Array, Array, Array]] = []
+        # every cosine and sine of the pass in two calls each (one per joint costs more
+        # than the arithmetic on small batches)
+        ct, st = np.cos(theta), np.sin(theta)
+        varying = [i for i in range(dof) if i not in prep.fixed]
+        ang = Et.reshape(dof, 6, n)[varying, 3:]
+        ce, se = np.cos(ang), np.sin(ang)
         for i in range(dof):
             z_i, o_i = R[:, 2].copy(), o.copy()
-            _soa_rot(R, 0, 1, np.cos(theta[i]), np.sin(theta[i]))
+            _soa_rot(R, 0, 1, ct[i], st[i])
             e = Et[6 * i:6 * i + 6]
             if i in prep.fixed:
                 # constant errors and the DH transform as one: R <- R M, o <- o + R t
@@ -320,13 +326,14 @@ class KinematicModel:
                 if dEt is not None:
                     rec.append((i, z_i, o_i, np.empty((0, n)), o))
                 continue
+            k = varying.index(i)
             if dEt is not None and i in self._dep_joints:
                 de = dEt[6 * i:6 * i + 6]
                 v = _soa_apply(R, de[:3])
-                w = _soa_error(R, o, e, de)
+                w = _soa_error(R, o, e, de, (ce[k], se[k]))
                 rec.append((i, z_i, o_i, np.concatenate([v, w]), o.copy()))
             else:
-                _soa_error(R, o, e)
+                _soa_error(R, o, e, cs=(ce[k], se[k]))
                 if dEt is not None:
                     rec.append((i, z_i, o_i, np.empty((0, n)), o))
             d, a, ca, sa = self._dh[i]
@@ -487,20 +494,22 @@ def _soa_fixed(R: Array, o: Array, T: Array) -> tuple[Array, Array]:
     return Rn, o + _soa_apply(R, T[:3, 3])
 
 
-def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None) -> Array | None:
+def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None,
+               cs: tuple[Array, Array] | None = None) -> Array | None:
     """In place: apply E(e) (e (6, n) or (6, 1)) to frame (R, o).
 
     With ``de`` (6, n): also return the angular velocity (3, n) of the frame per unit of
     the joint value whose error components change by ``de`` (rotation axes as they are when
-    each rotation acts).
+    each rotation acts). ``cs``: cosines and sines (3, n) of ``e[3:]`` when already known.
     """
+    c, s = (np.cos(e[3:]), np.sin(e[3:])) if cs is None else cs
     o += _soa_apply(R, e[:3])
     w = None if de is None else R[:, 0] * de[3]
-    _soa_rot(R, 1, 2, np.cos(e[3]), np.sin(e[3]))       # Rx(ex)
+    _soa_rot(R, 1, 2, c[0], s[0])       # Rx(ex)
     if w is not None and de is not None:
         w += R[:, 1] * de[4]
-    _soa_rot(R, 2, 0, np.cos(e[4]), np.sin(e[4]))       # Ry(ey)
+    _soa_rot(R, 2, 0, c[1], s[1])       # Ry(ey)
     if w is not None and de is not None:
         w += R[:, 2] * de[5]
-    _soa_rot(R, 0, 1, np.cos(e[5]), np.sin(e[5]))       # Rz(ez)
+    _soa_rot(R, 0, 1, c[2], s[2])       # Rz(ez)
     return w
