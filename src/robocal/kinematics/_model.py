@@ -314,8 +314,9 @@ class KinematicModel:
         varying = [i for i in range(dof) if i not in prep.fixed]
         ang = Et.reshape(dof, 6, n)[varying, 3:]
         ce, se = np.cos(ang), np.sin(ang)
+        jac = dEt is not None
         for i in range(dof):
-            z_i, o_i = R[:, 2].copy(), o.copy()
+            z_i, o_i = (R[:, 2].copy(), o.copy()) if jac else (R[:, 2], o)
             _soa_rot(R, 0, 1, ct[i], st[i])
             e = Et[6 * i:6 * i + 6]
             if i in prep.fixed:
@@ -337,7 +338,12 @@ class KinematicModel:
                 if dEt is not None:
                     rec.append((i, z_i, o_i, np.empty((0, n)), o))
             d, a, ca, sa = self._dh[i]
-            o += d * R[:, 2] + a * R[:, 0]
+            if d != 0.0 and a != 0.0:
+                o += d * R[:, 2] + a * R[:, 0]
+            elif d != 0.0:
+                o += d * R[:, 2]
+            elif a != 0.0:
+                o += a * R[:, 0]
             if sa != 0.0 or ca != 1.0:
                 _soa_rot(R, 1, 2, ca, sa)
         if self._T_flange is not None:
@@ -473,8 +479,11 @@ def _soa_rot(R: Array, i: int, j: int, c: Array | float, s: Array | float) -> No
     """In place: columns (i, j) <- (c Ri + s Rj, -s Ri + c Rj), a rotation about axis k."""
     ri = R[:, i].copy()
     rj = R[:, j]
-    R[:, i] = c * ri + s * rj
-    R[:, j] = -s * ri + c * rj
+    Ri = R[:, i]
+    Ri *= c
+    Ri += s * rj
+    rj *= c                 # in place, same values as c rj - s ri
+    rj -= s * ri
 
 
 def _soa_apply(R: Array, v: Array) -> Array:
