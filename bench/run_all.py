@@ -119,8 +119,10 @@ def discover(bench_dir: Path = BENCH_DIR, *, with_suite: bool = True) -> list[Be
     out = []
     for path in sorted(bench_dir.glob("bench_*.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-        doc = (ast.get_docstring(tree) or path.stem).strip().splitlines()[0]
-        title = re.sub(r"^Benchmark:\s*", "", doc).rstrip(".")
+        # the docstring's first sentence (it may run over several lines)
+        para = (ast.get_docstring(tree) or path.stem).strip().split("\n\n")[0]
+        doc = re.split(r"(?<=\.)\s", " ".join(para.split()) + " ")[0]
+        title = re.sub(r"^Benchmark:\s*", "", doc.strip()).rstrip(".").replace("``", "`")
         name = path.stem.removeprefix("bench_")
         rel = str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
         out.append(_bench(name, title[:1].upper() + title[1:], (rel,), rel,

@@ -117,7 +117,7 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
     gamma = np.ones(n)
     lam = np.full(n, damping)
     iters = np.zeros(n, dtype=np.int_)
-    fresh = np.ones(n, dtype=bool)              # J was evaluated at the current q
+    fresh = np.all(q == q0, axis=1)             # J was evaluated at the current q
     eye = np.eye(6)
     for _ in range(max_iter):
         act = np.flatnonzero(~conv & (gamma >= 1.0 / 64.0))
