@@ -35,7 +35,7 @@ def benches(tmp_path: Path) -> Path:
     _bench(d, "beta", "import sys\nprint('beta', sys.argv[1:])", "Beta timings.",
            'RUN_ALL = {"long": True, "args": ["--n", 3]}')
     _bench(d, "gamma", "print('plain')\nprint('<!-- markdown -->')\nprint('| a | b |')",
-           "Gamma.")
+           "Gamma ``x`` (over\ntwo lines). Second sentence.")
     return d
 
 
@@ -45,6 +45,7 @@ def test_discovery_reads_titles_and_settings_without_importing(run_all: ModuleTy
     assert sorted(found) == ["alpha", "beta", "gamma"]
     assert found["alpha"].title == "The alpha figure" and not found["alpha"].long
     assert found["beta"].long and found["beta"].command[-2:] == ("--n", "3")
+    assert found["gamma"].title == "Gamma `x` (over two lines)"
     names = [b.name for b in run_all.discover(benches)]
     assert names[-1] == "suite" and run_all.discover(benches)[-1].long
     # long ones only when named or with --long
