@@ -29,6 +29,8 @@ from numpy.typing import NDArray
 __all__ = ["Evaluator", "PoseSolution", "rotation_error", "solve_pose"]
 
 Array = NDArray[np.float64]
+# trial points of batches up to this size are evaluated with their Jacobian (ADR 0046)
+_JOINT_PASS_BELOW = 2000
 Evaluator = Callable[[Array, bool], tuple[Array, Array, Array | None]]
 
 
@@ -134,7 +136,9 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
         q_try = np.clip(q[act] + gamma[act, None] * dq, lo, hi)
         ok_num = np.all(np.isfinite(q_try), axis=1)
         q_try[~ok_num] = q[act][~ok_num]
-        p_t, R_t, _ = evaluate(q_try, False)
+        # small batches (the few hard targets, iterating long): the trial point's Jacobian
+        # in the same pass, for the steps that will need it, saves a second pass
+        p_t, R_t, J_t = evaluate(q_try, act.size <= _JOINT_PASS_BELOW)
         e_try = error(act, p_t, R_t)
         c_try = np.sum((e_try * w) ** 2, axis=1)
         acc = (c_try < cost[act]) & ok_num
@@ -148,8 +152,13 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
         lam[ir] *= 10.0
         iters[act] += 1
         fresh[ia] = False
+        need = slow & ~conv[ia]                 # accepted but slow: Jacobian at the new q
+        if J_t is not None:
+            J[ia[need]] = J_t[acc][need]
+            fresh[ia[need]] = True
+            need[:] = False
         # a rejected step leaves q where it was: where J was evaluated there, it stays
-        refresh = np.concatenate([ia[slow & ~conv[ia]], ir[~fresh[ir]]])
+        refresh = np.concatenate([ia[need], ir[~fresh[ir]]])
         if refresh.size:
             _, _, Jr = evaluate(q[refresh], True)
             assert Jr is not None
