@@ -43,6 +43,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 OUT = ROOT / "docs" / "benchmarks.md"
 HISTORY = "docs/benchmarks-history.md"
 MARKDOWN = "<!-- markdown -->"
+_PLACEHOLDER = "Not run yet"
 _BEGIN = re.compile(r"^<!-- bench:([\w.-]+) -->$", re.M)
 
 # How the benches already in bench/ are run (a bench's own RUN_ALL literal overrides this).
@@ -201,7 +202,7 @@ def render(bench: Bench, result: Result, *, extra_args: tuple[str, ...] = ()) ->
 def placeholder(bench: Bench) -> str:
     """Section of a bench that has not been run into this file yet."""
     why = f"manual ({bench.manual})" if bench.manual else "long"
-    return _wrap(bench, f"Not run yet ({why}): `python bench/run_all.py --only {bench.name}`.")
+    return _wrap(bench, f"{_PLACEHOLDER} ({why}): `python bench/run_all.py --only {bench.name}`.")
 
 
 def _wrap(bench: Bench, body: str) -> str:
@@ -249,7 +250,8 @@ def kept_and_missing(benches: list[Bench], fresh: dict[str, str], old: dict[str,
                      ) -> tuple[list[str], list[str]]:
     """Names of the sections taken from the old file, and of those never run."""
     rest = [b.name for b in benches if b.name not in fresh]
-    return [n for n in rest if n in old], [n for n in rest if n not in old]
+    kept = [n for n in rest if _measured(old.get(n))]
+    return kept, [n for n in rest if n not in kept]
 
 
 def assemble(head: str, benches: list[Bench], fresh: dict[str, str], old: dict[str, str]
@@ -258,8 +260,13 @@ def assemble(head: str, benches: list[Bench], fresh: dict[str, str], old: dict[s
     placeholder (sections of benches that no longer exist are dropped)."""
     parts = [head]
     for b in benches:
-        parts.append(fresh.get(b.name) or old.get(b.name) or placeholder(b))
+        parts.append(fresh.get(b.name) or _measured(old.get(b.name)) or placeholder(b))
     return "\n\n".join(parts) + "\n"
+
+
+def _measured(section: str | None) -> str | None:
+    """``section`` unless it is a placeholder (those are written anew)."""
+    return None if section is None or _PLACEHOLDER in section else section
 
 
 def _load() -> str:

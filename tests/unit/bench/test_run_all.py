@@ -80,6 +80,15 @@ def test_regenerates_and_only_refreshes_the_named_section(run_all: ModuleType, b
     assert second["alpha"] == first["alpha"] and second["gamma"] == first["gamma"]
     assert "beta ['--n', '3']" in second["beta"]
     assert "Sections kept from earlier runs: alpha, gamma." in out.read_text()
+    # a placeholder is not a measurement: written anew (here with the bench's new title)
+    _bench(benches, "beta", "print('beta')", "Beta, renamed.", 'RUN_ALL = {"long": True}')
+    assert run_all.main([*common, "--only", "gamma"]) == 0
+    assert "Sections kept from earlier runs: alpha, beta." in out.read_text()
+    (benches / "bench_delta.py").write_text('"""Delta."""\nRUN_ALL = {"long": True}\n')
+    assert run_all.main([*common, "--only", "gamma"]) == 0
+    assert "## Delta (`" in run_all.sections(out.read_text())["delta"]
+    assert "Not run yet: delta." in out.read_text()
+    second = run_all.sections(out.read_text())
 
     assert run_all.main([*common, "--only", "alpha", "--args", "alpha=--extra 1"]) == 0
     third = run_all.sections(out.read_text())
@@ -98,3 +107,12 @@ def test_failing_and_hanging_benches_are_reported(run_all: ModuleType, tmp_path:
     s = run_all.sections(out.read_text())
     assert "exit status 3" in s["fails"] and "partial" in s["fails"]
     assert "killed after the timeout of 1 s" in s["hangs"] and "started" in s["hangs"]
+
+
+def test_placeholders_are_written_anew(run_all: ModuleType, benches: Path) -> None:
+    found = run_all.discover(benches, with_suite=False)
+    beta = next(b for b in found if b.name == "beta")
+    stale = run_all.placeholder(run_all.Bench(**{**beta.__dict__, "title": "Old title"}))
+    text = run_all.assemble("# Benchmarks", found, {}, {"beta": stale})
+    assert "## Beta timings (`" in run_all.sections(text)["beta"]
+    assert "Old title" not in text
