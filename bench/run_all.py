@@ -223,9 +223,20 @@ def sections(text: str) -> dict[str, str]:
     return out
 
 
+_FULL = "Last run of every default section: "
+_PARTIAL = "Last refreshed: "
+
+
 def header(*, started: str, finished: str, commit: str, machine: str, load_before: str,
-           load_after: str, ran: list[str], kept: list[str], missing: list[str]) -> str:
-    """The file's first lines: what produced it, where and when."""
+           load_after: str, ran: list[str], kept: list[str], missing: list[str],
+           partial: bool = False, old_head: str = "") -> str:
+    """The file's first lines: what produced it, where and when.
+
+    A ``partial`` run (``--only``) keeps the old header's lines about the last run of every
+    default section and adds one line about itself.
+    """
+    run = (f"{started} to {finished}, commit {commit}; load average (1 / 5 / 15 min) "
+           f"before {load_before}, after {load_after}")
     lines = [
         "# Benchmarks",
         "",
@@ -234,11 +245,13 @@ def header(*, started: str, finished: str, commit: str, machine: str, load_befor
         "section states its own run: date, commit, command, times and load. Figures measured "
         f"before this file was generated are in [{Path(HISTORY).name}]({Path(HISTORY).name}).",
         "",
-        f"Last run: {started} to {finished}, commit {commit}.",
         f"Machine: {machine}.",
-        f"Load average (1 / 5 / 15 min) before: {load_before}; after: {load_after}.",
-        f"Sections run: {', '.join(ran) or 'none'}.",
     ]
+    full = [ln for ln in old_head.splitlines() if ln.startswith(_FULL)] if partial else []
+    lines += full or ([f"{_FULL}{run}."] if not partial else [])
+    if partial:
+        lines.append(f"{_PARTIAL}{', '.join(ran) or 'none'}, {run}.")
+    lines.append(f"Sections in the last run: {', '.join(ran) or 'none'}.")
     if kept:
         lines.append(f"Sections kept from earlier runs: {', '.join(kept)}.")
     if missing:
@@ -316,7 +329,9 @@ def main(argv: list[str] | None = None) -> int:
         name, _, rest = item.partition("=")
         extra[name] = tuple(shlex.split(rest))
     todo = choose(benches, a.only, a.skip, a.long)
-    old = sections(a.out.read_text(encoding="utf-8")) if a.out.exists() else {}
+    old_text = a.out.read_text(encoding="utf-8") if a.out.exists() else ""
+    old = sections(old_text)
+    old_head = old_text.split("<!-- bench:", 1)[0]
     commit = _commit()
     started, load0 = _now(), _load()
     fresh: dict[str, str] = {}
@@ -332,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         kept, missing = kept_and_missing(benches, fresh, old)
         head = header(started=started, finished=_now(), commit=commit, machine=machine(),
                       load_before=load0, load_after=_load(), ran=list(fresh), kept=kept,
-                      missing=missing)
+                      missing=missing, partial=bool(a.only), old_head=old_head)
         a.out.write_text(assemble(head, benches, fresh, old), encoding="utf-8")
     return worst
 

@@ -64,9 +64,11 @@ def test_regenerates_and_only_refreshes_the_named_section(run_all: ModuleType, b
     assert run_all.main(common) == 0
     text = out.read_text()
     assert text.startswith("# Benchmarks\n")
-    for line in ("Last run: ", "Machine: ", "Load average (1 / 5 / 15 min) before: ",
-                 "Sections run: alpha, gamma.", "Not run yet: beta."):
+    for line in ("\nMachine: ", "\nLast run of every default section: ",
+                 "; load average (1 / 5 / 15 min) before ", "Sections in the last run: alpha, "
+                 "gamma.", "Not run yet: beta."):
         assert line in text
+    full_line = next(ln for ln in text.splitlines() if ln.startswith("Last run of every"))
     first = run_all.sections(text)
     assert list(first) == ["alpha", "beta", "gamma"]
     assert "## The alpha figure (`" in first["alpha"] and "alpha says 1" in first["alpha"]
@@ -80,6 +82,7 @@ def test_regenerates_and_only_refreshes_the_named_section(run_all: ModuleType, b
     assert second["alpha"] == first["alpha"] and second["gamma"] == first["gamma"]
     assert "beta ['--n', '3']" in second["beta"]
     assert "Sections kept from earlier runs: alpha, gamma." in out.read_text()
+    assert full_line in out.read_text() and "\nLast refreshed: beta, " in out.read_text()
     # a placeholder is not a measurement: written anew (here with the bench's new title)
     _bench(benches, "beta", "print('beta')", "Beta, renamed.", 'RUN_ALL = {"long": True}')
     assert run_all.main([*common, "--only", "gamma"]) == 0
