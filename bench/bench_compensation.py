@@ -1,15 +1,17 @@
-"""Benchmark: batch compensation of 10,000 program targets (acceptance: <= 1 s on 2 cores).
+"""Benchmark: batch compensation of 10,000 program targets (issue 28: <= 30 us per target).
 
 Builds the paper scenario on the virtual LR Mate 200i, fits a model from 250 simulated
 tracker poses (``robocal.identification.fit`` when it exists, else the test helpers' small
 Gauss-Newton fit of the planted structure), makes program targets (random joints inside the
 calibrated range, target = where the controller's nominal kinematics with the true frames
 puts the reflector) and times :func:`robocal.compensation.compensate`, the nominal closed-form
-IK and the three table kinds.
+IK and the three table kinds. Compensation is timed ``--repeat`` times; the median and the
+best of the CPU (``time.process_time``) and wall times are printed (issue 28's acceptance:
+median <= 30 us per target on the idle 2-core machine; the exit status is 1 above it).
 
 Run from the repository root::
 
-    /work/venv/bin/python bench/bench_compensation.py [--n 10000] [--repeat 3]
+    .venv/bin/python bench/bench_compensation.py [--n 10000] [--repeat 5]
 """
 
 from __future__ import annotations
@@ -36,20 +38,26 @@ from robocal.compensation import (
 from robocal.kinematics import ErrorModelSpec, KinematicModel
 
 
-def _timed(fn, repeat: int):  # type: ignore[no-untyped-def]
-    best_wall, best_cpu, out = np.inf, np.inf, None
+def _runs(fn, repeat: int):  # type: ignore[no-untyped-def]
+    """Output of the last run, and the wall and CPU times (s) of each run."""
+    walls, cpus, out = [], [], None
     for _ in range(repeat):
         w0, c0 = time.perf_counter(), time.process_time()
         out = fn()
-        best_wall = min(best_wall, time.perf_counter() - w0)
-        best_cpu = min(best_cpu, time.process_time() - c0)
-    return out, best_wall, best_cpu
+        walls.append(time.perf_counter() - w0)
+        cpus.append(time.process_time() - c0)
+    return out, np.array(walls), np.array(cpus)
+
+
+def _timed(fn, repeat: int):  # type: ignore[no-untyped-def]
+    out, walls, cpus = _runs(fn, repeat)
+    return out, float(walls.min()), float(cpus.min())
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=10_000, help="number of targets")
-    ap.add_argument("--repeat", type=int, default=3, help="repetitions (best is reported)")
+    ap.add_argument("--repeat", type=int, default=5, help="repetitions (median and best)")
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
 
@@ -65,7 +73,8 @@ def main() -> int:
     p_d = nom.positions(q_prog, xn)
 
     compensate(cal, p_d[:200], q_prog[:200])  # warm-up (imports, caches)
-    res, wall, cpu = _timed(lambda: compensate(cal, p_d, q_prog), args.repeat)
+    res, walls, cpus = _runs(lambda: compensate(cal, p_d, q_prog), args.repeat)
+    wall, cpu = float(np.median(walls)), float(np.median(cpus))
     ok = res.ok
     truth = cell.reflector_position(cell.actual_joints(res.q[ok], rng))
     err = np.linalg.norm(truth - p_d[ok], axis=1)
@@ -80,8 +89,10 @@ def main() -> int:
 
     print(header())
     print(f"model fit ({cal.kind}, {cal.model.size} parameters): {t_fit:.2f} s")
-    print(f"compensate {args.n} targets: wall {wall:.3f} s, cpu {cpu:.3f} s "
-          f"({wall / args.n * 1e6:.1f} us/target), best of {args.repeat}")
+    print(f"compensate {args.n} targets, median of {args.repeat}: cpu {cpu:.3f} s "
+          f"({cpu / args.n * 1e6:.1f} us/target), wall {wall:.3f} s "
+          f"({wall / args.n * 1e6:.1f} us/target); best: cpu {cpus.min():.3f} s, "
+          f"wall {walls.min():.3f} s")
     print(f"  status: {res.counts()}, orientation relaxed: {int(res.orientation_relaxed.sum())}")
     print(f"  iterations: median {np.median(res.iterations):.0f}, "
           f"95% {np.percentile(res.iterations, 95):.0f}, max {res.iterations.max()}")
@@ -96,7 +107,8 @@ def main() -> int:
         extra = f", {len(tab.joints[0].q_deg)} grid points" if kind == "joint" else ""
         print(f"build_table {kind:7s}: {w:.3f} s, predicted residual "
               f"{tab.predicted_residual_mm:.4f} mm{extra}")
-    return 0 if wall <= 1.0 else 1
+    print(header())
+    return 0 if cpu / args.n <= 30e-6 else 1
 
 
 if __name__ == "__main__":

@@ -29,6 +29,8 @@ from numpy.typing import NDArray
 __all__ = ["Evaluator", "PoseSolution", "rotation_error", "solve_pose"]
 
 Array = NDArray[np.float64]
+# trial points of batches up to this size are evaluated with their Jacobian (ADR 0046)
+_JOINT_PASS_BELOW = 2000
 Evaluator = Callable[[Array, bool], tuple[Array, Array, Array | None]]
 
 
@@ -117,6 +119,7 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
     gamma = np.ones(n)
     lam = np.full(n, damping)
     iters = np.zeros(n, dtype=np.int_)
+    fresh = np.all(q == q0, axis=1)             # J was evaluated at the current q
     eye = np.eye(6)
     for _ in range(max_iter):
         act = np.flatnonzero(~conv & (gamma >= 1.0 / 64.0))
@@ -133,7 +136,9 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
         q_try = np.clip(q[act] + gamma[act, None] * dq, lo, hi)
         ok_num = np.all(np.isfinite(q_try), axis=1)
         q_try[~ok_num] = q[act][~ok_num]
-        p_t, R_t, _ = evaluate(q_try, False)
+        # small batches (the few hard targets, iterating long): the trial point's Jacobian
+        # in the same pass, for the steps that will need it, saves a second pass
+        p_t, R_t, J_t = evaluate(q_try, act.size <= _JOINT_PASS_BELOW)
         e_try = error(act, p_t, R_t)
         c_try = np.sum((e_try * w) ** 2, axis=1)
         acc = (c_try < cost[act]) & ok_num
@@ -146,11 +151,19 @@ def solve_pose(evaluate: Evaluator, q0: Array, p_target: Array, R_target: Array,
         gamma[ir] *= 0.5
         lam[ir] *= 10.0
         iters[act] += 1
-        refresh = np.concatenate([ia[slow & ~conv[ia]], ir])
+        fresh[ia] = False
+        need = slow & ~conv[ia]                 # accepted but slow: Jacobian at the new q
+        if J_t is not None:
+            J[ia[need]] = J_t[acc][need]
+            fresh[ia[need]] = True
+            need[:] = False
+        # a rejected step leaves q where it was: where J was evaluated there, it stays
+        refresh = np.concatenate([ia[need], ir[~fresh[ir]]])
         if refresh.size:
             _, _, Jr = evaluate(q[refresh], True)
             assert Jr is not None
             J[refresh] = Jr
+            fresh[refresh] = True
     span = 1e-9
     at_limit = np.any((q <= lo + span) | (q >= hi - span), axis=1)
     return PoseSolution(q=q, pos_residual=np.linalg.norm(e[:, :3], axis=1),

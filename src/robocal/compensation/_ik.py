@@ -225,23 +225,30 @@ def _wrap_to_limits(robot: RobotDescription, q: Array, seed: Array
     lim = robot.joint_limits
     lo, hi = lim[:, 0], lim[:, 1]
     D = _TWO_PI * np.linalg.inv(robot.coupling_matrix)                    # (dof, dof)
-    q = np.array(np.broadcast_to(q, np.broadcast_shapes(q.shape, np.shape(seed))))
-    seed = np.broadcast_to(seed, q.shape)
+    shape = np.broadcast_shapes(q.shape, np.shape(seed))
+    # joint by joint on contiguous (dof, ...) rows; a turn of chain angle j moves only the
+    # joints m with D[m, j] != 0
+    qs = np.moveaxis(np.broadcast_to(q, shape), -1, 0).copy()
+    ss = np.moveaxis(np.broadcast_to(seed, shape), -1, 0).copy()
     tol = 1e-9
-    for j in range(q.shape[-1]):
+    for j in range(qs.shape[0]):
         djj = D[j, j]
         if abs(djj) < 1e-12:
             continue
-        k0 = np.round((seed[..., j] - q[..., j]) / djj)
+        qj, sj = qs[j], ss[j]
+        k0 = np.round((sj - qj) / djj)
         best_k = np.zeros_like(k0)
         dist = np.full(k0.shape, np.inf)
         for dk in (0.0, -1.0, 1.0):
-            cand = q[..., j] + (k0 + dk) * djj
-            d = np.abs(cand - seed[..., j])
+            k = k0 + dk
+            cand = qj + k * djj
+            d = np.abs(cand - sj)
             take = (cand >= lo[j] - tol) & (cand <= hi[j] + tol) & (d < dist)
-            best_k = np.where(take, k0 + dk, best_k)
+            best_k = np.where(take, k, best_k)
             dist = np.where(take, d, dist)
-        q = q + best_k[..., None] * D[:, j]
+        for m in np.flatnonzero(D[:, j]):
+            qs[m] += best_k * D[m, j]
+    q = np.moveaxis(qs, 0, -1)
     ok = np.all((q >= lo - tol) & (q <= hi + tol), axis=-1)
     return np.clip(q, lo, hi), ok
 

@@ -106,8 +106,9 @@ class BasisPlan:
     across the six error components and between cosine and sine: ``freq`` (U,) and
     ``joint`` (U,) list each distinct harmonic once; ``h_terms`` (H,) are the harmonic
     terms, ``h_feature`` (H,) the harmonic each uses and ``h_cos`` (H,) whether it is the
-    cosine. ``const`` are the constant terms, ``rest`` the other terms' indices and
-    ``rest_spec`` a spec of them alone.
+    cosine. ``const`` are the constant terms, ``rest`` the terms other than constants and
+    harmonics and ``rest_spec`` a spec of them alone. ``features``: how
+    :func:`error_components` lays them out.
     """
 
     n_terms: int
@@ -119,6 +120,91 @@ class BasisPlan:
     h_cos: NDArray[np.bool_]
     rest: NDArray[np.intp]
     rest_spec: ErrorModelSpec
+    features: FeatureLayout
+
+
+@dataclass(frozen=True)
+class FeatureLayout:
+    """Per joint, the functions of its own value its error components combine.
+
+    Joint j's block of ``size`` rows holds the cosines (rows ``0 .. K-1``) and sines
+    (``K .. 2K-1``) of its distinct harmonics, then the Legendre polynomials of its
+    ``poly`` terms (``2K .. 2K+L-1``) and their derivatives by the joint value
+    (``2K+L ..``). Rows are numbered over all blocks (``j * size + row``).
+
+    ``harmonic_row`` (U,): the cosine row of each distinct harmonic of the
+    :class:`BasisPlan`. ``direct`` (D,): harmonics whose cosine and sine are evaluated;
+    ``doubled``: per level, ``(u, v)`` index arrays of harmonics whose argument is twice
+    that of v (double-angle formulas; a level only uses earlier ones). ``poly_joints`` (J,),
+    ``poly_order`` (J, L) (-1: unused) and ``poly_row`` (J, L): the Legendre features;
+    ``p_terms``, ``p_row`` (P,): the poly terms and the row of their polynomial.
+    ``rest``: terms left to :func:`evaluate_basis` (maps, gravity).
+    """
+
+    K: int
+    L: int
+    size: int
+    harmonic_row: NDArray[np.intp]
+    direct: NDArray[np.intp]
+    doubled: tuple[tuple[NDArray[np.intp], NDArray[np.intp]], ...]
+    poly_joints: NDArray[np.intp]
+    poly_order: NDArray[np.intp]
+    poly_row: NDArray[np.intp]
+    p_terms: NDArray[np.intp]
+    p_row: NDArray[np.intp]
+    rest: NDArray[np.intp]
+    rest_spec: ErrorModelSpec
+
+
+def _feature_layout(spec: ErrorModelSpec, keys: list[tuple[int, float]],
+                    rest: list[int]) -> FeatureLayout:
+    dof = spec.dof
+    index = {k: u for u, k in enumerate(keys)}
+    slot = [0] * len(keys)
+    count = [0] * dof
+    for u, (j, _) in enumerate(keys):
+        slot[u] = count[j]
+        count[j] += 1
+    K = max(count, default=0)
+    p_terms = [k for k in rest if spec.terms[k].family == "poly"]
+    orders: list[list[int]] = [[] for _ in range(dof)]
+    for k in p_terms:
+        t = spec.terms[k]
+        if t.index not in orders[t.joint]:
+            orders[t.joint].append(t.index)
+    L = max((len(o) for o in orders), default=0)
+    size = 2 * K + 2 * L
+    harmonic_row = [j * size + slot[u] for u, (j, _) in enumerate(keys)]
+    # a harmonic whose half is also in the model: by the double-angle formulas, level by
+    # level (its half first)
+    level = [0] * len(keys)
+    for u in sorted(range(len(keys)), key=lambda u: keys[u][1]):
+        j, f = keys[u]
+        half = index.get((j, f / 2.0))
+        level[u] = level[half] + 1 if half is not None and f > 0.0 else 0
+    doubled = tuple(
+        (np.array(us, dtype=np.intp),
+         np.array([index[(keys[u][0], keys[u][1] / 2.0)] for u in us], dtype=np.intp))
+        for lv in range(1, max(level, default=0) + 1)
+        for us in [[u for u in range(len(keys)) if level[u] == lv]])
+    poly_joints = [j for j in range(dof) if orders[j]]
+    poly_order = np.full((len(poly_joints), L), -1, dtype=np.intp)
+    poly_row = np.zeros((len(poly_joints), L), dtype=np.intp)
+    for r, j in enumerate(poly_joints):
+        for i, k in enumerate(orders[j]):
+            poly_order[r, i] = k
+            poly_row[r, i] = j * size + 2 * K + i
+    p_row = [spec.terms[k].joint * size + 2 * K + orders[spec.terms[k].joint].index(
+        spec.terms[k].index) for k in p_terms]
+    others = [k for k in rest if spec.terms[k].family != "poly"]
+    return FeatureLayout(
+        K=K, L=L, size=size, harmonic_row=np.array(harmonic_row, dtype=np.intp),
+        direct=np.array([u for u in range(len(keys)) if level[u] == 0], dtype=np.intp),
+        doubled=doubled, poly_joints=np.array(poly_joints, dtype=np.intp),
+        poly_order=poly_order, poly_row=poly_row, p_terms=np.array(p_terms, dtype=np.intp),
+        p_row=np.array(p_row, dtype=np.intp), rest=np.array(others, dtype=np.intp),
+        rest_spec=ErrorModelSpec(spec.dof, tuple(spec.terms[k] for k in others),
+                                 spec.map_knots, spec.label))
 
 
 def basis_plan(spec: ErrorModelSpec, robot: RobotDescription) -> BasisPlan:
@@ -146,7 +232,8 @@ def basis_plan(spec: ErrorModelSpec, robot: RobotDescription) -> BasisPlan:
         h_terms=np.array(h_terms, dtype=np.intp), h_feature=np.array(h_feat, dtype=np.intp),
         h_cos=np.array(h_cos, dtype=bool), rest=np.array(rest, dtype=np.intp),
         rest_spec=ErrorModelSpec(spec.dof, tuple(spec.terms[k] for k in rest),
-                                 spec.map_knots, spec.label))
+                                 spec.map_knots, spec.label),
+        features=_feature_layout(spec, keys, rest))
 
 
 def _harmonic_values(plan: BasisPlan, q: Array) -> tuple[Array, Array]:
@@ -155,43 +242,117 @@ def _harmonic_values(plan: BasisPlan, q: Array) -> tuple[Array, Array]:
     return np.cos(arg), np.sin(arg)
 
 
-def error_components(plan: BasisPlan, robot: RobotDescription, q: Array, coef: Array,
-                     cols: NDArray[np.intp], width: int, *, derivative: bool = False
-                     ) -> tuple[Array, Array | None]:
-    """``(B @ S).T`` and ``(dB @ S).T`` (width, n) without forming B: S scatters term k,
-    weighted by ``coef[k]``, into column ``cols[k]`` (error component joint * 6 + axis).
+@dataclass(frozen=True)
+class ComponentWeights:
+    """The coefficients of one parameter vector arranged for :func:`error_components`.
 
-    The harmonics are combined by two matrix products with their cosines and sines
-    (computed once per distinct argument, as (U, n) rows), the constants are added as they
-    are, and the other terms go through :func:`evaluate_basis` of ``plan.rest_spec``.
+    ``W`` (dof, 12, size): per joint, rows 0-5 combine its block of features
+    (:class:`FeatureLayout`) into its six error components, rows 6-11 into their
+    derivatives by the joint value. ``e0`` (6 dof,): the constant terms summed per
+    component. ``S`` (6 dof, R): scatter of the remaining terms (weighted) to components.
     """
-    n = q.shape[0]
-    E = np.zeros((width, n))
-    dE = np.zeros((width, n)) if derivative else None
-    if plan.const.size:
-        e0 = np.zeros(width)
-        np.add.at(e0, cols[plan.const], coef[plan.const])
-        E += e0[:, None]
+
+    W: Array
+    e0: Array
+    S: Array
+
+
+def component_weights(plan: BasisPlan, coef: Array, cols: NDArray[np.intp], dof: int
+                      ) -> ComponentWeights:
+    """:class:`ComponentWeights` of the term coefficients ``coef`` (n_terms,)."""
+    lay = plan.features
+    K, L, size = lay.K, lay.L, lay.size
+    W = np.zeros((dof, 12, size))
     if plan.h_terms.size:
-        arg = plan.freq[:, None] * q.T[plan.joint]                   # (U, n)
-        c, s = np.cos(arg), np.sin(arg)
-        U = plan.freq.size
-        Mc = np.zeros((width, U))
-        Ms = np.zeros((width, U))
-        hc = plan.h_cos
+        u = plan.h_feature
+        c = cols[plan.h_terms]
+        j, comp = c // 6, c % 6
+        k = lay.harmonic_row[u] - j * size                         # cosine row in the block
         w = coef[plan.h_terms]
-        np.add.at(Mc, (cols[plan.h_terms[hc]], plan.h_feature[hc]), w[hc])
-        np.add.at(Ms, (cols[plan.h_terms[~hc]], plan.h_feature[~hc]), w[~hc])
-        E += Mc @ c + Ms @ s
-        if dE is not None:
-            dE += (Ms * plan.freq) @ c - (Mc * plan.freq) @ s
-    if plan.rest.size:
-        Br, dBr = evaluate_basis(plan.rest_spec, robot, q, derivative=derivative)
-        S = np.zeros((width, plan.rest.size))
-        S[cols[plan.rest], np.arange(plan.rest.size)] = coef[plan.rest]
-        E += S @ Br.T
+        f = plan.freq[u]
+        hc, hs = plan.h_cos, ~plan.h_cos
+        # E += w cos(f q) | w sin(f q);  dE += -w f sin(f q) | w f cos(f q)
+        np.add.at(W, (j[hc], comp[hc], k[hc]), w[hc])
+        np.add.at(W, (j[hc], comp[hc] + 6, K + k[hc]), -w[hc] * f[hc])
+        np.add.at(W, (j[hs], comp[hs], K + k[hs]), w[hs])
+        np.add.at(W, (j[hs], comp[hs] + 6, k[hs]), w[hs] * f[hs])
+    if lay.p_terms.size:
+        c = cols[lay.p_terms]
+        j, comp = c // 6, c % 6
+        k = lay.p_row - j * size
+        w = coef[lay.p_terms]
+        np.add.at(W, (j, comp, k), w)
+        np.add.at(W, (j, comp + 6, k + L), w)
+    e0 = np.zeros(dof * 6)
+    np.add.at(e0, cols[plan.const], coef[plan.const])
+    S = np.zeros((dof * 6, lay.rest.size))
+    S[cols[lay.rest], np.arange(lay.rest.size)] = coef[lay.rest]
+    return ComponentWeights(W=W, e0=e0, S=S)
+
+
+def joint_features(plan: BasisPlan, robot: RobotDescription, q: Array) -> Array:
+    """Every joint's block of features (:class:`FeatureLayout`) at ``q`` (n, dof):
+    (dof, size, n).
+
+    Each harmonic argument's cosine and sine are evaluated once; a harmonic whose half is
+    also in the model comes from its half by the double-angle formulas.
+    """
+    n, dof = q.shape
+    lay = plan.features
+    F = np.zeros((dof, lay.size, n))
+    flat = F.reshape(dof * lay.size, n)
+    qt = np.ascontiguousarray(q.T)
+    row, K = lay.harmonic_row, lay.K
+    d = lay.direct
+    if d.size:
+        arg = plan.freq[d, None] * qt[plan.joint[d]]
+        flat[row[d]] = np.cos(arg)
+        flat[row[d] + K] = np.sin(arg)
+    for u, v in lay.doubled:
+        c, s = flat[row[v]], flat[row[v] + K]
+        flat[row[u]] = 2.0 * c * c - 1.0
+        flat[row[u] + K] = 2.0 * s * c
+    if lay.poly_joints.size:
+        lim = robot.joint_limits[lay.poly_joints]
+        lo, hi = lim[:, :1], lim[:, 1:]
+        s = (2.0 * qt[lay.poly_joints] - (lo + hi)) / (hi - lo)        # (J, n)
+        P, dP = _legendre(s.ravel(), int(lay.poly_order.max()))
+        J = lay.poly_joints.size
+        P, dP = P.reshape(-1, J, n), dP.reshape(-1, J, n) * (2.0 / (hi - lo))
+        used = lay.poly_order >= 0
+        r = np.nonzero(used)[0]
+        k = lay.poly_order[used]
+        flat[lay.poly_row[used]] = P[k, r]
+        flat[lay.poly_row[used] + lay.L] = dP[k, r]
+    return F
+
+
+def error_components(plan: BasisPlan, robot: RobotDescription, q: Array,
+                     weights: ComponentWeights, *, derivative: bool = False
+                     ) -> tuple[Array, Array | None]:
+    """Error components E (6 dof, n) and optionally dE/dq_j (6 dof, n) as rows
+    (row ``6 j + axis``), without forming the basis matrix.
+
+    Each joint's harmonics and polynomials are combined by one small matrix product per
+    joint with their values (:func:`joint_features`), the constants are added as they
+    are, and maps and gravity terms go through :func:`evaluate_basis`.
+    """
+    n, dof = q.shape
+    width = dof * 6
+    lay = plan.features
+    if lay.size:
+        W = weights.W if derivative else weights.W[:, :6]
+        out = W @ joint_features(plan, robot, q)                   # (dof, 12 | 6, n)
+        E = out[:, :6].reshape(width, n) + weights.e0[:, None]
+        dE = out[:, 6:].reshape(width, n) if derivative else None
+    else:
+        E = np.repeat(weights.e0[:, None], n, axis=1)
+        dE = np.zeros((width, n)) if derivative else None
+    if lay.rest.size:
+        Br, dBr = evaluate_basis(lay.rest_spec, robot, q, derivative=derivative)
+        E += weights.S @ Br.T
         if dE is not None and dBr is not None:
-            dE += S @ dBr.T
+            dE += weights.S @ dBr.T
     return E, dE
 
 

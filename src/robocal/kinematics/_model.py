@@ -22,8 +22,10 @@ from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
 from robocal.kinematics._basis import (
+    ComponentWeights,
     basis_plan,
     component_columns,
+    component_weights,
     error_components,
     evaluate_basis,
 )
@@ -120,6 +122,12 @@ class KinematicModel:
         self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
         self._cols = component_columns(spec)
         self._plan = basis_plan(spec, robot)
+        # what the last parameter vector fixes, arranged for the passes (_Prepared)
+        self._prepared: _Prepared | None = None
+        # joints whose error components are constants: their errors and DH transform fold
+        # into one fixed transform per parameter vector
+        self._const_joints = frozenset(
+            range(robot.dof)) - frozenset(t.joint for t in spec.terms if t.family != "const")
         # joints with a joint-dependent error term (the others add nothing to dE/dq)
         self._dep_joints = frozenset(t.joint for t in spec.terms
                                      if t.family not in ("const", "gravity"))
@@ -194,8 +202,33 @@ class KinematicModel:
     def _errors_t(self, q: Array, x: Array, *, derivative: bool = False
                   ) -> tuple[Array, Array | None]:
         """E and optionally dE/dq_i as (6 dof, n) rows, without the basis matrix."""
-        return error_components(self._plan, self.robot, q, x[_OFF:], self._cols,
-                                self.robot.dof * 6, derivative=derivative)
+        return error_components(self._plan, self.robot, q, self._prepare(x).weights,
+                                derivative=derivative)
+
+    def _prepare(self, x: Array) -> _Prepared:
+        """What ``x`` fixes for the passes, computed once per parameter vector."""
+        key = x.tobytes()
+        prep = self._prepared
+        if prep is not None and prep.key == key:
+            return prep
+        w = component_weights(self._plan, x[_OFF:], self._cols, self.robot.dof)
+        R = self.T_ref[:3, :3, None].copy()
+        o = self.T_ref[:3, 3, None].copy()
+        _soa_error(R, o, x[ParameterLayout.BASE][:, None])
+        if self._T_base is not None:
+            R, o = _soa_fixed(R, o, self._T_base)
+        fixed = {}
+        for i in self._const_joints:
+            Ri, oi = np.eye(3)[:, :, None], np.zeros((3, 1))
+            _soa_error(Ri, oi, w.e0[6 * i:6 * i + 6, None])
+            d, a, ca, sa = self._dh[i]
+            oi += d * Ri[:, 2] + a * Ri[:, 0]
+            _soa_rot(Ri, 1, 2, ca, sa)
+            fixed[i] = (np.ascontiguousarray(Ri[:, :, 0].T), oi)
+        prep = _Prepared(key=key, weights=w, R0=R[:, :, 0].copy(), o0=o[:, 0].copy(),
+                         fixed=fixed)
+        self._prepared = prep
+        return prep
 
     def _errors(self, q: Array, x: Array, *, derivative: bool = False
                 ) -> tuple[Array, Array | None]:
@@ -271,28 +304,48 @@ class KinematicModel:
         n, dof = q.shape
         theta = (q @ self._C.T + self._theta_off).T            # (dof, n)
         Et, dEt = E, dE                                         # (6 dof, n) rows
-        R = np.repeat(self.T_ref[:3, :3, None], n, axis=2)
-        o = np.repeat(self.T_ref[:3, 3, None], n, axis=1)
-        _soa_error(R, o, x[ParameterLayout.BASE][:, None])
-        if self._T_base is not None:
-            R, o = _soa_fixed(R, o, self._T_base)
+        prep = self._prepare(x)
+        R = np.repeat(prep.R0[:, :, None], n, axis=2)
+        o = np.repeat(prep.o0[:, None], n, axis=1)
         rec: list[tuple[int, Array, Array, Array, Array]] = []
+        # every cosine and sine of the pass in two calls each (one per joint costs more
+        # than the arithmetic on small batches)
+        ct, st = np.cos(theta), np.sin(theta)
+        varying = [i for i in range(dof) if i not in prep.fixed]
+        ang = Et.reshape(dof, 6, n)[varying, 3:]
+        ce, se = np.cos(ang), np.sin(ang)
+        jac = dEt is not None
         for i in range(dof):
-            z_i, o_i = R[:, 2].copy(), o.copy()
-            _soa_rot(R, 0, 1, np.cos(theta[i]), np.sin(theta[i]))
+            z_i, o_i = (R[:, 2].copy(), o.copy()) if jac else (R[:, 2], o)
+            _soa_rot(R, 0, 1, ct[i], st[i])
             e = Et[6 * i:6 * i + 6]
+            if i in prep.fixed:
+                # constant errors and the DH transform as one: R <- R M, o <- o + R t
+                Mt, t = prep.fixed[i]
+                o += _soa_apply(R, t)
+                R = np.matmul(Mt, R)
+                if dEt is not None:
+                    rec.append((i, z_i, o_i, np.empty((0, n)), o))
+                continue
+            k = varying.index(i)
             if dEt is not None and i in self._dep_joints:
                 de = dEt[6 * i:6 * i + 6]
                 v = _soa_apply(R, de[:3])
-                w = _soa_error(R, o, e, de)
+                w = _soa_error(R, o, e, de, (ce[k], se[k]))
                 rec.append((i, z_i, o_i, np.concatenate([v, w]), o.copy()))
             else:
-                _soa_error(R, o, e)
+                _soa_error(R, o, e, cs=(ce[k], se[k]))
                 if dEt is not None:
                     rec.append((i, z_i, o_i, np.empty((0, n)), o))
             d, a, ca, sa = self._dh[i]
-            o += d * R[:, 2] + a * R[:, 0]
-            _soa_rot(R, 1, 2, ca, sa)
+            if d != 0.0 and a != 0.0:
+                o += d * R[:, 2] + a * R[:, 0]
+            elif d != 0.0:
+                o += d * R[:, 2]
+            elif a != 0.0:
+                o += a * R[:, 0]
+            if sa != 0.0 or ca != 1.0:
+                _soa_rot(R, 1, 2, ca, sa)
         if self._T_flange is not None:
             R, o = _soa_fixed(R, o, self._T_flange)
         return R, o, rec
@@ -348,13 +401,12 @@ class KinematicModel:
         n, dof = q.shape
         R, o, rec = self._soa_pass(q, x, E, dE)
         p = o + _soa_apply(R, x[ParameterLayout.TOOL])            # (3, n)
-        lin = np.empty((3, dof, n))
-        ang = np.empty((3, dof, n))
+        Jt = np.empty((6, dof, n))                                # per theta, then per q
         for i, z_i, o_i, _, _ in rec:
-            ang[:, i] = z_i
-            lin[:, i] = _soa_cross(z_i, p - o_i)
-        Jt = np.concatenate([lin, ang])                           # (6, dof, n), per theta
-        Jt = np.einsum("rjn,jk->rkn", Jt, self._C) if self._coupled else Jt
+            Jt[3:, i] = z_i
+            Jt[:3, i] = _soa_cross(z_i, p - o_i)
+        if self._coupled:
+            Jt = np.matmul(self._C.T, Jt)                         # J_q = J_theta C
         for i, _, _, vw, piv in rec:
             if vw.size:
                 w = vw[3:]
@@ -386,6 +438,20 @@ class KinematicModel:
         return m, x2
 
 
+@dataclass(frozen=True)
+class _Prepared:
+    """What one parameter vector fixes: the error-term weights, the frame before joint 1
+    (``R0`` (3, 3), ``o0`` (3,): reference, base errors and root -> DH 0) and, per joint
+    with constant errors, ``(M^T, t)``: rotation (3, 3, transposed for ``np.matmul``) and
+    translation (3, 1) of its errors and DH transform after the joint rotation."""
+
+    key: bytes
+    weights: ComponentWeights
+    R0: Array
+    o0: Array
+    fixed: dict[int, tuple[Array, Array]]
+
+
 def _scatter_columns(values: Array, cols: NDArray[np.intp], width: int) -> Array:
     """Sum columns of ``values`` (n, T) into ``width`` columns by index ``cols`` (T,)."""
     S = np.zeros((values.shape[1], width))
@@ -413,8 +479,11 @@ def _soa_rot(R: Array, i: int, j: int, c: Array | float, s: Array | float) -> No
     """In place: columns (i, j) <- (c Ri + s Rj, -s Ri + c Rj), a rotation about axis k."""
     ri = R[:, i].copy()
     rj = R[:, j]
-    R[:, i] = c * ri + s * rj
-    R[:, j] = -s * ri + c * rj
+    Ri = R[:, i]
+    Ri *= c
+    Ri += s * rj
+    rj *= c                 # in place, same values as c rj - s ri
+    rj -= s * ri
 
 
 def _soa_apply(R: Array, v: Array) -> Array:
@@ -434,20 +503,22 @@ def _soa_fixed(R: Array, o: Array, T: Array) -> tuple[Array, Array]:
     return Rn, o + _soa_apply(R, T[:3, 3])
 
 
-def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None) -> Array | None:
+def _soa_error(R: Array, o: Array, e: Array, de: Array | None = None,
+               cs: tuple[Array, Array] | None = None) -> Array | None:
     """In place: apply E(e) (e (6, n) or (6, 1)) to frame (R, o).
 
     With ``de`` (6, n): also return the angular velocity (3, n) of the frame per unit of
     the joint value whose error components change by ``de`` (rotation axes as they are when
-    each rotation acts).
+    each rotation acts). ``cs``: cosines and sines (3, n) of ``e[3:]`` when already known.
     """
+    c, s = (np.cos(e[3:]), np.sin(e[3:])) if cs is None else cs
     o += _soa_apply(R, e[:3])
     w = None if de is None else R[:, 0] * de[3]
-    _soa_rot(R, 1, 2, np.cos(e[3]), np.sin(e[3]))       # Rx(ex)
+    _soa_rot(R, 1, 2, c[0], s[0])       # Rx(ex)
     if w is not None and de is not None:
         w += R[:, 1] * de[4]
-    _soa_rot(R, 2, 0, np.cos(e[4]), np.sin(e[4]))       # Ry(ey)
+    _soa_rot(R, 2, 0, c[1], s[1])       # Ry(ey)
     if w is not None and de is not None:
         w += R[:, 2] * de[5]
-    _soa_rot(R, 0, 1, np.cos(e[5]), np.sin(e[5]))       # Rz(ez)
+    _soa_rot(R, 0, 1, c[2], s[2])       # Rz(ez)
     return w
