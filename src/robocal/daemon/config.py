@@ -47,6 +47,7 @@ __all__ = [
     "LimitsConfig",
     "LoggingConfig",
     "MeasurementConfig",
+    "WarmupConfig",
     "config_digest",
     "config_errors",
     "config_warnings",
@@ -165,6 +166,32 @@ class MeasurementConfig(_Model):
     max_distance_mm: float = Field(default=25.0, gt=0.0)
     min_poses_for_distance: int = Field(default=6, ge=4)
     max_joint_deviation_deg: float = Field(default=0.5, gt=0.0)
+
+
+class WarmupConfig(_Model):
+    """The warm-up routine run before a campaign's first measured pose (ADR 0042).
+
+    ``pattern = "plan"``: the campaign's own poses (via-points included) in plan order,
+    cycled; each cycle starts with the same checked first move as a campaign (limits, the
+    cell's swept path, via the plan's home). It ends after ``duration_s``, or, with
+    ``until_settled_c_per_min``, once ``duration_s`` (if given) has passed and no joint's
+    temperature changed by more than that per minute over the last ``settle_window_s``;
+    never later than ``max_s``. Time is the robot controller's clock of the temperature
+    readings where the driver reads them, else the daemon's; ``until_settled_c_per_min``
+    needs a driver that reads joint temperatures.
+    """
+
+    pattern: Literal["plan"] = "plan"
+    duration_s: float | None = Field(default=None, gt=0.0)
+    until_settled_c_per_min: float | None = Field(default=None, gt=0.0)
+    settle_window_s: float = Field(default=120.0, gt=0.0)
+    max_s: float = Field(default=3600.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _has_an_end(self) -> WarmupConfig:
+        if self.duration_s is None and self.until_settled_c_per_min is None:
+            raise ValueError("warmup needs duration_s or until_settled_c_per_min")
+        return self
 
 
 class FitConfig(_Model):
@@ -292,6 +319,8 @@ class AppConfig(_Model):
     api: ApiConfig = ApiConfig()
     limits: LimitsConfig = LimitsConfig()
     measurement: MeasurementConfig = MeasurementConfig()
+    #: the warm-up routine before each campaign's first measured pose; none when absent
+    warmup: WarmupConfig | None = None
     fit: FitConfig = FitConfig()
     compensation: CompensationConfig = CompensationConfig()
     logging: LoggingConfig = LoggingConfig()

@@ -136,6 +136,7 @@ def _rows(job: Mapping[str, Any]) -> list[MeasurementRow]:
         sigma_mm=None if r["sigma_mm"] is None else tuple(r["sigma_mm"]),
         rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
         distance_mm=r["distance_mm"], weather=dict(r["weather"]), measured_at=r["measured_at"],
+        temps_c=tuple(float(v) for v in r.get("temps_c", ())),
     ) for r in job["rows"]]
 
 

@@ -28,7 +28,6 @@ from robocal.drivers.api import (
     CompensationSlots,
     CompensationSnapshots,
     JointReading,
-    JointTemperatureReader,
     JointTemperatures,
     TrackerReading,
 )
@@ -96,8 +95,7 @@ _EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
                                   frames=FramesPayload(base=_ZERO_FRAME, tool=_ZERO_FRAME))
 
 
-class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots,
-                JointTemperatureReader):
+class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
     """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
 
     Parameters

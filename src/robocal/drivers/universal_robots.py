@@ -47,7 +47,6 @@ from robocal.drivers.api import (
     ControllerCalibration,
     ControllerCalibrationReadable,
     JointReading,
-    JointTemperatureReader,
     JointTemperatures,
     check_joint_target,
 )
@@ -136,8 +135,7 @@ class _ProgramFailed(Exception):
 
 
 class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
-                           CompensationSnapshots, ControllerCalibrationReadable,
-                           JointTemperatureReader):
+                           CompensationSnapshots, ControllerCalibrationReadable):
     """A UR e-Series or CB3 arm (PolyScope 3.x/5.x) through its network interfaces.
 
     Parameters

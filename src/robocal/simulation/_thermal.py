@@ -1,11 +1,12 @@
 """Planted warm-up drift of the virtual robot: joints heat while moving, links grow with heat.
 
 Each joint's temperature follows a first-order lag (time constant ``tau_s``, about 10 min)
-toward ``ambient_c + rise_c[j]`` while the robot moves and toward ``ambient_c`` while it
-stands. Link j grows along its dominant DH length (``a_j`` through the ``dx`` error
-component, else ``d_j`` through ``dz``) by ``growth_m_per_c[j]`` per °C of joint j above
-ambient. Time is simulated: the world advances it by each move's duration and each
-measurement's dwell, never by the wall clock, so a 30 min warm-up runs in milliseconds.
+toward ``ambient_c + rise_c[j]`` while the robot moves and toward ``ambient_c +
+holding * rise_c[j]`` while it stands powered (motors holding the arm against gravity).
+Link j grows along its dominant DH length (``a_j`` through the ``dx`` error component, else
+``d_j`` through ``dz``) by ``growth_m_per_c[j]`` per °C of joint j above ambient. Time is
+simulated: the world advances it by each move's duration and each measurement's dwell, never
+by the wall clock, so a 30 min warm-up runs in milliseconds.
 
 Kept apart from the other planted errors: it changes nothing of a cell built without it.
 """
@@ -46,7 +47,9 @@ class WarmUpDrift:
     growth_m_per_c: Array
     temps_c: Array
     time_s: float = 0.0
-    _chain: tuple[KinematicModel, Array, Array] | None = field(default=None, repr=False)
+    holding: float = 0.5
+    _chain: tuple[KinematicModel, Array, NDArray[np.intp]] | None = field(default=None,
+                                                                    repr=False)
 
     @classmethod
     def planted(cls, robot: RobotDescription, *, drift_m: float = 1e-4, over_s: float = 1800.0,
@@ -65,7 +68,7 @@ class WarmUpDrift:
         """Let ``seconds`` of simulated time pass, the robot moving or standing."""
         if seconds <= 0:
             return
-        target = self.ambient_c + (self.rise_c if moving else 0.0)
+        target = self.ambient_c + self.rise_c * (1.0 if moving else self.holding)
         self.temps_c = target + (self.temps_c - target) * math.exp(-seconds / self.tau_s)
         self.time_s += seconds
 
@@ -73,7 +76,7 @@ class WarmUpDrift:
         """Link length changes (..., dof) m at joint temperatures ``temps_c`` (..., dof) °C."""
         return self.growth_m_per_c * (np.asarray(temps_c, dtype=float) - self.ambient_c)
 
-    def _model(self, cell: Any) -> tuple[KinematicModel, Array, Array]:
+    def _model(self, cell: Any) -> tuple[KinematicModel, Array, NDArray[np.intp]]:
         """The truth model with a constant length term on every link, its parameters and
         the indices of those terms (built once)."""
         if self._chain is None:
