@@ -75,7 +75,8 @@ def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
                     ) -> MeasurementSet:
     """Stored rows (mm, deg) as a :class:`MeasurementSet` (SI), pose ids ``P<index>``.
 
-    Joints are the actual ones read back from the controller, or the commanded ones.
+    Joints are the actual ones read back from the controller, or the commanded ones; joint
+    temperatures come along when every row has them.
     """
     if not rows:
         raise IdentificationError("no measurements")
@@ -87,7 +88,11 @@ def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False
         sig = np.array([r.sigma_mm for r in rows], dtype=float) * 1e-3
         if np.any(sig <= 0):
             sig = None
-    return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows))
+    temps = None  # joint temperatures where every row has them (ADR 0042)
+    if all(len(r.temps_c) == q.shape[1] for r in rows):
+        temps = np.array([r.temps_c for r in rows], dtype=float)
+    return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows),
+                          temps=temps)
 
 
 def fit_options(options: Mapping[str, Any] | None) -> FitOptions:

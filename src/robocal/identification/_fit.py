@@ -460,6 +460,8 @@ def _finish(f: Fitter, kind: str, final: Solution, const: Solution | None,
             for n, v in zip(base.model.names, base.x, strict=True)},
         "elapsed_s": elapsed,
     }
+    if final.thermal is not None:
+        cal.fit["thermal"] = final.thermal
     if extra_fit:
         cal.fit.update(extra_fit)
     warnings = _warnings(cal, data.q[inl], validation, val_out, val_all)

@@ -20,17 +20,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.thermal import thermal_components
 from robocal.kinematics import KinematicModel, ParameterLayout, RobotDescription, Term
 
-__all__ = ["WarmUpDrift", "thermal_components"]
+__all__ = ["WarmUpDrift"]
 
 Array = NDArray[np.float64]
-
-
-def thermal_components(robot: RobotDescription) -> tuple[str, ...]:
-    """Per joint, the error component along which its link grows: ``dx`` (along ``a``) when
-    ``|a| >= |d|``, else ``dz`` (along ``d``)."""
-    return tuple("dx" if abs(j.a) >= abs(j.d) else "dz" for j in robot.joints)
 
 
 @dataclass
@@ -81,7 +76,7 @@ class WarmUpDrift:
         the indices of those terms (built once)."""
         if self._chain is None:
             truth: KinematicModel = cell.truth_model
-            comps = thermal_components(cell.robot)
+            comps = thermal_components(cell.robot.joints)
             extra = [Term(j, c, "const") for j, c in enumerate(comps)]
             model = truth.with_spec(truth.spec.with_terms(extra))
             x = truth.transfer(np.asarray(cell.truth_params, dtype=float), model)
