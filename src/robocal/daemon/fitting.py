@@ -13,6 +13,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
+import datetime as dt
 import json
 import math
 import multiprocessing
@@ -69,6 +70,18 @@ def sign_fits(fits: dict[str, tuple[dict[str, Any], str | None]], secret: bytes 
             continue
         out[name] = (summary, json.dumps(cal.to_dict(secret=secret), default=json_default))
     return out
+
+
+def temperature_log(rows: Sequence[MeasurementRow]) -> dict[str, Any]:
+    """The report's joint temperatures: ``joint_temps`` (°C per joint, every row that has
+    them, in pose order) and ``joint_temps_t_s`` (s since the first of them); empty when no
+    row has them."""
+    warm = [r for r in rows if r.temps_c]
+    if not warm:
+        return {}
+    t = [dt.datetime.fromisoformat(r.measured_at).timestamp() for r in warm]
+    return {"joint_temps": [list(r.temps_c) for r in warm],
+            "joint_temps_t_s": [v - t[0] for v in t]}
 
 
 def measurement_set(rows: Sequence[MeasurementRow], *, commanded: bool = False

@@ -4,10 +4,13 @@ keeps the joint temperatures."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from robocal.daemon._warmup import WarmupWatch
 from robocal.daemon.config import WarmupConfig
+from robocal.daemon.fitting import temperature_log
 from robocal.daemon.service import CalibrationService
 from tests.unit.daemon.conftest import ROBOT, random_plan
 
@@ -46,6 +49,12 @@ async def test_warmup_runs_until_the_temperatures_settle_then_measures(make_conf
     assert min(rows[0].temps_c) > cold + 2.0
     # the warm-up moves went through the driver like plan moves (many more than the plan)
     assert world.moves > 8 * 10
+    # what the report plots: every measurement's temperatures against its time
+    series = temperature_log(rows)
+    assert series["joint_temps"] == [list(r.temps_c) for r in rows]
+    assert series["joint_temps_t_s"][0] == 0.0
+    assert series["joint_temps_t_s"] == sorted(series["joint_temps_t_s"])
+    assert temperature_log([dataclasses.replace(r, temps_c=()) for r in rows]) == {}
 
 
 async def test_without_warmup_the_first_measurement_is_cold(make_config):
