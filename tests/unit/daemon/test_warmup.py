@@ -92,3 +92,16 @@ def test_watch_duration_settling_and_cap():
     assert "max_s" in (capped.add(60.0, (40.0,)) or "")
     with pytest.raises(ValueError, match="duration_s or until_settled"):
         WarmupConfig()
+
+
+def test_watch_line_shows_the_warmup_while_running():
+    from robocal.cli._campaign import _Progress
+
+    prog = _Progress({"poses_measured": 0, "poses_total": 8, "state": "running",
+                      "transitions": []}, now=0.0)
+    prog.update({"kind": "warmup", "phase": "progress", "elapsed_s": 754.0,
+                 "rate_c_per_min": 0.21}, now=1.0)
+    assert "| warming up 12:34, 0.210 degC/min" in prog.line(now=1.0)
+    prog.update({"kind": "warmup", "phase": "done", "elapsed_s": 2520.0,
+                 "rate_c_per_min": 0.02}, now=2.0)
+    assert "warm" not in prog.line(now=2.0)  # measuring now: the line is about the poses
