@@ -173,7 +173,10 @@ class WarmupConfig(_Model):
 
     ``pattern = "plan"``: the campaign's own poses (via-points included) in plan order,
     cycled; each cycle starts with the same checked first move as a campaign (limits, the
-    cell's swept path, via the plan's home). It ends after ``duration_s``, or, with
+    cell's swept path, via the plan's home). ``pattern = "poses"``: ``poses_deg`` (joints,
+    degrees) cycled; the whole cycle (from where the robot stands, via the plan's home,
+    through every pose and back to the first) is checked the same way before anything
+    moves. It ends after ``duration_s``, or, with
     ``until_settled_c_per_min``, once ``duration_s`` (if given) has passed and no joint's
     temperature changed by more than that per minute over the last ``settle_window_s``;
     never later than ``max_s``. Time is the robot controller's clock of the temperature
@@ -181,7 +184,8 @@ class WarmupConfig(_Model):
     needs a driver that reads joint temperatures.
     """
 
-    pattern: Literal["plan"] = "plan"
+    pattern: Literal["plan", "poses"] = "plan"
+    poses_deg: tuple[tuple[float, ...], ...] = ()
     duration_s: float | None = Field(default=None, gt=0.0)
     until_settled_c_per_min: float | None = Field(default=None, gt=0.0)
     settle_window_s: float = Field(default=120.0, gt=0.0)
@@ -191,6 +195,11 @@ class WarmupConfig(_Model):
     def _has_an_end(self) -> WarmupConfig:
         if self.duration_s is None and self.until_settled_c_per_min is None:
             raise ValueError("warmup needs duration_s or until_settled_c_per_min")
+        if (self.pattern == "poses") != bool(self.poses_deg):
+            raise ValueError('poses_deg is given with pattern = "poses" (two poses or more), '
+                             "and only then")
+        if self.pattern == "poses" and len(self.poses_deg) < 2:
+            raise ValueError('pattern = "poses" needs two poses or more in poses_deg')
         return self
 
 

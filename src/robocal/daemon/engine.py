@@ -352,9 +352,11 @@ class CampaignRunner:
             return CampaignState.FAULTED
         return state  # paused or aborted meanwhile: the pose in progress is simply redone
 
-    async def _checked_start(self, cid: str, target: PoseRow, *, via_home: bool) -> None:
+    async def _checked_start(self, cid: str, target: PoseRow, *, via_home: bool,
+                             then: Sequence[tuple[str, tuple[float, ...]]] = ()) -> None:
         """Read where the robot stands, check the run's first moves from there (to home when
-        ``via_home`` and the plan has one, then to ``target``) and move to home.
+        ``via_home`` and the plan has one, then to ``target``, then through ``then``: label,
+        joints deg) and move to home.
 
         Raises
         ------
@@ -365,14 +367,14 @@ class CampaignRunner:
         start_deg = [math.degrees(v) for v in (await robot.read_joints()).q_rad]
         plan = stored_plan(self.store.plan_json(cid), source=f"campaign {cid} plan")
         cell = load_cell(self.config.cell) if self.config.cell else plan.cell
-        stops = first_stops(plan, target, via_home=via_home)
+        stops = [*first_stops(plan, target, via_home=via_home), *then]
         _log.info("first move checked from the actual joints", campaign=cid,
                   start_deg=[round(v, 4) for v in start_deg], via=[s[0] for s in stops],
                   cell=None if cell is None else cell.name)
         # the swept-path check takes milliseconds to a few tenths of a second: off the loop
         await asyncio.to_thread(check_first_legs, self.robot, cell, self.limits, start_deg,
                                 stops)
-        if len(stops) == 1:
+        if len(stops) == 1 + len(then):
             return
         home = [math.radians(v) for v in stops[0][1]]
         await self._move_to(home, "home")
@@ -405,6 +407,7 @@ class CampaignRunner:
         """
         cfg = self.config.warmup
         assert cfg is not None
+        cycle, closing = self._warmup_cycle(poses)
         watch = WarmupWatch(cfg)
         temps, t = await self._joint_temperatures()
         if cfg.until_settled_c_per_min is not None and t is None:
@@ -415,17 +418,19 @@ class CampaignRunner:
                          temps_c=list(temps) or None)
         _log.info("warm-up started", campaign=cid, temps_c=list(temps))
         reason = None
+        cycles = 0
         while reason is None:
-            for k, pose in enumerate(poses):
+            for k, pose in enumerate(cycle):
                 if self._state(cid) != CampaignState.RUNNING:
                     return self._state(cid)
-                if k == 0:
-                    await self._checked_start(cid, pose, via_home=True)
+                if k == 0 and (not closing or cycles == 0):
+                    await self._checked_start(cid, pose, via_home=True, then=closing)
                 await self._move(pose)
                 temps, t = await self._joint_temperatures()
                 reason = watch.add(self.clock.monotonic() if t is None else t, temps)
                 if reason is not None:
                     break
+            cycles += 1
             self.events.emit("warmup", cid, phase="progress", elapsed_s=watch.elapsed_s,
                              temps_c=list(temps) or None, rate_c_per_min=watch.rate_c_per_min)
         detail = {"reason": reason, "elapsed_s": round(watch.elapsed_s, 3),
@@ -436,6 +441,25 @@ class CampaignRunner:
                          reason=reason)
         _log.info("warm-up done", campaign=cid, **detail)
         return None
+
+    def _warmup_cycle(self, poses: Sequence[PoseRow]
+                      ) -> tuple[list[PoseRow], list[tuple[str, tuple[float, ...]]]]:
+        """The poses one warm-up cycle visits and, for ``pattern = "poses"``, the rest of the
+        cycle after its first pose (back to it) as first-move stops: that whole cycle is
+        checked once, before anything moves. The plan's own cycle is checked from its first
+        pose on every cycle, as a campaign's start is."""
+        cfg = self.config.warmup
+        assert cfg is not None
+        if cfg.pattern == "plan":
+            return list(poses), []
+        cycle = [PoseRow(k, "warm-up", tuple(float(v) for v in q))
+                 for k, q in enumerate(cfg.poses_deg)]
+        for p in cycle:
+            if len(p.q_deg) != self.robot.dof:
+                raise MotionRejected(f"warm-up pose {p.idx} has {len(p.q_deg)} joints, the "
+                                     f"robot {self.robot.dof}; nothing moved", kind="daemon")
+        closing = [(f"pose {p.idx} (warm-up)", p.q_deg) for p in cycle[1:]]
+        return cycle, [*closing, ("pose 0 (warm-up, closing the cycle)", cycle[0].q_deg)]
 
     def _check_deviation(self, what: str, q_act: Sequence[float],
                          q_cmd: Sequence[float]) -> None:

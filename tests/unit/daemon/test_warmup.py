@@ -105,3 +105,43 @@ def test_watch_line_shows_the_warmup_while_running():
     prog.update({"kind": "warmup", "phase": "done", "elapsed_s": 2520.0,
                  "rate_c_per_min": 0.02}, now=2.0)
     assert "warm" not in prog.line(now=2.0)  # measuring now: the line is about the poses
+
+
+async def test_a_poses_pattern_is_cycled_for_its_duration(make_config):
+    poses = [[10.0, 20.0, -10.0, 0.0, 30.0, 0.0], [-20.0, 40.0, 10.0, 30.0, -30.0, 90.0]]
+    cfg = _warm_config(make_config, pattern="poses", poses_deg=poses, duration_s=600.0)
+    svc = CalibrationService(cfg)
+    await svc.start()
+    try:
+        st = await svc.create(random_plan(4, seed=2), actor="t")
+        st = await svc.wait(st["id"], ["measured", "fitted"], timeout=30)
+        done = [e for e in svc.events._buffer if e["kind"] == "warmup"][-1]
+        world = (await svc.hub.robot()).world  # type: ignore[attr-defined]
+    finally:
+        await svc.stop()
+    assert done["phase"] == "done" and "duration_s" in done["reason"]
+    assert 600.0 <= done["elapsed_s"] < 700.0
+    # about 5 s of simulated time per warm-up move (step / 0.5 rad/s + 1 s), 4 measured poses
+    assert world.moves > 600.0 / 10.0 + 4
+
+
+async def test_an_unsafe_warmup_pose_faults_before_anything_moves(make_config):
+    poses = [[10.0, 20.0, -10.0, 0.0, 30.0, 0.0], [400.0, 0.0, 0.0, 0.0, 0.0, 0.0]]
+    cfg = _warm_config(make_config, pattern="poses", poses_deg=poses, duration_s=60.0)
+    svc = CalibrationService(cfg)
+    await svc.start()
+    try:
+        st = await svc.create(random_plan(4, seed=2), actor="t")
+        st = await svc.wait(st["id"], ["faulted"], timeout=30)
+        world = (await svc.hub.robot()).world  # type: ignore[attr-defined]
+    finally:
+        await svc.stop()
+    assert "first move refused" in st["reason"] and "pose 1 (warm-up)" in st["reason"]
+    assert world.moves == 0 and st["poses_measured"] == 0
+
+
+def test_poses_pattern_needs_poses():
+    with pytest.raises(ValueError, match="poses_deg"):
+        WarmupConfig(pattern="poses", duration_s=60.0)
+    with pytest.raises(ValueError, match="poses_deg"):
+        WarmupConfig(poses_deg=((0.0,) * 6, (1.0,) * 6), duration_s=60.0)
