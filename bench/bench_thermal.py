@@ -34,8 +34,7 @@ from robocal.daemon.logging import configure_logging
 from robocal.daemon.service import CalibrationService
 from robocal.daemon.store import MeasurementRow
 from robocal.drivers.sim import SimWorld
-from robocal.identification import FitOptions, fit
-from robocal.identification._thermal import thermal_shift
+from robocal.identification import FitOptions, fit, thermal_shift
 from robocal.kinematics import CalibratedModel
 from robocal.planning import plan_campaign
 

@@ -293,8 +293,10 @@ def _model_coverage(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
 
 
 def _calibrated(sol: Solution, kind: str) -> CalibratedModel:
+    # the thermal term from the start: the accuracy figures apply it (ADR 0042)
     return CalibratedModel(model=sol.model, params=sol.x.copy(), covariance=sol.covariance,
-                           kind=kind)
+                           kind=kind, fit={} if sol.thermal is None else {
+                               "thermal": sol.thermal})
 
 
 def fit(robot: RobotDescription | str, data: MeasurementSet,

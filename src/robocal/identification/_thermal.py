@@ -11,7 +11,7 @@ solution) and taken only when it lowers the CV score by ``auto_min_improvement``
 temperature variation it is not even a candidate. Taken, it is solved jointly with the
 model's free parameters (one Gauss-Newton step: the coefficients are micrometres per °C);
 the model predicts at ``T_ref`` and :func:`thermal_shift` adds the term at other
-temperatures (ADR 0042).
+temperatures; accuracy figures apply it where the poses' temperatures are known (ADR 0042).
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from robocal._core.measurements import MeasurementSet
-from robocal.identification import FitOptions, fit
-from robocal.identification._thermal import MIN_VARIATION_C, thermal_shift
+from robocal.identification import FitOptions, accuracy, fit, thermal_shift
+from robocal.identification._thermal import MIN_VARIATION_C
 from robocal.simulation import VirtualCell, WarmUpDrift
 
 pytestmark = pytest.mark.timeout(120)
@@ -59,6 +59,9 @@ def test_thermal_term_recovers_the_planted_growth_per_degree():
     err_without = np.linalg.norm(res.calibrated.predict(q) - truth_hot, axis=1).max()
     assert err_with < 0.5 * err_without
     assert res.selection[-1]["action"] == "thermal" and res.selection[-1]["selected"]
+    # the reported accuracy applies the term at each pose's temperatures
+    assert res.train.rms_m == pytest.approx(accuracy(res.calibrated, data).rms_m)
+    assert res.train.rms_m < 0.9 * accuracy(res.calibrated, MeasurementSet(data.q, data.p)).rms_m
 
 
 def test_no_thermal_term_without_temperature_variation():
