@@ -421,6 +421,7 @@ class CampaignRunner:
         cycles = 0
         while reason is None:
             for k, pose in enumerate(cycle):
+                _raise_if_cancelling()
                 if self._state(cid) != CampaignState.RUNNING:
                     return self._state(cid)
                 if k == 0 and (not closing or cycles == 0):
