@@ -3,6 +3,8 @@ temperatures vary, and is never taken when they do not (or when they vary withou
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -84,3 +86,19 @@ def test_varying_temperatures_without_effect_are_not_taken():
     note = res.selection[-1]
     assert note["considered"] is True and note["selected"] is False, note
     assert "thermal" not in res.calibrated.fit
+
+
+def test_fit_cli_reads_temperature_columns_and_names_the_term(tmp_path, capsys):
+    from robocal.cli.main import main
+
+    n = 120
+    temps = np.random.default_rng(4).uniform(20.0, 30.0, (n, 6))
+    _, _, data = _data(n, temps, planted=True, seed=1)
+    data.write_csv(tmp_path / "meas.csv")
+    assert "temp6" in (tmp_path / "meas.csv").read_text().splitlines()[0]
+    assert main(["fit", "--robot", "fanuc_lrmate200i", "--data", str(tmp_path / "meas.csv"),
+                 "--out", str(tmp_path / "model.json")]) == 0
+    out = capsys.readouterr().out
+    assert "thermal term: taken, +0.00" in out and "mm/degC per link" in out
+    model = json.loads((tmp_path / "model.json").read_text())
+    assert model["fit"]["thermal"]["selected"] is True
