@@ -54,7 +54,8 @@ def _campaign(store: Store, poses: int, *, push: bool = False) -> str:
             pose_idx=i, purpose="calibration", q_cmd_deg=(float(i),) * 6,
             q_act_deg=(float(i),) * 6, p_mm=(1000.0 + i, 2.0, 3.0), sigma_mm=(0.01,) * 3,
             rms_mm=0.005, samples=10, attempts=1, distance_mm=None,
-            weather={"temperature_C": 20.5}, measured_at=now_iso()))
+            weather={"temperature_C": 20.5}, measured_at=now_iso(),
+            temps_c=(30.0 + 0.25 * i,) * 6))
     store.transition(rec.id, S.MEASURED, actor="t")
     store.save_fits(rec.id, {"auto": ({"validation": {"rms_mm": 0.042}}, '{"m": 1}')})
     store.transition(rec.id, S.FITTED, actor="t", selected_model="auto")
@@ -102,6 +103,8 @@ def assert_replicated(url: str, db_path: Path, cell_id: str) -> None:
             for col in ("state", "selected_model", "action", "pose_idx", "x_mm", "to_state"):
                 if col in row:
                     assert dst[tbl][key][col] == row[col], (tbl, key, col)
+            if "temps" in row:  # joint temperatures (store schema 2), decoded as JSON
+                assert dst[tbl][key]["temps"] == json.loads(row["temps"]), (tbl, key)
 
 
 def _config(**kw: Any) -> FleetConfig:

@@ -2,14 +2,15 @@
 
 CSV layout (a header row; comma separated; mm and degrees)::
 
-    pose_id,q1,q2,...,qN,x,y,z[,sx,sy,sz][,rx,ry,rz[,srx,sry,srz]]
+    pose_id,q1,q2,...,qN,x,y,z[,sx,sy,sz][,rx,ry,rz[,srx,sry,srz]][,temp1,...,tempN]
 
 ``q1..qN`` are joint values (deg), ``x, y, z`` the reflector position in the tracker frame
 (mm), ``sx, sy, sz`` optional per-point standard deviations (mm), ``pose_id`` optional.
 ``rx, ry, rz`` (deg, optional, 6-DoF probes): the probe orientation in the tracker frame as
 intrinsic x-y-z Euler angles, ``R = Rx(rx) Ry(ry) Rz(rz)`` (Leica T-Mac's convention);
-``srx, sry, srz`` their standard deviations (deg). Other columns are ignored. Inside robocal
-everything is SI (rad, m).
+``srx, sry, srz`` their standard deviations (deg). ``temp1..tempN`` (°C, optional, all or
+none): the joint temperatures at the measurement (ADR 0042). Other columns are ignored.
+Inside robocal everything is SI (rad, m; temperatures stay °C).
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ class MeasurementSet:
     ``q``: (n, dof) rad. ``p``: (n, 3) m, tracker frame. ``sigma``: (n, 3) m per-axis standard
     deviations or None. ``pose_id``: n labels. ``rot``: (n, 3) rad probe orientation
     (intrinsic x-y-z Euler angles, ``R = Rx Ry Rz``, tracker frame) or None; ``rot_sigma``:
-    (n, 3) rad their standard deviations or None.
+    (n, 3) rad their standard deviations or None. ``temps``: (n, dof) joint temperatures, °C,
+    or None.
     """
 
     q: Array
@@ -47,6 +49,7 @@ class MeasurementSet:
     pose_id: tuple[str, ...] = field(default=())
     rot: Array | None = None
     rot_sigma: Array | None = None
+    temps: Array | None = None
 
     def __post_init__(self) -> None:
         q = np.atleast_2d(np.asarray(self.q, dtype=float))
@@ -67,6 +70,13 @@ class MeasurementSet:
                 if v.shape != p.shape:
                     raise DataError(f"{name} has shape {v.shape}, expected {p.shape}")
                 object.__setattr__(self, name, v)
+        if self.temps is not None:
+            t = np.atleast_2d(np.asarray(self.temps, dtype=float))
+            if t.shape != q.shape:
+                raise DataError(f"temps has shape {t.shape}, expected {q.shape}")
+            if not np.all(np.isfinite(t)):
+                raise DataError("temps must be finite")
+            object.__setattr__(self, "temps", t)
         if self.rot_sigma is not None and self.rot is None:
             raise DataError("rot_sigma given without rot")
         object.__setattr__(self, "pose_id", row_ids(self.pose_id, len(q), "P", "pose_id",
@@ -91,6 +101,7 @@ class MeasurementSet:
             pose_id=tuple(self.pose_id[i] for i in idx),
             rot=None if self.rot is None else self.rot[idx],
             rot_sigma=None if self.rot_sigma is None else self.rot_sigma[idx],
+            temps=None if self.temps is None else self.temps[idx],
         )
 
     def split(self, fraction: float, seed: int = 0) -> tuple[MeasurementSet, MeasurementSet]:
@@ -111,12 +122,16 @@ class MeasurementSet:
             rot = np.vstack([self.rot, other.rot])
             if self.rot_sigma is not None and other.rot_sigma is not None:
                 rsig = np.vstack([self.rot_sigma, other.rot_sigma])
+        temps = None
+        if self.temps is not None and other.temps is not None:
+            temps = np.vstack([self.temps, other.temps])
         return MeasurementSet(np.vstack([self.q, other.q]), np.vstack([self.p, other.p]), sig,
-                              self.pose_id + other.pose_id, rot=rot, rot_sigma=rsig)
+                              self.pose_id + other.pose_id, rot=rot, rot_sigma=rsig,
+                              temps=temps)
 
     def without_orientation(self) -> MeasurementSet:
         """The same poses with positions only."""
-        return MeasurementSet(self.q, self.p, self.sigma, self.pose_id)
+        return MeasurementSet(self.q, self.p, self.sigma, self.pose_id, temps=self.temps)
 
     def digest(self, *, sigma: bool = True, orientation: bool = True) -> str:
         """SHA-256 (hex) of the numerical content: joint values, points, and the per-point
@@ -132,6 +147,7 @@ class MeasurementSet:
             blocks.append((b"sigma", self.sigma))
         if orientation:
             blocks += [(b"rot", self.rot), (b"rot_sigma", self.rot_sigma)]
+        blocks.append((b"temps", self.temps))
         for tag, v in blocks:
             if v is not None:
                 h.update(b"\0" + tag + b"\0")
@@ -150,6 +166,8 @@ class MeasurementSet:
             head += ["rx", "ry", "rz"]
             if self.rot_sigma is not None:
                 head += ["srx", "sry", "srz"]
+        if self.temps is not None:
+            head += [f"temp{i + 1}" for i in range(self.dof)]
         w.writerow(head)
         qd = np.degrees(self.q)
         pm = self.p * 1e3
@@ -162,6 +180,8 @@ class MeasurementSet:
                 row += [f"{v:.9f}" for v in np.degrees(self.rot[i])]
                 if self.rot_sigma is not None:
                     row += [f"{v:.9f}" for v in np.degrees(self.rot_sigma[i])]
+            if self.temps is not None:
+                row += [f"{v:.6f}" for v in self.temps[i]]
             w.writerow(row)
         return buf.getvalue()
 
@@ -197,7 +217,21 @@ class MeasurementSet:
             k = header.index("pose_id")
             ids = tuple(r[k].strip() for r in rows)
         rot, rsig = _orientation_columns(header, rows, src)
-        return cls(q=q, p=p, sigma=sigma, pose_id=ids, rot=rot, rot_sigma=rsig)
+        return cls(q=q, p=p, sigma=sigma, pose_id=ids, rot=rot, rot_sigma=rsig,
+                   temps=_temperature_columns(header, rows, src, len(qcols)))
+
+
+def _temperature_columns(header: list[str], rows: list[list[str]], src: str, dof: int
+                         ) -> Array | None:
+    """Optional ``temp1..tempN`` joint temperatures (°C), all N or none."""
+    cols = [f"temp{i + 1}" for i in range(dof)]
+    have = [c for c in cols if c in header]
+    if not have:
+        return None
+    if len(have) != dof:
+        missing = next(c for c in cols if c not in header)
+        raise DataError(f"temp1..temp{dof} must be given together", source=src, key=missing)
+    return numeric_columns(rows, header, cols, src)
 
 
 def _orientation_columns(header: list[str], rows: list[list[str]], src: str
@@ -322,7 +356,7 @@ def joint_columns(header: list[str], src: str, dof: int | None) -> list[str]:
 #: Largest plausible magnitude in a measurement or joint file, by unit: ten turns, and 100 m
 #: (beyond any tracker's range). Larger values are typos or unit mix-ups that would only
 #: surface later as overflow warnings and nonsense fits.
-_MAX_ABS = {"deg": 3600.0, "mm": 1e5}
+_MAX_ABS = {"deg": 3600.0, "mm": 1e5, "degC": 1000.0}
 
 
 def _unit_of(column: str) -> str:
@@ -331,6 +365,8 @@ def _unit_of(column: str) -> str:
     if column in ("rx", "ry", "rz", "srx", "sry", "srz") or (
             column[:1] == "q" and column[1:].isdigit()):
         return "deg"
+    if column.startswith("temp") and column[4:].isdigit():
+        return "degC"
     return ""
 
 

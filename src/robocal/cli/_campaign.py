@@ -399,6 +399,11 @@ class _Progress:
             self.retries += 1
             if str(ev.get("problem", "")).startswith("BeamLost"):
                 self.beam_losses += 1
+        elif kind == "warmup":
+            rate = ev.get("rate_c_per_min")
+            self.phase = ("warmed up" if ev.get("phase") == "done" else "warming up") + (
+                f" {_clock(float(ev.get('elapsed_s') or 0.0))}"
+                + ("" if rate is None else f", {float(rate):.3f} degC/min"))
         elif kind == "fit":
             phase = ev.get("phase")
             if phase == "started":
@@ -427,7 +432,9 @@ class _Progress:
         if self.state == "running":
             text += f", ETA {_clock(left / rate) if rate > 0 and left > 0 else '--:--'}"
         text += f", {self.retries} retries, {self.beam_losses} beam losses"
-        if self.phase and self.state in ("measured", "faulted", "fitted"):
+        if self.phase.startswith("warming") and self.state == "running":
+            text += f" | {self.phase}"
+        elif self.phase and self.state in ("measured", "faulted", "fitted"):
             text += f" | {self.phase}"
             if self.fit_since is not None:
                 text += f" {_clock(now - self.fit_since)}"

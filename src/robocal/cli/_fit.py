@@ -236,6 +236,12 @@ def format_summary(s: dict[str, Any]) -> str:
     groups = [e for e in s.get("selection", []) if e.get("action") == "final"]
     if groups:
         lines.append("auto terms: " + (", ".join(groups[0]["groups"]) or "constant only"))
+    thermal = [e for e in s.get("selection", []) if e.get("action") == "thermal"]
+    if thermal and thermal[0].get("considered"):
+        t = thermal[0]
+        lines.append("thermal term: " + (
+            "taken, " + ", ".join(f"{c:+.5f}" for c in t["coef_mm_per_c"]) + " mm/degC per link"
+            if t["selected"] else f"not taken (CV gain {t['gain_percent']:.2f} %)"))
     for w in s.get("warnings", []):
         lines.append("WARNING: " + w)
     lines.append(f"wrote {s['out']}")

@@ -132,7 +132,7 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
     """
     from robocal._core.measurements import MeasurementSet
     from robocal.daemon.config import load_config
-    from robocal.daemon.fitting import measurement_set, rows_by_purpose
+    from robocal.daemon.fitting import measurement_set, rows_by_purpose, temperature_log
     from robocal.daemon.schemas import Measurement
     from robocal.daemon.store import Store
     from robocal.errors import ConfigError
@@ -188,7 +188,8 @@ def input_from_campaign(cid: str, config: str | Path) -> ReportInput:
                          weather=weather, tracker=str(cfg.tracker.kind),
                          controller=str(cfg.robot.kind),
                          extra={"campaign state": rec.state.value,
-                                "campaign name": rec.name, "created by": rec.created_by})
+                                "campaign name": rec.name, "created by": rec.created_by},
+                         **temperature_log(rows))
     robot = next((m.calibrated.robot for m in models.values()), None)
     targets = None
     if robot is not None and cfg.compensation.targets_file is not None:

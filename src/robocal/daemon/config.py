@@ -56,6 +56,7 @@ __all__ = [
     "LimitsConfig",
     "LoggingConfig",
     "MeasurementConfig",
+    "WarmupConfig",
     "config_digest",
     "config_errors",
     "config_warnings",
@@ -174,6 +175,41 @@ class MeasurementConfig(_Model):
     max_distance_mm: PositiveFloat = 25.0
     min_poses_for_distance: int = Field(default=6, ge=4)
     max_joint_deviation_deg: PositiveFloat = 0.5
+
+
+class WarmupConfig(_Model):
+    """The warm-up routine run before a campaign's first measured pose (ADR 0042).
+
+    ``pattern = "plan"``: the campaign's own poses (via-points included) in plan order,
+    cycled; each cycle starts with the same checked first move as a campaign (limits, the
+    cell's swept path, via the plan's home). ``pattern = "poses"``: ``poses_deg`` (joints,
+    degrees) cycled; the whole cycle (from where the robot stands, via the plan's home,
+    through every pose and back to the first) is checked the same way before anything
+    moves. It ends after ``duration_s``, or, with
+    ``until_settled_c_per_min``, once ``duration_s`` (if given) has passed and no joint's
+    temperature changed by more than that per minute over the last ``settle_window_s``;
+    never later than ``max_s``. Time is the robot controller's clock of the temperature
+    readings where the driver reads them, else the daemon's; ``until_settled_c_per_min``
+    needs a driver that reads joint temperatures.
+    """
+
+    pattern: Literal["plan", "poses"] = "plan"
+    poses_deg: tuple[tuple[float, ...], ...] = ()
+    duration_s: float | None = Field(default=None, gt=0.0)
+    until_settled_c_per_min: float | None = Field(default=None, gt=0.0)
+    settle_window_s: float = Field(default=120.0, gt=0.0)
+    max_s: float = Field(default=3600.0, gt=0.0)
+
+    @model_validator(mode="after")
+    def _has_an_end(self) -> WarmupConfig:
+        if self.duration_s is None and self.until_settled_c_per_min is None:
+            raise ValueError("warmup needs duration_s or until_settled_c_per_min")
+        if (self.pattern == "poses") != bool(self.poses_deg):
+            raise ValueError('poses_deg is given with pattern = "poses" (two poses or more), '
+                             "and only then")
+        if self.pattern == "poses" and len(self.poses_deg) < 2:
+            raise ValueError('pattern = "poses" needs two poses or more in poses_deg')
+        return self
 
 
 class FitConfig(_Model):
@@ -340,6 +376,8 @@ class AppConfig(_Model):
     api: ApiConfig = ApiConfig()
     limits: LimitsConfig = LimitsConfig()
     measurement: MeasurementConfig = MeasurementConfig()
+    #: the warm-up routine before each campaign's first measured pose; none when absent
+    warmup: WarmupConfig | None = None
     fit: FitConfig = FitConfig()
     compensation: CompensationConfig = CompensationConfig()
     logging: LoggingConfig = LoggingConfig()

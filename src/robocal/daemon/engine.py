@@ -1,5 +1,10 @@
 """The measuring executor: move, settle, read joints, measure, validate, persist — per pose.
 
+With ``[warmup]`` configured, a new operator campaign first runs the warm-up routine: the
+plan's poses cycled through the same checked moves (each cycle starts with the checked first
+move), until the configured time has passed or the joint temperatures settled (``warmup``
+events, ``campaign.warmup`` audit; ADR 0042).
+
 Before the first move of every run (new campaign, resume, verification run) the robot's
 actual joints are read and the run's first moves are checked from there (joint limits; swept
 path in the daemon's cell, else the plan's): a fresh run of a plan with a home moves to home
@@ -13,7 +18,8 @@ For every pose not yet in the store, in plan order:
    (a target outside is never sent; the campaign faults);
 2. ``move_to`` (the driver waits until the robot is in position), then settle;
    (via-points, ``measure = false`` in the plan, are only moved through);
-3. read the actual joints (they must be within ``max_joint_deviation_deg`` of the target);
+3. read the actual joints (they must be within ``max_joint_deviation_deg`` of the target)
+   and, where the driver reads them, the joint temperatures;
 4. measure, retrying a broken beam, an unstable target, a tracker timeout, a noisy reading
    (sample RMS) or a reading too far from the prediction, with exponential backoff;
 5. persist the measurement in one SQLite transaction, *before* the next motion.
@@ -38,13 +44,20 @@ from numpy.typing import NDArray
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.daemon._plan import check_first_legs, first_stops, stored_plan
+from robocal.daemon._warmup import WarmupWatch
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.schemas import Measurement
 from robocal.daemon.store import PoseRow, Store, now_iso
-from robocal.drivers import RETRYABLE, TrackerReading, check_joint_target, with_retry
+from robocal.drivers import (
+    RETRYABLE,
+    JointTemperatureReader,
+    TrackerReading,
+    check_joint_target,
+    with_retry,
+)
 from robocal.errors import (
     BeamLost,
     LimitViolation,
@@ -277,6 +290,10 @@ class CampaignRunner:
                  resume_at=start)
         try:
             async with self.hub.lock:
+                if start == 0 and todo and self._wants_warmup(cid):
+                    stopped = await self._warm_up(cid, poses)
+                    if stopped is not None:
+                        return stopped
                 first = True
                 for pose in todo:
                     _raise_if_cancelling()
@@ -336,9 +353,11 @@ class CampaignRunner:
             return CampaignState.FAULTED
         return state  # paused or aborted meanwhile: the pose in progress is simply redone
 
-    async def _checked_start(self, cid: str, target: PoseRow, *, via_home: bool) -> None:
+    async def _checked_start(self, cid: str, target: PoseRow, *, via_home: bool,
+                             then: Sequence[tuple[str, tuple[float, ...]]] = ()) -> None:
         """Read where the robot stands, check the run's first moves from there (to home when
-        ``via_home`` and the plan has one, then to ``target``) and move to home.
+        ``via_home`` and the plan has one, then to ``target``, then through ``then``: label,
+        joints deg) and move to home.
 
         Raises
         ------
@@ -349,20 +368,100 @@ class CampaignRunner:
         start_deg = [math.degrees(v) for v in (await robot.read_joints()).q_rad]
         plan = stored_plan(self.store.plan_json(cid), source=f"campaign {cid} plan")
         cell = load_cell(self.config.cell) if self.config.cell else plan.cell
-        stops = first_stops(plan, target, via_home=via_home)
+        stops = [*first_stops(plan, target, via_home=via_home), *then]
         _log.info("first move checked from the actual joints", campaign=cid,
                   start_deg=[round(v, 4) for v in start_deg], via=[s[0] for s in stops],
                   cell=None if cell is None else cell.name)
         # the swept-path check takes milliseconds to a few tenths of a second: off the loop
         await asyncio.to_thread(check_first_legs, self.robot, cell, self.limits, start_deg,
                                 stops)
-        if len(stops) == 1:
+        if len(stops) == 1 + len(then):
             return
         home = [math.radians(v) for v in stops[0][1]]
         await self._move_to(home, "home")
         # the next move was checked from home: make sure the robot is there
         q_act = (await robot.read_joints()).q_rad
         self._check_deviation("home", q_act, home)
+
+    def _wants_warmup(self, cid: str) -> bool:
+        """A warm-up is configured and ``cid`` is an operator's campaign (a verification
+        run re-measures a few poses of a warm robot, right after the push)."""
+        return self.config.warmup is not None and self.store.campaign(cid).verifies is None
+
+    async def _joint_temperatures(self) -> tuple[tuple[float, ...], float | None]:
+        """Joint temperatures (°C) and their controller time (s); ``((), None)`` when the
+        robot's driver does not read them."""
+        robot = await self.hub.robot()
+        if not isinstance(robot, JointTemperatureReader):
+            return (), None
+        reading = await robot.read_joint_temperatures()
+        return tuple(float(v) for v in reading.temps_c), float(reading.timestamp)
+
+    async def _warm_up(self, cid: str, poses: Sequence[PoseRow]) -> CampaignState | None:
+        """Run the warm-up routine; None when it ended, else the state that stopped it.
+
+        Raises
+        ------
+        MotionRejected
+            An unsafe first move of a cycle, or ``until_settled_c_per_min`` on a robot whose
+            driver does not read joint temperatures (nothing moved then).
+        """
+        cfg = self.config.warmup
+        assert cfg is not None
+        cycle, closing = self._warmup_cycle(poses)
+        watch = WarmupWatch(cfg)
+        temps, t = await self._joint_temperatures()
+        if cfg.until_settled_c_per_min is not None and t is None:
+            raise MotionRejected("warm-up until the temperatures settle needs a robot driver "
+                                 "that reads joint temperatures", kind="daemon")
+        watch.add(self.clock.monotonic() if t is None else t, temps)
+        self.events.emit("warmup", cid, phase="started", elapsed_s=0.0,
+                         temps_c=list(temps) or None)
+        _log.info("warm-up started", campaign=cid, temps_c=list(temps))
+        reason = None
+        cycles = 0
+        while reason is None:
+            for k, pose in enumerate(cycle):
+                _raise_if_cancelling()
+                if self._state(cid) != CampaignState.RUNNING:
+                    return self._state(cid)
+                if k == 0 and (not closing or cycles == 0):
+                    await self._checked_start(cid, pose, via_home=True, then=closing)
+                await self._move(pose)
+                temps, t = await self._joint_temperatures()
+                reason = watch.add(self.clock.monotonic() if t is None else t, temps)
+                if reason is not None:
+                    break
+            cycles += 1
+            self.events.emit("warmup", cid, phase="progress", elapsed_s=watch.elapsed_s,
+                             temps_c=list(temps) or None, rate_c_per_min=watch.rate_c_per_min)
+        detail = {"reason": reason, "elapsed_s": round(watch.elapsed_s, 3),
+                  "temps_c": list(temps), "rate_c_per_min": watch.rate_c_per_min}
+        self.store.audit(actor=self.actor, action="campaign.warmup", campaign=cid, detail=detail)
+        self.events.emit("warmup", cid, phase="done", elapsed_s=watch.elapsed_s,
+                         temps_c=list(temps) or None, rate_c_per_min=watch.rate_c_per_min,
+                         reason=reason)
+        _log.info("warm-up done", campaign=cid, **detail)
+        return None
+
+    def _warmup_cycle(self, poses: Sequence[PoseRow]
+                      ) -> tuple[list[PoseRow], list[tuple[str, tuple[float, ...]]]]:
+        """The poses one warm-up cycle visits and, for ``pattern = "poses"``, the rest of the
+        cycle after its first pose (back to it) as first-move stops: that whole cycle is
+        checked once, before anything moves. The plan's own cycle is checked from its first
+        pose on every cycle, as a campaign's start is."""
+        cfg = self.config.warmup
+        assert cfg is not None
+        if cfg.pattern == "plan":
+            return list(poses), []
+        cycle = [PoseRow(k, "warm-up", tuple(float(v) for v in q))
+                 for k, q in enumerate(cfg.poses_deg)]
+        for p in cycle:
+            if len(p.q_deg) != self.robot.dof:
+                raise MotionRejected(f"warm-up pose {p.idx} has {len(p.q_deg)} joints, the "
+                                     f"robot {self.robot.dof}; nothing moved", kind="daemon")
+        closing = [(f"pose {p.idx} (warm-up)", p.q_deg) for p in cycle[1:]]
+        return cycle, [*closing, ("pose 0 (warm-up, closing the cycle)", cycle[0].q_deg)]
 
     def _check_deviation(self, what: str, q_act: Sequence[float],
                          q_cmd: Sequence[float]) -> None:
@@ -401,6 +500,7 @@ class CampaignRunner:
         joints = await robot.read_joints()
         q_act = list(joints.q_rad)
         self._check_deviation(f"pose {pose.idx}", q_act, q_cmd)
+        temps, _ = await self._joint_temperatures()
         attempts = 0
         beam_losses = 0
 
@@ -429,7 +529,7 @@ class CampaignRunner:
             raise MeasurementError(
                 f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
                 f"{type(err).__name__}: {err}") from err
-        return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses)
+        return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses, temps)
 
     def _validate(self, reading: TrackerReading, q_act: Sequence[float],
                   predictor: Predictor) -> float | None:
@@ -448,7 +548,7 @@ class CampaignRunner:
     @staticmethod
     def _row(pose: PoseRow, q_cmd: Sequence[float], q_act: Sequence[float],
              r: TrackerReading, attempts: int, distance_mm: float | None,
-             beam_losses: int = 0) -> Measurement:
+             beam_losses: int = 0, temps_c: tuple[float, ...] = ()) -> Measurement:
         return Measurement(
             pose_idx=pose.idx, purpose=pose.purpose,
             q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
@@ -459,5 +559,5 @@ class CampaignRunner:
             rms_mm=None if r.rms_m is None else r.rms_m * 1e3,
             samples=r.n, attempts=attempts, distance_mm=distance_mm,
             weather={k: float(v) for k, v in r.weather.items()}, measured_at=now_iso(),
-            beam_losses=beam_losses,
+            beam_losses=beam_losses, temps_c=temps_c,
         )

@@ -8,7 +8,8 @@ and gets what it missed from a bounded replay buffer.
 
 Kinds: ``state`` (a transition), ``pose`` (a pose measured), ``retry`` (a reading retried),
 ``fit`` (fitting started/finished), ``compensation`` (push/rollback), ``report`` (a
-campaign's report rewritten to show the compensation now), ``log``; each kind's
+campaign's report rewritten to show the compensation now), ``warmup`` (the warm-up
+routine before a campaign's first measured pose), ``log``; each kind's
 fields are the model in :mod:`robocal.daemon.schemas`, checked by :meth:`EventBus.emit`.
 """
 

@@ -23,7 +23,13 @@ from robocal.daemon import _fingerprint, checking
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
-from robocal.daemon.fitting import FitRunner, build_fit_job, load_model, sign_fits
+from robocal.daemon.fitting import (
+    FitRunner,
+    build_fit_job,
+    load_model,
+    sign_fits,
+    temperature_log,
+)
 from robocal.daemon.schemas import Measurement
 from robocal.daemon.store import Store, now_iso
 from robocal.errors import IdentificationError, RobocalError, StorageError
@@ -97,14 +103,14 @@ class FitTasks:
 
     def measurement_log(self, cid: str, rows: list[Measurement]) -> dict[str, Any]:
         """What the report says of the measuring: poses planned and measured, retries, beam
-        losses, devices and the last weather reading."""
+        losses, devices, the last weather reading and the joint temperatures."""
         retries = sum(max(0, r.attempts - 1) for r in rows)
         weather = [r.weather for r in rows if r.weather][-1:]
         planned = sum(1 for p in self.store.poses(cid) if p.measure)
         return {"planned": planned, "measured": len(rows), "retries": retries,
                 "beam_losses": sum(r.beam_losses for r in rows),
                 "tracker": self.config.tracker.kind, "controller": self.config.robot.kind,
-                "weather": weather[0] if weather else {}}
+                "weather": weather[0] if weather else {}, **temperature_log(rows)}
 
     async def _run(self, cid: str, rows: list[Measurement]) -> dict[str, Any] | None:
         """The fit job's result, or None when it failed (the campaign faulted)."""

@@ -13,6 +13,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
+import datetime as dt
 import json
 import math
 import multiprocessing
@@ -71,11 +72,24 @@ def sign_fits(fits: dict[str, tuple[dict[str, Any], str | None]], secret: bytes 
     return out
 
 
+def temperature_log(rows: Sequence[Measurement]) -> dict[str, Any]:
+    """The report's joint temperatures: ``joint_temps`` (°C per joint, every row that has
+    them, in pose order) and ``joint_temps_t_s`` (s since the first of them); empty when no
+    row has them."""
+    warm = [r for r in rows if r.temps_c]
+    if not warm:
+        return {}
+    t = [dt.datetime.fromisoformat(r.measured_at).timestamp() for r in warm]
+    return {"joint_temps": [list(r.temps_c) for r in warm],
+            "joint_temps_t_s": [v - t[0] for v in t]}
+
+
 def measurement_set(rows: Sequence[Measurement], *, commanded: bool = False
                     ) -> MeasurementSet:
     """Stored rows (mm, deg) as a :class:`MeasurementSet` (SI), pose ids ``P<index>``.
 
-    Joints are the actual ones read back from the controller, or the commanded ones.
+    Joints are the actual ones read back from the controller, or the commanded ones; joint
+    temperatures come along when every row has them.
     """
     if not rows:
         raise IdentificationError("no measurements")
@@ -87,7 +101,11 @@ def measurement_set(rows: Sequence[Measurement], *, commanded: bool = False
         sig = np.array([r.sigma_mm for r in rows], dtype=float) * 1e-3
         if np.any(sig <= 0):
             sig = None
-    return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows))
+    temps = None  # joint temperatures where every row has them (ADR 0042)
+    if all(len(r.temps_c) == q.shape[1] for r in rows):
+        temps = np.array([r.temps_c for r in rows], dtype=float)
+    return MeasurementSet(q=q, p=p, sigma=sig, pose_id=tuple(f"P{r.pose_idx:04d}" for r in rows),
+                          temps=temps)
 
 
 def fit_options(options: Mapping[str, Any] | None) -> FitOptions:

@@ -211,7 +211,7 @@ def _finite(value: Any) -> Any:
 
 def _row_json(row: sqlite3.Row) -> dict[str, Any]:
     """A SQLite row as a JSON object; text columns holding JSON (``*_json``, joint lists,
-    weather, summaries, details) are decoded."""
+    weather, joint temperatures, summaries, details) are decoded."""
     out: dict[str, Any] = {}
     for k in row.keys():  # noqa: SIM118 - sqlite3.Row is not a mapping
         v = row[k]
@@ -225,7 +225,7 @@ def _row_json(row: sqlite3.Row) -> dict[str, Any]:
     return out
 
 
-_JSON_COLUMNS = frozenset({"weather", "summary", "detail"})
+_JSON_COLUMNS = frozenset({"weather", "temps", "summary", "detail"})
 
 
 @dataclass(frozen=True)

@@ -247,6 +247,8 @@ class Measurement(_Closed):
     weather: dict[str, float]
     measured_at: str
     beam_losses: int = 0
+    temps_c: tuple[float, ...] = Field(default=(),
+                                       description="joint temperatures, degC (empty: not read)")
 
 
 # --- health ----------------------------------------------------------------------------------
@@ -490,6 +492,19 @@ class RetryEvent(_EventBase):
     problem: str
 
 
+class WarmupEvent(_EventBase):
+    """The warm-up routine before a campaign's first measured pose started, moved on or
+    ended (ADR 0042)."""
+
+    kind: Literal["warmup"]
+    phase: Literal["started", "progress", "done"]
+    elapsed_s: float = Field(description="since the routine started (controller clock)")
+    temps_c: list[float] | None = Field(default=None, description="joint temperatures, degC")
+    rate_c_per_min: float | None = Field(
+        default=None, description="largest joint temperature change per minute")
+    reason: str | None = None
+
+
 class ReportFiles(_Closed):
     """Where a fit's report was written, or why it was not."""
 
@@ -578,13 +593,14 @@ class CheckRecord(_Closed):
 
 
 Event = Annotated[StateEvent | PoseEvent | RetryEvent | FitEvent | CompensationEvent
-                  | ReportEvent | LogEvent | CheckEvent, Field(discriminator="kind")]
+                  | ReportEvent | LogEvent | CheckEvent | WarmupEvent,
+                  Field(discriminator="kind")]
 
 #: The model of each event kind.
 EVENT_MODELS: dict[str, type[_EventBase]] = {
     "state": StateEvent, "pose": PoseEvent, "retry": RetryEvent, "fit": FitEvent,
     "compensation": CompensationEvent, "report": ReportEvent, "log": LogEvent,
-    "check": CheckEvent}
+    "check": CheckEvent, "warmup": WarmupEvent}
 
 event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
 

@@ -38,7 +38,7 @@ from robocal.errors import (
 
 __all__ = ["PoseRow", "Store", "is_storage_fault", "now_iso"]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 #: Size of the file that keeps states held by a storage fault across a restart; written in
 #: place, so a full disk still takes it (room for a few hundred held campaigns).
@@ -86,6 +86,7 @@ CREATE TABLE IF NOT EXISTS measurements(
     beam_losses INTEGER NOT NULL DEFAULT 0,
     distance_mm REAL,
     weather TEXT NOT NULL DEFAULT '{}',
+    temps TEXT NOT NULL DEFAULT '[]',
     measured_at TEXT NOT NULL,
     UNIQUE(campaign, pose_idx)
 );
@@ -155,6 +156,15 @@ def is_storage_fault(err: BaseException) -> bool:
     text = str(err).lower()
     return isinstance(err, sqlite3.OperationalError) and (
         "disk is full" in text or "disk i/o error" in text)
+
+
+def _migrate_1_to_2(db: sqlite3.Connection) -> None:
+    """Schema 2 adds the joint temperatures of every measurement (``[]``: not read)."""
+    with db:  # one transaction: both or neither
+        db.execute("BEGIN IMMEDIATE")
+        if "temps" not in {r[1] for r in db.execute("PRAGMA table_info(measurements)")}:
+            db.execute("ALTER TABLE measurements ADD COLUMN temps TEXT NOT NULL DEFAULT '[]'")
+        db.execute("UPDATE meta SET value='2' WHERE key='schema'")
 
 
 def now_iso() -> str:
@@ -233,6 +243,8 @@ class Store:
         row = db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
         if row is None:
             db.execute("INSERT INTO meta(key, value) VALUES('schema', ?)", (str(SCHEMA_VERSION),))
+        elif int(row[0]) == 1:
+            _migrate_1_to_2(db)
         elif int(row[0]) != SCHEMA_VERSION:
             raise ConfigError(
                 f"store schema {row[0]} is not supported (expected {SCHEMA_VERSION})",
@@ -617,13 +629,13 @@ class Store:
                 db.execute(
                     "INSERT INTO measurements(campaign, pose_idx, purpose, q_cmd_deg, q_act_deg, "
                     "x_mm, y_mm, z_mm, sx_mm, sy_mm, sz_mm, rms_mm, samples, attempts, "
-                    "distance_mm, weather, measured_at, beam_losses) "
-                    "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "distance_mm, weather, measured_at, beam_losses, temps) "
+                    "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (cid, m.pose_idx, m.purpose, json.dumps(list(m.q_cmd_deg)),
                      json.dumps(list(m.q_act_deg)), *m.p_mm,
                      *(m.sigma_mm if m.sigma_mm is not None else (None, None, None)),
                      m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
-                     m.measured_at, m.beam_losses),
+                     m.measured_at, m.beam_losses, json.dumps(list(m.temps_c))),
                 )
                 db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
         except sqlite3.IntegrityError:
@@ -648,6 +660,7 @@ class Store:
                 rms_mm=r["rms_mm"], samples=int(r["samples"]), attempts=int(r["attempts"]),
                 distance_mm=r["distance_mm"], weather=json.loads(r["weather"]),
                 measured_at=r["measured_at"], beam_losses=int(r["beam_losses"]),
+                temps_c=tuple(float(v) for v in json.loads(r["temps"])),
             ))
         return out
 

@@ -4,7 +4,8 @@ A robot driver is whatever satisfies :class:`Connectable`, :class:`JointMover`,
 :class:`JointReader` and :class:`Stoppable` (optionally :class:`CompensationSink`, and with it
 :class:`CompensationSlots` and :class:`CompensationSnapshots`, and
 :class:`ControllerCalibrationReadable` where the interface shows the controller's own
-calibration); a tracker driver satisfies
+calibration, and :class:`JointTemperatureReader` where it shows the joints' temperatures);
+a tracker driver satisfies
 :class:`Connectable` and :class:`PointMeasurer`. Capabilities are checked
 with ``isinstance`` (the protocols are ``runtime_checkable``) or all at once with
 :func:`require`.
@@ -51,6 +52,8 @@ __all__ = [
     "JointMover",
     "JointReader",
     "JointReading",
+    "JointTemperatureReader",
+    "JointTemperatures",
     "PointMeasurer",
     "RobotDriver",
     "Stoppable",
@@ -178,6 +181,33 @@ class JointReader(Protocol):
 
     async def read_joints(self) -> JointReading:
         """Return the actual joint angles (radians)."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class JointTemperatures:
+    """Joint (motor or gearbox) temperatures reported by the controller.
+
+    Attributes
+    ----------
+    temps_c : tuple of float
+        Temperature per joint, °C, length ``dof``.
+    timestamp : float
+        When they were read, seconds on the controller's clock (monotonic, any origin; a
+        simulator's clock runs in simulated time): rates of change are taken on it.
+    """
+
+    temps_c: tuple[float, ...]
+    timestamp: float
+
+
+@runtime_checkable
+class JointTemperatureReader(Protocol):
+    """Reading the joints' temperatures (Universal Robots over RTDE, the mock robot; FANUC
+    RMI, KUKA KVP and ABB RWS drivers do not read them)."""
+
+    async def read_joint_temperatures(self) -> JointTemperatures:
+        """Return the temperature of every joint now; raise ConnectFailed or DriverTimeout."""
         ...
 
 

@@ -28,6 +28,7 @@ from robocal.drivers.api import (
     CompensationSlots,
     CompensationSnapshots,
     JointReading,
+    JointTemperatures,
     TrackerReading,
 )
 from robocal.drivers.sim.world import DEFAULT_ROBOT, SimWorld
@@ -49,16 +50,19 @@ class _WorldOptions(DriverOptions):
     seed: int = 1
     world: str = Field(default="default",
                        description="name of the world within the driver context")
+    warmup_drift_mm: float = Field(default=0.0, ge=0.0, description=(
+        "planted warm-up drift: link growth over 30 min of motion from cold, mm"))
 
 
 def _world_for(o: _WorldOptions, context: DriverContext | None) -> SimWorld:
     """The world ``o`` names in ``context`` (created there once), or a new one without it."""
     def create() -> SimWorld:
-        return SimWorld.create(o.robot, o.scenario, o.seed)
+        return SimWorld.create(o.robot, o.scenario, o.seed, warmup_drift_mm=o.warmup_drift_mm)
 
     if context is None:
         return create()
-    return context.shared((__name__, o.robot, o.scenario, o.seed, o.world), create)
+    return context.shared((__name__, o.robot, o.scenario, o.seed, o.world, o.warmup_drift_mm),
+                          create)
 
 
 class MockRobotOptions(_WorldOptions):
@@ -198,6 +202,13 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
         self._ensure_connected()
         await asyncio.sleep(0)
         return JointReading(tuple(float(v) for v in self.world.q_actual_rad), time.time())
+
+    async def read_joint_temperatures(self) -> JointTemperatures:
+        """The virtual robot's joint temperatures (°C) on the world's simulated clock."""
+        self._ensure_connected()
+        await asyncio.sleep(0)
+        temps, t = self.world.joint_temperatures()
+        return JointTemperatures(temps, t)
 
     async def write_compensation(self, table: CompensationTable) -> None:
         """Store ``table`` (as JSON), read it back and verify content and checksum."""

@@ -47,6 +47,7 @@ from robocal.drivers.api import (
     ControllerCalibration,
     ControllerCalibrationReadable,
     JointReading,
+    JointTemperatures,
     check_joint_target,
 )
 from robocal.errors import (
@@ -289,7 +290,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self.controller_version = rtde.parse_controller_version(pkg.payload)
         base = o.register_base
         names = ["timestamp", "actual_q", "target_q", "robot_mode", "safety_mode",
-                 "runtime_state", self._reg_int, self._reg_start,
+                 "runtime_state", "joint_temperatures", self._reg_int, self._reg_start,
                  *(f"output_double_register_{base + k}" for k in range(_READ_CHUNK))]
         pkg = await ask(rtde.setup_outputs(names, o.rtde_frequency_hz), rtde.SETUP_OUTPUTS)
         rid, types = rtde.parse_recipe_reply(pkg.payload)
@@ -531,13 +532,25 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             raise MotionRejected(f"{self._modes()}: cannot move", kind=self.kind,
                                  code=int(self._state.get("safety_mode", 0)))
 
-    async def read_joints(self) -> JointReading:
-        """Return ``actual_q`` from the newest RTDE package (radians)."""
+    def _recent_state(self) -> dict[str, Any]:
+        """The newest RTDE package; DriverTimeout when it is older than the reply timeout."""
         self._live()
         if time.monotonic() - self._state_time > self.options.reply_timeout_s:
             raise DriverTimeout("no RTDE data for longer than the reply timeout",
                                 kind=self.kind)
-        return JointReading(tuple(float(x) for x in self._state["actual_q"]), time.time())
+        return self._state
+
+    async def read_joints(self) -> JointReading:
+        """Return ``actual_q`` from the newest RTDE package (radians)."""
+        state = self._recent_state()
+        return JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
+
+    async def read_joint_temperatures(self) -> JointTemperatures:
+        """Return ``joint_temperatures`` (°C) from the newest RTDE package, stamped with its
+        ``timestamp`` (seconds since the controller started)."""
+        state = self._recent_state()
+        return JointTemperatures(tuple(float(x) for x in state["joint_temperatures"]),
+                                 float(state["timestamp"]))
 
     async def stop(self) -> None:
         """Halt motion with ``stopj`` (a program of its own, which replaces the running one).

@@ -7,6 +7,7 @@ Public API::
     res.calibrated.save("MODEL.json")
 
 plus :func:`min_poses` (fewest poses a fit accepts; the planner uses it),
+:func:`thermal_shift` (what ``auto``'s thermal term adds at given joint temperatures),
 :func:`identifiability`, :func:`extrapolation` (poses a fit leaves nearly free),
 :func:`refit_frozen` (re-use joint-dependent terms on a new
 session), :func:`cpa_fit` (Circle Point Analysis baseline, classical and polished; the internal
@@ -41,6 +42,7 @@ from robocal.identification._metrics import (
     extrapolation,
 )
 from robocal.identification._solver import Identifiability, identifiability
+from robocal.identification._thermal import thermal_shift
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.identification.datasets import load_ipa_series
 
@@ -69,5 +71,6 @@ __all__ = [
     "poe_positions",
     "refit_frozen",
     "sanity_check",
+    "thermal_shift",
     "whitening",
 ]

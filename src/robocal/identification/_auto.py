@@ -459,7 +459,10 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
         note = {"action": "screen", "by": "auto (second selection)",
                 "excluded": int((~sol.inliers).sum())}
         sol, log = _select(f, const, sol.inliers)
-    return sol, [note, *log]
+    from robocal.identification._thermal import thermal_step  # it builds on this module
+
+    sol, thermal = thermal_step(f, sol)  # one more candidate group, when temperatures vary
+    return sol, [note, *log, thermal]
 
 
 def _required_gain(groups: Sequence[Group], min_improvement: float, m_obs: int

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -122,6 +123,8 @@ class Solution:
     robust_sigma: float
     rounds: int
     stats: Array                       # per-pose outlier statistic (n,), in robust sigma^2
+    #: the linear thermal term solved in by ``auto`` (``fit.thermal`` of MODEL.json), or None
+    thermal: dict[str, Any] | None = None
 
     @property
     def n_free(self) -> int:

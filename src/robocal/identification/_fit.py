@@ -293,8 +293,10 @@ def _model_coverage(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
 
 
 def _calibrated(sol: Solution, kind: str) -> CalibratedModel:
+    # the thermal term from the start: the accuracy figures apply it (ADR 0042)
     return CalibratedModel(model=sol.model, params=sol.x.copy(), covariance=sol.covariance,
-                           kind=kind)
+                           kind=kind, fit={} if sol.thermal is None else {
+                               "thermal": sol.thermal})
 
 
 def fit(robot: RobotDescription | str, data: MeasurementSet,
@@ -460,6 +462,8 @@ def _finish(f: Fitter, kind: str, final: Solution, const: Solution | None,
             for n, v in zip(base.model.names, base.x, strict=True)},
         "elapsed_s": elapsed,
     }
+    if final.thermal is not None:
+        cal.fit["thermal"] = final.thermal
     if extra_fit:
         cal.fit.update(extra_fit)
     warnings = _warnings(cal, data.q[inl], validation, val_out, val_all)

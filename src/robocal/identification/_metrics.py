@@ -77,9 +77,16 @@ class Accuracy:
 
 def error_norms(model: CalibratedModel | Callable[[Array], Array], data: MeasurementSet
                 ) -> Array:
-    """Distance |measured - predicted| (n,) m for every pose of ``data``."""
+    """Distance |measured - predicted| (n,) m for every pose of ``data``; a model's thermal
+    term (ADR 0042) is applied at the poses' joint temperatures where ``data`` has them."""
     predict = model.predict if isinstance(model, CalibratedModel) else model
-    return np.linalg.norm(data.p - predict(data.q), axis=1)
+    pred = predict(data.q)
+    if isinstance(model, CalibratedModel) and data.temps is not None \
+            and model.fit.get("thermal"):
+        from robocal.identification._thermal import thermal_shift  # builds on auto
+
+        pred = pred + thermal_shift(model, data.q, data.temps)
+    return np.linalg.norm(data.p - pred, axis=1)
 
 
 def accuracy_from_errors(err: Array, baseline_err: Array | None = None) -> Accuracy:

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from robocal import __version__
 from robocal._core.measurements import MeasurementSet
 from robocal._core.threads import blas_threads
-from robocal.identification import FitResult, extrapolation
+from robocal.identification import FitResult, extrapolation, thermal_shift
 from robocal.kinematics import CalibratedModel, RobotDescription
 from robocal.report._coverage import Coverage, coverage
 from robocal.report._cpa import CpaComparison, compare, with_classical
@@ -169,6 +169,15 @@ def _validation_glitches(inp: ReportInput, sel_cm: CalibratedModel | None,
                  if inp.validation.pose_id[i] not in set(outliers))
 
 
+def _predict(cm: CalibratedModel, data: MeasurementSet) -> Array:
+    """``cm``'s prediction of ``data``'s poses, with its thermal term at their joint
+    temperatures when it has one and they are known (ADR 0042)."""
+    p = cm.predict(data.q)
+    if data.temps is not None and cm.fit.get("thermal"):
+        p = p + thermal_shift(cm, data.q, data.temps)
+    return p
+
+
 def _model_results(entries: dict[str, ModelEntry], data: dict[str, MeasurementSet],
                    out_set: set[str]) -> dict[str, ModelResult]:
     """Errors of every model on every pose set, from the data or else from stored figures."""
@@ -177,13 +186,13 @@ def _model_results(entries: dict[str, ModelEntry], data: dict[str, MeasurementSe
     base_entry = entries.get(BASELINE)
     if base_entry is not None and base_entry.calibrated is not None:
         for which, ds in data.items():
-            base_norms[which] = np.linalg.norm(ds.p - base_entry.calibrated.predict(ds.q), axis=1)
+            base_norms[which] = np.linalg.norm(ds.p - _predict(base_entry.calibrated, ds), axis=1)
     for name, e in entries.items():
         mr = ModelResult(e)
         for which in SETS:
             d = data.get(which)
             if d is not None and e.calibrated is not None:
-                norms = np.linalg.norm(d.p - e.calibrated.predict(d.q), axis=1)
+                norms = np.linalg.norm(d.p - _predict(e.calibrated, d), axis=1)
                 m = _mask(d, out_set)
                 desc = None
                 bstats = None

@@ -149,6 +149,7 @@ def render_all(an: Analysis) -> dict[str, Plot]:
             out["coverage"] = coverage_plot(an.coverage)
         if an.iso:
             out["iso"] = iso_plot(an.iso)
+        out.update({p.key: p for p in thermal_plots(an)})
     return out
 
 
@@ -481,3 +482,57 @@ def iso_plot(iso: list[IsoResult]) -> Plot:
               bbox_to_anchor=(0.5, 1.0))
     _style(fig)
     return _render("iso", fig, "ISO 9283 pose accuracy and repeatability per pose")
+
+
+def _temperature_series(an: Analysis) -> tuple[Array, Array, str] | None:
+    """Joint temperatures (n, dof) °C against time (n,) and the axis label: the measurement
+    log's series (minutes since the first measurement), else the calibration poses' in
+    measurement order; None without temperatures."""
+    lg = an.inp.log
+    if lg is not None and len(lg.joint_temps) > 1:
+        t = np.asarray(lg.joint_temps_t_s, dtype=float)
+        temps = np.asarray(lg.joint_temps, dtype=float)
+        if t.shape == (temps.shape[0],):
+            return t / 60.0, temps, "time since the first measurement (min)"
+    cal = an.inp.calibration
+    if cal is not None and cal.temps is not None and len(cal) > 1:
+        return (np.arange(len(cal), dtype=float), cal.temps,
+                "calibration pose (measurement order)")
+    return None
+
+
+def thermal_plots(an: Analysis) -> list[Plot]:
+    """Joint temperature against time, and the selected model's error against the mean
+    joint temperature of each pose (ADR 0042); none when the data has no temperatures."""
+    out: list[Plot] = []
+    series = _temperature_series(an)
+    if series is not None:
+        t, temps, label = series
+        fig = _new(WIDE, 2.8, (0.65, 0.1, 0.45, 0.35))
+        ax = fig.add_subplot(1, 1, 1)
+        for j in range(temps.shape[1]):
+            ax.plot(t, temps[:, j], "-", lw=1.2, color=f"C{j % 10}", label=f"J{j + 1}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("joint temperature (°C)")
+        ax.legend(frameon=False, ncol=temps.shape[1], loc="upper center",
+                  bbox_to_anchor=(0.5, 1.16))
+        _style(fig)
+        out.append(_render("temperatures", fig, "Joint temperatures against time"))
+    sel = an.models.get(an.selected) if an.selected else None
+    sets = [(w, an.data[w], sel.sets[w]) for w in SETS if sel is not None
+            and w in an.data and an.data[w].temps is not None and w in sel.sets
+            and sel.sets[w].norms is not None]
+    if sets:
+        fig = _new(WIDE / 2, 3.0, (0.65, 0.1, 0.45, 0.35))
+        ax = fig.add_subplot(1, 1, 1)
+        for i, (which, ds, res) in enumerate(sets):
+            assert ds.temps is not None and res.norms is not None
+            ax.plot(ds.temps.mean(axis=1), res.norms * 1e3, "os"[i], ms=3.4, mew=0.8,
+                    markerfacecolor="none", color=_EXTRA[i], label=which)
+        ax.set_xlabel("mean joint temperature of the pose (°C)")
+        ax.set_ylabel(f"{an.selected} error (mm)")
+        ax.legend(frameon=False, ncol=2, loc="upper center", bbox_to_anchor=(0.5, 1.16))
+        _style(fig)
+        out.append(_render("residual_temperature", fig,
+                           "Position error of the selected model against temperature"))
+    return out

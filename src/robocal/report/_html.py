@@ -143,7 +143,7 @@ def render(an: Analysis, plots: Mapping[str, Plot], summary: Mapping[str, Any]) 
     parts = [_head(an), "<main>", _first_screen(an, plots, summary), _toc(an),
              _accuracy(an, plots), _cpa(an), _joints(an, plots), _ident(an, plots),
              _iso(an, plots), _coverage(an, plots),
-             _workspace(an, plots), _log(an), "</main>", _footer(an), "</body></html>"]
+             _workspace(an, plots), _log(an, plots), "</main>", _footer(an), "</body></html>"]
     return "\n".join(p for p in parts if p)
 
 
@@ -600,8 +600,32 @@ def weather_ranges(samples: Sequence[Mapping[str, Any]]
     return out
 
 
-def _log(an: Analysis) -> str:
-    out = ['<section id="log"><h2>Measurements and provenance</h2>']
+def _thermal(an: Analysis, plots: Mapping[str, Plot]) -> str:
+    """The joint temperatures and the thermal term of the selected model (ADR 0042)."""
+    parts = [_fig(plots.get("temperatures"), "Joint temperatures while measuring. A campaign "
+                  "measured while they still rise calibrates a robot that is not yet the "
+                  "one in production (configure <code>[warmup]</code>)."),
+             _fig(plots.get("residual_temperature"), "Position error of the selected model "
+                  "per pose against the pose's mean joint temperature: a trend is a thermal "
+                  "error the model does not describe.")]
+    sel = an.models.get(an.selected) if an.selected else None
+    cm = sel.entry.calibrated if sel else None
+    term = cm.fit.get("thermal") if cm is not None else None
+    if isinstance(term, Mapping) and term.get("selected"):
+        rows = [(f"J{j + 1} ({c})", f"{v * 1e3:+.3f}", f"{s_ * 1e3:.3f}", f"{t:.1f}")
+                for j, (c, v, s_, t) in enumerate(zip(
+                    term["components"], term["coef_mm_per_c"], term["sigma_mm_per_c"],
+                    term["t_ref_c"], strict=True))]
+        parts.append("<p>The fit took a linear thermal term: each link's length change per "
+                     "°C of its joint. The model predicts at the reference temperatures.</p>"
+                     + _table(["link (component)", "µm/°C", "σ µm/°C", "reference °C"],
+                              rows))
+    body = "".join(p for p in parts if p)
+    return f"<h3>Thermal state</h3>{body}" if body else ""
+
+
+def _log(an: Analysis, plots: Mapping[str, Plot]) -> str:
+    out = ['<section id="log"><h2>Measurements and provenance</h2>', _thermal(an, plots)]
     lg = an.inp.log
     rows: list[tuple[str, Any]] = []
     if lg is not None:

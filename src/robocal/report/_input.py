@@ -156,7 +156,9 @@ class MeasurementLog:
     """What happened while measuring (all optional).
 
     ``weather``: samples such as ``{"temperature_c": 21.3, "pressure_hpa": 1012,
-    "humidity_pct": 40}``. ``extra``: anything else worth showing (str -> JSON value).
+    "humidity_pct": 40}``. ``joint_temps``: the joint temperatures (°C per joint) of every
+    measurement in order, ``joint_temps_t_s`` when each was taken (s since the first).
+    ``extra``: anything else worth showing (str -> JSON value).
     """
 
     planned: int | None = None
@@ -170,6 +172,8 @@ class MeasurementLog:
     controller: str = ""
     notes: Sequence[str] = ()
     extra: Mapping[str, Any] = field(default_factory=dict)
+    joint_temps: Sequence[Sequence[float]] = ()
+    joint_temps_t_s: Sequence[float] = ()
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any] | None) -> MeasurementLog:

@@ -4,6 +4,7 @@ Used by tests, the demo, benchmarks and the protocol simulators. Not a runtime d
 identification, compensation, planning or the daemon.
 """
 
+from robocal.simulation._thermal import WarmUpDrift
 from robocal.simulation._virtual import SCENARIOS, TrackerNoise, VirtualCell, truth_spec
 
-__all__ = ["SCENARIOS", "TrackerNoise", "VirtualCell", "truth_spec"]
+__all__ = ["SCENARIOS", "TrackerNoise", "VirtualCell", "WarmUpDrift", "truth_spec"]

@@ -23,6 +23,7 @@ def test_bad_arguments():
         main(["nonsense"])
     assert info.value.code == 2
     assert main(["all", "--fault-rate", "2"]) == 2
+    assert main(["all", "--warmup-drift-mm", "-1"]) == 2
 
 
 async def test_all_in_one_process_shares_one_world(tmp_path):
@@ -100,7 +101,8 @@ async def test_sim_ur_serves_the_ur_interfaces(tmp_path):
     """``robocal sim ur --robot ur10``: dashboard, primary and RTDE at the real spacing."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "robocal.drivers.sim", "ur", "--robot", "ur10", "--time-scale",
-        "0", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        "0", "--warmup-drift-mm", "0.1", stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
         env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     try:
@@ -114,8 +116,14 @@ async def test_sim_ur_serves_the_ur_interfaces(tmp_path):
             "joint_limits_deg": [(-360.0, 360.0)] * 6})
         await robot.connect(timeout=10)
         try:
+            cold = await robot.read_joint_temperatures()
             reached = await robot.move_to([0.3] * 6, timeout=10)
             assert reached.q_rad[0] == pytest.approx(0.3, abs=1e-4)
+            await robot._next_state(5.0)  # a package sent after the move
+            warm = await robot.read_joint_temperatures()
+            # the planted warm-up drift heats the joints while they move (ADR 0042)
+            assert cold.temps_c == (20.0,) * 6
+            assert all(w > c for w, c in zip(warm.temps_c, cold.temps_c, strict=True))
         finally:
             await robot.close()
         proc.send_signal(signal.SIGTERM)

@@ -341,6 +341,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="planted errors of the virtual robot (see robocal simulate --help)")
     p.add_argument("--seed", type=int, default=1,
                    help="seed of the planted errors, noise and faults (as plan, simulate, demo)")
+    p.add_argument("--warmup-drift-mm", type=float, default=0.0,
+                   help="plant a warm-up drift: the links grow by this much (mm, in all) over "
+                        "30 min of motion from cold; joint temperatures follow (ADR 0042)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on")
     p.add_argument(
         "--port",
@@ -438,6 +441,8 @@ async def _serve(args: argparse.Namespace) -> int:
         robot=args.robot,
         scenario=args.scenario,
         seed=args.seed,
+        world=SimWorld.create(args.robot, args.scenario, args.seed,
+                              warmup_drift_mm=args.warmup_drift_mm),
         fanuc=FanucSimOptions(time_scale=scale) if which in ("fanuc-rmi", "all") else False,
         modbus=ModbusSimOptions(time_scale=scale) if which in ("modbus-plc", "all") else False,
         ltp=LtpSimOptions(time_scale=scale) if which in ("ltp-tracker", "all") else False,
@@ -476,6 +481,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         structlog.configure(logger_factory=structlog.PrintLoggerFactory(file=sys.stderr))
     if not 0.0 <= args.fault_rate <= 1.0:
         sys.stderr.write("robocal sim: --fault-rate must be within [0, 1]\n")
+        return 2
+    if not args.warmup_drift_mm >= 0.0:
+        sys.stderr.write("robocal sim: --warmup-drift-mm must not be negative\n")
         return 2
     try:
         return asyncio.run(_serve(args))

@@ -351,7 +351,7 @@ class UrSimulator(SimServer):
             elif n in ("actual_main_voltage", "actual_robot_voltage"):
                 v = 48.0 if power else 0.0
             elif n == "joint_temperatures":
-                v = [33.0] * 6
+                v = self._q6(world.joint_temperatures()[0])
             else:
                 v = _zero(t)
             out.append(v)

@@ -12,6 +12,12 @@ duration; :attr:`SimWorld.q_actual_rad` is the interpolated position while it ru
 :meth:`SimWorld.finish_motion` settles a motion that ran to its end (adding the repeatability
 noise). :meth:`SimWorld.move` is the instantaneous form.
 
+A world may carry a planted warm-up drift (:class:`robocal.simulation.WarmUpDrift`): every
+settled move heats the joints for the move's simulated duration (largest joint step at
+``THERMAL_SPEED_RAD_S`` plus ``THERMAL_MOVE_S``), every measurement lets them cool for
+``THERMAL_DWELL_S``, and the reflector is where the links, grown by their temperatures, put
+it. :meth:`SimWorld.joint_temperatures` reads them (a constant ``COLD_C`` without a drift).
+
 There is no process-wide registry of worlds: whoever builds the simulators or mock drivers of
 one cell hands them the same world, directly (``world=``, :class:`~robocal.drivers.sim.SimCell`)
 or through the :class:`~robocal.drivers.DriverContext` the drivers are loaded in.
@@ -36,6 +42,13 @@ __all__ = [
 ]
 
 DEFAULT_ROBOT = "fanuc_lrmate200id"
+#: Simulated time a move heats the joints: largest joint step / speed + a fixed part, s.
+THERMAL_SPEED_RAD_S = 0.5
+THERMAL_MOVE_S = 1.0
+#: Simulated standing time of one measurement (settle, samples), s.
+THERMAL_DWELL_S = 3.0
+#: Joint temperature a world without a warm-up drift reports, °C.
+COLD_C = 25.0
 Array = NDArray[np.float64]
 
 
@@ -86,8 +99,10 @@ class SimWorld:
         Seed of the world's noise generator (joint repeatability, tracker noise).
     """
 
-    def __init__(self, cell: Any, *, seed: int = 0) -> None:
+    def __init__(self, cell: Any, *, seed: int = 0, thermal: Any = None) -> None:
         self.cell = cell
+        #: planted warm-up drift (``robocal.simulation.WarmUpDrift``) or None
+        self.thermal = thermal
         self.rng = np.random.default_rng(seed)
         robot = cell.robot
         self.dof: int = int(robot.dof)
@@ -110,11 +125,17 @@ class SimWorld:
         self._lock = threading.Lock()
 
     @classmethod
-    def create(cls, robot: str = DEFAULT_ROBOT, scenario: str = "paper", seed: int = 1) -> SimWorld:
-        """Build a world around ``VirtualCell.create(robot, scenario, seed)``."""
-        from robocal.simulation import VirtualCell
+    def create(cls, robot: str = DEFAULT_ROBOT, scenario: str = "paper", seed: int = 1, *,
+               warmup_drift_mm: float = 0.0) -> SimWorld:
+        """Build a world around ``VirtualCell.create(robot, scenario, seed)``; with a planted
+        warm-up drift of ``warmup_drift_mm`` over 30 min of motion when positive."""
+        from robocal.simulation import VirtualCell, WarmUpDrift
 
-        return cls(VirtualCell.create(robot=robot, scenario=scenario, seed=seed), seed=seed + 1)
+        cell = VirtualCell.create(robot=robot, scenario=scenario, seed=seed)
+        thermal = None
+        if warmup_drift_mm > 0:
+            thermal = WarmUpDrift.planted(cell.robot, drift_m=warmup_drift_mm * 1e-3)
+        return cls(cell, seed=seed + 1, thermal=thermal)
 
     @property
     def joint_limits_deg(self) -> tuple[tuple[float, float], ...]:
@@ -159,6 +180,9 @@ class SimWorld:
             return self._settle_locked(q)
 
     def _settle_locked(self, q: Array) -> Array:
+        if self.thermal is not None:
+            step = float(np.max(np.abs(q - self._q_actual)))
+            self.thermal.advance(step / THERMAL_SPEED_RAD_S + THERMAL_MOVE_S, moving=True)
         actual = np.asarray(self.cell.actual_joints(q[None, :], self.rng), dtype=float)[0]
         self.q_cmd_rad = q.copy()
         self._q_actual = actual
@@ -208,6 +232,13 @@ class SimWorld:
                 self.last_halt_time = now
             return q
 
+    def joint_temperatures(self) -> tuple[tuple[float, ...], float]:
+        """Joint temperatures (°C, one per joint) and the simulated time (s) they hold at."""
+        with self._lock:
+            if self.thermal is None:
+                return (COLD_C,) * self.dof, 0.0
+            return tuple(float(v) for v in self.thermal.temps_c), float(self.thermal.time_s)
+
     def true_reflector_position(self) -> Array:
         """Return the true reflector centre (3,) for the actual joints, tracker frame, metres."""
         q = self.q_actual_rad
@@ -223,6 +254,11 @@ class SimWorld:
         with self._lock:
             q = np.repeat(self._position_locked(time.monotonic())[None, :], n, axis=0)
             points, sigma = self.cell.measure(q, self.rng)
+            if self.thermal is not None:
+                self.thermal.advance(THERMAL_DWELL_S, moving=False)
+                shift = (self.thermal.positions(self.cell, q[:1], self.thermal.temps_c)
+                         - self.cell.reflector_position(q[:1]))
+                points = np.asarray(points, dtype=float) + shift
             points = np.asarray(points, dtype=float)
             sigma = np.asarray(sigma, dtype=float)
             mean = points.mean(axis=0)

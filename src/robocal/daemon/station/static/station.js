@@ -60,7 +60,7 @@
 
   if (liveUrl && window.EventSource) {
     const es = new EventSource("/events?after=" + encodeURIComponent(body.dataset.seq || "0"));
-    for (const kind of ["state", "pose", "retry", "fit", "compensation", "log"]) {
+    for (const kind of ["state", "pose", "retry", "warmup", "fit", "compensation", "log"]) {
       es.addEventListener(kind, refresh);
     }
     es.onopen = () => { body.dataset.sse = "open"; };
