@@ -68,6 +68,7 @@ from robocal.protocols import ur_dashboard as dash
 from robocal.protocols import ur_primary as prim
 from robocal.protocols import ur_rtde as rtde
 from robocal.protocols.framing import LineFramer
+from robocal.protocols.session import Window
 from robocal.protocols.ur_rtde import RobotMode, RuntimeState, SafetyMode
 
 __all__ = ["UniversalRobotsOptions", "UniversalRobotsRobot"]
@@ -165,6 +166,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._dash: TcpTransport | None = None
         self._dash_framer = LineFramer(max_length=dash.MAX_LINE)
         self._dash_lock = asyncio.Lock()
+        #: The Dashboard server answers one command at a time with one line (no ids).
+        self._dash_window: Window[str] = Window(1)
         self._rtde: TcpTransport | None = None
         self._primary: TcpTransport | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -357,9 +360,15 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         if conn is None:
             raise ConnectFailed("dashboard not connected", kind=self.kind)
         async with self._dash_lock:
-            with self.translate_errors():
-                await conn.write(dash.encode(command))
-                return await self._dash_line(self.options.reply_timeout_s)
+            sent = self._dash_window.open(
+                "dashboard", command, time.monotonic() + self.options.reply_timeout_s
+            )
+            try:
+                with self.translate_errors():
+                    await conn.write(dash.encode(command))
+                    return await self._dash_line(sent.deadline - time.monotonic())
+            finally:
+                self._dash_window.drop(sent)
 
     # --- RTDE ----------------------------------------------------------------------------------
     async def _rtde_loop(self, conn: TcpTransport, framer: rtde.RtdeFramer) -> None:
