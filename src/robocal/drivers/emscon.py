@@ -588,18 +588,10 @@ class EmsconTracker(DriverBase):
             self.log.warning("failed reply of unexpected size", command=p.command, size=size)
 
     async def _call(
-        self,
-        cmd: int,
-        params: Mapping[str, Any] | None = None,
-        *,
-        timeout: float | None = None,
-        measurement: bool = False,
-        ok_statuses: tuple[int, ...] = (),
+        self, cmd: int, params: Mapping[str, Any] | None = None, **how: Any
     ) -> emscon.Reply:
-        """Run one command with busy retries and one reconnect; raise on a failed status."""
-        result = await self._call_full(
-            cmd, params, timeout=timeout, measurement=measurement, ok_statuses=ok_statuses
-        )
+        """:meth:`_call_full` (same arguments), returning only the reply."""
+        result = await self._call_full(cmd, params, **how)
         assert result.reply is not None
         return result.reply
 
@@ -612,6 +604,11 @@ class EmsconTracker(DriverBase):
         measurement: bool = False,
         ok_statuses: tuple[int, ...] = (),
     ) -> EmsconExchange:
+        """Run one command with busy retries and one reconnect; raise on a failed status.
+
+        ``timeout`` (seconds; default ``request_timeout_s``); ``measurement``: also await the
+        result packet; ``ok_statuses``: non-zero statuses that count as success.
+        """
         o = self.options
         wait = o.request_timeout_s if timeout is None else timeout
         busy = 0

@@ -91,19 +91,43 @@ _EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
                                   frames=FramesPayload(base=_ZERO_FRAME, tool=_ZERO_FRAME))
 
 
-class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
-    """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
+class _OnWorld:
+    """The virtual robot a mock driver acts on: given, shared through a context, or its own.
 
     Parameters
     ----------
-    options : MockRobotOptions or mapping
-        Validated options.
     world : SimWorld, optional
         Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
         then ignored).
     context : DriverContext, optional
         Share the world named by the options with the other drivers of this context;
         without one (and without ``world``) the driver makes a world of its own.
+    """
+
+    options: _WorldOptions
+
+    def __init__(self, *, world: SimWorld | None, context: DriverContext | None) -> None:
+        self._world = world
+        self._context = context
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world (created on first use; pure computation, no I/O)."""
+        if self._world is None:
+            self._world = _world_for(self.options, self._context)
+        return self._world
+
+
+class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
+                CompensationSnapshots):
+    """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
+
+    Parameters
+    ----------
+    options : MockRobotOptions or mapping
+        Validated options.
+    world, context
+        The virtual robot to act on, as for every mock driver (see ``_OnWorld``).
     """
 
     kind: ClassVar[str] = "mock"
@@ -118,18 +142,10 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
         world: SimWorld | None = None,
         context: DriverContext | None = None,
     ) -> None:
-        super().__init__(options)
-        self._world = world
-        self._context = context
+        RobotDriverBase.__init__(self, options)
+        _OnWorld.__init__(self, world=world, context=context)
         self._stored: str | None = None
         self._stop_event = asyncio.Event()
-
-    @property
-    def world(self) -> SimWorld:
-        """The simulated world (created on first use; pure computation, no I/O)."""
-        if self._world is None:
-            self._world = _world_for(self.options, self._context)
-        return self._world
 
     @property
     def dof(self) -> int:
@@ -247,19 +263,15 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
                                        diff=diff)
 
 
-class MockTracker(DriverBase):
+class MockTracker(_OnWorld, DriverBase):
     """In-process tracker measuring the virtual robot's reflector with noise.
 
     Parameters
     ----------
     options : MockTrackerOptions or mapping
         Validated options.
-    world : SimWorld, optional
-        Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
-        then ignored).
-    context : DriverContext, optional
-        Share the world named by the options with the other drivers of this context;
-        without one (and without ``world``) the driver makes a world of its own.
+    world, context
+        The virtual robot to act on, as for every mock driver (see ``_OnWorld``).
     """
 
     kind: ClassVar[str] = "mock"
@@ -273,17 +285,9 @@ class MockTracker(DriverBase):
         world: SimWorld | None = None,
         context: DriverContext | None = None,
     ) -> None:
-        super().__init__(options)
-        self._world = world
-        self._context = context
+        DriverBase.__init__(self, options)
+        _OnWorld.__init__(self, world=world, context=context)
         self._faults = random.Random(self.options.fault_seed)
-
-    @property
-    def world(self) -> SimWorld:
-        """The simulated world (created on first use)."""
-        if self._world is None:
-            self._world = _world_for(self.options, self._context)
-        return self._world
 
     async def _connect_impl(self, timeout: float) -> None:
         _ = self.world

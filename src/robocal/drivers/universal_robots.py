@@ -59,7 +59,6 @@ from robocal.errors import (
     OperationError,
     ProtocolError,
     TransportError,
-    TransportTimeout,
     UnexpectedReply,
     VerificationMismatch,
 )
@@ -69,6 +68,7 @@ from robocal.protocols import ur_primary as prim
 from robocal.protocols import ur_rtde as rtde
 from robocal.protocols.framing import LineFramer
 from robocal.protocols.session import Window
+from robocal.protocols.transport import received
 from robocal.protocols.ur_rtde import RobotMode, RuntimeState, SafetyMode
 
 __all__ = ["UniversalRobotsOptions", "UniversalRobotsRobot"]
@@ -373,11 +373,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     # --- RTDE ----------------------------------------------------------------------------------
     async def _rtde_loop(self, conn: TcpTransport, framer: rtde.RtdeFramer) -> None:
         try:
-            while True:
-                try:
-                    data = await conn.read(65536, timeout=3600.0)
-                except TransportTimeout:
-                    continue
+            async for data in received(conn):
                 framer.feed(data)
                 for pkg in framer.packages():
                     if pkg.type == rtde.DATA_PACKAGE and pkg.payload[:1] == b"\x01":
@@ -431,11 +427,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     async def _primary_loop(self, conn: TcpTransport) -> None:
         framer = prim.PrimaryFramer()
         try:
-            while True:
-                try:
-                    data = await conn.read(65536, timeout=3600.0)
-                except TransportTimeout:
-                    continue
+            async for data in received(conn):
                 framer.feed(data)
                 for mtype, body in framer.messages():
                     try:
