@@ -42,7 +42,12 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, JointCorrection
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers._compensation import (
+    ControllerSnapshot,
+    check_read_back,
+    snapshot_diff,
+    table_diff,
+)
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -62,7 +67,6 @@ from robocal.errors import (
     OperationError,
     ProtocolError,
     UnexpectedReply,
-    VerificationMismatch,
 )
 from robocal.protocols import abb_rws as rws
 
@@ -518,9 +522,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(f"compensation read back differs: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        check_read_back(diff, "compensation read back differs", kind=self.kind)
 
     async def read_compensation(self) -> CompensationTable | None:
         """The table last written in this session, its numbers re-read from ``rc_comp``; None
@@ -588,9 +590,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         back = {name: await self._read_var(name) for name in snapshot.items}
         diff = snapshot_diff(snapshot, ControllerSnapshot(driver=self.kind,
                                                           covers=snapshot.covers, items=back))
-        if diff:
-            raise VerificationMismatch(f"restored values read back differ: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        check_read_back(diff, "restored values read back differ", kind=self.kind)
 
 
 def _decode_joint(items: Sequence[rws.JointTarget]) -> list[JointCorrection]:

@@ -21,7 +21,12 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
-from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
+from robocal.drivers._compensation import (
+    ControllerSnapshot,
+    check_read_back,
+    snapshot_diff,
+    table_diff,
+)
 from robocal.drivers._context import DriverContext
 from robocal.drivers.api import (
     CompensationSink,
@@ -37,7 +42,6 @@ from robocal.errors import (
     DriverTimeout,
     MotionStopped,
     Unstable,
-    VerificationMismatch,
 )
 
 __all__ = ["MockRobot", "MockRobotOptions", "MockTracker", "MockTrackerOptions"]
@@ -227,10 +231,7 @@ class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
         diff = table_diff(sealed, back)
         if back is not None and back.checksum != sealed.checksum:
             diff.append("checksum differs")
-        if diff:
-            raise VerificationMismatch(
-                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff
-            )
+        check_read_back(diff, "compensation read back differs", kind=self.kind)
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the stored table, or None."""
@@ -258,9 +259,7 @@ class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
             CompensationTable.model_validate_json(stored) if isinstance(stored, str)
             else _EMPTY_FRAMES)
         diff = snapshot_diff(snapshot.model_copy(update={"covers": back.covers}), back)
-        if diff:
-            raise VerificationMismatch(f"restored table differs: {diff[0]}", kind=self.kind,
-                                       diff=diff)
+        check_read_back(diff, "restored table differs", kind=self.kind)
 
 
 class MockTracker(_OnWorld, DriverBase):

@@ -80,11 +80,8 @@ class RobotMode:
     RUNNING = 7
     UPDATING_FIRMWARE = 8
 
-    NAMES: ClassVar[dict[int, str]] = {
-        -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING",
-        3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING",
-        8: "UPDATING_FIRMWARE",
-    }
+    #: Value -> name, from the constants above.
+    NAMES: ClassVar[dict[int, str]]
 
 
 class SafetyMode:
@@ -102,11 +99,17 @@ class SafetyMode:
     VALIDATE_JOINT_ID = 10
     UNDEFINED_SAFETY_MODE = 11
 
-    NAMES: ClassVar[dict[int, str]] = {
-        1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-        6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-        10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
-    }
+    #: Value -> name, from the constants above.
+    NAMES: ClassVar[dict[int, str]]
+
+
+def _names(constants: type) -> dict[int, str]:
+    """``{value: NAME}`` of a class's upper-case integer constants."""
+    return {v: k for k, v in vars(constants).items() if k.isupper() and type(v) is int}
+
+
+RobotMode.NAMES = _names(RobotMode)
+SafetyMode.NAMES = _names(SafetyMode)
 
 
 class RuntimeState:
