@@ -11,18 +11,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.compensation import CompensationTable
-from robocal.errors import VerificationMismatch
 
-__all__ = ["ControllerSnapshot", "check_read_back", "snapshot_diff", "table_diff"]
-
-
-def check_read_back(diff: list[str], what: str, *, kind: str) -> None:
-    """Raise VerificationMismatch ``"<what>: <first difference>"`` when ``diff`` is not empty.
-
-    ``diff`` as from :func:`table_diff` or :func:`snapshot_diff` (at most 20 kept).
-    """
-    if diff:
-        raise VerificationMismatch(f"{what}: {diff[0]}", kind=kind, diff=diff[:20])
+__all__ = ["ControllerSnapshot", "snapshot_diff", "table_diff"]
 
 
 def _walk(path: str, a: Any, b: Any, tol: float, out: list[str]) -> None:

@@ -42,12 +42,7 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, JointCorrection
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import (
-    ControllerSnapshot,
-    check_read_back,
-    snapshot_diff,
-    table_diff,
-)
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -522,7 +517,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The table last written in this session, its numbers re-read from ``rc_comp``; None
@@ -590,7 +585,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         back = {name: await self._read_var(name) for name in snapshot.items}
         diff = snapshot_diff(snapshot, ControllerSnapshot(driver=self.kind,
                                                           covers=snapshot.covers, items=back))
-        check_read_back(diff, "restored values read back differ", kind=self.kind)
+        self._check_read_back(diff, "restored values read back differ")
 
 
 def _decode_joint(items: Sequence[rws.JointTarget]) -> list[JointCorrection]:

@@ -36,12 +36,7 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import (
-    ControllerSnapshot,
-    check_read_back,
-    snapshot_diff,
-    table_diff,
-)
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -591,7 +586,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def _write_frames(self, table: CompensationTable) -> None:
         if table.frames is None:
@@ -733,7 +728,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         dummy = _snapshot_template(snapshot, o.pr_base)
         back = await self.snapshot_compensation(dummy)
         diff = snapshot_diff(snapshot, back, tol=self.options.verify_tol)
-        check_read_back(diff, "restored values read back differ", kind=self.kind)
+        self._check_read_back(diff, "restored values read back differ")
 
     async def read_compensation_like(self, table: CompensationTable) -> CompensationTable:
         """``table`` with its numbers replaced by what the controller holds in its slots."""

@@ -36,12 +36,7 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, TargetRow
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import (
-    ControllerSnapshot,
-    check_read_back,
-    snapshot_diff,
-    table_diff,
-)
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -383,7 +378,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         if back is not None and kvp.parse_string(await self._read("RC_COMP_ID[]")) != \
                 sealed.checksum[:64]:
             diff.append("RC_COMP_ID does not hold the table's checksum")
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The table written in this session with its rows re-read from ``RC_COMP`` (None
@@ -445,4 +440,4 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         self._last_table = None
         read = snapshot.model_copy(update={"items": back})
         diff = snapshot_diff(snapshot, read, tol=self.options.verify_tol)
-        check_read_back(diff, "restored values read back differ", kind=self.kind)
+        self._check_read_back(diff, "restored values read back differ")

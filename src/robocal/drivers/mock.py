@@ -21,12 +21,7 @@ from pydantic import Field
 
 from robocal.compensation import CompensationTable, Frame, FramesPayload
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase
-from robocal.drivers._compensation import (
-    ControllerSnapshot,
-    check_read_back,
-    snapshot_diff,
-    table_diff,
-)
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers._context import DriverContext
 from robocal.drivers.api import (
     CompensationSink,
@@ -231,7 +226,7 @@ class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
         diff = table_diff(sealed, back)
         if back is not None and back.checksum != sealed.checksum:
             diff.append("checksum differs")
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the stored table, or None."""
@@ -259,7 +254,7 @@ class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
             CompensationTable.model_validate_json(stored) if isinstance(stored, str)
             else _EMPTY_FRAMES)
         diff = snapshot_diff(snapshot.model_copy(update={"covers": back.covers}), back)
-        check_read_back(diff, "restored table differs", kind=self.kind)
+        self._check_read_back(diff, "restored table differs")
 
 
 class MockTracker(_OnWorld, DriverBase):

@@ -32,7 +32,7 @@ from pydantic import Field, model_validator
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import ControllerSnapshot, check_read_back, table_diff
+from robocal.drivers._compensation import ControllerSnapshot, table_diff
 from robocal.drivers._modbus_client import ModbusClient
 from robocal.drivers.api import (
     CompensationSink,
@@ -563,7 +563,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             diff = table_diff(
                 sealed, self._table_from_block(mb.decode_table_block(back, m.word_order))
             )
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the table stored in the PLC's table block, or None if the block is empty.
@@ -647,4 +647,4 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                 back = await client.read_holding(m.table, len(words))
         diff = [f"register {m.table + i}: wrote {a}, read {b}"
                 for i, (a, b) in enumerate(zip(words, back, strict=True)) if a != b]
-        check_read_back(diff, "restored registers differ", kind=self.kind)
+        self._check_read_back(diff, "restored registers differ")

@@ -39,12 +39,7 @@ from pydantic import Field, field_validator
 
 from robocal.compensation import CompensationTable, JointCorrection, TargetRow
 from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
-from robocal.drivers._compensation import (
-    ControllerSnapshot,
-    check_read_back,
-    snapshot_diff,
-    table_diff,
-)
+from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers.api import (
     CompensationSink,
     CompensationSlots,
@@ -683,7 +678,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        check_read_back(diff, "compensation read back differs", kind=self.kind)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The last table written in this session, its numbers re-read from the controller
@@ -747,4 +742,4 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         diff = snapshot_diff(snapshot, ControllerSnapshot(
             driver=self.kind, covers=snapshot.covers,
             items={f"var:{k}": v for k, v in back.items()}), tol=self.options.verify_tol)
-        check_read_back(diff, "restored values read back differ", kind=self.kind)
+        self._check_read_back(diff, "restored values read back differ")
