@@ -260,12 +260,8 @@ class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
 class MockTracker(_OnWorld, DriverBase):
     """In-process tracker measuring the virtual robot's reflector with noise.
 
-    Parameters
-    ----------
-    options : MockTrackerOptions or mapping
-        Validated options.
-    world, context
-        The virtual robot to act on, as for every mock driver (see ``_OnWorld``).
+    ``options`` (MockTrackerOptions or a mapping) are validated; ``world`` and ``context``
+    choose the virtual robot as for every mock driver (see ``_OnWorld``).
     """
 
     kind: ClassVar[str] = "mock"
