@@ -569,7 +569,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write a snapshot's values back, read them again and compare.
+        """Write the saved RobocalServer variables back, read them again and compare.
 
         Raises
         ------

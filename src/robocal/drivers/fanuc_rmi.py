@@ -696,7 +696,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write a snapshot's values back, read them again and compare.
+        """Write the saved frames or position registers back, read them again and compare.
 
         Raises
         ------

@@ -27,7 +27,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.drivers.sim._server import SessionServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError
 from robocal.protocols import LineFramer, ltp
@@ -272,10 +272,8 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
         options: LtpSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or LtpSimOptions()
-        self.faults = FaultInjector(faults)
         self.requests: list[ltp.Request] = []
         self.initialized = not self.options.require_init
         self.smr = "RRR15"

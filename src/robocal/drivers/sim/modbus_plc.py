@@ -25,8 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.drivers.sim._modbus_server import HOLDING_FCS, WRITE_FCS, ExcCodes, ModbusSimServer
-from robocal.drivers.sim._server import SimServer
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import ProtocolError
 from robocal.protocols import modbus as mb
@@ -55,7 +55,7 @@ class ModbusSimOptions(BaseModel):
     joint_limits_deg: tuple[tuple[float, float], ...] | None = None
 
 
-class ModbusPlcSimulator(SimServer):
+class ModbusPlcSimulator(WorldSimulator):
     """Simulated PLC driving the world robot through the default register handshake.
 
     Parameters
@@ -89,11 +89,9 @@ class ModbusPlcSimulator(SimServer):
         *,
         clock: Clock = SYSTEM_CLOCK,
     ) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.clock = clock
         self.options = options or ModbusSimOptions()
-        self.faults = FaultInjector(faults)
         self.map = self.options.register_map
         m = self.map
         lim = self.options.joint_limits_deg or world.joint_limits_deg

@@ -33,8 +33,8 @@ from typing import Any
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from robocal.drivers.sim._server import SimServer, port_of, received
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator, port_of, received
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError
 from robocal.protocols import ur_dashboard as dash
@@ -184,7 +184,7 @@ class _RtdeSession:
         await self._pause()
 
 
-class UrSimulator(SimServer):
+class UrSimulator(WorldSimulator):
     """Simulated Universal Robots e-Series (or CB3) controller on loopback.
 
     Attributes
@@ -199,10 +199,8 @@ class UrSimulator(SimServer):
 
     def __init__(self, world: SimWorld, options: UrSimOptions | None = None,
                  faults: FaultConfig | None = None) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or UrSimOptions()
-        self.faults = FaultInjector(faults)
         self.robot_mode = RobotMode.RUNNING if self.options.start_powered else RobotMode.POWER_OFF
         self.safety_mode = SafetyMode.NORMAL
         self.remote_control = self.options.remote_control
