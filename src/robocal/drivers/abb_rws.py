@@ -569,13 +569,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write the saved RobocalServer variables back, read them again and compare.
-
-        Raises
-        ------
-        VerificationMismatch
-            The controller holds different values afterwards.
-        """
+        """Write the saved RobocalServer variables back, read them again and compare
+        (VerificationMismatch when the controller then holds other values)."""
         self._ensure_connected()
         for name, value in snapshot.items.items():
             if name not in (_COMP, _COMP_N, _COMP_KIND, _COMP_SUM):

@@ -696,13 +696,8 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write the saved frames or position registers back, read them again and compare.
-
-        Raises
-        ------
-        VerificationMismatch
-            The controller holds different values afterwards.
-        """
+        """Write the saved frames or position registers back, read them again and compare
+        (VerificationMismatch when the controller then holds other values)."""
         self._live_stream()
         o = self.options
         for key, value in snapshot.items.items():

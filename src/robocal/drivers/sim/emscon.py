@@ -421,12 +421,10 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
 
     Parameters
     ----------
-    world : SimWorld
-        The robot whose reflector is measured.
+    world, faults
+        As for every :class:`WorldSimulator` (the reflector sits on the world's robot).
     options : EmsconSimOptions, optional
         Server behaviour and emScon-specific faults.
-    faults : FaultConfig, optional
-        Shared faults.
 
     Attributes
     ----------

@@ -253,12 +253,10 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
 
     Parameters
     ----------
-    world : SimWorld
-        The robot whose reflector is measured.
+    world, faults
+        As for every :class:`WorldSimulator` (the reflector sits on the world's robot).
     options : LtpSimOptions, optional
         Tracker behaviour.
-    faults : FaultConfig, optional
-        Injected faults.
 
     Attributes
     ----------
