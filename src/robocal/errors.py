@@ -173,6 +173,11 @@ class TransportError(ProtocolError, ConnectionError):
     """The transport failed (closed, reset, device gone)."""
 
 
+class RequestPending(RobocalError, RuntimeError):
+    """A request/reply session was used out of turn: a request was to be sent while an earlier
+    one is still outstanding, or a reply was awaited with nothing outstanding (a driver bug)."""
+
+
 class TransportTimeout(ProtocolError, TimeoutError):
     """A read on the transport timed out."""
 

@@ -33,113 +33,122 @@ def _wait(pred: Callable[[], Any], timeout: float = 10.0) -> Any:
     return None
 
 
-def _session(sim: KukaKvpSimulator, world: SimWorld) -> tuple[int, int, list[str]]:
-    client = py_openshowvar.openshowvar("127.0.0.1", sim.port)
-    client.sock.settimeout(5.0)
+class _Client:
+    """The cell integrator's session: ``py-openshowvar`` requests, one step per method."""
 
-    def read(name: str) -> str | None:
-        value = client.read(name, debug=False)
+    def __init__(self, sim: KukaKvpSimulator, world: SimWorld) -> None:
+        self.sim, self.world, self.dof = sim, world, world.dof
+        self.client = py_openshowvar.openshowvar("127.0.0.1", sim.port)
+        self.client.sock.settimeout(5.0)
+        self.target = [10.0, -20.0, 15.0, 5.0, -30.0, 45.0][: self.dof]
+        self.seq = 0
+
+    def read(self, name: str) -> str | None:
+        value = self.client.read(name, debug=False)
         return None if value is None else value.decode("latin-1")
 
-    def write(name: str, value: str) -> str | None:
-        back = client.write(name, value, debug=False)
+    def write(self, name: str, value: str) -> str | None:
+        back = self.client.write(name, value, debug=False)
         return None if back is None else back.decode("latin-1")
 
-    dof = world.dof
-    target = [10.0, -20.0, 15.0, 5.0, -30.0, 45.0][:dof]
-    state: dict[str, Any] = {}
+    def axis_act(self) -> bool:
+        q = kvp.parse_e6axis(self.read("$AXIS_ACT") or "", components=self.dof)
+        return np.allclose(q, np.degrees(self.world.q_actual_rad), atol=1e-3)
 
-    def axis_act() -> bool:
-        text = read("$AXIS_ACT")
-        q = kvp.parse_e6axis(text or "", components=dof)
-        return np.allclose(q, np.degrees(world.q_actual_rad), atol=1e-3)
-
-    def pos_act() -> bool:
-        kind, fields = kvp.parse_struct(read("$POS_ACT") or "")
+    def pos_act(self) -> bool:
+        kind, fields = kvp.parse_struct(self.read("$POS_ACT") or "")
         return kind == "E6POS" and {"X", "Y", "Z", "A", "B", "C", "S", "T"} <= set(fields)
 
-    def soft_limits() -> bool:
-        lo = kvp.parse_real(read("$SOFTN_END[1]") or "")
-        hi = kvp.parse_real(read("$SOFTP_END[1]") or "")
-        return np.allclose([lo, hi], world.joint_limits_deg[0], atol=1e-3)
+    def soft_limits(self) -> bool:
+        lo = kvp.parse_real(self.read("$SOFTN_END[1]") or "")
+        hi = kvp.parse_real(self.read("$SOFTP_END[1]") or "")
+        return np.allclose([lo, hi], self.world.joint_limits_deg[0], atol=1e-3)
 
-    def handshake_state() -> bool:
-        cmd, ack = read("RC_CMD_SEQ"), read("RC_ACK_SEQ")
-        state["seq"] = kvp.parse_int(ack or "")
-        return cmd == ack and read("RC_STATUS") == "0"
+    def handshake_state(self) -> bool:
+        cmd, ack = self.read("RC_CMD_SEQ"), self.read("RC_ACK_SEQ")
+        self.seq = kvp.parse_int(ack or "")
+        return cmd == ack and self.read("RC_STATUS") == "0"
 
-    def write_target() -> bool:
-        back = write("RC_TARGET", kvp.format_e6axis([0.0] * dof))
-        back2 = write("RC_TARGET", "{A1 " + str(target[0]) + "}")  # KRL partial aggregate
-        full = write("RC_TARGET", kvp.format_e6axis(target))
+    def write_target(self) -> bool:
+        dof, target = self.dof, self.target
+        back = self.write("RC_TARGET", kvp.format_e6axis([0.0] * dof))
+        back2 = self.write("RC_TARGET", "{A1 " + str(target[0]) + "}")  # KRL partial aggregate
+        full = self.write("RC_TARGET", kvp.format_e6axis(target))
         return back is not None and back2 is not None and full is not None and np.allclose(
             kvp.parse_e6axis(back2, components=1), target[:1]) and np.allclose(
             kvp.parse_e6axis(full, components=dof), target, atol=1e-4)
 
-    def command_move() -> bool:
-        state["seq"] += 1
-        if write("RC_SPEED", "30") != "30":
+    def command_move(self) -> bool:
+        self.seq += 1
+        if self.write("RC_SPEED", "30") != "30":
             return False
-        return write("RC_CMD_SEQ", str(state["seq"])) == str(state["seq"])
+        return self.write("RC_CMD_SEQ", str(self.seq)) == str(self.seq)
 
-    def move_acknowledged() -> bool:
-        done = _wait(lambda: read("RC_ACK_SEQ") == str(state["seq"]))
-        return bool(done) and read("RC_STATUS") == "2"
+    def move_acknowledged(self) -> bool:
+        done = _wait(lambda: self.read("RC_ACK_SEQ") == str(self.seq))
+        return bool(done) and self.read("RC_STATUS") == "2"
 
-    def read_back_position() -> bool:
-        q = kvp.parse_e6axis(read("$AXIS_ACT") or "", components=dof)
-        return np.allclose(q, target, atol=1e-2)
+    def read_back_position(self) -> bool:
+        q = kvp.parse_e6axis(self.read("$AXIS_ACT") or "", components=self.dof)
+        return np.allclose(q, self.target, atol=1e-2)
 
-    def stop_mid_move() -> bool:
+    def stop_mid_move(self) -> bool:
+        world = self.world
         far = [lo + 0.2 * (hi - lo) for lo, hi in world.joint_limits_deg]
-        write("RC_TARGET", kvp.format_e6axis(far))
-        write("RC_SPEED", "1")
-        state["seq"] += 1
-        write("RC_CMD_SEQ", str(state["seq"]))
-        if not _wait(lambda: read("RC_STATUS") == "1" and world.moving):
+        self.write("RC_TARGET", kvp.format_e6axis(far))
+        self.write("RC_SPEED", "1")
+        self.seq += 1
+        self.write("RC_CMD_SEQ", str(self.seq))
+        if not _wait(lambda: self.read("RC_STATUS") == "1" and world.moving):
             return False
-        if write("RC_STOP", "TRUE") is None:
+        if self.write("RC_STOP", "TRUE") is None:
             return False
-        cleared = _wait(lambda: read("RC_STOP") == "FALSE")
-        q = kvp.parse_e6axis(read("$AXIS_ACT") or "", components=dof)
-        return bool(cleared) and read("RC_STATUS") == "4" and not world.moving and (
-            read("RC_ACK_SEQ") == str(state["seq"]) and not np.allclose(q, far, atol=1e-2))
+        cleared = _wait(lambda: self.read("RC_STOP") == "FALSE")
+        q = kvp.parse_e6axis(self.read("$AXIS_ACT") or "", components=self.dof)
+        return bool(cleared) and self.read("RC_STATUS") == "4" and not world.moving and (
+            self.read("RC_ACK_SEQ") == str(self.seq) and not np.allclose(q, far, atol=1e-2))
 
-    def compensation_array() -> bool:
-        row = [1.25, -2.5, 3.75, 0.125, -0.5, 0.0625][:dof]
-        write("RC_COMP[3]", kvp.format_e6axis(row))
-        back = kvp.parse_e6axis(read("RC_COMP[3]") or "", components=dof)
-        return np.allclose(back, row, atol=1e-5) and write("RC_COMP_N", "3") == "3"
+    def compensation_array(self) -> bool:
+        row = [1.25, -2.5, 3.75, 0.125, -0.5, 0.0625][: self.dof]
+        self.write("RC_COMP[3]", kvp.format_e6axis(row))
+        back = kvp.parse_e6axis(self.read("RC_COMP[3]") or "", components=self.dof)
+        return np.allclose(back, row, atol=1e-5) and self.write("RC_COMP_N", "3") == "3"
 
-    def comp_id() -> bool:
-        return write("RC_COMP_ID[]", '"ab12cd"') == '"ab12cd"' and read(
+    def comp_id(self) -> bool:
+        return self.write("RC_COMP_ID[]", '"ab12cd"') == '"ab12cd"' and self.read(
             "RC_COMP_ID[]") == '"ab12cd"'
 
-    steps: list[tuple[str, Callable[[], Any]]] = [
-        # (not the client's can_connect: it opens a second socket and never closes it)
-        ("connected", lambda: client.sock.getpeername()[1] == sim.port),
-        ("read $ROBNAME[]", lambda: read("$ROBNAME[]") == f'"{sim.options.robot_name}"'),
-        ("read $PRO_STATE1", lambda: read("$PRO_STATE1") == "#P_ACTIVE"),
-        ("read $MODE_OP", lambda: read("$MODE_OP") == "#AUT"),
-        ("read $AXIS_ACT", axis_act),
-        ("read $POS_ACT", pos_act),
-        ("read $SOFTN_END/$SOFTP_END", soft_limits),
-        ("write $OV_PRO", lambda: write("$OV_PRO", "100") == "100"
-         and read("$OV_PRO") == "100"),
-        ("read handshake state", handshake_state),
-        ("write RC_TARGET (whole and partial)", write_target),
-        ("command a move (RC_SPEED, RC_CMD_SEQ)", command_move),
-        ("RC_ACK_SEQ acknowledges, RC_STATUS done", move_acknowledged),
-        ("read back $AXIS_ACT at the target", read_back_position),
-        ("RC_STOP halts a move", stop_mid_move),
-        ("RC_COMP[3] written and read back", compensation_array),
-        ("RC_COMP_ID[] written and read back", comp_id),
-        ("unknown variable refused", lambda: read("NO_SUCH_VAR") is None),
-        ("$AXIS_ACT is read-only", lambda: write("$AXIS_ACT", "{A1 0.0}") is None),
-        ("bad value for an INT refused", lambda: write("RC_SPEED", "fast") is None
-         and read("RC_SPEED") == "1"),
-        ("close", lambda: client.close() or True),
-    ]
+    def steps(self) -> list[tuple[str, Callable[[], Any]]]:
+        client, sim, read, write = self.client, self.sim, self.read, self.write
+        return [
+            # (not the client's can_connect: it opens a second socket and never closes it)
+            ("connected", lambda: client.sock.getpeername()[1] == sim.port),
+            ("read $ROBNAME[]", lambda: read("$ROBNAME[]") == f'"{sim.options.robot_name}"'),
+            ("read $PRO_STATE1", lambda: read("$PRO_STATE1") == "#P_ACTIVE"),
+            ("read $MODE_OP", lambda: read("$MODE_OP") == "#AUT"),
+            ("read $AXIS_ACT", self.axis_act),
+            ("read $POS_ACT", self.pos_act),
+            ("read $SOFTN_END/$SOFTP_END", self.soft_limits),
+            ("write $OV_PRO", lambda: write("$OV_PRO", "100") == "100"
+             and read("$OV_PRO") == "100"),
+            ("read handshake state", self.handshake_state),
+            ("write RC_TARGET (whole and partial)", self.write_target),
+            ("command a move (RC_SPEED, RC_CMD_SEQ)", self.command_move),
+            ("RC_ACK_SEQ acknowledges, RC_STATUS done", self.move_acknowledged),
+            ("read back $AXIS_ACT at the target", self.read_back_position),
+            ("RC_STOP halts a move", self.stop_mid_move),
+            ("RC_COMP[3] written and read back", self.compensation_array),
+            ("RC_COMP_ID[] written and read back", self.comp_id),
+            ("unknown variable refused", lambda: read("NO_SUCH_VAR") is None),
+            ("$AXIS_ACT is read-only", lambda: write("$AXIS_ACT", "{A1 0.0}") is None),
+            ("bad value for an INT refused", lambda: write("RC_SPEED", "fast") is None
+             and read("RC_SPEED") == "1"),
+            ("close", lambda: client.close() or True),
+        ]
+
+
+def _session(sim: KukaKvpSimulator, world: SimWorld) -> tuple[int, int, list[str]]:
+    steps = _Client(sim, world).steps()
     passed, failures = 0, []
     for name, step in steps:
         try:

@@ -18,6 +18,7 @@ from robocal.errors import (
     DriverTimeout,
     TransportError,
     TransportTimeout,
+    VerificationMismatch,
 )
 
 __all__ = ["DriverBase", "DriverOptions", "RobotDriverBase", "RobotOptions", "validate_options"]
@@ -143,6 +144,12 @@ class DriverBase:
         except TransportError as err:
             what = "cannot connect" if connecting else "connection lost"
             raise ConnectFailed(f"{what}: {err}", kind=self.kind) from err
+
+    def _check_read_back(self, diff: list[str], what: str) -> None:
+        """Raise VerificationMismatch ``"<what>: <first difference>"`` if ``diff`` is not
+        empty (as from ``table_diff`` or ``snapshot_diff``; at most 20 kept)."""
+        if diff:
+            raise VerificationMismatch(f"{what}: {diff[0]}", kind=self.kind, diff=diff[:20])
 
     async def _connect_impl(self, timeout: float) -> None:
         raise NotImplementedError

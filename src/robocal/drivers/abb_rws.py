@@ -62,7 +62,6 @@ from robocal.errors import (
     OperationError,
     ProtocolError,
     UnexpectedReply,
-    VerificationMismatch,
 )
 from robocal.protocols import abb_rws as rws
 
@@ -518,9 +517,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(f"compensation read back differs: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The table last written in this session, its numbers re-read from ``rc_comp``; None
@@ -572,13 +569,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write a snapshot's values back, read them again and compare.
-
-        Raises
-        ------
-        VerificationMismatch
-            The controller holds different values afterwards.
-        """
+        """Write the saved RobocalServer variables back, read them again and compare
+        (VerificationMismatch when the controller then holds other values)."""
         self._ensure_connected()
         for name, value in snapshot.items.items():
             if name not in (_COMP, _COMP_N, _COMP_KIND, _COMP_SUM):
@@ -588,9 +580,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         back = {name: await self._read_var(name) for name in snapshot.items}
         diff = snapshot_diff(snapshot, ControllerSnapshot(driver=self.kind,
                                                           covers=snapshot.covers, items=back))
-        if diff:
-            raise VerificationMismatch(f"restored values read back differ: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        self._check_read_back(diff, "restored values read back differ")
 
 
 def _decode_joint(items: Sequence[rws.JointTarget]) -> list[JointCorrection]:

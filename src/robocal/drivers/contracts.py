@@ -71,8 +71,8 @@ def _expect(cond: bool, message: str) -> None:
 
 
 @dataclass(frozen=True)
-class RobotUnderTest:
-    """A robot driver to check.
+class _DriverUnderTest:
+    """A driver to check.
 
     Attributes
     ----------
@@ -80,6 +80,18 @@ class RobotUnderTest:
         Label used in messages.
     make : callable
         Returns a new, unconnected driver each call.
+    """
+
+    name: str
+    make: Callable[[], Any]
+
+
+@dataclass(frozen=True)
+class RobotUnderTest(_DriverUnderTest):
+    """A robot driver to check (``name`` and ``make`` as for every driver under test).
+
+    Attributes
+    ----------
     actual_joints : callable, optional
         The device's true joint angles (radians), if the test can observe them.
     messages_received : callable, optional
@@ -94,8 +106,6 @@ class RobotUnderTest:
         midway; None when the device always moves that slowly.
     """
 
-    name: str
-    make: Callable[[], Any]
     actual_joints: Callable[[], Sequence[float]] | None = None
     messages_received: Callable[[], int] | None = None
     connect_timeout: float = 5.0
@@ -105,23 +115,17 @@ class RobotUnderTest:
 
 
 @dataclass(frozen=True)
-class TrackerUnderTest:
-    """A tracker driver to check.
+class TrackerUnderTest(_DriverUnderTest):
+    """A tracker driver to check (``name`` and ``make`` as for every driver under test).
 
     Attributes
     ----------
-    name : str
-        Label used in messages.
-    make : callable
-        Returns a new, unconnected driver each call.
     true_position : callable, optional
         The reflector's true position (metres, tracker frame), if observable.
     position_tol_m : float
         Agreement expected with ``true_position``.
     """
 
-    name: str
-    make: Callable[[], Any]
     true_position: Callable[[], Sequence[float]] | None = None
     position_tol_m: float = 2e-4
     connect_timeout: float = 5.0

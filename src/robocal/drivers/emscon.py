@@ -48,6 +48,7 @@ from robocal.errors import (
 )
 from robocal.protocols import Transport, emscon, open_transport
 from robocal.protocols.emscon import Cmd, CoordSys, Event, Status
+from robocal.protocols.session import BadFrame, Disposition, EmsconExchange, EmsconSession
 
 __all__ = [
     "EmsconBeamLost",
@@ -73,7 +74,6 @@ _UNITS = {
 }
 _WMS = {"off": 0, "read_only": 1, "calculate": 2}
 _TPS_INITIALIZED = 5
-_RESULT_TYPES = (emscon.DataType.SINGLE_MEAS_RESULT, emscon.DataType.SINGLE_MEAS_RESULT2)
 
 
 class _EventBeamLost(EmsconBeamLost):
@@ -250,34 +250,6 @@ class EmsconOptions(DriverOptions):
         return v
 
 
-class _Done(Exception):
-    """The pending command has its outcome (internal control flow)."""
-
-
-class _Bad:
-    """A frame that could not be decoded, kept so the pending command can fail on it."""
-
-    __slots__ = ("command", "error", "type")
-
-    def __init__(self, frame: bytes, error: Exception) -> None:
-        self.type = int.from_bytes(frame[4:8], "little", signed=True)
-        self.command = int.from_bytes(frame[8:12], "little", signed=True)
-        self.error = error
-
-
-class _Result:
-    """Outcome of one command exchange."""
-
-    __slots__ = ("not_ready_at", "reply", "reply_owed", "result")
-
-    def __init__(self) -> None:
-        self.not_ready_at: float | None = None
-        # Failed by a type-1 packet before its reply came: the reply may still follow.
-        self.reply_owed = False
-        self.reply: emscon.Reply | None = None
-        self.result: emscon.SingleMeasResult | emscon.SingleMeasResult2 | None = None
-
-
 class EmsconTracker(DriverBase):
     """A Leica laser tracker through the emScon TPI binary protocol.
 
@@ -319,7 +291,13 @@ class EmsconTracker(DriverBase):
         self._transport: Transport | None = None
         self._framer = emscon.PacketFramer()
         # Packets read but not yet handled when an exchange ended early (same batch).
-        self._backlog: deque[emscon.Packet | _Bad] = deque()
+        self._backlog: deque[emscon.Packet | BadFrame] = deque()
+        #: Request matching (sans-I/O): the command in flight and what has arrived for it.
+        self._session = EmsconSession(
+            result_order=self.options.result_order,
+            fail_on_not_ready_event=self.options.fail_on_not_ready_event,
+            not_ready_grace_s=self.options.not_ready_grace_s,
+        )
         self._lock = asyncio.Lock()
         self._meas_time_sent: int | None = None
         self._last_vals: tuple[float, float, float] | None = None
@@ -352,6 +330,7 @@ class EmsconTracker(DriverBase):
         transport = open_transport(f"tcp://{o.host}:{o.port}")
         self._framer.reset()
         self._backlog.clear()
+        self._session.abandon()
         await transport.open(timeout=max(0.05, deadline - time.monotonic()))
         self._transport = transport
         self._meas_time_sent = None
@@ -468,7 +447,7 @@ class EmsconTracker(DriverBase):
             self._reconnecting = False
 
     # --- packet exchange -----------------------------------------------------------------------
-    async def _read_packets(self, deadline: float) -> list[emscon.Packet | _Bad]:
+    async def _read_packets(self, deadline: float) -> list[emscon.Packet | BadFrame]:
         """Read until at least one frame is complete; return the decoded packets."""
         transport = self._transport
         if transport is None:
@@ -489,14 +468,14 @@ class EmsconTracker(DriverBase):
             # At or past the deadline this still takes bytes already received.
             remaining = max(0.0, deadline - time.monotonic())
             self._framer.feed(await transport.read(65536, timeout=remaining))
-        packets: list[emscon.Packet | _Bad] = []
+        packets: list[emscon.Packet | BadFrame] = []
         for frame in frames:
             try:
                 packets.append(emscon.decode(frame, direction="from_server"))
             except (UnexpectedReply, FramingError) as err:
                 self.bad_packets += 1
                 self.log.warning("undecodable packet", error=str(err)[:120])
-                packets.append(_Bad(frame, err))
+                packets.append(BadFrame.of(frame, err))
         return packets
 
     async def _drain(self, seconds: float) -> None:
@@ -511,9 +490,9 @@ class EmsconTracker(DriverBase):
                 if not self._on_async(p):
                     self.log.debug("stale packet dropped", packet=type(p).__name__)
 
-    def _on_async(self, p: emscon.Packet | _Bad) -> bool:
+    def _on_async(self, p: emscon.Packet | BadFrame) -> bool:
         """Handle a packet that is not an answer to the pending command; True if consumed."""
-        if isinstance(p, _Bad):
+        if isinstance(p, BadFrame):
             return True
         if isinstance(p, emscon.StatusChange):
             self.events.append(p.event)
@@ -542,39 +521,52 @@ class EmsconTracker(DriverBase):
 
     async def _exchange(
         self, cmd: int, params: Mapping[str, Any], timeout: float, *, measurement: bool
-    ) -> _Result:
+    ) -> EmsconExchange:
         """Send one command; wait for its reply (and result packet) or a type-1 error."""
         transport = self._transport
         if transport is None:
             raise TransportError("not connected")
-        out = _Result()
         await self._flush_received()
-        await transport.write(emscon.command(cmd, **params))
-        deadline = time.monotonic() + timeout
-        while True:
-            until = deadline
-            if out.not_ready_at is not None:
-                until = min(deadline, out.not_ready_at + self.options.not_ready_grace_s)
-            try:
-                batch = deque(await self._read_packets(until))
-            except TransportTimeout:
-                if out.not_ready_at is None or time.monotonic() >= deadline:
-                    raise
-                raise _EventBeamLost(
-                    "event 25 (MeasStatus_NotReady) during the measurement, no result",
-                    status=int(Event.MEAS_STATUS_NOT_READY),
-                    command=cmd,
-                ) from None
-            try:
-                self._handle_batch(batch, cmd, out, measurement)
-            except _Done:
-                return out
-            finally:
-                self._backlog.extendleft(reversed(batch))
-            if out.reply is not None and (
-                not measurement or out.reply.status != 0 or out.result is not None
-            ):
-                return out
+        out = self._session.send(cmd, time.monotonic() + timeout, measurement=measurement)
+        try:
+            await transport.write(emscon.command(cmd, **params))
+            while not out.done:
+                await self._next_batch(out)
+        finally:
+            if not out.done:
+                self._session.abandon()
+        return out
+
+    async def _next_batch(self, out: EmsconExchange) -> None:
+        """Read one batch of packets and feed it to the session until ``out`` is done."""
+        try:
+            batch = deque(await self._read_packets(self._session.wait_until()))
+        except TransportTimeout:
+            ended = self._session.timeout(max(time.monotonic(), self._session.wait_until()))
+            if ended != "not_ready":
+                raise
+            raise _EventBeamLost(
+                "event 25 (MeasStatus_NotReady) during the measurement, no result",
+                status=int(Event.MEAS_STATUS_NOT_READY),
+                command=out.command,
+            ) from None
+        try:
+            while batch and not out.done:
+                self._feed(batch.popleft(), out)
+        finally:
+            self._backlog.extendleft(reversed(batch))
+
+    def _feed(self, p: emscon.Packet | BadFrame, out: EmsconExchange) -> None:
+        """Hand one packet to the session; log what it drops, handle what is unsolicited."""
+        disposition = self._session.receive(p, time.monotonic())
+        if disposition is Disposition.UNSOLICITED:
+            self._on_async(p)
+        elif disposition is Disposition.ANSWER and isinstance(p, emscon.Reply):
+            self._check_failed_size(p)
+        elif disposition is Disposition.STALE and isinstance(p, emscon.Reply):
+            self.log.warning("stale reply dropped", command=p.command, expected=out.command)
+        elif disposition is Disposition.STALE:
+            self.log.warning("stale measurement result dropped")
 
     async def _flush_received(self) -> None:
         """Handle everything received so far: none of it can answer a command not yet sent."""
@@ -587,56 +579,6 @@ class EmsconTracker(DriverBase):
                 if not self._on_async(p):
                     self.log.warning("stale packet dropped", packet=type(p).__name__)
 
-    def _handle_batch(
-        self, batch: deque[emscon.Packet | _Bad], cmd: int, out: _Result, measurement: bool
-    ) -> None:
-        """Consume packets from ``batch`` into ``out``; raise _Done when the command ended."""
-        o = self.options
-        while batch:
-            p = batch.popleft()
-            if isinstance(p, _Bad) and (
-                (p.type == emscon.DataType.COMMAND and p.command == cmd)
-                or (measurement and p.type in _RESULT_TYPES)
-            ):
-                # The answer to the pending command is malformed: fail now, not at the timeout.
-                raise UnexpectedReply(str(p.error)) from p.error
-            if isinstance(p, emscon.Reply):
-                if p.command != cmd or out.reply is not None:
-                    self.log.warning("stale reply dropped", command=p.command, expected=cmd)
-                    continue
-                self._check_failed_size(p)
-                if measurement and out.result is None and o.result_order == "result_first":
-                    raise UnexpectedReply("StartMeasurement reply before its result")
-                out.reply = p
-            elif isinstance(p, emscon.SingleMeasResult | emscon.SingleMeasResult2):
-                if not measurement or out.result is not None:
-                    self.log.warning("stale measurement result dropped")
-                    continue
-                if out.reply is None and o.result_order == "reply_first":
-                    raise UnexpectedReply("result before the StartMeasurement reply")
-                out.result = p
-            elif isinstance(p, emscon.ErrorResponse) and p.command == cmd:
-                # The pending command failed (the MS reading of a type-1 packet).
-                out.reply_owed = out.reply is None
-                out.reply = emscon.Reply(cmd, p.status)
-                raise _Done
-            else:
-                self._on_async(p)
-                if (
-                    measurement
-                    and o.fail_on_not_ready_event
-                    and isinstance(p, emscon.StatusChange)
-                    and p.event == Event.MEAS_STATUS_NOT_READY
-                    and out.result is None
-                    and out.not_ready_at is None
-                ):
-                    # Give the server not_ready_grace_s to fail the command itself.
-                    out.not_ready_at = time.monotonic()
-            if out.reply is not None and (
-                not measurement or out.reply.status != 0 or out.result is not None
-            ):
-                raise _Done
-
     def _check_failed_size(self, p: emscon.Reply) -> None:
         if p.status == 0 or self.options.failed_reply_size == "any":
             return
@@ -646,18 +588,10 @@ class EmsconTracker(DriverBase):
             self.log.warning("failed reply of unexpected size", command=p.command, size=size)
 
     async def _call(
-        self,
-        cmd: int,
-        params: Mapping[str, Any] | None = None,
-        *,
-        timeout: float | None = None,
-        measurement: bool = False,
-        ok_statuses: tuple[int, ...] = (),
+        self, cmd: int, params: Mapping[str, Any] | None = None, **how: Any
     ) -> emscon.Reply:
-        """Run one command with busy retries and one reconnect; raise on a failed status."""
-        result = await self._call_full(
-            cmd, params, timeout=timeout, measurement=measurement, ok_statuses=ok_statuses
-        )
+        """:meth:`_call_full` (same arguments), returning only the reply."""
+        result = await self._call_full(cmd, params, **how)
         assert result.reply is not None
         return result.reply
 
@@ -669,7 +603,12 @@ class EmsconTracker(DriverBase):
         timeout: float | None = None,
         measurement: bool = False,
         ok_statuses: tuple[int, ...] = (),
-    ) -> _Result:
+    ) -> EmsconExchange:
+        """Run one command with busy retries and one reconnect; raise on a failed status.
+
+        ``timeout`` (seconds; default ``request_timeout_s``); ``measurement``: also await the
+        result packet; ``ok_statuses``: non-zero statuses that count as success.
+        """
         o = self.options
         wait = o.request_timeout_s if timeout is None else timeout
         busy = 0
@@ -803,7 +742,7 @@ class EmsconTracker(DriverBase):
         total: int | None = None
         while total is None or len(found) < total:
             for p in await self._read_packets(deadline):
-                if isinstance(p, _Bad) and p.command == Cmd.GET_REFLECTORS:
+                if isinstance(p, BadFrame) and p.command == Cmd.GET_REFLECTORS:
                     raise UnexpectedReply(str(p.error)) from p.error
                 if isinstance(p, emscon.Reply) and p.command == Cmd.GET_REFLECTORS:
                     if p.status != 0:

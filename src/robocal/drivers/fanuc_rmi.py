@@ -55,10 +55,10 @@ from robocal.errors import (
     ProtocolError,
     TransportError,
     TransportTimeout,
-    VerificationMismatch,
 )
 from robocal.protocols import LineStream, TcpTransport, await_reply
 from robocal.protocols import fanuc_rmi as rmi
+from robocal.protocols.session import Request, RmiSession
 
 __all__ = ["FanucRmiOptions", "FanucRmiRobot"]
 
@@ -67,12 +67,6 @@ MIN_MAJOR_VERSION = 6
 #: taken; a controller that talks without end is not waited for).
 _LATE_PACKETS = 32
 _SEQUENCE_ERRORS = frozenset({rmi.rmit(24), rmi.rmit(28), rmi.rmit(29)})
-#: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
-#: connect timeout).
-_SESSION_PORT_ATTEMPTS = 8
-#: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
-#: connect timeout).
-_SESSION_PORT_ATTEMPTS = 8
 #: Connection attempts on the session port (back-off 20 ms doubling to 0.5 s, within the
 #: connect timeout).
 _SESSION_PORT_ATTEMPTS = 8
@@ -138,13 +132,11 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         self._stream: LineStream | None = None
         self._reader: asyncio.Task[None] | None = None
         self._cmd_lock = asyncio.Lock()
-        self._cmd_future: asyncio.Future[rmi.Packet] | None = None
-        self._cmd_name = ""
-        self._instr: dict[int, asyncio.Future[rmi.Packet]] = {}
+        #: Request matching (sans-I/O); the driver keeps one future per outstanding request.
+        self._session = RmiSession()
+        self._waiters: dict[Request[str] | Request[int], asyncio.Future[rmi.Packet]] = {}
         self._in_flight = asyncio.Semaphore(rmi.MAX_IN_FLIGHT)
         self._seq_lock = asyncio.Lock()
-        self._next_seq = 1
-        self._needs_recovery = False
         self._lost: Exception | None = None
         self._disconnected: asyncio.Future[None] | None = None
         self._last_table: CompensationTable | None = None
@@ -155,7 +147,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         o = self.options
         deadline = time.monotonic() + timeout
         self._lost = None
-        self._needs_recovery = False
+        self._session = RmiSession()
         conn = TcpTransport(o.host, o.connect_port)
         await conn.open(timeout=timeout)
         try:
@@ -226,8 +218,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         # Newer controllers keep NextSequenceID across FRC_Initialize and drop stale IDs
         # silently, so continue from what the controller expects rather than from 1.
         after = await self._command("FRC_GetStatus")
-        nxt = _int_or(after.body.get("NextSequenceID"), 0)
-        self._next_seq = nxt if 1 <= nxt <= rmi.MAX_SEQUENCE_ID else 1
+        self._session.resync(_int_or(after.body.get("NextSequenceID"), 0))
         if o.override_pct is not None:
             await self._command("FRC_SetOverRide", Value=o.override_pct)
 
@@ -298,15 +289,37 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         self._stream = None
         self._fail_pending(ConnectFailed("driver closed", kind=self.kind))
 
+    @property
+    def _next_seq(self) -> int:
+        """SequenceID of the next instruction (kept by the session)."""
+        return self._session.next_seq
+
+    @_next_seq.setter
+    def _next_seq(self, seq: int) -> None:
+        self._session.next_seq = seq
+
     def _fail_pending(self, exc: Exception) -> None:
-        futures = [*self._instr.values()]
-        if self._cmd_future is not None:
-            futures.append(self._cmd_future)
-        for fut in futures:
-            if not fut.done():
-                fut.set_exception(exc)
-                # Mark retrieved: nobody may be awaiting any more.
-                fut.exception()
+        self._session.clear()
+        for req in list(self._waiters):
+            self._settle(req, exc)
+
+    def _settle(self, req: Request[str] | Request[int], outcome: rmi.Packet | Exception) -> None:
+        """Resolve the waiter of ``req`` with a reply packet or an exception."""
+        fut = self._waiters.get(req)
+        if fut is None or fut.done():
+            return
+        if isinstance(outcome, Exception):
+            fut.set_exception(outcome)
+            # Mark retrieved: nobody may be awaiting any more.
+            fut.exception()
+        else:
+            fut.set_result(outcome)
+
+    def _expire(self) -> None:
+        """A wait ran out: the session closes every overdue request (late replies are then
+        discarded by SequenceID) and their waiters time out."""
+        for req in self._session.timeout(time.monotonic()):
+            self._settle(req, TimeoutError())
 
     # --- reader --------------------------------------------------------------------------------
     async def _read_loop(self, stream: LineStream) -> None:
@@ -335,22 +348,17 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             self._dispatch(packet)
 
     def _dispatch(self, packet: rmi.Packet) -> None:
-        if packet.category == "Command":
-            fut = self._cmd_future
-            if fut is not None and not fut.done() and packet.name in (self._cmd_name, "Unknown"):
-                fut.set_result(packet)
-            else:
-                self.log.warning("unexpected command reply ignored", packet=packet.name)
-        elif packet.category == "Instruction":
+        receipt = self._session.receive(packet)
+        if receipt.kind == "reply":
+            assert receipt.request is not None
+            self._settle(receipt.request, packet)
+        elif receipt.kind == "unmatched" and packet.category == "Command":
+            self.log.warning("unexpected command reply ignored", packet=packet.name)
+        elif receipt.kind == "unmatched":
+            self.log.warning("reply for unknown SequenceID ignored",
+                             sequence_id=packet.sequence_id)
+        elif receipt.kind == "fault":
             seq = packet.sequence_id
-            fut = self._instr.get(seq) if seq is not None else None
-            if fut is not None and not fut.done():
-                fut.set_result(packet)
-            else:
-                self.log.warning("reply for unknown SequenceID ignored", sequence_id=seq)
-        elif packet.name == "FRC_SystemFault":
-            seq = packet.sequence_id
-            self._needs_recovery = True
             self.log.warning("controller system fault", sequence_id=seq)
             exc = MotionRejected(
                 f"controller system fault while executing SequenceID {seq}; "
@@ -358,14 +366,12 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                 kind=self.kind,
                 code="FRC_SystemFault",
             )
-            for fut in self._instr.values():
-                if not fut.done():
-                    fut.set_exception(exc)
-                    fut.exception()
-        elif packet.name == "FRC_Terminate":
+            for req in receipt.failed:
+                self._settle(req, exc)
+        elif receipt.kind == "terminate":
             self._lost = ConnectFailed("controller terminated the RMI session", kind=self.kind)
             self._fail_pending(self._lost)
-        elif packet.name == "FRC_Disconnect":
+        elif receipt.kind == "disconnect":
             if self._disconnected is not None and not self._disconnected.done():
                 self._disconnected.set_result(None)
         else:
@@ -388,18 +394,20 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             raise self._lost or ConnectFailed("not connected", kind=self.kind)
         wait = self.options.reply_timeout_s if timeout is None else timeout
         async with self._cmd_lock:
-            fut: asyncio.Future[rmi.Packet] = asyncio.get_running_loop().create_future()
-            self._cmd_future, self._cmd_name = fut, name
+            req = self._session.command(name, time.monotonic() + wait)
+            fut = self._waiters[req] = asyncio.get_running_loop().create_future()
             try:
                 with self.translate_errors():
                     await stream.write_line(rmi.encode({"Command": name, **fields}))
-                packet = await await_reply(fut, wait)
+                packet = await await_reply(fut, req.deadline - time.monotonic())
             except TimeoutError as err:
+                self._expire()
                 raise DriverTimeout(
                     f"no reply to {name} within {wait:.3g} s", kind=self.kind
                 ) from err
             finally:
-                self._cmd_future = None
+                self._session.commands.drop(req)
+                self._waiters.pop(req, None)
         if packet.name == "Unknown":
             raise OperationError(
                 f"controller could not parse {name}: {rmi.describe_error(packet.error_id or 0)}",
@@ -417,9 +425,9 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         nxt = _int_or(status.body.get("NextSequenceID"), 0)
         await self._command("FRC_Reset")
         if nxt >= 1:
-            self._next_seq = nxt
-        self._needs_recovery = False
-        self.log.info("recovered from HOLD", next_sequence_id=self._next_seq)
+            self._session.resync(nxt)
+        self._session.hold = False
+        self.log.info("recovered from HOLD", next_sequence_id=self._session.next_seq)
 
     async def _instruction(
         self, build: Callable[[int], dict[str, Any]], deadline: float
@@ -428,26 +436,28 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         stream = self._live_stream()
         async with self._in_flight:
             async with self._seq_lock:
-                if self._needs_recovery:
+                if self._session.hold:
                     await self._recover()
-                seq = self._next_seq
-                fut: asyncio.Future[rmi.Packet] = asyncio.get_running_loop().create_future()
-                self._instr[seq] = fut
+                payload = build(self._session.next_seq)
+                req = self._session.instruction(str(payload.get("Instruction")), deadline)
+                fut = self._waiters[req] = asyncio.get_running_loop().create_future()
                 try:
                     with self.translate_errors():
-                        await stream.write_line(rmi.encode(build(seq)))
+                        await stream.write_line(rmi.encode(payload))
                 except BaseException:
-                    self._instr.pop(seq, None)
+                    self._session.withdraw(req)
+                    self._waiters.pop(req, None)
                     raise
-                self._next_seq = rmi.next_sequence_id(seq)
             try:
                 return await await_reply(fut, deadline - time.monotonic())
             except TimeoutError as err:
+                self._expire()
                 raise DriverTimeout(
-                    f"instruction SequenceID {seq} not completed in time", kind=self.kind
+                    f"instruction SequenceID {req.key} not completed in time", kind=self.kind
                 ) from err
             finally:
-                self._instr.pop(seq, None)
+                self._session.instructions.drop(req)
+                self._waiters.pop(req, None)
 
     # --- robot API -----------------------------------------------------------------------------
     async def move_to(
@@ -486,7 +496,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                 self.log.warning(
                     "instruction refused; resynchronising", error=rmi.describe_error(eid)
                 )
-                self._needs_recovery = True
+                self._session.hold = True
                 continue
             raise MotionRejected(
                 f"FRC_JointMotionJRep refused: {rmi.describe_error(eid)}", kind=self.kind, code=eid
@@ -526,10 +536,8 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             self._stop_gen += 1
             abort = await self._command("FRC_Abort", check=False)
             stopped = MotionStopped("motion stopped by request (FRC_Abort)", kind=self.kind)
-            for fut in self._instr.values():
-                if not fut.done():
-                    fut.set_exception(stopped)
-                    fut.exception()
+            for req in self._session.instructions.clear():
+                self._settle(req, stopped)
             # RMIT-009 "RMI is not running": nothing was running, which is a stop too.
             if abort.error_id and abort.error_id != rmi.rmit(9):
                 raise OperationError(
@@ -544,10 +552,9 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                     kind=self.kind,
                 )
             status = await self._command("FRC_GetStatus")
-            nxt = _int_or(status.body.get("NextSequenceID"), 0)
-            self._next_seq = nxt if 1 <= nxt <= rmi.MAX_SEQUENCE_ID else 1
-            self._needs_recovery = False
-        self.log.info("stopped", next_sequence_id=self._next_seq)
+            self._session.resync(_int_or(status.body.get("NextSequenceID"), 0))
+            self._session.hold = False
+        self.log.info("stopped", next_sequence_id=self._session.next_seq)
 
     async def read_error(self) -> str:
         """Return the controller's most recent alarm text (``FRC_ReadError``)."""
@@ -579,10 +586,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(
-                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff
-            )
+        self._check_read_back(diff, "compensation read back differs")
 
     async def _write_frames(self, table: CompensationTable) -> None:
         if table.frames is None:
@@ -692,13 +696,8 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
 
     async def restore_snapshot(self, snapshot: ControllerSnapshot) -> None:
-        """Write a snapshot's values back, read them again and compare.
-
-        Raises
-        ------
-        VerificationMismatch
-            The controller holds different values afterwards.
-        """
+        """Write the saved frames or position registers back, read them again and compare
+        (VerificationMismatch when the controller then holds other values)."""
         self._live_stream()
         o = self.options
         for key, value in snapshot.items.items():
@@ -724,10 +723,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         dummy = _snapshot_template(snapshot, o.pr_base)
         back = await self.snapshot_compensation(dummy)
         diff = snapshot_diff(snapshot, back, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(
-                f"restored values read back differ: {diff[0]}", kind=self.kind, diff=diff
-            )
+        self._check_read_back(diff, "restored values read back differ")
 
     async def read_compensation_like(self, table: CompensationTable) -> CompensationTable:
         """``table`` with its numbers replaced by what the controller holds in its slots."""

@@ -60,6 +60,7 @@ from robocal.errors import (
 )
 from robocal.protocols import TcpTransport
 from robocal.protocols import kuka_kvp as kvp
+from robocal.protocols.session import Request, Window
 
 __all__ = ["KukaKvpOptions", "KukaKvpRobot"]
 
@@ -130,6 +131,8 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         self._framer = kvp.KvpFramer()
         self._io_lock = asyncio.Lock()
         self._msg_id = 0
+        #: One request outstanding, matched by message id (sans-I/O).
+        self._window: Window[int] = Window(1)
         self._seq = 0
         self._stop_gen = 0
         self._lost: Exception | None = None
@@ -149,27 +152,34 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
             self._msg_id = (self._msg_id + 1) & 0xFFFF
             mode = kvp.MODE_READ if value is None else kvp.MODE_WRITE
             req = kvp.Request(self._msg_id, mode, name, value)
-            deadline = time.monotonic() + timeout
+            sent = self._window.open(req.msg_id, name, time.monotonic() + timeout)
             try:
                 with self.translate_errors():
                     await transport.write(kvp.encode_request(req))
-                    while True:
-                        msg = self._framer.next_message()
-                        if msg is not None:
-                            reply = kvp.decode_reply(msg)
-                            if reply.msg_id == req.msg_id:
-                                return reply
-                            self.log.warning("stale KVP reply ignored", msg_id=reply.msg_id)
-                            continue
-                        remaining = deadline - time.monotonic()
-                        if remaining <= 0:
-                            raise DriverTimeout(f"no KVP reply for {name} within {timeout} s",
-                                                kind=self.kind)
-                        self._framer.feed(await transport.read(4096, timeout=remaining))
+                    return await self._reply_to(transport, sent)
             except (ConnectFailed, DriverTimeout, TransportError) as err:
                 # The stream is out of step (or gone): no later reply can be trusted.
                 self._lost = ConnectFailed(f"KVP link lost: {err}", kind=self.kind)
                 raise self._lost from err
+            finally:
+                self._window.drop(sent)
+
+    async def _reply_to(self, transport: TcpTransport, sent: Request[int]) -> kvp.Reply:
+        """Read until the reply carrying ``sent``'s message id arrives; skip stale ones."""
+        while True:
+            msg = self._framer.next_message()
+            if msg is not None:
+                reply = kvp.decode_reply(msg)
+                if self._window.answer(reply.msg_id) is sent:
+                    return reply
+                self.log.warning("stale KVP reply ignored", msg_id=reply.msg_id)
+                continue
+            now = time.monotonic()
+            if self._window.timeout(now):
+                timeout = self.options.request_timeout_s
+                raise DriverTimeout(f"no KVP reply for {sent.name} within {timeout} s",
+                                    kind=self.kind)
+            self._framer.feed(await transport.read(4096, timeout=sent.deadline - now))
 
     async def _read(self, name: str) -> str:
         reply = await self._request(name)
@@ -368,9 +378,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         if back is not None and kvp.parse_string(await self._read("RC_COMP_ID[]")) != \
                 sealed.checksum[:64]:
             diff.append("RC_COMP_ID does not hold the table's checksum")
-        if diff:
-            raise VerificationMismatch(
-                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The table written in this session with its rows re-read from ``RC_COMP`` (None
@@ -432,6 +440,4 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         self._last_table = None
         read = snapshot.model_copy(update={"items": back})
         diff = snapshot_diff(snapshot, read, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(f"restored values read back differ: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        self._check_read_back(diff, "restored values read back differ")

@@ -28,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from datetime import datetime
 from typing import Any, ClassVar, Literal, NoReturn
 
@@ -50,6 +50,7 @@ from robocal.errors import (
     Unstable,
 )
 from robocal.protocols import LineStream, ltp, open_transport
+from robocal.protocols.session import LtpSession
 
 __all__ = ["LtpOptions", "LtpTracker", "decimal_text", "wire_point_id"]
 
@@ -127,10 +128,9 @@ class LtpTracker(DriverBase):
         self.weather: dict[str, float] = {}
         self.bad_lines = 0
         self._stream: LineStream | None = None
-        self._tag = 0
-        #: Requests sent and not yet answered: tag -> verb.
-        self._pending: dict[str, str] = {}
-        self._owed_until = 0.0
+        #: Request matching (sans-I/O): tags, what is still owed, which reply answers what.
+        #: A request that timed out stays owed for one more request timeout.
+        self._session = LtpSession(late_grace_s=self.options.request_timeout_s)
         self._units = "mm"
 
     # --- connection ----------------------------------------------------------------------------
@@ -168,7 +168,7 @@ class LtpTracker(DriverBase):
         transport = open_transport(self.options.url)
         await transport.open(timeout=max(0.05, deadline - time.monotonic()))
         self._stream = LineStream(transport, max_length=ltp.MAX_LINE)
-        self._pending.clear()
+        self._session.reset()
         hello = await self._request("HELLO", {"proto": ltp.PROTO}, deadline=deadline, retry=False)
         if hello.values.get("proto") != ltp.PROTO:
             raise ConnectFailed(
@@ -189,7 +189,7 @@ class LtpTracker(DriverBase):
             except Exception as err:  # best effort: the link may already be gone
                 self.log.debug("BYE not sent or not answered", error=repr(err))
         self._stream = None
-        self._pending.clear()
+        self._session.reset()
         await stream.transport.close()
 
     async def _reconnect(self) -> None:
@@ -203,10 +203,6 @@ class LtpTracker(DriverBase):
             await self._setup(deadline)
 
     # --- request / reply -----------------------------------------------------------------------
-    def _next_tag(self) -> str:
-        self._tag = self._tag % 99_999_999 + 1
-        return str(self._tag)
-
     async def _request(
         self,
         verb: str,
@@ -258,16 +254,15 @@ class LtpTracker(DriverBase):
         if stream is None:
             raise ConnectFailed("not connected", kind=self.kind)
         await self._settle(stream, deadline, verb)
-        tag = self._next_tag()
-        req = ltp.Request(tag, verb, {k: str(v) for k, v in args.items()})
-        line = ltp.format_request(req)
-        self._pending[tag] = verb
-        await stream.write_line(line)
+        tag = self._session.send(verb, deadline).key
+        await stream.write_line(
+            ltp.format_request(ltp.Request(tag, verb, {k: str(v) for k, v in args.items()}))
+        )
         try:
             msg = await self._read_until(stream, deadline, tag, verb)
         except TransportTimeout:
             # Left outstanding: its reply is still owed, for one more request timeout.
-            self._owed_until = time.monotonic() + self.options.request_timeout_s
+            self._session.timeout(max(time.monotonic(), deadline))
             raise
         assert msg is not None
         return msg
@@ -282,13 +277,12 @@ class LtpTracker(DriverBase):
         _Unanswered
             If they do not arrive by ``deadline`` (the request is then not sent).
         """
-        owed = [t for t, v in self._pending.items() if not (verb == "STOP" and v == "MEAS")]
-        if not owed:
+        if not self._session.owed(verb):
             return
         try:
-            await self._read_until(stream, min(deadline, self._owed_until), None, verb, owed=owed)
+            await self._read_until(stream, min(deadline, self._session.owed_until), None, verb)
         except TransportTimeout as err:
-            names = ", ".join(f"{self._pending[t]} (tag {t})" for t in owed if t in self._pending)
+            names = ", ".join(f"{r.name} (tag {r.key})" for r in self._session.owed(verb))
             raise _Unanswered(f"bridge has not answered {names}; {verb} not sent") from err
 
     async def _read_until(
@@ -297,13 +291,12 @@ class LtpTracker(DriverBase):
         deadline: float,
         tag: str | None,
         verb: str,
-        *,
-        owed: Sequence[str] = (),
     ) -> ltp.Ok | ltp.Err | None:
-        """Read lines until the reply to ``tag`` arrives (or, tag None, every ``owed`` one)."""
+        """Read lines until the reply to ``tag`` arrives (or, tag None, every reply ``verb``
+        must wait for)."""
         overdue = 0
         while True:
-            if tag is None and not any(t in self._pending for t in owed):
+            if tag is None and not self._session.owed(verb):
                 return None
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -329,32 +322,18 @@ class LtpTracker(DriverBase):
             if isinstance(msg, ltp.Event):
                 self._on_event(msg)
                 continue
-            if msg.tag in self._pending:
-                self._settle_earlier(msg)
-            late = self._pending.pop(msg.tag, None)
-            if msg.tag == tag:
-                return msg
-            if late is not None:
-                self.log.info("late reply discarded", tag=msg.tag, verb=late)
-            else:
+            receipt = self._session.receive(msg)
+            for lost in receipt.lost:
+                # A bridge answers in order (ltp1.md, section 5): a later reply means the
+                # earlier one was lost (on a serial line, a garbled line).
+                self.log.warning("reply lost; request no longer awaited", tag=lost.key,
+                                 verb=lost.name, answered=msg.tag)
+            if receipt.request is None:
                 self.log.warning("reply with unknown tag discarded", tag=msg.tag)
-
-    def _settle_earlier(self, msg: ltp.Ok | ltp.Err) -> None:
-        """Forget the requests sent before ``msg``'s: their replies were lost.
-
-        A bridge answers in order (a MEAS before the STOP that aborts it, section 5 of
-        ltp1.md), so once a later request is answered no earlier reply can still come; on a
-        serial line a garbled line is such a lost reply. ``ERR 14 BUSY`` is the exception: the
-        bridge is still running the earlier request, whose reply is still to come.
-        """
-        if isinstance(msg, ltp.Err) and msg.code == ltp.ErrorCode.BUSY:
-            return
-        for earlier, verb in list(self._pending.items()):
-            if earlier == msg.tag:
-                break
-            del self._pending[earlier]
-            self.log.warning("reply lost; request no longer awaited", tag=earlier, verb=verb,
-                             answered=msg.tag)
+            elif msg.tag == tag:
+                return msg
+            else:
+                self.log.info("late reply discarded", tag=msg.tag, verb=receipt.request.name)
 
     def _on_event(self, event: ltp.Event) -> None:
         v = event.values

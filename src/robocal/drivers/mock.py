@@ -38,7 +38,6 @@ from robocal.errors import (
     DriverTimeout,
     MotionStopped,
     Unstable,
-    VerificationMismatch,
 )
 
 __all__ = ["MockRobot", "MockRobotOptions", "MockTracker", "MockTrackerOptions"]
@@ -95,19 +94,43 @@ _EMPTY_FRAMES = CompensationTable(kind="frames", model_id="snapshot", robot="",
                                   frames=FramesPayload(base=_ZERO_FRAME, tool=_ZERO_FRAME))
 
 
-class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
-    """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
+class _OnWorld:
+    """The virtual robot a mock driver acts on: given, shared through a context, or its own.
 
     Parameters
     ----------
-    options : MockRobotOptions or mapping
-        Validated options.
     world : SimWorld, optional
         Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
         then ignored).
     context : DriverContext, optional
         Share the world named by the options with the other drivers of this context;
         without one (and without ``world``) the driver makes a world of its own.
+    """
+
+    options: _WorldOptions
+
+    def __init__(self, *, world: SimWorld | None, context: DriverContext | None) -> None:
+        self._world = world
+        self._context = context
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world (created on first use; pure computation, no I/O)."""
+        if self._world is None:
+            self._world = _world_for(self.options, self._context)
+        return self._world
+
+
+class MockRobot(_OnWorld, RobotDriverBase, CompensationSink, CompensationSlots,
+                CompensationSnapshots):
+    """In-process robot: moves the virtual robot instantly (or over ``move_time_s``).
+
+    Parameters
+    ----------
+    options : MockRobotOptions or mapping
+        Validated options.
+    world, context
+        The virtual robot to act on, as for every mock driver (see ``_OnWorld``).
     """
 
     kind: ClassVar[str] = "mock"
@@ -122,18 +145,10 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
         world: SimWorld | None = None,
         context: DriverContext | None = None,
     ) -> None:
-        super().__init__(options)
-        self._world = world
-        self._context = context
+        RobotDriverBase.__init__(self, options)
+        _OnWorld.__init__(self, world=world, context=context)
         self._stored: str | None = None
         self._stop_event = asyncio.Event()
-
-    @property
-    def world(self) -> SimWorld:
-        """The simulated world (created on first use; pure computation, no I/O)."""
-        if self._world is None:
-            self._world = _world_for(self.options, self._context)
-        return self._world
 
     @property
     def dof(self) -> int:
@@ -222,10 +237,7 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
         diff = table_diff(sealed, back)
         if back is not None and back.checksum != sealed.checksum:
             diff.append("checksum differs")
-        if diff:
-            raise VerificationMismatch(
-                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff
-            )
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the stored table, or None."""
@@ -253,24 +265,14 @@ class MockRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensati
             CompensationTable.model_validate_json(stored) if isinstance(stored, str)
             else _EMPTY_FRAMES)
         diff = snapshot_diff(snapshot.model_copy(update={"covers": back.covers}), back)
-        if diff:
-            raise VerificationMismatch(f"restored table differs: {diff[0]}", kind=self.kind,
-                                       diff=diff)
+        self._check_read_back(diff, "restored table differs")
 
 
-class MockTracker(DriverBase):
+class MockTracker(_OnWorld, DriverBase):
     """In-process tracker measuring the virtual robot's reflector with noise.
 
-    Parameters
-    ----------
-    options : MockTrackerOptions or mapping
-        Validated options.
-    world : SimWorld, optional
-        Use this world (the options' ``robot``, ``scenario``, ``seed`` and ``world`` are
-        then ignored).
-    context : DriverContext, optional
-        Share the world named by the options with the other drivers of this context;
-        without one (and without ``world``) the driver makes a world of its own.
+    ``options`` (MockTrackerOptions or a mapping) are validated; ``world`` and ``context``
+    choose the virtual robot as for every mock driver (see ``_OnWorld``).
     """
 
     kind: ClassVar[str] = "mock"
@@ -284,17 +286,9 @@ class MockTracker(DriverBase):
         world: SimWorld | None = None,
         context: DriverContext | None = None,
     ) -> None:
-        super().__init__(options)
-        self._world = world
-        self._context = context
+        DriverBase.__init__(self, options)
+        _OnWorld.__init__(self, world=world, context=context)
         self._faults = random.Random(self.options.fault_seed)
-
-    @property
-    def world(self) -> SimWorld:
-        """The simulated world (created on first use)."""
-        if self._world is None:
-            self._world = _world_for(self.options, self._context)
-        return self._world
 
     async def _connect_impl(self, timeout: float) -> None:
         _ = self.world

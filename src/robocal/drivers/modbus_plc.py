@@ -23,7 +23,7 @@ import asyncio
 import json
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -285,12 +285,43 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         self._seq = 1 if self._seq >= 0xFFFF else self._seq + 1
         return self._seq
 
+    async def _start(self, client: ModbusClient, cmd: mb.Cmd) -> int:
+        """Write ``CMD`` and a fresh ``CMD_SEQ`` in one request; return the sequence number."""
+        m = self.options.register_map
+        seq = self._next_seq()
+        pair = [int(cmd), seq] if m.cmd < m.cmd_seq else [seq, int(cmd)]
+        await client.write_registers(min(m.cmd, m.cmd_seq), pair)
+        return seq
+
+    async def _await_ack(
+        self,
+        cmd: mb.Cmd,
+        seq: int,
+        deadline: float,
+        timeout: float,
+        watch: Callable[[PlcStatus], None] | None = None,
+    ) -> PlcStatus:
+        """Poll the status block until ``ACK_SEQ`` reaches ``seq``; ``watch`` sees every
+        status read first and may raise."""
+        while True:
+            st = await self._read_status()
+            if watch is not None:
+                watch(st)
+            if st.ack_seq == seq:
+                return st
+            if time.monotonic() > deadline:
+                raise DriverTimeout(
+                    f"PLC did not acknowledge {cmd.name} (CMD_SEQ {seq}) within "
+                    f"{timeout:.3g} s (STATUS {st.status}, ACK_SEQ {st.ack_seq})",
+                    kind=self.kind,
+                )
+            await asyncio.sleep(self.options.poll_interval_s)
+
     async def _command(
         self, cmd: mb.Cmd, writes: Sequence[tuple[int, list[int]]], timeout: float
     ) -> PlcStatus:
         """Write payloads, start ``cmd``, poll ``ACK_SEQ``; return the final status block."""
         client = self._live_client()
-        m = self.options.register_map
         deadline = time.monotonic() + timeout
         gen = self._stop_gen
         async with self._op_lock:
@@ -299,32 +330,23 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                     await client.write_registers(address, words)
                 if gen != self._stop_gen and cmd == mb.Cmd.MOVE_JOINT:
                     raise MotionStopped("stop requested before the move started", kind=self.kind)
-                seq = self._next_seq()
-                pair = [int(cmd), seq] if m.cmd < m.cmd_seq else [seq, int(cmd)]
                 if cmd == mb.Cmd.MOVE_JOINT:
                     self._move_unacked = True
-                await client.write_registers(min(m.cmd, m.cmd_seq), pair)
-                while True:
-                    st = await self._read_status()
+                seq = await self._start(client, cmd)
+
+                def watch(st: PlcStatus) -> None:
                     self._note_plc_heartbeat(st.plc_heartbeat)
                     if self._fault is not None:
                         raise self._fault
-                    if st.ack_seq == seq:
-                        if cmd == mb.Cmd.MOVE_JOINT:
-                            self._move_unacked = False
-                        break
-                    if gen != self._stop_gen:
+                    if st.ack_seq != seq and gen != self._stop_gen:
                         # ABORT took over CMD_SEQ; stop() waits for its acknowledgement.
                         raise MotionStopped(
                             f"{cmd.name} (CMD_SEQ {seq}) aborted by stop()", kind=self.kind
                         )
-                    if time.monotonic() > deadline:
-                        raise DriverTimeout(
-                            f"PLC did not acknowledge {cmd.name} (CMD_SEQ {seq}) within "
-                            f"{timeout:.3g} s (STATUS {st.status}, ACK_SEQ {st.ack_seq})",
-                            kind=self.kind,
-                        )
-                    await asyncio.sleep(self.options.poll_interval_s)
+
+                st = await self._await_ack(cmd, seq, deadline, timeout, watch)
+                if cmd == mb.Cmd.MOVE_JOINT:
+                    self._move_unacked = False
         if st.status == mb.Status.ERROR:
             self._raise(cmd, st.error_code)
         if st.status != mb.Status.DONE:
@@ -406,28 +428,14 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         client = self._client
         if self.state != "connected" or client is None:
             return
-        m = self.options.register_map
         timeout = self.options.request_timeout_s * 2
         async with self._stop_lock:
             self._stop_gen += 1
             deadline = time.monotonic() + timeout
             with self.translate_errors():
-                seq = self._next_seq()
-                cmd = int(mb.Cmd.ABORT)
-                pair = [cmd, seq] if m.cmd < m.cmd_seq else [seq, cmd]
-                await client.write_registers(min(m.cmd, m.cmd_seq), pair)
-                while True:
-                    st = await self._read_status()
-                    if st.ack_seq == seq:
-                        self._move_unacked = False
-                        break
-                    if time.monotonic() > deadline:
-                        raise DriverTimeout(
-                            f"PLC did not acknowledge ABORT (CMD_SEQ {seq}) within {timeout:.3g} s"
-                            f" (STATUS {st.status}, ACK_SEQ {st.ack_seq})",
-                            kind=self.kind,
-                        )
-                    await asyncio.sleep(self.options.poll_interval_s)
+                seq = await self._start(client, mb.Cmd.ABORT)
+                st = await self._await_ack(mb.Cmd.ABORT, seq, deadline, timeout)
+                self._move_unacked = False
         if st.status == mb.Status.ERROR:
             self._raise(mb.Cmd.ABORT, st.error_code)
         self.log.info("stopped", cmd_seq=seq, actual_deg=[round(v, 4) for v in st.actual_deg])
@@ -555,10 +563,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             diff = table_diff(
                 sealed, self._table_from_block(mb.decode_table_block(back, m.word_order))
             )
-        if diff:
-            raise VerificationMismatch(
-                f"compensation read back differs: {diff[0]}", kind=self.kind, diff=diff[:20]
-            )
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """Return the table stored in the PLC's table block, or None if the block is empty.
@@ -568,27 +573,23 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         FramingError
             The block holds a corrupt table.
         """
-        client = self._live_client()
-        m = self.options.register_map
-        async with self._op_lock:
-            with self.translate_errors():
-                header = await client.read_holding(m.table, mb.TABLE_HEADER_WORDS)
-                if header[0] != mb.TABLE_MAGIC:
-                    return None
-                total = mb.table_block_length(header, m.word_order)
-                if total > m.table_words:
-                    raise FramingError(
-                        f"table block claims {total} registers, the map has {m.table_words}"
-                    )
-                words = await client.read_holding(m.table, total)
-        return self._table_from_block(mb.decode_table_block(words, m.word_order))
+        words = await self._table_words(strict=True)
+        if words[0] != mb.TABLE_MAGIC:
+            return None
+        return self._table_from_block(
+            mb.decode_table_block(words, self.options.register_map.word_order)
+        )
 
     async def read_compensation_like(self, table: CompensationTable) -> CompensationTable | None:
         """The table in the PLC's block (the block carries the whole table)."""
         return await self.read_compensation()
 
-    async def _table_words(self) -> list[int]:
-        """The table block's registers: the whole block, or its header when there is none."""
+    async def _table_words(self, *, strict: bool) -> list[int]:
+        """The table block's registers: the whole block, or its header when there is none.
+
+        ``strict``: a header that cannot be read or claims more registers than the map has
+        raises FramingError (otherwise the header alone, or as many registers as fit).
+        """
         client = self._live_client()
         m = self.options.register_map
         async with self._op_lock:
@@ -599,13 +600,19 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                 try:
                     total = mb.table_block_length(header, m.word_order)
                 except FramingError:
+                    if strict:
+                        raise
                     return header
+                if strict and total > m.table_words:
+                    raise FramingError(
+                        f"table block claims {total} registers, the map has {m.table_words}"
+                    )
                 total = min(max(total, mb.TABLE_HEADER_WORDS), m.table_words)
                 return await client.read_holding(m.table, total)
 
     async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
         """The PLC's table registers as they are, before robocal writes its block there."""
-        words = await self._table_words()
+        words = await self._table_words(strict=False)
         m = self.options.register_map
         return ControllerSnapshot(driver=self.kind, covers=table.kind,
                                   items={f"hr:{m.table}": words})
@@ -640,6 +647,4 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                 back = await client.read_holding(m.table, len(words))
         diff = [f"register {m.table + i}: wrote {a}, read {b}"
                 for i, (a, b) in enumerate(zip(words, back, strict=True)) if a != b]
-        if diff:
-            raise VerificationMismatch(f"restored registers differ: {diff[0]}", kind=self.kind,
-                                       diff=diff[:20])
+        self._check_read_back(diff, "restored registers differ")

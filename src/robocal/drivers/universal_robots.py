@@ -60,15 +60,15 @@ from robocal.errors import (
     OperationError,
     ProtocolError,
     TransportError,
-    TransportTimeout,
     UnexpectedReply,
-    VerificationMismatch,
 )
 from robocal.protocols import TcpTransport
 from robocal.protocols import ur_dashboard as dash
 from robocal.protocols import ur_primary as prim
 from robocal.protocols import ur_rtde as rtde
 from robocal.protocols.framing import LineFramer
+from robocal.protocols.session import Window
+from robocal.protocols.transport import received
 from robocal.protocols.ur_rtde import RobotMode, RuntimeState, SafetyMode
 
 __all__ = ["UniversalRobotsOptions", "UniversalRobotsRobot"]
@@ -166,6 +166,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._dash: TcpTransport | None = None
         self._dash_framer = LineFramer(max_length=dash.MAX_LINE)
         self._dash_lock = asyncio.Lock()
+        #: The Dashboard server answers one command at a time with one line (no ids).
+        self._dash_window: Window[str] = Window(1)
         self._rtde: TcpTransport | None = None
         self._primary: TcpTransport | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -358,18 +360,20 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         if conn is None:
             raise ConnectFailed("dashboard not connected", kind=self.kind)
         async with self._dash_lock:
-            with self.translate_errors():
-                await conn.write(dash.encode(command))
-                return await self._dash_line(self.options.reply_timeout_s)
+            sent = self._dash_window.open(
+                "dashboard", command, time.monotonic() + self.options.reply_timeout_s
+            )
+            try:
+                with self.translate_errors():
+                    await conn.write(dash.encode(command))
+                    return await self._dash_line(sent.deadline - time.monotonic())
+            finally:
+                self._dash_window.drop(sent)
 
     # --- RTDE ----------------------------------------------------------------------------------
     async def _rtde_loop(self, conn: TcpTransport, framer: rtde.RtdeFramer) -> None:
         try:
-            while True:
-                try:
-                    data = await conn.read(65536, timeout=3600.0)
-                except TransportTimeout:
-                    continue
+            async for data in received(conn):
                 framer.feed(data)
                 for pkg in framer.packages():
                     if pkg.type == rtde.DATA_PACKAGE and pkg.payload[:1] == b"\x01":
@@ -423,11 +427,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     async def _primary_loop(self, conn: TcpTransport) -> None:
         framer = prim.PrimaryFramer()
         try:
-            while True:
-                try:
-                    data = await conn.read(65536, timeout=3600.0)
-                except TransportTimeout:
-                    continue
+            async for data in received(conn):
                 framer.feed(data)
                 for mtype, body in framer.messages():
                     try:
@@ -691,9 +691,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         self._last_table = table
         back = await self.read_compensation()
         diff = table_diff(table, back, tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(f"compensation read back differs: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        self._check_read_back(diff, "compensation read back differs")
 
     async def read_compensation(self) -> CompensationTable | None:
         """The last table written in this session, its numbers re-read from the controller
@@ -757,6 +755,4 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         diff = snapshot_diff(snapshot, ControllerSnapshot(
             driver=self.kind, covers=snapshot.covers,
             items={f"var:{k}": v for k, v in back.items()}), tol=self.options.verify_tol)
-        if diff:
-            raise VerificationMismatch(f"restored values read back differ: {diff[0]}",
-                                       kind=self.kind, diff=diff)
+        self._check_read_back(diff, "restored values read back differ")

@@ -462,6 +462,10 @@ def auto_select(f: _Fitter, const: Solution) -> tuple[Solution, list[dict[str, A
     from robocal.identification._thermal import thermal_step  # it builds on this module
 
     sol, thermal = thermal_step(f, sol)  # one more candidate group, when temperatures vary
+    # the log ends with the final selection (readers take its groups from the last entry)
+    if log and log[-1].get("action") == "final":
+        final = {**log[-1], "thermal": bool(thermal.get("selected"))}
+        return sol, [note, *log[:-1], thermal, final]
     return sol, [note, *log, thermal]
 
 

@@ -19,6 +19,9 @@ kuka_kvp
     KUKAVARPROXY message codec (framer, read/write requests, replies) and KRL value text.
 emscon
     Leica emScon TPI binary packet codec (size-field framer, command and result structs).
+session
+    Sans-I/O request/reply matching: :class:`~robocal.protocols.session.Window` and the RMI,
+    LTP/1 and emScon sessions (which reply answers which request, what is overdue).
 modbus
     Modbus register map, value and table-block codecs (the pymodbus client is in
     :mod:`robocal.drivers`, the server in :mod:`robocal.drivers.sim`).

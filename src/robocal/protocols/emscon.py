@@ -505,8 +505,8 @@ class StatusChange:
 
 
 @dataclass(frozen=True)
-class SingleMeasResult:
-    """Type 2 (156 bytes): a single-point result in the current units and CS type."""
+class _MeasResultFields:
+    """Fields both single-point result types carry (wire order: see their ``LAYOUT``)."""
 
     status: int = 0
     meas_mode: int = 0
@@ -518,9 +518,6 @@ class SingleMeasResult:
     std2: float = 0.0
     std3: float = 0.0
     std_total: float = 0.0
-    pointing_error1: float = 0.0
-    pointing_error2: float = 0.0
-    pointing_error3: float = 0.0
     apriori_std1: float = 0.0
     apriori_std2: float = 0.0
     apriori_std3: float = 0.0
@@ -529,52 +526,46 @@ class SingleMeasResult:
     pressure: float = 0.0
     humidity: float = 0.0
 
-    TYPE: ClassVar[int] = DataType.SINGLE_MEAS_RESULT
-    LAYOUT: ClassVar[Layout] = _L(
-        "status:i", "meas_mode:i", "is_try_mode:i", "val1:d", "val2:d", "val3:d", "std1:d",
-        "std2:d", "std3:d", "std_total:d", "pointing_error1:d", "pointing_error2:d",
-        "pointing_error3:d", "apriori_std1:d", "apriori_std2:d", "apriori_std3:d",
-        "apriori_std_total:d", "temperature:d", "pressure:d", "humidity:d")
+
+_MEAS_HEAD = ("status:i", "meas_mode:i", "is_try_mode:i", "val1:d", "val2:d", "val3:d",
+              "std1:d", "std2:d", "std3:d", "std_total:d")
+_APRIORI = ("apriori_std1:d", "apriori_std2:d", "apriori_std3:d", "apriori_std_total:d")
+_METEO = ("temperature:d", "pressure:d", "humidity:d")
 
 
 @dataclass(frozen=True)
-class SingleMeasResult2:
+class SingleMeasResult(_MeasResultFields):
+    """Type 2 (156 bytes): a single-point result in the current units and CS type."""
+
+    pointing_error1: float = 0.0
+    pointing_error2: float = 0.0
+    pointing_error3: float = 0.0
+
+    TYPE: ClassVar[int] = DataType.SINGLE_MEAS_RESULT
+    LAYOUT: ClassVar[Layout] = _L(
+        *_MEAS_HEAD, "pointing_error1:d", "pointing_error2:d", "pointing_error3:d",
+        *_APRIORI, *_METEO)
+
+
+@dataclass(frozen=True)
+class SingleMeasResult2(_MeasResultFields):
     """Type 9 (204 bytes): a single-point result with covariances (statistic mode Extended)."""
 
-    status: int = 0
-    meas_mode: int = 0
-    is_try_mode: int = 0
-    val1: float = 0.0
-    val2: float = 0.0
-    val3: float = 0.0
-    std1: float = 0.0
-    std2: float = 0.0
-    std3: float = 0.0
-    std_total: float = 0.0
     covar12: float = 0.0
     covar13: float = 0.0
     covar23: float = 0.0
     pointing_error_h: float = 0.0
     pointing_error_v: float = 0.0
     pointing_error_d: float = 0.0
-    apriori_std1: float = 0.0
-    apriori_std2: float = 0.0
-    apriori_std3: float = 0.0
-    apriori_std_total: float = 0.0
     apriori_covar12: float = 0.0
     apriori_covar13: float = 0.0
     apriori_covar23: float = 0.0
-    temperature: float = 0.0
-    pressure: float = 0.0
-    humidity: float = 0.0
 
     TYPE: ClassVar[int] = DataType.SINGLE_MEAS_RESULT2
     LAYOUT: ClassVar[Layout] = _L(
-        "status:i", "meas_mode:i", "is_try_mode:i", "val1:d", "val2:d", "val3:d", "std1:d",
-        "std2:d", "std3:d", "std_total:d", "covar12:d", "covar13:d", "covar23:d",
-        "pointing_error_h:d", "pointing_error_v:d", "pointing_error_d:d", "apriori_std1:d",
-        "apriori_std2:d", "apriori_std3:d", "apriori_std_total:d", "apriori_covar12:d",
-        "apriori_covar13:d", "apriori_covar23:d", "temperature:d", "pressure:d", "humidity:d")
+        *_MEAS_HEAD, "covar12:d", "covar13:d", "covar23:d",
+        "pointing_error_h:d", "pointing_error_v:d", "pointing_error_d:d", *_APRIORI,
+        "apriori_covar12:d", "apriori_covar13:d", "apriori_covar23:d", *_METEO)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import asyncio
 import contextlib
 import time
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import serial
@@ -90,6 +90,19 @@ async def await_reply(fut: asyncio.Future[_T], timeout: float) -> _T:
     if not fut.done() and not await poll_ready_io(fut.done):
         raise TimeoutError
     return fut.result()
+
+
+async def received(transport: Transport, max_bytes: int = 65536) -> AsyncIterator[bytes]:
+    """Yield what ``transport`` receives, for as long as it is open.
+
+    For reader tasks of connections that may stay quiet: a read timeout is not an error
+    here; TransportError (the peer closed, the link failed) ends the iteration by raising.
+    """
+    while True:
+        try:
+            yield await transport.read(max_bytes, timeout=3600.0)
+        except TransportTimeout:
+            continue
 
 
 #: pyserial URL schemes served without a file descriptor (they need the thread fallback).
@@ -159,12 +172,41 @@ class _BufferProtocol(asyncio.Protocol):
 
 
 class _ProtocolTransport:
-    """Shared read/write logic for transports built on :class:`_BufferProtocol`."""
+    """Shared open/read/write logic for transports built on :class:`_BufferProtocol`.
+
+    Subclasses say how to create the asyncio transport (:meth:`_create`), what opening is
+    called in messages (``_VERB``) and which exceptions mean it failed (``_OPEN_ERRORS``).
+    """
+
+    _VERB = "open"
+    _OPEN_ERRORS: tuple[type[Exception], ...] = (OSError,)
 
     def __init__(self, url: str) -> None:
         self.url = url
         self._proto: _BufferProtocol | None = None
         self._transport: asyncio.BaseTransport | None = None
+
+    async def _create(
+        self, loop: asyncio.AbstractEventLoop, proto: _BufferProtocol
+    ) -> asyncio.BaseTransport:
+        raise NotImplementedError
+
+    async def open(self, *, timeout: float) -> None:
+        """Open; raise TransportError (refused, unreachable, missing device) or
+        TransportTimeout."""
+        if self.is_open:
+            return
+        proto = _BufferProtocol()
+        try:
+            async with asyncio.timeout(timeout):
+                transport = await self._create(asyncio.get_running_loop(), proto)
+        except TimeoutError as err:
+            raise TransportTimeout(
+                f"{self.url}: {self._VERB} timed out after {timeout:.3g} s"
+            ) from err
+        except self._OPEN_ERRORS as err:
+            raise TransportError(f"{self.url}: cannot {self._VERB}: {err}") from err
+        self._proto, self._transport = proto, transport
 
     @property
     def is_open(self) -> bool:
@@ -234,20 +276,13 @@ class TcpTransport(_ProtocolTransport):
         self.host = host
         self.port = port
 
-    async def open(self, *, timeout: float) -> None:
-        """Connect; raise TransportError (refused, unreachable) or TransportTimeout."""
-        if self.is_open:
-            return
-        loop = asyncio.get_running_loop()
-        proto = _BufferProtocol()
-        try:
-            async with asyncio.timeout(timeout):
-                transport, _ = await loop.create_connection(lambda: proto, self.host, self.port)
-        except TimeoutError as err:
-            raise TransportTimeout(f"{self.url}: connect timed out after {timeout:.3g} s") from err
-        except OSError as err:
-            raise TransportError(f"{self.url}: cannot connect: {err}") from err
-        self._proto, self._transport = proto, transport
+    _VERB = "connect"
+
+    async def _create(
+        self, loop: asyncio.AbstractEventLoop, proto: _BufferProtocol
+    ) -> asyncio.BaseTransport:
+        transport, _ = await loop.create_connection(lambda: proto, self.host, self.port)
+        return transport
 
 
 class SerialTransport(_ProtocolTransport):
@@ -265,22 +300,15 @@ class SerialTransport(_ProtocolTransport):
         super().__init__(url)
         self.serial_options = serial_options
 
-    async def open(self, *, timeout: float) -> None:
-        """Open the port; raise TransportError (missing device, refused) or TransportTimeout."""
-        if self.is_open:
-            return
-        loop = asyncio.get_running_loop()
-        proto = _BufferProtocol()
-        try:
-            async with asyncio.timeout(timeout):
-                transport, _ = await serial_asyncio_fast.create_serial_connection(
-                    loop, lambda: proto, self.url, **self.serial_options
-                )
-        except TimeoutError as err:
-            raise TransportTimeout(f"{self.url}: open timed out after {timeout:.3g} s") from err
-        except (OSError, serial.SerialException, ValueError) as err:
-            raise TransportError(f"{self.url}: cannot open: {err}") from err
-        self._proto, self._transport = proto, transport
+    _OPEN_ERRORS = (OSError, serial.SerialException, ValueError)
+
+    async def _create(
+        self, loop: asyncio.AbstractEventLoop, proto: _BufferProtocol
+    ) -> asyncio.BaseTransport:
+        transport, _ = await serial_asyncio_fast.create_serial_connection(
+            loop, lambda: proto, self.url, **self.serial_options
+        )
+        return transport
 
 
 class ThreadSerialTransport:

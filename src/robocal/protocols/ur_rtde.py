@@ -80,11 +80,8 @@ class RobotMode:
     RUNNING = 7
     UPDATING_FIRMWARE = 8
 
-    NAMES: ClassVar[dict[int, str]] = {
-        -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING",
-        3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING",
-        8: "UPDATING_FIRMWARE",
-    }
+    #: Value -> name, from the constants above.
+    NAMES: ClassVar[dict[int, str]]
 
 
 class SafetyMode:
@@ -102,11 +99,17 @@ class SafetyMode:
     VALIDATE_JOINT_ID = 10
     UNDEFINED_SAFETY_MODE = 11
 
-    NAMES: ClassVar[dict[int, str]] = {
-        1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-        6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-        10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE",
-    }
+    #: Value -> name, from the constants above.
+    NAMES: ClassVar[dict[int, str]]
+
+
+def _names(constants: type) -> dict[int, str]:
+    """``{value: NAME}`` of a class's upper-case integer constants."""
+    return {v: k for k, v in vars(constants).items() if k.isupper() and type(v) is int}
+
+
+RobotMode.NAMES = _names(RobotMode)
+SafetyMode.NAMES = _names(SafetyMode)
 
 
 class RuntimeState:
@@ -135,54 +138,56 @@ _TYPE_FORMATS: dict[str, str] = {
 }
 _VECTOR_LEN = {"VECTOR3D": 3, "VECTOR6D": 6, "VECTOR6INT32": 6, "VECTOR6UINT32": 6}
 
-# Output variables (RTDE guide, controller to client); registers are added below.
-OUTPUTS: dict[str, str] = {
-    "timestamp": "DOUBLE",
-    "target_q": "VECTOR6D", "target_qd": "VECTOR6D", "target_qdd": "VECTOR6D",
-    "target_current": "VECTOR6D", "target_moment": "VECTOR6D",
-    "actual_q": "VECTOR6D", "actual_qd": "VECTOR6D", "actual_current": "VECTOR6D",
-    "actual_current_window": "VECTOR6D", "joint_control_output": "VECTOR6D",
-    "actual_TCP_pose": "VECTOR6D", "actual_TCP_speed": "VECTOR6D",
-    "actual_TCP_force": "VECTOR6D", "target_TCP_pose": "VECTOR6D",
-    "target_TCP_speed": "VECTOR6D", "actual_digital_input_bits": "UINT64",
-    "joint_temperatures": "VECTOR6D", "actual_execution_time": "DOUBLE",
-    "robot_mode": "INT32", "joint_mode": "VECTOR6INT32", "safety_mode": "INT32",
-    "safety_status": "INT32", "actual_tool_accelerometer": "VECTOR3D",
-    "speed_scaling": "DOUBLE", "target_speed_fraction": "DOUBLE",
-    "actual_momentum": "DOUBLE", "actual_main_voltage": "DOUBLE",
-    "actual_robot_voltage": "DOUBLE", "actual_robot_current": "DOUBLE",
-    "actual_joint_voltage": "VECTOR6D", "actual_digital_output_bits": "UINT64",
-    "runtime_state": "UINT32", "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D",
-    "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
-    "analog_io_types": "UINT32", "standard_analog_input0": "DOUBLE",
-    "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
-    "standard_analog_output1": "DOUBLE", "io_current": "DOUBLE",
-    "euromap67_input_bits": "UINT32", "euromap67_output_bits": "UINT32",
-    "euromap67_24V_voltage": "DOUBLE", "euromap67_24V_current": "DOUBLE",
-    "tool_mode": "UINT32", "tool_analog_input_types": "UINT32",
-    "tool_analog_input0": "DOUBLE", "tool_analog_input1": "DOUBLE",
-    "tool_output_voltage": "INT32", "tool_output_current": "DOUBLE",
-    "tool_temperature": "DOUBLE", "tcp_force_scalar": "DOUBLE",
-    "output_bit_registers0_to_31": "UINT32", "output_bit_registers32_to_63": "UINT32",
-    "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
-    "tool_output_mode": "UINT8", "tool_digital_output0_mode": "UINT8",
-    "tool_digital_output1_mode": "UINT8", "payload": "DOUBLE", "payload_cog": "VECTOR3D",
-    "payload_inertia": "VECTOR6D", "script_control_line": "UINT32",
-    "ft_raw_wrench": "VECTOR6D", "joint_position_deviation_ratio": "DOUBLE",
-    "collision_detection_ratio": "DOUBLE", "time_scale_source": "UINT32",
-    "actual_current_as_torque": "VECTOR6D",
-}
-# Input variables (client to controller).
-INPUTS: dict[str, str] = {
-    "speed_slider_mask": "UINT32", "speed_slider_fraction": "DOUBLE",
-    "standard_digital_output_mask": "UINT8", "standard_digital_output": "UINT8",
-    "configurable_digital_output_mask": "UINT8", "configurable_digital_output": "UINT8",
-    "tool_digital_output_mask": "UINT8", "tool_digital_output": "UINT8",
-    "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
-    "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
-    "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
-    "external_force_torque": "VECTOR6D", "ft_rtde_input_enable": "BOOL",
-}
+
+def _by_type(names_by_type: dict[str, str]) -> dict[str, str]:
+    """``{type: "name name ..."}`` to ``{name: type}``."""
+    return {name: t for t, names in names_by_type.items() for name in names.split()}
+
+
+# Output variables (RTDE guide, controller to client) by type; registers are added below.
+OUTPUTS: dict[str, str] = _by_type({
+    "DOUBLE": (
+        "timestamp actual_execution_time speed_scaling target_speed_fraction "
+        "actual_momentum actual_main_voltage actual_robot_voltage actual_robot_current "
+        "standard_analog_input0 standard_analog_input1 standard_analog_output0 "
+        "standard_analog_output1 io_current euromap67_24V_voltage euromap67_24V_current "
+        "tool_analog_input0 tool_analog_input1 tool_output_current tool_temperature "
+        "tcp_force_scalar payload joint_position_deviation_ratio "
+        "collision_detection_ratio"
+    ),
+    "VECTOR6D": (
+        "target_q target_qd target_qdd target_current target_moment actual_q actual_qd "
+        "actual_current actual_current_window joint_control_output actual_TCP_pose "
+        "actual_TCP_speed actual_TCP_force target_TCP_pose target_TCP_speed "
+        "joint_temperatures actual_joint_voltage payload_inertia ft_raw_wrench "
+        "actual_current_as_torque"
+    ),
+    "UINT64": "actual_digital_input_bits actual_digital_output_bits",
+    "INT32": "robot_mode safety_mode safety_status tool_output_voltage",
+    "VECTOR6INT32": "joint_mode",
+    "VECTOR3D": "actual_tool_accelerometer elbow_position elbow_velocity payload_cog",
+    "UINT32": (
+        "runtime_state robot_status_bits safety_status_bits analog_io_types "
+        "euromap67_input_bits euromap67_output_bits tool_mode tool_analog_input_types "
+        "output_bit_registers0_to_31 output_bit_registers32_to_63 "
+        "input_bit_registers0_to_31 input_bit_registers32_to_63 script_control_line "
+        "time_scale_source"
+    ),
+    "UINT8": "tool_output_mode tool_digital_output0_mode tool_digital_output1_mode",
+})
+# Input variables (client to controller) by type.
+INPUTS: dict[str, str] = _by_type({
+    "UINT32": "speed_slider_mask input_bit_registers0_to_31 input_bit_registers32_to_63",
+    "DOUBLE": "speed_slider_fraction standard_analog_output_0 standard_analog_output_1",
+    "UINT8": (
+        "standard_digital_output_mask standard_digital_output "
+        "configurable_digital_output_mask configurable_digital_output "
+        "tool_digital_output_mask tool_digital_output standard_analog_output_mask "
+        "standard_analog_output_type"
+    ),
+    "VECTOR6D": "external_force_torque",
+    "BOOL": "ft_rtde_input_enable",
+})
 for _i in range(48):
     OUTPUTS[f"output_int_register_{_i}"] = "INT32"
     OUTPUTS[f"output_double_register_{_i}"] = "DOUBLE"

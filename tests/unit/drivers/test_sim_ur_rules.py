@@ -171,3 +171,15 @@ async def test_an_unframeable_rtde_package_drops_only_that_client():
         finally:
             await bad.close()
             await good.close()
+
+
+async def test_rtde_outputs_registers_and_32_bit_register_words():
+    async with ur_sim() as sim:
+        sim.bool_out[1] = sim.bool_out[33] = sim.bool_in[0] = True
+        sim.int_out[3], sim.double_in[2] = 7, 0.5
+        names = ["output_bit_registers0_to_31", "output_bit_registers32_to_63",
+                 "input_bit_registers0_to_31", "output_int_register_3",
+                 "input_double_register_2", "output_bit_register_33", "robot_status_bits"]
+        values = sim.output_values(names)
+        assert values[:6] == [0b10, 0b10, 0b1, 7, 0.5, True]
+        assert values[6] == 0b01  # powered, no program running

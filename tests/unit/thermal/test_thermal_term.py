@@ -44,7 +44,7 @@ def test_thermal_term_recovers_the_planted_growth_per_degree():
     cell, drift, data = _data(n, temps, planted=True)
     res = fit(cell.robot, data, "auto", options=FAST)
     term = res.calibrated.fit.get("thermal")
-    assert term is not None and term["selected"], res.selection[-1]
+    assert term is not None and term["selected"], res.selection
     coef = np.asarray(term["coef_mm_per_c"]) * 1e-3
     sigma = np.asarray(term["sigma_mm_per_c"]) * 1e-3
     truth = drift.growth_m_per_c
@@ -60,7 +60,8 @@ def test_thermal_term_recovers_the_planted_growth_per_degree():
     err_with = np.linalg.norm(with_term - truth_hot, axis=1).max()
     err_without = np.linalg.norm(res.calibrated.predict(q) - truth_hot, axis=1).max()
     assert err_with < 0.5 * err_without
-    assert res.selection[-1]["action"] == "thermal" and res.selection[-1]["selected"]
+    thermal = next(e for e in res.selection if e["action"] == "thermal")
+    assert thermal["selected"] and res.selection[-1]["thermal"]
     # the reported accuracy applies the term at each pose's temperatures
     assert res.train.rms_m == pytest.approx(accuracy(res.calibrated, data).rms_m)
     assert res.train.rms_m < 0.9 * accuracy(res.calibrated, MeasurementSet(data.q, data.p)).rms_m
@@ -71,7 +72,7 @@ def test_no_thermal_term_without_temperature_variation():
     temps = np.full((n, 6), 24.0) + np.random.default_rng(2).normal(0.0, 0.05, (n, 6))
     cell, _, data = _data(n, temps, planted=True)
     res = fit(cell.robot, data, "auto", options=FAST)
-    note = res.selection[-1]
+    note = next(e for e in res.selection if e["action"] == "thermal")
     assert note["action"] == "thermal" and note["considered"] is False
     assert str(MIN_VARIATION_C) in note["reason"]
     assert "thermal" not in res.calibrated.fit
@@ -83,7 +84,7 @@ def test_varying_temperatures_without_effect_are_not_taken():
     temps = _warming(n, np.random.default_rng(5))
     cell, _, data = _data(n, temps, planted=False, seed=4)
     res = fit(cell.robot, data, "auto", options=FAST)
-    note = res.selection[-1]
+    note = next(e for e in res.selection if e["action"] == "thermal")
     assert note["considered"] is True and note["selected"] is False, note
     assert "thermal" not in res.calibrated.fit
 

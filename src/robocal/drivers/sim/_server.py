@@ -19,13 +19,19 @@ import signal
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from pathlib import Path
-from typing import Any, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
+
+from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+
+if TYPE_CHECKING:
+    from robocal.drivers.sim.world import SimWorld
 
 __all__ = [
     "Handler",
     "Session",
     "SessionServer",
     "SimServer",
+    "WorldSimulator",
     "port_of",
     "publish_ports",
     "until_signalled",
@@ -130,6 +136,24 @@ class SimServer:
         self._servers.clear()
 
 
+class WorldSimulator(SimServer):
+    """A simulated device around the shared world: the robot it serves and the faults the
+    cell injects.
+
+    Parameters
+    ----------
+    world : SimWorld
+        The robot the device drives or measures.
+    faults : FaultConfig, optional
+        Faults shared by the cell's simulators.
+    """
+
+    def __init__(self, world: SimWorld, faults: FaultConfig | None) -> None:
+        super().__init__()
+        self.world = world
+        self.faults = FaultInjector(faults)
+
+
 class Session(Protocol):
     """One client's protocol state, as :meth:`SessionServer._serve_session` drives it."""
 
@@ -148,11 +172,11 @@ class Session(Protocol):
 S = TypeVar("S", bound=Session)
 
 
-class SessionServer(SimServer, Generic[S]):
-    """A :class:`SimServer` whose connections each carry a session of type ``S``."""
+class SessionServer(WorldSimulator, Generic[S]):
+    """A :class:`WorldSimulator` whose connections each carry a session of type ``S``."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, world: SimWorld, faults: FaultConfig | None) -> None:
+        super().__init__(world, faults)
         self._sessions: set[S] = set()
 
     async def _serve_session(self, reader: asyncio.StreamReader, session: S, chunk: int) -> None:

@@ -28,7 +28,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.drivers.sim._server import SessionServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector, RateInjector
+from robocal.drivers.sim.faults import FaultConfig, RateInjector
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, UnexpectedReply
 from robocal.protocols import emscon
@@ -421,12 +421,10 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
 
     Parameters
     ----------
-    world : SimWorld
-        The robot whose reflector is measured.
+    world, faults
+        As for every :class:`WorldSimulator` (the reflector sits on the world's robot).
     options : EmsconSimOptions, optional
         Server behaviour and emScon-specific faults.
-    faults : FaultConfig, optional
-        Shared faults.
 
     Attributes
     ----------
@@ -440,10 +438,8 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
 
     def __init__(self, world: SimWorld, options: EmsconSimOptions | None = None,
                  faults: FaultConfig | None = None) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or EmsconSimOptions()
-        self.faults = FaultInjector(faults)
         seed = self.faults.config.seed
         self.emscon_faults = RateInjector(self.options.faults, seed + 7)
         self.rng = random.Random(seed + 3)

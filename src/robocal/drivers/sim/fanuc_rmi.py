@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.compensation import nominal_fk, nominal_ik
-from robocal.drivers.sim._server import SimServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator, port_of
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError, UnexpectedReply
 from robocal.kinematics import matrix_to_wpr, wpr_to_matrix
@@ -332,7 +332,7 @@ _CommandHandler = Callable[["FanucRmiSimulator", _Request], dict[str, Any]]
 _InstructionHandler = Callable[["FanucRmiSimulator", int, _Request], Awaitable[int | None]]
 
 
-class FanucRmiSimulator(SimServer):
+class FanucRmiSimulator(WorldSimulator):
     """Simulated R-30iB Plus controller with the RMI option, serving on loopback.
 
     Parameters
@@ -364,10 +364,8 @@ class FanucRmiSimulator(SimServer):
         options: FanucSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or FanucSimOptions()
-        self.faults = FaultInjector(faults)
         lim = self.options.joint_limits_deg or world.joint_limits_deg
         self.joint_limits_deg = tuple(lim)
         self.received: list[dict[str, Any]] = []

@@ -29,8 +29,8 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.compensation import nominal_fk
-from robocal.drivers.sim._server import SimServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator, port_of
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError
 from robocal.kinematics import matrix_to_wpr
@@ -109,7 +109,7 @@ class _Loop:
     stopped: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-class KukaKvpSimulator(SimServer):
+class KukaKvpSimulator(WorldSimulator):
     """Simulated KRC with KUKAVARPROXY and robocal_loop, serving on loopback.
 
     Parameters
@@ -132,10 +132,8 @@ class KukaKvpSimulator(SimServer):
 
     def __init__(self, world: SimWorld, options: KukaSimOptions | None = None,
                  faults: FaultConfig | None = None) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or KukaSimOptions()
-        self.faults = FaultInjector(faults)
         self.requests: list[kvp.Request] = []
         self.port = 0
         self.clients = 0

@@ -27,7 +27,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from robocal.drivers.sim._server import SessionServer, port_of
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError
 from robocal.protocols import LineFramer, ltp
@@ -253,12 +253,10 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
 
     Parameters
     ----------
-    world : SimWorld
-        The robot whose reflector is measured.
+    world, faults
+        As for every :class:`WorldSimulator` (the reflector sits on the world's robot).
     options : LtpSimOptions, optional
         Tracker behaviour.
-    faults : FaultConfig, optional
-        Injected faults.
 
     Attributes
     ----------
@@ -272,10 +270,8 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
         options: LtpSimOptions | None = None,
         faults: FaultConfig | None = None,
     ) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or LtpSimOptions()
-        self.faults = FaultInjector(faults)
         self.requests: list[ltp.Request] = []
         self.initialized = not self.options.require_init
         self.smr = "RRR15"
@@ -316,89 +312,104 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
             return ltp.format_err(req.tag, ltp.ErrorCode.BAD_ARG, msg=str(err))
 
     def _answer(self, req: ltp.Request, session: _Session) -> str:
-        o, a, tag, verb = self.options, req.args, req.tag, req.verb
-        if verb not in _ARGS:
-            return ltp.format_err(tag, ltp.ErrorCode.UNKNOWN_VERB, msg=f"unknown verb {verb}")
-        _only(a, _ARGS[verb])
-        if verb == "HELLO":
-            if a.get("proto") != ltp.PROTO:
-                raise _BadArg(f"proto must be {ltp.PROTO}")
-            return ltp.format_ok(
-                tag,
-                {
-                    "proto": o.proto,
-                    "vendor": o.vendor,
-                    "model": o.model,
-                    "serial": o.serial,
-                    "fw": o.fw,
-                    "bridge": "robocal-sim/0.2",
-                },
+        answer = _ANSWERS.get(req.verb)
+        if req.verb not in _ARGS:
+            return ltp.format_err(
+                req.tag, ltp.ErrorCode.UNKNOWN_VERB, msg=f"unknown verb {req.verb}"
             )
-        if verb == "STATUS?":
-            return ltp.format_ok(
-                tag,
-                {
-                    "ready": int(self.initialized),
-                    "beam": self.beam,
-                    "init": int(self.initialized),
-                    "smr": self.smr,
-                    "units": self.units,
-                    "frame": self.frame,
-                    **self._weather_values(session),
-                    "t": self._now(),
-                },
-            )
-        if verb == "INIT":
-            _choice(a, "mode", ("smart", "full"))
-            self.initialized = True
-            return ltp.format_ok(tag)
-        if verb == "SMR":
-            smr = a.get("type")
-            if smr is None or not _SMR_TYPE.fullmatch(smr):
-                raise _BadArg("type=<reflector type> required")
-            offset = _number(a, "offset_mm", lo=-1000.0, hi=1000.0)
-            self.smr = smr
-            self.smr_offset_mm = 0.0 if offset is None else offset
-            return ltp.format_ok(tag, {"type": smr, "offset_mm": f"{self.smr_offset_mm:.3f}"})
-        if verb == "UNITS":
-            length = _choice(a, "len", tuple(_UNIT_SCALE)) or self.units
-            ang = _choice(a, "ang", ("deg", "rad")) or self.angle_units
-            self.units, self.angle_units = length, ang
-            return ltp.format_ok(tag, {"len": length, "ang": ang})
-        if verb == "FRAME":
-            name = a.get("name")
-            if name is None:
-                raise _BadArg("name= required")
-            if name != "tracker" and name not in o.frames:
-                raise _BadArg(f"unknown frame {name[:32]}")
-            self.frame = name
-            return ltp.format_ok(tag, {"name": name})
-        if verb == "WEATHER":
-            given = {k: _number(a, k) for k in ("temp", "press", "hum") if k in a}
-            for key, value in given.items():
-                lo, hi = _WEATHER_RANGE[key]
-                if value is None or not lo <= value <= hi:
-                    return ltp.format_err(
-                        tag,
-                        ltp.ErrorCode.ENV_OUT_OF_RANGE,
-                        msg=f"{key}={a[key]} outside {lo:g}..{hi:g}",
-                    )
-            if given:
-                session.weather = {**(session.weather or {}), **given}  # type: ignore[dict-item]
-            source = "manual" if session.weather else "station"
-            return ltp.format_ok(tag, {**self._weather_values(session), "source": source})
-        if verb == "HOME":
-            self.beam = "LOCKED"
-            return ltp.format_ok(tag, {"beam": self.beam})
-        if verb == "FIND":
-            for key in ("x", "y", "z"):
-                if _number(a, key) is None:
-                    raise _BadArg("FIND needs x= y= z= (current length units)")
-            _number(a, "radius_mm", lo=0.0, lo_open=True)
-            self.beam = "LOCKED"
-            return ltp.format_ok(tag, {"beam": self.beam})
-        # STOP with nothing running, and BYE.
+        _only(req.args, _ARGS[req.verb])
+        if answer is None:
+            # STOP with nothing running, and BYE.
+            return ltp.format_ok(req.tag)
+        return answer(self, req.tag, req.args, session)
+
+    # One method per verb (the table _ANSWERS below the class); ``a`` holds the arguments.
+    def _verb_hello(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        o = self.options
+        if a.get("proto") != ltp.PROTO:
+            raise _BadArg(f"proto must be {ltp.PROTO}")
+        return ltp.format_ok(
+            tag,
+            {
+                "proto": o.proto,
+                "vendor": o.vendor,
+                "model": o.model,
+                "serial": o.serial,
+                "fw": o.fw,
+                "bridge": "robocal-sim/0.2",
+            },
+        )
+
+    def _verb_status(self, tag: str, _a: Mapping[str, str], session: _Session) -> str:
+        return ltp.format_ok(
+            tag,
+            {
+                "ready": int(self.initialized),
+                "beam": self.beam,
+                "init": int(self.initialized),
+                "smr": self.smr,
+                "units": self.units,
+                "frame": self.frame,
+                **self._weather_values(session),
+                "t": self._now(),
+            },
+        )
+
+    def _verb_init(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        _choice(a, "mode", ("smart", "full"))
+        self.initialized = True
         return ltp.format_ok(tag)
+
+    def _verb_smr(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        smr = a.get("type")
+        if smr is None or not _SMR_TYPE.fullmatch(smr):
+            raise _BadArg("type=<reflector type> required")
+        offset = _number(a, "offset_mm", lo=-1000.0, hi=1000.0)
+        self.smr = smr
+        self.smr_offset_mm = 0.0 if offset is None else offset
+        return ltp.format_ok(tag, {"type": smr, "offset_mm": f"{self.smr_offset_mm:.3f}"})
+
+    def _verb_units(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        length = _choice(a, "len", tuple(_UNIT_SCALE)) or self.units
+        ang = _choice(a, "ang", ("deg", "rad")) or self.angle_units
+        self.units, self.angle_units = length, ang
+        return ltp.format_ok(tag, {"len": length, "ang": ang})
+
+    def _verb_frame(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        name = a.get("name")
+        if name is None:
+            raise _BadArg("name= required")
+        if name != "tracker" and name not in self.options.frames:
+            raise _BadArg(f"unknown frame {name[:32]}")
+        self.frame = name
+        return ltp.format_ok(tag, {"name": name})
+
+    def _verb_weather(self, tag: str, a: Mapping[str, str], session: _Session) -> str:
+        given = {k: _number(a, k) for k in ("temp", "press", "hum") if k in a}
+        for key, value in given.items():
+            lo, hi = _WEATHER_RANGE[key]
+            if value is None or not lo <= value <= hi:
+                return ltp.format_err(
+                    tag,
+                    ltp.ErrorCode.ENV_OUT_OF_RANGE,
+                    msg=f"{key}={a[key]} outside {lo:g}..{hi:g}",
+                )
+        if given:
+            session.weather = {**(session.weather or {}), **given}  # type: ignore[dict-item]
+        source = "manual" if session.weather else "station"
+        return ltp.format_ok(tag, {**self._weather_values(session), "source": source})
+
+    def _verb_home(self, tag: str, _a: Mapping[str, str], _session: _Session) -> str:
+        self.beam = "LOCKED"
+        return ltp.format_ok(tag, {"beam": self.beam})
+
+    def _verb_find(self, tag: str, a: Mapping[str, str], _session: _Session) -> str:
+        for key in ("x", "y", "z"):
+            if _number(a, key) is None:
+                raise _BadArg("FIND needs x= y= z= (current length units)")
+        _number(a, "radius_mm", lo=0.0, lo_open=True)
+        self.beam = "LOCKED"
+        return ltp.format_ok(tag, {"beam": self.beam})
 
     async def measure(self, req: ltp.Request, session: _Session) -> str:
         """Run one MEAS: settle, sample, average; return the reply line."""
@@ -601,3 +612,17 @@ class LtpTrackerSimulator(SessionServer["_Session"]):
                 with contextlib.suppress(OSError):
                     os.close(fd)
             self._pty = None
+
+
+#: The simulator's answer to each verb other than MEAS, STOP and BYE.
+_ANSWERS: dict[str, Callable[[LtpTrackerSimulator, str, Mapping[str, str], _Session], str]] = {
+    "HELLO": LtpTrackerSimulator._verb_hello,
+    "STATUS?": LtpTrackerSimulator._verb_status,
+    "INIT": LtpTrackerSimulator._verb_init,
+    "SMR": LtpTrackerSimulator._verb_smr,
+    "UNITS": LtpTrackerSimulator._verb_units,
+    "FRAME": LtpTrackerSimulator._verb_frame,
+    "WEATHER": LtpTrackerSimulator._verb_weather,
+    "HOME": LtpTrackerSimulator._verb_home,
+    "FIND": LtpTrackerSimulator._verb_find,
+}

@@ -25,8 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.drivers.sim._modbus_server import HOLDING_FCS, WRITE_FCS, ExcCodes, ModbusSimServer
-from robocal.drivers.sim._server import SimServer
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import ProtocolError
 from robocal.protocols import modbus as mb
@@ -55,7 +55,7 @@ class ModbusSimOptions(BaseModel):
     joint_limits_deg: tuple[tuple[float, float], ...] | None = None
 
 
-class ModbusPlcSimulator(SimServer):
+class ModbusPlcSimulator(WorldSimulator):
     """Simulated PLC driving the world robot through the default register handshake.
 
     Parameters
@@ -89,11 +89,9 @@ class ModbusPlcSimulator(SimServer):
         *,
         clock: Clock = SYSTEM_CLOCK,
     ) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.clock = clock
         self.options = options or ModbusSimOptions()
-        self.faults = FaultInjector(faults)
         self.map = self.options.register_map
         m = self.map
         lim = self.options.joint_limits_deg or world.joint_limits_deg
@@ -246,34 +244,7 @@ class ModbusPlcSimulator(SimServer):
             self._finish(seq, mb.Status.ERROR, mb.PlcError.HEARTBEAT_LOST)
             return
         if cmd == mb.Cmd.MOVE_JOINT:
-            q_deg = mb.decode_f32(self._hr_words(m.target, 2 * m.joints), wo)[: self.world.dof]
-            speed = self._hr_words(m.speed, 1)[0]
-            if not 1 <= speed <= 100 or not all(map(math.isfinite, q_deg)):
-                self._finish(seq, mb.Status.ERROR, mb.PlcError.BAD_ARGUMENT)
-                return
-            for v, (lo, hi) in zip(q_deg, self.joint_limits_deg, strict=False):
-                if not lo <= v <= hi:
-                    self._finish(seq, mb.Status.ERROR, mb.PlcError.LIMIT)
-                    return
-            if faults.fire("alarm"):
-                self._finish(seq, mb.Status.ERROR, mb.PlcError.MOTION_FAULT)
-                return
-            current = [math.degrees(v) for v in self.world.q_cmd_rad]
-            dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=False))
-            rate = self.options.max_joint_speed_deg_s * speed / 100.0
-            duration = max(dist / rate, self.options.min_motion_s) * self.options.time_scale
-            if duration <= 0:
-                self.world.move([math.radians(v) for v in q_deg])
-            else:
-                aborted = self._aborted
-                motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(duration):
-                        await aborted.wait()
-                if not self.world.finish_motion(motion) or gen != self._abort_gen:
-                    return  # halted by ABORT, which is acknowledged instead
-            self._publish_actual()
-            self._finish(seq, mb.Status.DONE)
+            await self._move_joint(seq, gen)
         elif cmd == mb.Cmd.READ_ACTUAL:
             self._publish_actual()
             self._finish(seq, mb.Status.DONE)
@@ -293,6 +264,38 @@ class ModbusPlcSimulator(SimServer):
             self._finish(seq, mb.Status.DONE)
         else:
             self._finish(seq, mb.Status.ERROR, mb.PlcError.UNKNOWN_CMD)
+
+    async def _move_joint(self, seq: int, gen: int) -> None:
+        """MOVE_JOINT: check the target and speed, move, acknowledge (unless aborted)."""
+        m, wo, faults = self.map, self.map.word_order, self.faults
+        q_deg = mb.decode_f32(self._hr_words(m.target, 2 * m.joints), wo)[: self.world.dof]
+        speed = self._hr_words(m.speed, 1)[0]
+        if not 1 <= speed <= 100 or not all(map(math.isfinite, q_deg)):
+            self._finish(seq, mb.Status.ERROR, mb.PlcError.BAD_ARGUMENT)
+            return
+        for v, (lo, hi) in zip(q_deg, self.joint_limits_deg, strict=False):
+            if not lo <= v <= hi:
+                self._finish(seq, mb.Status.ERROR, mb.PlcError.LIMIT)
+                return
+        if faults.fire("alarm"):
+            self._finish(seq, mb.Status.ERROR, mb.PlcError.MOTION_FAULT)
+            return
+        current = [math.degrees(v) for v in self.world.q_cmd_rad]
+        dist = max(abs(a - b) for a, b in zip(q_deg, current, strict=False))
+        rate = self.options.max_joint_speed_deg_s * speed / 100.0
+        duration = max(dist / rate, self.options.min_motion_s) * self.options.time_scale
+        if duration <= 0:
+            self.world.move([math.radians(v) for v in q_deg])
+        else:
+            aborted = self._aborted
+            motion = self.world.start_motion([math.radians(v) for v in q_deg], duration)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(duration):
+                    await aborted.wait()
+            if not self.world.finish_motion(motion) or gen != self._abort_gen:
+                return  # halted by ABORT, which is acknowledged instead
+        self._publish_actual()
+        self._finish(seq, mb.Status.DONE)
 
     def _apply_table(self, seq: int) -> None:
         m, wo = self.map, self.map.word_order

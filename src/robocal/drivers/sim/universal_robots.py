@@ -27,14 +27,14 @@ import asyncio
 import contextlib
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from robocal.drivers.sim._server import SimServer, port_of, received
-from robocal.drivers.sim.faults import FaultConfig, FaultInjector
+from robocal.drivers.sim._server import WorldSimulator, port_of, received
+from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError
 from robocal.protocols import ur_dashboard as dash
@@ -184,7 +184,7 @@ class _RtdeSession:
         await self._pause()
 
 
-class UrSimulator(SimServer):
+class UrSimulator(WorldSimulator):
     """Simulated Universal Robots e-Series (or CB3) controller on loopback.
 
     Attributes
@@ -199,10 +199,8 @@ class UrSimulator(SimServer):
 
     def __init__(self, world: SimWorld, options: UrSimOptions | None = None,
                  faults: FaultConfig | None = None) -> None:
-        super().__init__()
-        self.world = world
+        super().__init__(world, faults)
         self.options = options or UrSimOptions()
-        self.faults = FaultInjector(faults)
         self.robot_mode = RobotMode.RUNNING if self.options.start_powered else RobotMode.POWER_OFF
         self.safety_mode = SafetyMode.NORMAL
         self.remote_control = self.options.remote_control
@@ -294,68 +292,65 @@ class UrSimulator(SimServer):
 
     def output_values(self, names: Sequence[str]) -> list[Any]:
         """Current values of RTDE output variables ``names`` (recipe order)."""
+        state = self._output_state()
+        out: list[Any] = []
+        for n in names:
+            t = rtde.output_type(n)
+            if n in state:
+                out.append(state[n])
+            elif "_register" in n:
+                out.append(self._register_value(n, t))
+            else:
+                out.append(_zero(t))
+        return out
+
+    def _output_state(self) -> dict[str, Any]:
+        """RTDE outputs other than registers, by name (one consistent snapshot)."""
         world = self.world
-        q = self._q6(world.q_actual_rad)
         motion = world.motion
         qd = [0.0] * 6
         if motion is not None and motion.duration_s > 0:
             qd = self._q6((motion.q_to_rad - motion.q_from_rad) / motion.duration_s)
         running = self.runtime_state == RuntimeState.PLAYING
         power = self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
-        safety_bits = 1 << (self.safety_mode - 1) if self.safety_mode >= 1 else 0
-        out: list[Any] = []
-        for n in names:
-            t = rtde.output_type(n)
-            if n == "timestamp":
-                v: Any = time.monotonic() - self._t0
-            elif n in ("actual_q", "target_q"):
-                v = q if n == "actual_q" else self._q6(world.q_cmd_rad)
-            elif n in ("actual_qd", "target_qd"):
-                v = qd
-            elif n == "robot_mode":
-                v = self.robot_mode
-            elif n == "safety_mode" or n == "safety_status":
-                v = self.safety_mode
-            elif n == "runtime_state":
-                v = self.runtime_state
-            elif n == "joint_mode":
-                v = [253 if self.robot_mode == RobotMode.RUNNING else 251] * 6
-            elif n == "robot_status_bits":
-                v = int(power) | (int(running) << 1)
-            elif n == "safety_status_bits":
-                v = safety_bits
-            elif n in ("speed_scaling", "target_speed_fraction"):
-                v = self.speed_slider
-            elif n == "actual_digital_output_bits":
-                v = self.digital_out
-            elif n.startswith(("output_int_register_", "output_double_register_",
-                               "input_int_register_", "input_double_register_")):
-                i = int(n.rsplit("_", 1)[1])
-                bank = n.split("_register_")[0]
-                if bank == "output_int":
-                    v = self.int_out[i]
-                elif bank == "output_double":
-                    v = self.double_out[i]
-                else:
-                    v = self.int_in[i] if bank == "input_int" else self.double_in[i]
-            elif n.startswith(("output_bit_register_", "input_bit_register_")):
-                i = int(n.rsplit("_", 1)[1])
-                v = (self.bool_out if n.startswith("output") else self.bool_in)[i]
-            elif n.endswith("_bits") and n.startswith(("output_bit_registers",
-                                                       "input_bit_registers")):
-                bits = self.bool_out if n.startswith("output") else self.bool_in
-                base = 0 if "0_to_31" in n else 32
-                v = sum(1 << k for k in range(32) if bits[base + k])
-            elif n in ("standard_analog_output0", "standard_analog_output1"):
-                v = self.analog_out[int(n[-1])]
-            elif n in ("actual_main_voltage", "actual_robot_voltage"):
-                v = 48.0 if power else 0.0
-            elif n == "joint_temperatures":
-                v = self._q6(world.joint_temperatures()[0])
-            else:
-                v = _zero(t)
-            out.append(v)
-        return out
+        return {
+            "timestamp": time.monotonic() - self._t0,
+            "actual_q": self._q6(world.q_actual_rad),
+            "target_q": self._q6(world.q_cmd_rad),
+            "actual_qd": qd,
+            "target_qd": qd,
+            "robot_mode": self.robot_mode,
+            "safety_mode": self.safety_mode,
+            "safety_status": self.safety_mode,
+            "runtime_state": self.runtime_state,
+            "joint_mode": [253 if self.robot_mode == RobotMode.RUNNING else 251] * 6,
+            "robot_status_bits": int(power) | (int(running) << 1),
+            "safety_status_bits": 1 << (self.safety_mode - 1) if self.safety_mode >= 1 else 0,
+            "speed_scaling": self.speed_slider,
+            "target_speed_fraction": self.speed_slider,
+            "actual_digital_output_bits": self.digital_out,
+            "standard_analog_output0": self.analog_out[0],
+            "standard_analog_output1": self.analog_out[1],
+            "actual_main_voltage": 48.0 if power else 0.0,
+            "actual_robot_voltage": 48.0 if power else 0.0,
+            "joint_temperatures": self._q6(world.joint_temperatures()[0]),
+        }
+
+    def _register_value(self, n: str, t: str) -> Any:
+        """An ``input_``/``output_`` int, double or bit register (or 32 bits of them)."""
+        if n.endswith(("registers0_to_31", "registers32_to_63")):
+            bits = self.bool_out if n.startswith("output") else self.bool_in
+            base = 0 if n.endswith("0_to_31") else 32
+            return sum(1 << k for k in range(32) if bits[base + k])
+        banks: dict[str, Sequence[Any]] = {
+            "output_int": self.int_out, "output_double": self.double_out,
+            "input_int": self.int_in, "input_double": self.double_in,
+            "output_bit": self.bool_out, "input_bit": self.bool_in,
+        }
+        bank, sep, index = n.partition("_register_")
+        if not sep or bank not in banks or not index.isdigit():
+            return _zero(t)
+        return banks[bank][int(index)]
 
     def input_owner(self, name: str, session: _RtdeSession) -> bool:
         """True when another live RTDE session has ``name`` in an input recipe (IN_USE)."""
@@ -423,105 +418,85 @@ class UrSimulator(SimServer):
         cmd = dash.parse_command(text)
         if cmd is None:
             return f"could not understand: '{text}'"
-        w, arg = cmd.word, cmd.argument
-        mode_name = RobotMode.NAMES.get(self.robot_mode, "UNKNOWN")
-        remote_only = {"power on", "power off", "brake release", "load", "play",
-                       "unlock protective stop", "restart safety"}
-        if w in remote_only and not self.remote_control:
-            return f"Command is not allowed due to safety reasons: {w}"
-        if w == "power on":
-            if self.robot_mode in (RobotMode.POWER_OFF,):
-                self._change_mode(RobotMode.POWER_ON, RobotMode.IDLE, self.options.power_on_s)
-            return "Powering on"
-        if w == "power off":
-            await self._end_program()
-            self.world.halt()
-            self.program_state = "STOPPED"
-            self._cancel_mode_change()
-            self.robot_mode = RobotMode.POWER_OFF
-            return "Powering off"
-        if w == "brake release":
-            if self.robot_mode in (RobotMode.IDLE, RobotMode.POWER_ON):
-                self._change_mode(RobotMode.IDLE, RobotMode.RUNNING,
-                                  self.options.brake_release_s, wait_idle=True)
-            elif self.robot_mode == RobotMode.POWER_OFF:
-                return "Brake release failed: robot is powered off"
-            return "Brake releasing"
-        if w == "robotmode":
-            return f"Robotmode: {mode_name}"
-        if w == "safetystatus":
-            return f"Safetystatus: {SafetyMode.NAMES.get(self.safety_mode, 'FAULT')}"
-        if w == "safetymode":
-            return f"Safetymode: {SafetyMode.NAMES.get(self.safety_mode, 'FAULT')}"
-        if w == "is in remote control":
-            return "true" if self.remote_control else "false"
-        if w == "load":
-            name = arg.rsplit("/", 1)[-1]
-            if not name.endswith(".urp") or name not in self.options.programs:
-                return f"File not found: {arg}"
-            await self._end_program()
-            self.program_state = "STOPPED"
-            self.loaded_program = "/programs/" + name
-            return f"Loading program: {arg}"
-        if w == "get loaded program":
-            return (f"Loaded program: {self.loaded_program}" if self.loaded_program
-                    else "No program loaded")
-        if w == "play":
-            if (not self.loaded_program or self.robot_mode != RobotMode.RUNNING
-                    or self.safety_mode != SafetyMode.NORMAL):
-                return "Failed to execute: play"
-            await self._end_program()
-            self.program_state = "PLAYING"
-            return "Starting program"
-        if w == "stop":
-            if self.runtime_state == RuntimeState.STOPPED:
-                return "Failed to execute: stop"
-            await self._end_program()
-            self.world.halt()
-            self.program_state = "STOPPED"
-            return "Stopped"
-        if w == "pause":
-            if self.program_state != "PLAYING":
-                return "Failed to execute: pause"
-            self.program_state = "PAUSED"
-            return "Pausing program"
-        if w == "programstate":
-            name = self.loaded_program.rsplit("/", 1)[-1] or "<unnamed>"
-            return f"{self.program_state} {name}"
-        if w == "running":
-            running = self.runtime_state == RuntimeState.PLAYING
-            return f"Program running: {'true' if running else 'false'}"
-        if w == "polyscopeversion":
-            v = self.options.controller_version
-            return f"URSoftware {v[0]}.{v[1]}.{v[2]}.{v[3]} (Jan 12 2023)"
-        if w == "get robot model":
-            return self.options.robot_model[:4]
-        if w == "get serial number":
-            return self.options.serial_number
-        if w == "unlock protective stop":
-            if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
-                return "Cannot unlock protective stop until 5s after occurrence. Always inspect "\
-                       "cause of protective stop before unlocking"
-            self.safety_mode = SafetyMode.NORMAL
-            return "Protective stop releasing"
-        if w == "restart safety":
-            self.safety_mode = SafetyMode.NORMAL
-            self.robot_mode = RobotMode.POWER_OFF
-            return "Restarting safety"
-        if w == "isprogramsaved":
-            name = self.loaded_program.rsplit("/", 1)[-1] or "<unnamed>"
-            return f"true {name}"
-        if w in ("close popup", "close safety popup"):
-            return "closing popup" if w == "close popup" else "closing safety popup"
-        if w == "popup":
-            return "showing popup"
-        if w == "addtolog":
-            return "Added log message"
-        if w == "setuserrole":
-            return f"Setting user role: {arg}"
-        if w == "shutdown":
-            return "Shutting down"
+        if cmd.word in _REMOTE_ONLY and not self.remote_control:
+            return f"Command is not allowed due to safety reasons: {cmd.word}"
+        if cmd.word in _FIXED_REPLIES:
+            return _FIXED_REPLIES[cmd.word]
+        answer = _QUERIES.get(cmd.word)
+        if answer is not None:
+            return answer(self, cmd.argument)
+        action = _ACTIONS.get(cmd.word)
+        if action is not None:
+            return await action(self, cmd.argument)
         return "Disconnected"  # quit
+
+    # Dashboard commands that change state (the table _ACTIONS below the class).
+    async def _dash_power_on(self, _arg: str) -> str:
+        if self.robot_mode in (RobotMode.POWER_OFF,):
+            self._change_mode(RobotMode.POWER_ON, RobotMode.IDLE, self.options.power_on_s)
+        return "Powering on"
+
+    async def _dash_power_off(self, _arg: str) -> str:
+        await self._end_program()
+        self.world.halt()
+        self.program_state = "STOPPED"
+        self._cancel_mode_change()
+        self.robot_mode = RobotMode.POWER_OFF
+        return "Powering off"
+
+    async def _dash_brake_release(self, _arg: str) -> str:
+        if self.robot_mode in (RobotMode.IDLE, RobotMode.POWER_ON):
+            self._change_mode(RobotMode.IDLE, RobotMode.RUNNING,
+                              self.options.brake_release_s, wait_idle=True)
+        elif self.robot_mode == RobotMode.POWER_OFF:
+            return "Brake release failed: robot is powered off"
+        return "Brake releasing"
+
+    async def _dash_load(self, arg: str) -> str:
+        name = arg.rsplit("/", 1)[-1]
+        if not name.endswith(".urp") or name not in self.options.programs:
+            return f"File not found: {arg}"
+        await self._end_program()
+        self.program_state = "STOPPED"
+        self.loaded_program = "/programs/" + name
+        return f"Loading program: {arg}"
+
+    async def _dash_play(self, _arg: str) -> str:
+        if (not self.loaded_program or self.robot_mode != RobotMode.RUNNING
+                or self.safety_mode != SafetyMode.NORMAL):
+            return "Failed to execute: play"
+        await self._end_program()
+        self.program_state = "PLAYING"
+        return "Starting program"
+
+    async def _dash_stop(self, _arg: str) -> str:
+        if self.runtime_state == RuntimeState.STOPPED:
+            return "Failed to execute: stop"
+        await self._end_program()
+        self.world.halt()
+        self.program_state = "STOPPED"
+        return "Stopped"
+
+    async def _dash_pause(self, _arg: str) -> str:
+        if self.program_state != "PLAYING":
+            return "Failed to execute: pause"
+        self.program_state = "PAUSED"
+        return "Pausing program"
+
+    async def _dash_unlock(self, _arg: str) -> str:
+        if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
+            return "Cannot unlock protective stop until 5s after occurrence. Always inspect "\
+                   "cause of protective stop before unlocking"
+        self.safety_mode = SafetyMode.NORMAL
+        return "Protective stop releasing"
+
+    async def _dash_restart_safety(self, _arg: str) -> str:
+        self.safety_mode = SafetyMode.NORMAL
+        self.robot_mode = RobotMode.POWER_OFF
+        return "Restarting safety"
+
+    def _program_name(self) -> str:
+        return self.loaded_program.rsplit("/", 1)[-1] or "<unnamed>"
 
     def _cancel_mode_change(self) -> None:
         if self._mode_task is not None:
@@ -745,6 +720,58 @@ class UrSimulator(SimServer):
         motion = world.start_motion(target[:world.dof], duration)
         await asyncio.sleep(duration)
         world.finish_motion(motion)
+
+
+_REMOTE_ONLY = frozenset({"power on", "power off", "brake release", "load", "play",
+                          "unlock protective stop", "restart safety"})
+_FIXED_REPLIES = {
+    "close popup": "closing popup",
+    "close safety popup": "closing safety popup",
+    "popup": "showing popup",
+    "addtolog": "Added log message",
+    "shutdown": "Shutting down",
+}
+
+
+def _safety_name(sim: UrSimulator) -> str:
+    return SafetyMode.NAMES.get(sim.safety_mode, "FAULT")
+
+
+def _version_text(sim: UrSimulator) -> str:
+    v = sim.options.controller_version
+    return f"URSoftware {v[0]}.{v[1]}.{v[2]}.{v[3]} (Jan 12 2023)"
+
+
+#: Dashboard commands answered from the state, without changing it.
+_QUERIES: dict[str, Callable[[UrSimulator, str], str]] = {
+    "robotmode": lambda sim, _: f"Robotmode: {RobotMode.NAMES.get(sim.robot_mode, 'UNKNOWN')}",
+    "safetystatus": lambda sim, _: f"Safetystatus: {_safety_name(sim)}",
+    "safetymode": lambda sim, _: f"Safetymode: {_safety_name(sim)}",
+    "is in remote control": lambda sim, _: "true" if sim.remote_control else "false",
+    "get loaded program": lambda sim, _: (
+        f"Loaded program: {sim.loaded_program}" if sim.loaded_program else "No program loaded"
+    ),
+    "programstate": lambda sim, _: f"{sim.program_state} {sim._program_name()}",
+    "running": lambda sim, _: "Program running: "
+    + ("true" if sim.runtime_state == RuntimeState.PLAYING else "false"),
+    "polyscopeversion": lambda sim, _: _version_text(sim),
+    "get robot model": lambda sim, _: sim.options.robot_model[:4],
+    "get serial number": lambda sim, _: sim.options.serial_number,
+    "isprogramsaved": lambda sim, _: f"true {sim._program_name()}",
+    "setuserrole": lambda _, arg: f"Setting user role: {arg}",
+}
+#: Dashboard commands that change the controller's state.
+_ACTIONS: dict[str, Callable[[UrSimulator, str], Awaitable[str]]] = {
+    "power on": UrSimulator._dash_power_on,
+    "power off": UrSimulator._dash_power_off,
+    "brake release": UrSimulator._dash_brake_release,
+    "load": UrSimulator._dash_load,
+    "play": UrSimulator._dash_play,
+    "stop": UrSimulator._dash_stop,
+    "pause": UrSimulator._dash_pause,
+    "unlock protective stop": UrSimulator._dash_unlock,
+    "restart safety": UrSimulator._dash_restart_safety,
+}
 
 
 class _ProgramHalted(Exception):
