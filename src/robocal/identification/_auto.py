@@ -636,7 +636,12 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
     # one pass over the superset Jacobian: the fold normals and the rank analysis's factor
-    cv, s, factor = _fold_normals(f, prob, x_c, rows, msup.size, unpen)
+    # the ridge precision of map and ripple columns is part of their scale: a knot with
+    # hardly any data would otherwise be scaled by its tiny data norm, and its (scaled)
+    # smoothness prior reach 1e27, leaving the fold factors no correct digit
+    prior_prec = np.zeros(msup.size)
+    prior_prec[sorted(map_cols)] = 1.0 / math.radians(opts.map_ridge_deg) ** 2
+    cv, s, factor = _fold_normals(f, prob, x_c, rows, unpen, prior_prec)
     _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol, factor=factor)
     del factor
     kept = set(int(c) for c in unpen[keep])
@@ -658,17 +663,20 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
             if g.weak:
                 g.tie = weak_penalty(g.knots, g.n_knots, g.weak, sup.tie_sigma,
                                      sup.weak_sigma) / np.outer(sc, sc)
-            g.lam_unit = float(np.mean(sc**2))
+            # per unit relative smoothness: the mean data precision of the map's columns
+            g.lam_unit = float(np.mean(sc**2 - prior_prec[g.cols]))
     return sup
 
 
-def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
-                  unpen: IntArray) -> tuple[_CV, Array, tuple[Array, Array]]:
+def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, unpen: IntArray,
+                  prior_prec: Array) -> tuple[_CV, Array, tuple[Array, Array]]:
     """Per-fold normal matrices of the whitened superset Jacobian at ``x_c``, column-scaled
     (scaled so that the Schur complements compare columns of metres and radians), and from
     the same Jacobian chunks the normal matrix and an R factor of the ``unpen`` columns for
-    :func:`analyse_jacobian` (unscaled)."""
+    :func:`analyse_jacobian` (unscaled). ``prior_prec`` (P,): prior precision added to
+    each column's data precision in its scale."""
     opts = f.opts
+    P = len(prior_prec)
     fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
                        math.radians(opts.cv_group_tol_deg))
     G_f = np.zeros((opts.cv_folds, P, P))
@@ -689,7 +697,7 @@ def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
                 c_f[k] += float(rw[sel] @ rw[sel])
     G = G_f.sum(axis=0)
     A_un = G[np.ix_(unpen, unpen)]
-    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None))
+    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None) + prior_prec)
     del G
     s[s <= 1e-300] = 1.0
     G_f /= np.outer(s, s)[None]
