@@ -135,13 +135,20 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
     return groups
 
 
+# Smallest eigenvalue of a Schur complement, relative to the largest diagonal element of the
+# block it was computed from, below which the fold factors are recomputed instead of updated
+# (about 8 of the 16 digits left).
+SCHUR_RTOL = 1e-8
+
+
 @dataclass
 class _FoldBase:
-    """Factorised base model of one CV fold: what adding any candidate group needs.
+    """Factorised base model of one CV fold: what adding a candidate group needs.
 
     ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns,
-    ``X = Ainv @ Gtr[base, :]`` (k, P) and ``Y = Gf[base, base] @ X`` (k, P) for every
-    superset column, so a candidate group only indexes columns of X and Y.
+    ``X = Ainv @ Gtr[base, act]`` (k, a) and ``Y = Gf[base, base] @ X`` (k, a) for the
+    *active* superset columns ``act`` (the candidates' columns), so a candidate group only
+    indexes columns of X and Y.
     """
 
     Ainv: Array
@@ -158,59 +165,119 @@ class _CV:
         self.b = b_f.sum(axis=0)
         self.K = G_f.shape[0]
         self.evaluations = 0
-        self._cache: tuple[IntArray, Array, list[_FoldBase]] | None = None
+        self.refactorisations = 0
+        # base columns, their prior, the active columns and each fold's factorised base
+        self._cache: tuple[IntArray, Array, IntArray, list[_FoldBase]] | None = None
         self._inv_cache: tuple[IntArray, Array, list[Array]] | None = None
 
-    def fold_bases(self, base_cols: IntArray, base_pen: Array) -> list[_FoldBase]:
-        """Factorised base model of each fold (see ``_FoldBase``).
+    def fold_bases(self, base_cols: IntArray, base_pen: Array, act: IntArray
+                   ) -> list[_FoldBase]:
+        """Factorised base model of each fold over the active columns ``act`` (sorted).
 
         Forward selection extends the base by one group at a time; then the previous
-        factorisation is updated with the block (Schur-complement) formulas, O(k g P) for g
-        new columns, instead of being recomputed, O(k^2 P). With joint-angle maps the base
-        reaches several hundred columns, and the recomputation dominated ``auto``.
+        factorisation is updated with the block (Schur-complement) formulas, O(k g a) for g
+        new columns, instead of being recomputed, O(k^2 a). Only the columns of the groups
+        still to be tried are carried (``act``): in the early phases the maps (most of the
+        superset) are not candidates, and a chosen group's columns are never needed again.
+        Columns becoming active (a new phase) make the factors be recomputed: completing
+        them from the updated ``Ainv`` loses digits on columns nearly in the span of the
+        base (a fine ripple harmonic next to that joint's map), where the Schur complement
+        is a small difference of large numbers.
         """
         c = self._cache
         if c is not None:
-            old_cols, old_pen, bases = c
+            old_cols, old_pen, old_act, bases = c
             k0 = len(old_cols)
+            g = base_cols[k0:]
             if (len(base_cols) >= k0 and np.array_equal(base_cols[:k0], old_cols)
                     and np.array_equal(base_pen[:k0, :k0], old_pen)
-                    and not np.any(base_pen[:k0, k0:])):
-                if len(base_cols) == k0:
+                    and not np.any(base_pen[:k0, k0:]) and np.isin(g, old_act).all()
+                    and np.isin(act, old_act).all()):
+                if (len(g) == 0 and len(act) == len(old_act)
+                        and np.array_equal(act, old_act)):
                     return bases
-                g = base_cols[k0:]
-                gpen = base_pen[k0:, k0:]
-                # replaced fold by fold, so that only one fold's old and new factors (k x P
-                # each, hundreds of MB over all folds with maps) are held at once
+                # replaced fold by fold, so that only one fold's old and new factors are
+                # held at once
                 self._cache = None
                 for f in range(len(bases)):
-                    bases[f] = self._extend(f, old_cols, bases[f], g, gpen)
-                self._cache = (base_cols.copy(), base_pen.copy(), bases)
-                return bases
+                    fb_new: _FoldBase | None = bases[f]
+                    if len(g):
+                        fb_new = self._extend(f, old_cols, old_act, bases[f], g,
+                                              base_pen[k0:, k0:])
+                    if fb_new is None:
+                        break
+                    bases[f] = self._columns(old_act, fb_new, act)
+                else:
+                    self._cache = (base_cols.copy(), base_pen.copy(), act.copy(), bases)
+                    return bases
+                del bases                      # (a mix of updated and old factors)
+                self.refactorisations += 1
         self._cache = c = None                              # let the old factors go first
         ixb = np.ix_(base_cols, base_cols)
         Gb = self.G[ixb] + base_pen
         bases = []
         for f in range(self.K):
             Ainv = _inv_spd(Gb - self.G_f[f][ixb])
-            X = Ainv @ (self.G[base_cols] - self.G_f[f][base_cols])
+            X = Ainv @ self._train(f, base_cols, act)
             bases.append(_FoldBase(Ainv, X, self.G_f[f][ixb] @ X))
-        self._cache = (base_cols.copy(), base_pen.copy(), bases)
+        self._cache = (base_cols.copy(), base_pen.copy(), act.copy(), bases)
         return bases
 
-    def _extend(self, f: int, b: IntArray, fb: _FoldBase, g: IntArray, gpen: Array
-                ) -> _FoldBase:
-        """``fb`` for base columns ``b`` extended by columns ``g`` with prior block ``gpen``."""
-        Gtr_g = self.G[g] - self.G_f[f][g]                  # (g, P) training rows of g
+    def _train(self, f: int, rows: IntArray, cols: IntArray) -> Array:
+        """Training normal matrix of fold ``f``, block ``rows`` x ``cols``."""
+        ix = np.ix_(rows, cols)
+        return np.asarray(self.G[ix] - self.G_f[f][ix])
+
+    @staticmethod
+    def _columns(old_act: IntArray, fb: _FoldBase, act: IntArray) -> _FoldBase:
+        """``fb`` (columns ``old_act``) restricted to the active columns ``act`` (a subset)."""
+        pos = np.searchsorted(old_act, act)
+        return _FoldBase(fb.Ainv, fb.X[:, pos], fb.Y[:, pos])
+
+    def train_gains(self, base_cols: IntArray, base_pen: Array, C: Array, pens: Array,
+                    act: IntArray) -> Array:
+        """Score-test gains (m,) of groups with columns ``C`` (m, g) and priors ``pens``.
+
+        On the training part of the first fold (most of the data) the base model leaves a
+        residual; a group's gain is the drop of the training sum of squares when it is
+        added, ``r^T S^-1 r`` with the group's columns projected off the base (``S``, the
+        Schur complement) and their correlation ``r`` with the residual. It needs the same
+        factors as the cross-validation, and of one fold only: it ranks a large family of
+        candidates (fine ripple) so that only the best few are cross-validated.
+        """
+        fb = self.fold_bases(base_cols, base_pen, act)[0]
+        A = np.searchsorted(act, C)
+        X = fb.X[:, A].transpose(1, 0, 2)                                 # (m, k, g)
+        cc = (C[:, :, None], C[:, None, :])
+        Gtr_b = self._train(0, base_cols, np.unique(C))
+        Ab = np.searchsorted(np.unique(C), C)
+        btr = self.b - self.b_f[0]
+        S = (self.G[cc] - self.G_f[0][cc]) + pens - Gtr_b[:, Ab].transpose(1, 2, 0) @ X
+        r = btr[C] - X.transpose(0, 2, 1) @ btr[base_cols]
+        return np.asarray(np.sum(r * _spd_solve_stack(S, r), axis=1), dtype=np.float64)
+
+    def _extend(self, f: int, b: IntArray, act: IntArray, fb: _FoldBase, g: IntArray,
+                gpen: Array) -> _FoldBase | None:
+        """``fb`` for base columns ``b`` extended by active columns ``g`` with prior ``gpen``;
+        None when the update would lose too many digits (see ``SCHUR_RTOL``)."""
         Gf = self.G_f[f]
-        Xg = fb.X[:, g]                                     # Ainv @ Gtr[b, g]
-        Sinv = _inv_spd(Gtr_g[:, g] + gpen - Gtr_g[:, b] @ Xg)
-        R = Sinv @ (Gtr_g[:, b] @ fb.X - Gtr_g)             # (g, P)
+        pg = np.searchsorted(act, g)
+        Xg = fb.X[:, pg]                                    # Ainv @ Gtr[b, g]
+        Gtr_gb = self._train(f, g, b)
+        Ggg = self._train(f, g, g) + gpen
+        S = Ggg - Gtr_gb @ Xg
+        # S is a difference of nearly equal matrices when the new columns lie almost in the
+        # span of the base (a fine map after its joint's harmonics): it then keeps only the
+        # digits the ratio below leaves, and every later score inherits the error
+        if np.linalg.eigvalsh(S)[0] < SCHUR_RTOL * float(np.max(np.diagonal(Ggg))):
+            return None
+        Sinv = _inv_spd(S)
+        R = Sinv @ (Gtr_gb @ fb.X - self._train(f, g, act))  # (g, a)
         X_top = fb.X + Xg @ R
         XS = Xg @ Sinv
         Ainv = np.block([[fb.Ainv + XS @ Xg.T, -XS], [-XS.T, Sinv]])
         Gf_bg = Gf[np.ix_(b, g)]
-        Y_top = fb.Y + fb.Y[:, g] @ R - Gf_bg @ R
+        Y_top = fb.Y + fb.Y[:, pg] @ R - Gf_bg @ R
         Y_bot = Gf_bg.T @ X_top - Gf[np.ix_(g, g)] @ R
         return _FoldBase(Ainv, np.vstack([X_top, -R]), np.vstack([Y_top, Y_bot]))
 
@@ -228,11 +295,21 @@ class _CV:
             total += float(self.c_f[f] - 2.0 * d @ bf + d @ Gf @ d)
         return total
 
+    def keep_inverses_only(self) -> None:
+        """Let the forward selection's X and Y go: the later passes need the inverses only."""
+        c = self._cache
+        if c is not None:
+            self._inv_cache = (c[0], c[1], [fb.Ainv for fb in c[3]])
+        self._cache = None
+
     def fold_inverses(self, cols: IntArray, pen: Array) -> list[Array]:
         """Inverse training normal matrix (plus prior) of each fold for columns ``cols``."""
-        for c in (self._cache, self._inv_cache):
-            if c is not None and np.array_equal(c[0], cols) and np.array_equal(c[1], pen):
-                return [fb.Ainv if isinstance(fb, _FoldBase) else fb for fb in c[2]]
+        c = self._cache
+        if c is not None and np.array_equal(c[0], cols) and np.array_equal(c[1], pen):
+            return [fb.Ainv for fb in c[3]]
+        ci = self._inv_cache
+        if ci is not None and np.array_equal(ci[0], cols) and np.array_equal(ci[1], pen):
+            return ci[2]
         ix = np.ix_(cols, cols)
         Gc = self.G[ix] + pen
         invs = [_inv_spd(Gc - self.G_f[f][ix]) for f in range(self.K)]
@@ -242,18 +319,24 @@ class _CV:
     def adopt_variant(self, cols: IntArray, pen: Array, new_cols: IntArray, new_pen: Array,
                       drop: IntArray | None = None,
                       repen: tuple[IntArray, Array] | None = None) -> None:
-        """Keep the fold inverses of a variant chosen from ``scores_varied`` (low-rank update)."""
-        new = []
-        for P in self.fold_inverses(cols, pen):
+        """Keep the fold inverses of a variant chosen from ``scores_varied`` (low-rank update).
+
+        The forward selection's factors (and their X, Y) are let go first, and the inverses
+        replaced fold by fold: with maps each is ~1,700^2 doubles, five folds ~120 MB.
+        """
+        invs = self.fold_inverses(cols, pen)
+        self._cache = self._inv_cache = None
+        for f, P in enumerate(invs):
             if drop is not None:
                 r = np.setdiff1d(np.arange(len(cols)), drop)
                 Ppr = P[np.ix_(drop, r)]
-                new.append(P[np.ix_(r, r)] - Ppr.T @ _solve_small(P[np.ix_(drop, drop)], Ppr))
+                invs[f] = P[np.ix_(r, r)] - Ppr.T @ _solve_small(P[np.ix_(drop, drop)], Ppr)
             elif repen is not None:
                 p, dpen = repen
-                new.append(P - P[:, p] @ dpen @ _solve_small(
-                    np.eye(len(p)) + P[np.ix_(p, p)] @ dpen, P[p, :]))
-        self._inv_cache = (new_cols.copy(), new_pen.copy(), new)
+                invs[f] = P - P[:, p] @ dpen @ _solve_small(
+                    np.eye(len(p)) + P[np.ix_(p, p)] @ dpen, P[p, :])
+            del P
+        self._inv_cache = (new_cols.copy(), new_pen.copy(), invs)
 
     def scores_varied(self, cols: IntArray, pen: Array, drops: Sequence[IntArray],
                       repens: Sequence[tuple[IntArray, Array]]) -> tuple[list[float], list[float]]:
@@ -290,13 +373,15 @@ class _CV:
         return list(s_drop), list(s_pen)
 
     def scores_added(self, base_cols: IntArray, base_pen: Array,
-                     options: list[tuple[IntArray, list[Array]]]) -> list[list[float]]:
+                     options: list[tuple[IntArray, list[Array]]],
+                     also_active: IntArray | None = None) -> list[list[float]]:
         """CV scores of ``base + group`` for many groups, each with several priors.
 
         Schur complements on the factorised base of each fold (``fold_bases``): a group of g
         columns then costs O(k g^2) per fold for k base columns, and each prior O(g^3).
         Groups of equal size are evaluated together as stacked arrays (the ripple family
-        alone is a few hundred two-column groups).
+        alone is a few hundred two-column groups). ``also_active``: further columns the
+        fold factors keep (candidates of later calls).
         """
         self.evaluations += sum(len(p) for _, p in options)
         out = [np.zeros(len(p)) for _, p in options]
@@ -312,40 +397,63 @@ class _CV:
             n_opt = max(len(options[i][1]) for i in idx_all)
             step = max(1, int(32e6 // (8 * (4 * k * g + 4 * n_opt * g * g))))
             batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
-        bases = self.fold_bases(base_cols, base_pen)
+        extra = [] if also_active is None else [also_active]
+        act = np.unique(np.concatenate([c for c, _ in options] + extra))
+        bases = self.fold_bases(base_cols, base_pen, act)
         for f, fb in enumerate(bases):
             Gf = self.G_f[f]
-            Gtr_b = self.G[base_cols] - Gf[base_cols]        # (k, P)
+            Gtr_b = self._train(f, base_cols, act)           # (k, a)
             btr_all = self.b - self.b_f[f]
             btr = btr_all[base_cols]
             dA = fb.Ainv @ btr
             bf_b = self.b_f[f][base_cols]
             GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
             const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
-            Gf_b = Gf[base_cols]
+            Gf_b = Gf[np.ix_(base_cols, act)]
             for idx in batches:
-                C = np.stack([options[i][0] for i in idx])          # (m, g)
+                C = np.stack([options[i][0] for i in idx])          # (m, g) superset columns
+                A = np.searchsorted(act, C)                         # (m, g) active positions
                 cc = (C[:, :, None], C[:, None, :])
-                X = fb.X[:, C].transpose(1, 0, 2)                   # (m, k, g)
+                X = fb.X[:, A].transpose(1, 0, 2)                   # (m, k, g)
                 Xt = X.transpose(0, 2, 1)
-                Gf_bg = Gf_b[:, C].transpose(1, 0, 2)               # (m, k, g)
-                S0 = (self.G[cc] - Gf[cc]) - Gtr_b[:, C].transpose(1, 2, 0) @ X
+                Gf_bg = Gf_b[:, A].transpose(1, 0, 2)               # (m, k, g)
+                S0 = (self.G[cc] - Gf[cc]) - Gtr_b[:, A].transpose(1, 2, 0) @ X
                 rhs = btr_all[C] - Xt @ btr
-                # held-out SSE as a quadratic in dg (db = dA - X dg)
-                XtGbg = Xt @ Gf_bg
-                Q = Xt @ fb.Y[:, C].transpose(1, 0, 2) - XtGbg - XtGbg.transpose(0, 2, 1) + Gf[cc]
+                # held-out SSE as a quadratic in dg (db = dA - X dg): dg^T Q dg + 2 lin dg
                 lin = Xt @ (bf_b - GdA) - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
                 opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
                 M = S0[opt_of] + np.stack([p for i in idx for p in options[i][1]])
                 dg = _spd_solve_stack(M, rhs[opt_of])
-                vals = const_part + np.sum(dg * (2.0 * lin[opt_of]
-                                                 + (Q[opt_of] @ dg[..., None])[..., 0]), axis=1)
+                Qdg = _held_out_q(X, fb.Y[:, A].transpose(1, 0, 2), Gf_bg, Gf[cc], dg, opt_of)
+                vals = const_part + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
                 e = 0
                 for i in idx:
                     n_p = len(options[i][1])
                     out[i] += vals[e:e + n_p]
                     e += n_p
         return [list(o) for o in out]
+
+
+def _held_out_q(X: Array, Y: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray
+                ) -> Array:
+    """``Q dg`` (E, g) for the held-out quadratic ``Q = X^T Y - X^T Gbg - Gbg^T X + Ggg``.
+
+    X, Y, Gbg (m, k, g) and Ggg (m, g, g) per group; dg (E, g) per option, option e of group
+    ``opt_of[e]``. Matrix-vector products, O(k g) per option: forming Q costs O(k g^2) per
+    group, which for the maps (g of several hundred) dominated the forward selection.
+    """
+    if len(opt_of) == X.shape[0]:                               # one option per group
+        d = dg[..., None]
+        u = X @ d
+        return np.asarray((X.transpose(0, 2, 1) @ (Y @ d - Gbg @ d)
+                           - Gbg.transpose(0, 2, 1) @ u + Ggg @ d)[..., 0], dtype=np.float64)
+    out = np.empty_like(dg)
+    for a in np.unique(opt_of):
+        e = opt_of == a
+        D = dg[e].T                                                 # (g, n_options)
+        Qd = X[a].T @ (Y[a] @ D - Gbg[a] @ D) - Gbg[a].T @ (X[a] @ D) + Ggg[a] @ D
+        out[e] = Qd.T
+    return out
 
 
 def cv_folds(q: Array, k: int, seed: int, tol: float) -> IntArray:
@@ -524,10 +632,8 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     idx = {n: i for i, n in enumerate(msup.names)}
     for g in groups:
         g.cols = np.array([idx[t.name] for t in g.terms], dtype=np.intp)
-    # the superset has ~1,600 columns: chunks of at most ~32 MB of whitened Jacobian keep the
-    # peak memory of the pass below bounded on thousands of poses
-    chunk = max(64, min(f.opts.chunk, int(32e6 // (8 * 3 * msup.size))))
-    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=chunk)
+    # the superset has ~1,600 columns: Problem.chunks bounds each chunk's Jacobian
+    prob = Problem(msup, f.data.q, f.data.p, f.engine.W, chunk=f.opts.chunk)
     # identifiable unpenalised columns (tiers keep low orders first); maps and ripple stay
     # out of the rank analysis: hundreds of ripple columns would make the superset rank
     # deficient on a few hundred poses and push out the physical terms; a weak ridge keeps
@@ -535,7 +641,12 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     map_cols = set(int(c) for g in groups if g.is_map or g.is_ripple for c in g.cols)
     unpen = np.array([i for i in range(msup.size) if i not in map_cols], dtype=np.intp)
     # one pass over the superset Jacobian: the fold normals and the rank analysis's factor
-    cv, s, factor = _fold_normals(f, prob, x_c, rows, msup.size, unpen)
+    # the ridge precision of map and ripple columns is part of their scale: a knot with
+    # hardly any data would otherwise be scaled by its tiny data norm, and its (scaled)
+    # smoothness prior reach 1e27, leaving the fold factors no correct digit
+    prior_prec = np.zeros(msup.size)
+    prior_prec[sorted(map_cols)] = 1.0 / math.radians(opts.map_ridge_deg) ** 2
+    cv, s, factor = _fold_normals(f, prob, x_c, rows, unpen, prior_prec)
     _, keep, _ = analyse_jacobian(prob, x_c, rows, unpen, tol=opts.rank_tol, factor=factor)
     del factor
     kept = set(int(c) for c in unpen[keep])
@@ -557,17 +668,20 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
             if g.weak:
                 g.tie = weak_penalty(g.knots, g.n_knots, g.weak, sup.tie_sigma,
                                      sup.weak_sigma) / np.outer(sc, sc)
-            g.lam_unit = float(np.mean(sc**2))
+            # per unit relative smoothness: the mean data precision of the map's columns
+            g.lam_unit = float(np.mean(sc**2 - prior_prec[g.cols]))
     return sup
 
 
-def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
-                  unpen: IntArray) -> tuple[_CV, Array, tuple[Array, Array]]:
+def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, unpen: IntArray,
+                  prior_prec: Array) -> tuple[_CV, Array, tuple[Array, Array]]:
     """Per-fold normal matrices of the whitened superset Jacobian at ``x_c``, column-scaled
     (scaled so that the Schur complements compare columns of metres and radians), and from
     the same Jacobian chunks the normal matrix and an R factor of the ``unpen`` columns for
-    :func:`analyse_jacobian` (unscaled)."""
+    :func:`analyse_jacobian` (unscaled). ``prior_prec`` (P,): prior precision added to
+    each column's data precision in its scale."""
     opts = f.opts
+    P = len(prior_prec)
     fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
                        math.radians(opts.cv_group_tol_deg))
     G_f = np.zeros((opts.cv_folds, P, P))
@@ -588,7 +702,7 @@ def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, P: int,
                 c_f[k] += float(rw[sel] @ rw[sel])
     G = G_f.sum(axis=0)
     A_un = G[np.ix_(unpen, unpen)]
-    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None))
+    s = np.sqrt(np.clip(np.diagonal(G), 0.0, None) + prior_prec)
     del G
     s[s <= 1e-300] = 1.0
     G_f /= np.outer(s, s)[None]
@@ -605,8 +719,9 @@ class _Selection:
     """
 
     def __init__(self, sup: _Superset, min_improvement: float, map_lambdas: Sequence[float],
-                 m_obs: int) -> None:
+                 m_obs: int, ripple_screen: int = 8) -> None:
         self.sup = sup
+        self.ripple_screen = ripple_screen
         self.cv = sup.cv
         self.by_key = {g.key: g for g in sup.groups}
         self.map_lambdas = tuple(map_lambdas)
@@ -656,6 +771,51 @@ class _Selection:
             start += len(self.by_key[k].cols)
         raise KeyError(key)
 
+    def round_options(self, phase: int, best_lam: dict[str, float]
+                      ) -> tuple[list[tuple[IntArray, list[Array]]],
+                                 list[tuple[str, Sequence[float | None]]], IntArray]:
+        """Candidates of one forward round: (columns, priors) and (key, smoothness) each, and
+        the columns of the ripple groups screened out (the fold factors keep them)."""
+        options: list[tuple[IntArray, list[Array]]] = []
+        labels: list[tuple[str, Sequence[float | None]]] = []
+        ripple: list[str] = []
+        for g in self.sup.groups:
+            if g.phase > phase or g.key in self.chosen:
+                continue
+            if g.requires is not None and g.requires not in self.chosen:
+                continue
+            if g.is_ripple:
+                ripple.append(g.key)
+            elif g.is_map:
+                # after a map's first evaluation only the neighbourhood of its best
+                # smoothness so far is re-tried (the optimum moves little)
+                lams = list(self.map_lambdas)
+                if g.key in best_lam:
+                    b = best_lam[g.key]
+                    lams = [v for v in lams if b / 11 < v < b * 11]
+                options.append((g.cols, [self.map_pen(g, lam) for lam in lams]))
+                labels.append((g.key, lams))
+            else:
+                options.append((g.cols, [self.fixed_pen(g)]))
+                labels.append((g.key, [None]))
+        tried = ripple
+        if len(ripple) > self.ripple_screen:
+            # the ripple family (hundreds of groups) is ranked by its score-test gain at the
+            # current model; only the best few are cross-validated
+            gains = self.cv.train_gains(
+                *self.assemble(self.chosen), np.stack([self.by_key[k].cols for k in ripple]),
+                np.stack([self.fixed_pen(self.by_key[k]) for k in ripple]),
+                np.unique(np.concatenate([c for c, _ in options]
+                                         + [self.by_key[k].cols for k in ripple])))
+            order = np.argsort(-gains, kind="stable")
+            tried = [ripple[i] for i in sorted(order[:self.ripple_screen])]
+        for key in tried:
+            options.append((self.by_key[key].cols, [self.fixed_pen(self.by_key[key])]))
+            labels.append((key, [None]))
+        held = [self.by_key[k].cols for k in ripple if k not in tried]
+        return options, labels, (np.concatenate(held) if held
+                                 else np.zeros(0, dtype=np.intp))
+
     def forward(self) -> None:
         """Add groups while one lowers the CV score by its required gain, in three phases.
 
@@ -666,28 +826,11 @@ class _Selection:
         best_lam: dict[str, float] = {}
         for phase in (1, 2, 3):
             while True:
-                options: list[tuple[IntArray, list[Array]]] = []
-                labels: list[tuple[str, Sequence[float | None]]] = []
-                for g in self.sup.groups:
-                    if g.phase > phase or g.key in self.chosen:
-                        continue
-                    if g.requires is not None and g.requires not in self.chosen:
-                        continue
-                    if g.is_map:
-                        # after a map's first evaluation only the neighbourhood of its best
-                        # smoothness so far is re-tried (the optimum moves little)
-                        lams = list(self.map_lambdas)
-                        if g.key in best_lam:
-                            b = best_lam[g.key]
-                            lams = [v for v in lams if b / 11 < v < b * 11]
-                        options.append((g.cols, [self.map_pen(g, lam) for lam in lams]))
-                        labels.append((g.key, lams))
-                    else:
-                        options.append((g.cols, [self.fixed_pen(g)]))
-                        labels.append((g.key, [None]))
+                options, labels, held = self.round_options(phase, best_lam)
                 if not options:
                     break
-                all_scores = self.cv.scores_added(*self.assemble(self.chosen), options)
+                all_scores = self.cv.scores_added(*self.assemble(self.chosen), options,
+                                                  also_active=held)
                 for (key_i, lams_i), row in zip(labels, all_scores, strict=True):
                     if lams_i[0] is not None:
                         lam_i = lams_i[int(np.argmin(row))]
@@ -758,8 +901,10 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     t0 = time.perf_counter()
     rows = np.flatnonzero(inl)
     sup = _superset(f, const, rows)
-    sel = _Selection(sup, f.opts.auto_min_improvement, f.opts.map_lambdas, 3 * len(rows))
+    sel = _Selection(sup, f.opts.auto_min_improvement, f.opts.map_lambdas, 3 * len(rows),
+                     f.opts.auto_ripple_screen)
     sel.forward()
+    sel.cv.keep_inverses_only()
     sel.refine()
     sel.backward()
     # final model, solved nonlinearly from the constant solution
@@ -782,6 +927,7 @@ def _select(f: _Fitter, const: Solution, inl: NDArray[np.bool_]
     log = sel.log
     log.append({"action": "final", "groups": list(sel.chosen),
                 "cv_evaluations": sel.cv.evaluations,
+                "refactorisations": sel.cv.refactorisations,
                 "selection_s": time.perf_counter() - t0})
     # the per-fold normal matrices (folds x P x P over ~1,600 candidate columns) are not
     # needed by the final solve: let them go before it allocates its own

@@ -65,7 +65,9 @@ class FitOptions(EngineSettings):
     ``auto``
         ``cv_folds``; ``cv_group_tol_deg`` (poses this close in every joint share a fold);
         ``auto_max_order``; ``auto_ripple_orders`` (harmonics cos/sin(k q) of the rotation
-        about each joint axis tried one at a time: fine gear/encoder ripple); ``auto_maps``
+        about each joint axis tried one at a time: fine gear/encoder ripple);
+        ``auto_ripple_screen`` (how many of them, ranked by their score-test gain at the
+        current model, are cross-validated in each round); ``auto_maps``
         and ``map_spacing_deg`` (knot spacing of joint-angle maps); ``map_lambdas``
         (relative smoothness weights tried by CV);
         ``map_ridge_deg`` (prior sigma of map values); knots with fewer than
@@ -103,6 +105,7 @@ class FitOptions(EngineSettings):
     cv_group_tol_deg: float = 0.5
     auto_max_order: int = 3
     auto_ripple_orders: tuple[int, ...] = tuple(range(4, 41))
+    auto_ripple_screen: int = 8
     auto_maps: bool = True
     map_spacing_deg: float = 1.25
     map_lambdas: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3, 1e4)
@@ -134,6 +137,8 @@ class FitOptions(EngineSettings):
             raise ConfigError("orders must not be negative")
         if self.cv_folds < 2:
             raise ConfigError("cv_folds must be at least 2")
+        if self.auto_ripple_screen < 1:
+            raise ConfigError("auto_ripple_screen must be at least 1")
         if self.point_sigma_floor_m is not None and not 0 <= self.point_sigma_floor_m < 1e-2:
             raise ConfigError("point_sigma_floor_m must be in [0, 0.01) m")
         if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0 or self.map_tie_deg <= 0 \

@@ -28,6 +28,11 @@ BoolArray = NDArray[np.bool_]
 
 # ----------------------------------------------------------------------------------------------
 # problem
+
+# bytes of one chunk's Jacobian (see Problem.chunks)
+JACOBIAN_CHUNK_BYTES = 32_000_000
+
+
 @dataclass
 class Problem:
     """A whitened least-squares problem over the poses of one measurement set.
@@ -138,8 +143,13 @@ class Problem:
         return Jw, rw
 
     def chunks(self, rows: IntArray) -> list[IntArray]:
-        """Split ``rows`` into chunks of at most ``self.chunk`` poses."""
-        return [rows[a:a + self.chunk] for a in range(0, len(rows), self.chunk)] or [rows]
+        """Split ``rows`` into chunks of at most ``self.chunk`` poses, and of at most about
+        ``JACOBIAN_CHUNK_BYTES`` of Jacobian: an ``auto`` model with joint-angle maps has
+        ~1,700 parameters, and 2,048 poses of its Jacobian (and the whitened copy and the
+        products made from it) held several hundred MB at once."""
+        m = 3 if self.R_obs is None else 6
+        step = max(64, min(self.chunk, JACOBIAN_CHUNK_BYTES // (8 * m * max(self.model.size, 1))))
+        return [rows[a:a + step] for a in range(0, len(rows), step)] or [rows]
 
     def normal_equations(self, x: Array, rows: IntArray, cols: IntArray
                          ) -> tuple[Array, Array, float]:
