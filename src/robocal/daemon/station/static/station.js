@@ -64,7 +64,7 @@
 
   if (liveUrl && window.EventSource) {
     const es = new EventSource("/events?after=" + encodeURIComponent(body.dataset.seq || "0"));
-    for (const kind of ["state", "pose", "retry", "fit", "compensation", "log"]) {
+    for (const kind of ["state", "pose", "retry", "fit", "compensation", "report", "log"]) {
       es.addEventListener(kind, refresh);
     }
     es.onopen = () => { body.dataset.sse = "open"; };
