@@ -29,15 +29,14 @@ from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription, link_radii
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
+    Array,
     CapsuleModel,
+    Mask,
     link_frames,
     map_rows,
     segment_box_distance,
     segment_distance,
 )
-
-Array = NDArray[np.float64]
-Mask = NDArray[np.bool_]
 
 _CHECKS = ("within_limits", "facing", "line_of_sight", "in_range", "above_floor",
            "outside_keep_out", "no_self_collision")
@@ -253,10 +252,7 @@ class FeasibilityChecker:
         r = cm.radius
         moving = ~cm.static
 
-        # floor: the lowest point of a capsule is its lower end minus the radius
-        zlow = np.minimum(A[:, moving, 2], B[:, moving, 2]) - r[moving]
-        floor_margin = (zlow.min(axis=1) - self.floor_z - self.clearance if moving.any()
-                        else np.full(n, np.inf))
+        floor_margin = cm.lowest(A, B) - self.floor_z - self.clearance
 
         # keep-out boxes
         keep = np.full(n, np.inf)
@@ -266,12 +262,7 @@ class FeasibilityChecker:
             d, _ = segment_box_distance(Am, Bm, self.box_lo[None, None], self.box_hi[None, None])
             keep = (d - r[moving][None, :, None]).min(axis=(1, 2)) - self.clearance
 
-        # self-collision between the listed capsule pairs
-        selfm = np.full(n, np.inf)
-        if len(cm.pairs):
-            i, j = cm.pairs[:, 0], cm.pairs[:, 1]
-            d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
-            selfm = (d - r[i] - r[j]).min(axis=1) - self.clearance
+        selfm = cm.self_gap(A, B) - self.clearance
 
         angle = np.full(n, np.nan)
         sight = np.full(n, np.nan)

@@ -24,7 +24,10 @@ from numpy.typing import NDArray
 from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription
 
+#: array aliases of the planning modules: values (m, rad, ...), masks and indices
 Array = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+Index = NDArray[np.intp]
 T = TypeVar("T")
 
 #: batches of at least this many poses are checked on two threads
@@ -273,6 +276,23 @@ class CapsuleModel:
     def tool_index(self) -> int:
         """Index of the flange-to-reflector capsule (the last one)."""
         return len(self.names) - 1
+
+    def lowest(self, A: Array, B: Array) -> Array:
+        """Height of the lowest point of the moving capsules (n,), m, for axes A-B (n, K, 3)
+        (inf when none moves): the lower end of a capsule's axis less its radius."""
+        moving = ~self.static
+        if not moving.any():
+            return np.full(A.shape[0], np.inf)
+        return (np.minimum(A[:, moving, 2], B[:, moving, 2]) - self.radius[moving]).min(axis=1)
+
+    def self_gap(self, A: Array, B: Array) -> Array:
+        """Smallest surface distance between the self-collision pairs (n,), m, for axes
+        A-B (n, K, 3) (inf without pairs)."""
+        if not len(self.pairs):
+            return np.full(A.shape[0], np.inf)
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
+        return (d - self.radius[i] - self.radius[j]).min(axis=1)
 
     def segments(self, q: Array) -> tuple[Array, Array, Array, Array]:
         """Capsule axes and the flange/reflector state for ``q`` (n, dof) rad.

@@ -30,11 +30,14 @@ from robocal._core.threads import single_threaded
 from robocal.kinematics import RobotDescription
 from robocal.planning._cell import Cell
 from robocal.planning._feasibility import FeasibilityChecker
-from robocal.planning._geometry import map_rows, segment_box_distance, segment_distance
-
-Array = NDArray[np.float64]
-Mask = NDArray[np.bool_]
-Index = NDArray[np.intp]
+from robocal.planning._geometry import (
+    Array,
+    Index,
+    Mask,
+    map_rows,
+    segment_box_distance,
+    segment_distance,
+)
 
 #: Largest capsule travel between two samples, as a fraction of the capsule's radius.
 SAMPLE_FRACTION = 0.25
@@ -333,19 +336,12 @@ class MotionChecker:
         A, B, _, _ = cm.segments(q)
         r = cm.radius
         moving = ~cm.static
-        floor = np.full(n, np.inf)
-        if moving.any():
-            zlow = np.minimum(A[:, moving, 2], B[:, moving, 2]) - r[moving]
-            floor = zlow.min(axis=1) - self.floor_z - self.clearance
+        floor = cm.lowest(A, B) - self.floor_z - self.clearance
         box = np.full(n, np.inf)
         if len(self.box_lo) and moving.any():
             d = self._box_distance(A[:, moving], B[:, moving], r[moving])
             box = (d - r[moving][None, :, None]).min(axis=(1, 2)) - self.clearance
-        selfm = np.full(n, np.inf)
-        if len(cm.pairs):
-            i, j = cm.pairs[:, 0], cm.pairs[:, 1]
-            d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
-            selfm = (d - r[i] - r[j]).min(axis=1) - self.clearance
+        selfm = cm.self_gap(A, B) - self.clearance
         return lim, floor, box, selfm
 
     def _box_distance(self, A: Array, B: Array, r: Array) -> Array:
