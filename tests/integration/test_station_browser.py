@@ -257,6 +257,8 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
         timeout=WAIT_MS)
     rms = st["fits"]["constant"]["validation"]["rms_mm"]
     assert f"{rms:.4f} mm" in await page.inner_text("#live")
+    # the report renders after the fit is stored (ADR 0048): the page swaps it in
+    await page.wait_for_selector("iframe.report", timeout=WAIT_MS)
     assert await page.is_visible("iframe.report")
     # the embedded report renders (sandboxed, its own inline styles and data: images)
     await page.frame_locator("iframe.report").locator("#verdict").wait_for(timeout=WAIT_MS)

@@ -180,7 +180,9 @@ def _describe(s: dict[str, Any]) -> str:
                 pc = f"{pct:.1f} %" if isinstance(pct, int | float) else "-"
                 lines.append(f"            {name:12s} {r:>13s} {pc:>11s}{mark}")
     report = _report_path(s)
-    if report is not None:
+    if (s.get("report") or {}).get("state") == "rendering":
+        lines.append("  report    rendering (after the fit)")
+    elif report is not None:
         lines.append(f"  report    {report}")
     p = s.get("push") or {}
     if p:
@@ -500,8 +502,10 @@ def _summary(s: dict[str, Any], config: Path | None) -> str:
     if parts:
         lines.append("held-out RMS: " + ", ".join(parts)
                      + (f"; proposed: {s['selected_model']}" if s.get("selected_model") else ""))
-    report = Path(str(s.get("files", ""))) / "report.html" if s.get("files") else None
-    if report is not None and report.exists():
+    report = _report_path(s)
+    if (s.get("report") or {}).get("state") == "rendering":
+        lines.append("report: rendering (after the fit)")
+    elif report is not None:
         lines.append(f"report: {report}")
     cfg = f" --config {config}" if config else ""
     nxt = {"fitted": f"robocal campaign approve{cfg} {cid}   (after reading the report)",

@@ -256,8 +256,6 @@ async def _run(args: argparse.Namespace, t_start: float) -> dict[str, Any]:
 
 async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any],
                     progress: _Progress, ideal_positions: Any, np: Any) -> dict[str, Any]:
-    from robocal.daemon import parse_plan, plan_from_poses
-    from robocal.errors import RobocalError
 
     figures: dict[str, Any] = {"robot": args.robot, "scenario": args.scenario,
                                "seed": args.seed}
@@ -277,7 +275,8 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
     progress.step(f"  measured {st['poses_measured']} poses in {t_meas:.1f} s "
                   f"(median {figures['pose_overhead_ms']} ms per pose)")
     t1 = time.perf_counter()
-    st = await svc.wait(cid, ["fitted", "faulted"], timeout=600.0)
+    # the report renders in the fit worker meanwhile (awaited before the summary)
+    st = await svc.wait(cid, ["fitted", "faulted"], timeout=600.0, report=False)
     figures["fit_s"] = round(time.perf_counter() - t1, 1)
     figures["fits"] = st["fits"]
     figures["state"] = st["state"]
@@ -290,10 +289,25 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
     campaign_dir = svc.config.data_dir / "campaigns" / cid
     figures["files"] = {"plan": str(args.out / "PLAN.json"), "campaign": str(campaign_dir),
                         "store": str(svc.config.db_path)}
+    try:
+        await _compensate_and_push(args, svc, cid, st, plan_doc, progress, ideal_positions, np,
+                                   figures)
+    finally:
+        await svc.fits.report_settled(cid, 600.0)
     for name in ("html", "json"):
         p = campaign_dir / f"report.{name}"
         if p.exists():
             figures["files"][f"report_{name}"] = str(p)
+    return figures
+
+
+async def _compensate_and_push(args: argparse.Namespace, svc: Any, cid: str,
+                               st: dict[str, Any], plan_doc: dict[str, Any],
+                               progress: _Progress, ideal_positions: Any, np: Any,
+                               figures: dict[str, Any]) -> None:
+    """Compensate the validation targets, verify them, approve and push (into ``figures``)."""
+    from robocal.daemon import parse_plan, plan_from_poses
+    from robocal.errors import RobocalError
 
     # Compensation of the validation targets, measured again on the simulated robot.
     val = [p for p in svc.store.poses(cid) if p.purpose == "validation"]
@@ -350,7 +364,6 @@ async def _campaign(args: argparse.Namespace, svc: Any, plan_doc: dict[str, Any]
     except RobocalError as err:
         figures["push"] = {"error": str(err)}
         figures["state"] = svc.store.campaign(cid).state.value
-    return figures
 
 
 def _errors(np: Any, d: Any) -> dict[str, float]:

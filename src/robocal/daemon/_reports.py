@@ -75,6 +75,11 @@ class ReportKeeper:
         if self._task is None or self._task.done():
             self._task = asyncio.create_task(self._run(), name="report-refresh")
 
+    def written(self, cid: str) -> None:
+        """``cid``'s report was (re)written from its fit: give it the current record."""
+        self._shown.pop(cid, None)
+        self.refresh()
+
     async def settled(self, timeout: float) -> None:
         """Wait (at most ``timeout`` s) until no refresh is pending."""
         async with asyncio.timeout(timeout):

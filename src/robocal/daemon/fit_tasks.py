@@ -24,6 +24,7 @@ from robocal.daemon.campaign import CampaignState
 from robocal.daemon.config import AppConfig
 from robocal.daemon.events import EventBus
 from robocal.daemon.fitting import (
+    LATER,
     FitRunner,
     build_fit_job,
     load_model,
@@ -60,6 +61,12 @@ class FitTasks:
     _tasks: dict[str, asyncio.Task[None]] = field(default_factory=dict, init=False)
     _started: dict[str, tuple[str, float]] = field(  # ISO time, monotonic s
         default_factory=dict, init=False)
+    # reports rendered after the fit was stored: campaign -> its render task, and the
+    # state of each render this daemon started ("rendering", "ready", "failed")
+    _renders: dict[str, asyncio.Task[None]] = field(default_factory=dict, init=False)
+    _report_state: dict[str, dict[str, Any]] = field(default_factory=dict, init=False)
+    #: called with the campaign id when its report has been written
+    on_report: Callable[[str], object] = field(default=lambda _cid: None, init=False)
 
     def __contains__(self, cid: str) -> bool:
         return cid in self._tasks
@@ -69,8 +76,53 @@ class FitTasks:
         return sorted(self._tasks)
 
     def tasks(self) -> list[asyncio.Task[None]]:
-        """The fit tasks (to cancel at shutdown)."""
-        return list(self._tasks.values())
+        """The fit and report tasks (to cancel at shutdown)."""
+        return [*self._tasks.values(), *self._renders.values()]
+
+    def report_state(self, cid: str) -> dict[str, Any] | None:
+        """``{"state": "rendering" | "ready" | "failed", ...}`` of the report this daemon
+        renders or rendered for ``cid`` after its fit, or None."""
+        st = self._report_state.get(cid)
+        return None if st is None else dict(st)
+
+    async def report_settled(self, cid: str, timeout: float) -> None:
+        """Wait (at most ``timeout`` s; TimeoutError) until ``cid``'s report is not being
+        rendered."""
+        task = self._renders.get(cid)
+        if task is not None and not task.done():
+            async with asyncio.timeout(timeout):
+                await asyncio.shield(task)
+
+    def _render_later(self, cid: str, report: Any) -> None:
+        """Render the report the fit left pending, in the fit worker, after the fit is
+        stored and announced (the operator does not wait for the figures)."""
+        if not isinstance(report, dict) or "pending" not in report:
+            return
+        self._report_state[cid] = {"state": "rendering"}
+        self.events.emit("report", cid, section="campaign", state="rendering")
+        task = asyncio.create_task(self._render(cid, str(report["pending"])),
+                                   name=f"report-{cid}")
+        self._renders[cid] = task
+        task.add_done_callback(lambda t: self._renders.pop(cid, None)
+                               if self._renders.get(cid) is t else None)
+
+    async def _render(self, cid: str, token: str) -> None:
+        try:
+            out = await self.fitter.render(token)
+        except (RobocalError, OSError, ValueError) as err:
+            out = {"skipped": f"report failed: {type(err).__name__}: {err}"}
+        paths = out.get("paths")
+        if paths:
+            self._report_state[cid] = {"state": "ready", "html": paths["html"]}
+            self.on_report(cid)
+            self.events.emit("report", cid, section="campaign", state="ready",
+                             html=paths["html"])
+        else:
+            reason = str(out.get("skipped") or "report not written")
+            self._report_state[cid] = {"state": "failed", "reason": reason}
+            self.events.emit("report", cid, section="campaign", state="failed",
+                             reason=reason)
+        _log.info("report", campaign=cid, **self._report_state[cid])
 
     def started(self, cid: str) -> tuple[str, float] | None:
         """When the fit of ``cid`` started (ISO time, monotonic s), if it runs."""
@@ -117,7 +169,8 @@ class FitTasks:
         log = _log.bind(campaign=cid)
         job = build_fit_job(campaign=cid, robot=self.robot, rows=rows,
                             models=self.config.fit.models, cpa=self.config.fit.cpa,
-                            out_dir=self.campaign_dir(cid), report=self.config.fit.report,
+                            out_dir=self.campaign_dir(cid),
+                            report=LATER if self.config.fit.report else False,
                             log=self.measurement_log(cid, rows),
                             options=self.config.fit.options,
                             acceptance=self.config.fit.acceptance,
@@ -151,6 +204,16 @@ class FitTasks:
             fits.setdefault(name, ({"model": name, "error": msg}, None))
         fits = sign_fits(fits, self.secret, self.robot)
         self.store.save_fits(cid, fits)
+        report = result.get("report")
+        try:
+            self._announce_fit(cid, result, fits, report)
+        finally:
+            self._render_later(cid, report)   # the worker holds the results until then
+
+    def _announce_fit(self, cid: str, result: dict[str, Any],
+                      fits: dict[str, tuple[dict[str, Any], str | None]],
+                      report: Any) -> None:
+        """Select the model and move the campaign to fitted (or faulted), announced."""
         select = self.config.fit.select
         chosen = result.get("selected_hint") if select == "best" or result.get("reused") \
             else select
@@ -159,14 +222,14 @@ class FitTasks:
             self._fault(cid, f"model {chosen!r} could not be fitted ({errors or 'no model'})")
             return
         self.store.set_selected_model(cid, chosen)
-        report = result.get("report")
         if self.store.campaign(cid).state != S.MEASURED:
             return  # aborted while fitting
         self.transition(cid, S.FITTED, actor="daemon",
                          reason=f"fitted {', '.join(result['fits'])}; proposed {chosen}")
         summary = result["fits"][chosen][0].get("validation") or {}
         self.events.emit("fit", cid, phase="done", selected=chosen,
-                         validation_rms_mm=summary.get("rms_mm"), report=report,
+                         validation_rms_mm=summary.get("rms_mm"),
+                         report=None if "pending" in (report or {}) else report,
                          seconds=result.get("seconds"))
         _log.info("fitted", campaign=cid, selected=chosen, seconds=result.get("seconds"),
                   report=report)

@@ -19,7 +19,7 @@ import math
 import multiprocessing
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,11 +36,16 @@ from robocal.kinematics import CalibratedModel, RobotDescription
 if TYPE_CHECKING:  # imported where used: the daemon starts without identification
     from robocal.identification import Accuracy, CPAResult, FitOptions, FitResult
 
-__all__ = ["FitRunner", "RowsByPurpose", "build_fit_job", "measurement_set", "rows_by_purpose",
-           "run_fit_job"]
+__all__ = ["LATER", "FitRunner", "RowsByPurpose", "build_fit_job", "measurement_set",
+           "rows_by_purpose", "run_fit_job", "run_report_job"]
 
 _log = structlog.get_logger(__name__)
 _CPA = re.compile(r"^cpa-j(\d+)$")
+
+#: ``report`` value of a fit job whose report is rendered afterwards by :func:`run_report_job`
+LATER = "later"
+# reports left pending by fit jobs in this process: token -> _write_report's arguments
+_PENDING_REPORTS: dict[str, tuple[Any, ...]] = {}
 
 
 def load_model(text: str, *, source: str, secret: bytes | None,
@@ -125,13 +130,15 @@ def fit_options(options: Mapping[str, Any] | None) -> FitOptions:
 
 
 def build_fit_job(*, campaign: str, robot: RobotDescription, rows: Sequence[Measurement],
-                  models: Sequence[str], cpa: bool, out_dir: Path | None, report: bool,
+                  models: Sequence[str], cpa: bool, out_dir: Path | None,
+                  report: bool | str,
                   log: Mapping[str, Any] | None = None,
                   options: Mapping[str, Any] | None = None,
                   acceptance: Mapping[str, Any] | None = None,
                   model_data: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Plain-data description of one campaign's fit (picklable); ``model_data`` goes into
-    every MODEL.json's ``data`` section (provenance, outside the content hash)."""
+    every MODEL.json's ``data`` section (provenance, outside the content hash); ``report``:
+    write it (True), not (False) or leave it to :func:`run_report_job` (:data:`LATER`)."""
     return {
         "model_data": dict(model_data or {}),
         "acceptance": dict(acceptance or {}),
@@ -311,7 +318,13 @@ def run_fit_job(job: Mapping[str, Any]) -> dict[str, Any]:
         d.mkdir(parents=True, exist_ok=True)
         for name, (_, mj) in fits.items():
             atomic_write_text(d / f"MODEL-{name}.json", mj)
-        if job.get("report"):
+        if job.get("report") == LATER:
+            # rendered by the next job of this worker (run_report_job): the fits are
+            # stored and announced without waiting for the figures
+            token = f"{job.get('campaign', '')}-{time.monotonic_ns()}"
+            _PENDING_REPORTS[token] = (dict(job), robot, results, train, validation, d)
+            out["report"] = {"pending": token}
+        elif job.get("report"):
             out["report"] = _write_report(job, robot, results, train, validation, d)
     out["seconds"] = round(time.perf_counter() - t_start, 3)
     return out
@@ -353,6 +366,16 @@ def _run_reuse_job(job: Mapping[str, Any], t_start: float) -> dict[str, Any]:
     return {"fits": fits, "errors": errors, "selected_hint": REUSE if fits else None,
             "reused": previous.model_id, "report": {"skipped": "a reuse refit has no report"},
             "seconds": round(time.perf_counter() - t_start, 3)}
+
+
+def run_report_job(token: str) -> dict[str, Any]:
+    """Write the report a :func:`run_fit_job` with ``report = LATER`` left pending (in the
+    same worker: its fitted results stay there, nothing is pickled); returns the paths or a
+    skip reason."""
+    pending = _PENDING_REPORTS.pop(token, None)
+    if pending is None:
+        return {"skipped": "report not written: the fit worker was restarted"}
+    return _write_report(*pending)
 
 
 def _with_data(text: str, extra: Mapping[str, Any]) -> str:
@@ -452,8 +475,15 @@ class FitRunner:
 
     async def run(self, job: Mapping[str, Any]) -> dict[str, Any]:
         """Run :func:`run_fit_job` off the event loop and return its result."""
+        return await self._call(run_fit_job, dict(job))
+
+    async def render(self, token: str) -> dict[str, Any]:
+        """Run :func:`run_report_job` in the fit worker (one worker: the one that fitted)."""
+        return await self._call(run_report_job, token)
+
+    async def _call(self, fn: Callable[[Any], dict[str, Any]], arg: Any) -> dict[str, Any]:
         loop = asyncio.get_running_loop()
-        fut = loop.run_in_executor(self._executor(), run_fit_job, dict(job))
+        fut = loop.run_in_executor(self._executor(), fn, arg)
         try:
             async with asyncio.timeout(self.timeout_s):
                 return await fut

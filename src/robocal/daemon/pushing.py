@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
+from robocal._core.joint_ranges import targets_outside
 from robocal._core.measurements import read_joints_csv
 from robocal.compensation import CompensationTable, Frame, build_table, read_targets_csv
 from robocal.compensation import ideal_positions as _ideal_positions
@@ -40,7 +41,6 @@ from robocal.drivers import (
 )
 from robocal.errors import CompensationError, VerificationMismatch
 from robocal.kinematics import CalibratedModel, RobotDescription, wpr_to_matrix
-from robocal.planning import targets_outside
 
 __all__ = [
     "FAULT_POINTS",

@@ -41,6 +41,7 @@ __all__ = [
     "PoseEvent",
     "PushDetail",
     "ReportEvent",
+    "ReportProgress",
     "RetryEvent",
     "RollbackDetail",
     "StateEvent",
@@ -214,6 +215,14 @@ class ControllerCalibrationRecord(_Closed):
     reason: str = Field(description="why it is unavailable")
 
 
+class ReportProgress(_Closed):
+    """Where the report of a campaign's fit stands (it renders after the fit is stored)."""
+
+    state: Literal["rendering", "ready", "failed"]
+    html: str | None = None
+    reason: str | None = None
+
+
 class CampaignStatus(CampaignSummary):
     """``GET /campaigns/{cid}`` and every campaign action's answer."""
 
@@ -226,6 +235,9 @@ class CampaignStatus(CampaignSummary):
     fitting: FitProgress | None = Field(
         default=None, description="the fit in progress (measured campaigns), else null")
     controller_calibration: ControllerCalibrationRecord | None = None
+    report: ReportProgress | None = Field(
+        default=None, description="the report of this daemon's fit: rendering (after the fit "
+        "was stored), then ready or failed; null when none was rendered since the start")
 
 
 class Measurement(_Closed):
@@ -542,11 +554,15 @@ class CompensationEvent(_EventBase):
 
 
 class ReportEvent(_EventBase):
-    """A campaign's report was rewritten to show what is true now."""
+    """A campaign's report: its Compensation section rewritten to show what is true now
+    (``section="compensation"``), or the report of a fit being rendered after the fit was
+    stored (``section="campaign"``, ``state`` rendering, then ready or failed)."""
 
     kind: Literal["report"]
-    section: Literal["compensation"]
-    html: str
+    section: Literal["compensation", "campaign"]
+    html: str | None = None
+    state: Literal["rendering", "ready", "failed"] | None = None
+    reason: str | None = None
 
 
 class LogEvent(_EventBase):

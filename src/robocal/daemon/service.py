@@ -79,6 +79,7 @@ class CalibrationService:
         self._storage_task: asyncio.Task[None] | None = None
         self.journal = PushJournal(self.store)
         self.reports = ReportKeeper(self.report_records, self._campaign_dir, self.events)
+        self.fits.on_report = self.reports.written   # a fresh report gets the current record
         self.compensator = CompensationManager(
             config=config, robot=self.robot, store=self.store, hub=self.hub,
             journal=self.journal, events=self.events, reports=self.reports, campaigns=self,
@@ -183,6 +184,7 @@ class CalibrationService:
             "models": builtins.list(self.config.fit.models), "started": started[0],
             "elapsed_s": round(time.monotonic() - started[1], 1)}
         out["controller_calibration"] = _fingerprint.campaign_calibration(self.store, cid)
+        out["report"] = self.fits.report_state(cid)
         return out
 
     # below this method `list` names it inside the class: annotations use builtins.list
@@ -427,13 +429,16 @@ class CalibrationService:
             self.fits.spawn(cid)
 
     async def wait(self, cid: str, states: Iterable[CampaignState | str], *,
-                   timeout: float) -> dict[str, Any]:
-        """Wait until the campaign is in one of ``states`` (or a final state); TimeoutError
-        if it does not get there within ``timeout`` seconds."""
+                   timeout: float, report: bool = True) -> dict[str, Any]:
+        """Wait until the campaign is in one of ``states`` (or a final state), and with
+        ``report`` until the report of its fit is written too (it renders after the fit is
+        stored); TimeoutError if it does not get there within ``timeout`` seconds."""
         wanted = {CampaignState(s) for s in states} | set(FINAL)
         async with asyncio.timeout(timeout), self.events.subscribe() as q:
             while True:
                 if self.store.campaign(cid).state in wanted:
+                    if report:
+                        await self.fits.report_settled(cid, timeout)
                     return self.status(cid)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(0.5):
@@ -490,10 +495,12 @@ class CalibrationService:
         return self.compensator.compensation()
 
     async def report_file(self, cid: str, name: str) -> Path | None:
-        """The campaign's report file ``name`` (``report.html``, ``report.json``) as it is
-        once a rewrite pending after an action has ended (at most 30 s); None if absent."""
+        """The campaign's report file ``name`` (``report.html``, ``report.json``) once the
+        report of its fit is rendered (at most 60 s) and a rewrite pending after an action
+        has ended (at most 30 s); None if absent."""
         self.store.campaign(cid)
         with contextlib.suppress(TimeoutError):
+            await self.fits.report_settled(cid, 60.0)   # rendered after the fit
             await self.reports.settled(30.0)
         path = self._campaign_dir(cid) / name
         return path if path.is_file() else None

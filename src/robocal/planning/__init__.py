@@ -12,6 +12,7 @@ Public entry points: :func:`plan_campaign`, :class:`Plan` (``load``/``save``),
 :func:`load_cell`, :class:`Cell`, :class:`FeasibilityChecker`, :class:`DesignSpace`.
 """
 
+from robocal._core.joint_ranges import targets_outside
 from robocal.kinematics import default_link_radii
 from robocal.planning._campaign import (
     cell_design_space,
@@ -24,7 +25,6 @@ from robocal.planning._coverage import (
     excluded_families,
     joint_coverage,
     read_program_joints,
-    targets_outside,
     winding_ranges,
 )
 from robocal.planning._cpa import CpaSweep, cpa_sweeps

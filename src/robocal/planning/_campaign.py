@@ -38,7 +38,13 @@ from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 from robocal.planning._geometry import link_frames
 from robocal.planning._iso import ISO_CYCLES, IsoCube, iso_cube
 from robocal.planning._motion import MotionChecker
-from robocal.planning._order import move_times, order_poses, two_opt
+from robocal.planning._order import (
+    move_times,
+    order_poses,
+    pairwise_move_times,
+    shortest_path,
+    two_opt,
+)
 from robocal.planning._plan import (
     CandidateInfo,
     CapsuleInfo,
@@ -55,6 +61,7 @@ from robocal.planning._plan import (
     PlannedPose,
     RobotInfo,
 )
+from robocal.planning._sobol import Sobol
 
 Array = NDArray[np.float64]
 
@@ -110,9 +117,7 @@ def draw_candidates(checker: FeasibilityChecker, *, target: int, seed: int,
     """
     dof = checker.robot.dof
     lo, hi = checker.ranges[:, 0], checker.ranges[:, 1]
-    from scipy.stats import qmc  # 0.5-2 s to import: only where Sobol draws are made
-
-    sampler = qmc.Sobol(d=dof, scramble=True, seed=np.random.default_rng(seed))
+    sampler = Sobol(dof, np.random.default_rng(seed))
     m = max(10, math.ceil(math.log2(max(1, 16 * target))))
     m = min(m, max(1, int(math.log2(max_draws))))
     batch = sampler.random_base2(m)
@@ -237,7 +242,7 @@ def _order_measured(motion: MotionChecker, q: Array, speed: Array, home: Array,
                     max_step: float, rounds: int = 3) -> NDArray[np.intp]:
     """Order poses by move time; re-run 2-opt with penalties on moves that are not safe."""
     order = order_poses(q, speed, start=home)
-    D = move_times(q[:, None, :], q[None, :, :], speed)
+    D = pairwise_move_times(q, speed)
     s = move_times(home[None, :], q, speed)
     penalty = 10.0 * float(D.max() + 1.0)
     for _ in range(rounds):
@@ -284,9 +289,12 @@ class _Roadmap:
         self.state: list[int] = []                 # 0 unknown, 1 safe, -1 unsafe
         n = len(self.nodes)
         if n > 1:
-            D = move_times(self.nodes[:, None, :], self.nodes[None, :, :], speed)
+            D = pairwise_move_times(self.nodes, speed)
             np.fill_diagonal(D, np.inf)
-            nn = np.argsort(D, axis=1)[:, :min(k, n - 1)]
+            kk = min(k, n - 1)
+            part = np.argpartition(D, kk - 1, axis=1)[:, :kk]
+            nn = np.take_along_axis(
+                part, np.argsort(np.take_along_axis(D, part, axis=1), axis=1), axis=1)
             for i, row in enumerate(nn):
                 for j in row:
                     self._edge(i, int(j), 0)
@@ -343,18 +351,11 @@ class _Roadmap:
             use = st >= 0 if r < rounds else st == 1
             i = np.concatenate([np.array(self.ei)[use], nb])
             j = np.concatenate([np.array(self.ej)[use], np.full(len(nb), goal)])
-            w = np.concatenate([np.array(self.ew)[use], t[nb]]) + 1e-9
-            from scipy.sparse import csr_matrix
-            from scipy.sparse.csgraph import dijkstra
-
-            G = csr_matrix((w, (i, j)), shape=(n + 1, n + 1))
-            dist, pred = dijkstra(G, directed=False, indices=a, return_predecessors=True)
-            if not np.isfinite(dist[goal]):
+            w = np.concatenate([np.array(self.ew)[use], t[nb]])
+            path = shortest_path(n + 1, i, j, w, a, goal)
+            if path is None:
                 return None
-            path = [goal]
-            while path[-1] != a:
-                path.append(int(pred[path[-1]]))
-            nodes = path[::-1][:-1]                          # a, ..., last node before b
+            nodes = path[:-1]                                # a, ..., last node before b
             eidx = [self._key[(min(u, v), max(u, v))] for u, v in itertools.pairwise(nodes)]
             todo = [e for e in eidx if self.state[e] == 0]
             if todo:
@@ -426,9 +427,7 @@ def _detour_pool(motion: MotionChecker, q_c: Array, seed: int, n: int = 1024) ->
     the rest Sobol points that pass the motion checks (no need to face the tracker), rounded
     as in the file."""
     lo, hi = motion.limits[:, 0], motion.limits[:, 1]
-    from scipy.stats import qmc
-
-    sob = qmc.Sobol(d=motion.robot.dof, scramble=True, seed=np.random.default_rng([seed, 4]))
+    sob = Sobol(motion.robot.dof, np.random.default_rng([seed, 4]))
     q = _round_deg(lo + sob.random_base2(int(math.log2(2 * n))) * (hi - lo))
     q = q[~motion.bad(q)]
     own = _round_deg(q_c[:n // 2])

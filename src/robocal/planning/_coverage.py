@@ -41,22 +41,6 @@ def read_program_joints(path: str | Path, *, dof: int) -> Array:
     return read_joints_csv(path, dof=dof)
 
 
-def targets_outside(ranges: Array, q: Array, *, limit: int = 10
-                    ) -> tuple[NDArray[np.bool_], list[str]]:
-    """Which joint vectors ``q`` (n, dof) rad lie outside ``ranges`` (dof, 2) rad (n,), and up
-    to ``limit`` of them named by their first joint out (``"target 12: J6 250.0 deg outside
-    [-180.0, 180.0]"``)."""
-    q = np.atleast_2d(q)
-    lo, hi = ranges[:, 0], ranges[:, 1]
-    out = np.any((q < lo) | (q > hi), axis=1)
-    names = []
-    for i in np.flatnonzero(out)[:limit]:
-        j = int(np.argmax(np.maximum(lo - q[i], q[i] - hi)))
-        names.append(f"target {int(i)}: J{j + 1} {math.degrees(q[i, j]):.1f} deg outside "
-                     f"[{math.degrees(lo[j]):.1f}, {math.degrees(hi[j]):.1f}]")
-    return out, names
-
-
 def winding_ranges(motion: MotionChecker, home: Array, ranges: Array
                    ) -> tuple[Array, list[str]]:
     """Keep the whole range of each joint wider than one revolution only if that joint can

@@ -39,9 +39,7 @@ from robocal.kinematics import (
     RobotDescription,
     Term,
 )
-
-Array = NDArray[np.float64]
-Index = NDArray[np.intp]
+from robocal.planning._geometry import Array, Index
 
 #: Equations per identifiable parameter the recommended pose count aims for (3 per pose).
 REDUNDANCY = 3.0

@@ -29,14 +29,14 @@ from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription, link_radii
 from robocal.planning._cell import Cell
 from robocal.planning._geometry import (
+    Array,
     CapsuleModel,
+    Mask,
     link_frames,
+    map_rows,
     segment_box_distance,
     segment_distance,
 )
-
-Array = NDArray[np.float64]
-Mask = NDArray[np.bool_]
 
 _CHECKS = ("within_limits", "facing", "line_of_sight", "in_range", "above_floor",
            "outside_keep_out", "no_self_collision")
@@ -208,22 +208,20 @@ class FeasibilityChecker:
         ndarray of bool, shape (n,)
         """
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        out = np.zeros(len(q), dtype=bool)
+        parts = map_rows(lambda sl: self._screen(q[sl]), len(q), chunk)
+        return np.concatenate([np.zeros(0, dtype=bool), *parts])
+
+    def _screen(self, qc: Array) -> Mask:
         lim = self.ranges
-        tool = np.asarray(self.tool_offset)
-        for i in range(0, len(q), chunk):
-            qc = q[i:i + chunk]
-            O, R, _ = link_frames(self.robot, qc)
-            p = O[:, -1] + R[:, -1] @ tool
-            v = self.tracker - p
-            rng_ = np.linalg.norm(v, axis=1)
-            cosang = np.einsum("ni,ni->n", R[:, -1] @ self.nest, v) / np.maximum(rng_, 1e-9)
-            allowance = np.arcsin(np.clip(self.tolerance / np.maximum(rng_, 1e-9), 0.0, 1.0))
-            facing = np.arccos(np.clip(cosang, -1.0, 1.0)) <= self.acceptance - allowance
-            out[i:i + chunk] = (
-                facing & (rng_ >= self.min_range) & (rng_ <= self.max_range)
+        O, R, _ = link_frames(self.robot, qc)
+        p = O[:, -1] + R[:, -1] @ np.asarray(self.tool_offset)
+        v = self.tracker - p
+        rng_ = np.linalg.norm(v, axis=1)
+        cosang = np.einsum("ni,ni->n", R[:, -1] @ self.nest, v) / np.maximum(rng_, 1e-9)
+        allowance = np.arcsin(np.clip(self.tolerance / np.maximum(rng_, 1e-9), 0.0, 1.0))
+        facing = np.arccos(np.clip(cosang, -1.0, 1.0)) <= self.acceptance - allowance
+        return (facing & (rng_ >= self.min_range) & (rng_ <= self.max_range)
                 & np.all((qc >= lim[:, 0] - 1e-12) & (qc <= lim[:, 1] + 1e-12), axis=1))
-        return out
 
     @single_threaded
     def check(self, q: Array, *, visibility: bool = True, chunk: int = 8192) -> Feasibility:
@@ -238,9 +236,7 @@ class FeasibilityChecker:
         if q.shape[1] != self.robot.dof:
             raise ConfigError(f"joint array has {q.shape[1]} columns, robot has "
                               f"{self.robot.dof} joints")
-        parts = [self._check(q[i:i + chunk], visibility) for i in range(0, len(q), chunk)]
-        if not parts:
-            parts = [self._check(q, visibility)]
+        parts = map_rows(lambda sl: self._check(q[sl], visibility), len(q), chunk)
         return Feasibility(**{k: np.concatenate([getattr(p, k) for p in parts])
                               for k in Feasibility.__dataclass_fields__})
 
@@ -256,10 +252,7 @@ class FeasibilityChecker:
         r = cm.radius
         moving = ~cm.static
 
-        # floor: the lowest point of a capsule is its lower end minus the radius
-        zlow = np.minimum(A[:, moving, 2], B[:, moving, 2]) - r[moving]
-        floor_margin = (zlow.min(axis=1) - self.floor_z - self.clearance if moving.any()
-                        else np.full(n, np.inf))
+        floor_margin = cm.lowest(A, B) - self.floor_z - self.clearance
 
         # keep-out boxes
         keep = np.full(n, np.inf)
@@ -269,12 +262,7 @@ class FeasibilityChecker:
             d, _ = segment_box_distance(Am, Bm, self.box_lo[None, None], self.box_hi[None, None])
             keep = (d - r[moving][None, :, None]).min(axis=(1, 2)) - self.clearance
 
-        # self-collision between the listed capsule pairs
-        selfm = np.full(n, np.inf)
-        if len(cm.pairs):
-            i, j = cm.pairs[:, 0], cm.pairs[:, 1]
-            d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
-            selfm = (d - r[i] - r[j]).min(axis=1) - self.clearance
+        selfm = cm.self_gap(A, B) - self.clearance
 
         angle = np.full(n, np.nan)
         sight = np.full(n, np.nan)

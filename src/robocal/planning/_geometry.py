@@ -11,8 +11,12 @@ Everything is in the robot base frame, metres, for ``n`` joint vectors at once.
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,10 +24,35 @@ from numpy.typing import NDArray
 from robocal.errors import ConfigError
 from robocal.kinematics import RobotDescription
 
+#: array aliases of the planning modules: values (m, rad, ...), masks and indices
 Array = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+Index = NDArray[np.intp]
+T = TypeVar("T")
+
+#: batches of at least this many poses are checked on two threads
+PARALLEL_ROWS = 2048
 
 _EPS = 1e-12
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def map_rows(fn: Callable[[slice], T], n: int, chunk: int) -> list[T]:
+    """``fn`` over consecutive slices that cover rows 0..n, each at most ``chunk`` rows.
+
+    From :data:`PARALLEL_ROWS` rows on, the slices (at least two) run on two threads: the
+    capsule checks are numpy work on large arrays, which releases the GIL, and they are most
+    of a plan's time. Each row's result does not depend on how the rows are split.
+    """
+    parts = max(1, math.ceil(n / chunk))
+    if n >= PARALLEL_ROWS:
+        parts = max(parts, 2)
+    edges = [round(k * n / parts) for k in range(parts + 1)]
+    pieces = [slice(a, b) for a, b in itertools.pairwise(edges)]
+    if parts == 1:
+        return [fn(pieces[0])]
+    with ThreadPoolExecutor(2, thread_name_prefix="capsule-checks") as pool:
+        return list(pool.map(fn, pieces))
 
 
 def link_frames(robot: RobotDescription, q: Array) -> tuple[Array, Array, Array]:
@@ -247,6 +276,23 @@ class CapsuleModel:
     def tool_index(self) -> int:
         """Index of the flange-to-reflector capsule (the last one)."""
         return len(self.names) - 1
+
+    def lowest(self, A: Array, B: Array) -> Array:
+        """Height of the lowest point of the moving capsules (n,), m, for axes A-B (n, K, 3)
+        (inf when none moves): the lower end of a capsule's axis less its radius."""
+        moving = ~self.static
+        if not moving.any():
+            return np.full(A.shape[0], np.inf)
+        return (np.minimum(A[:, moving, 2], B[:, moving, 2]) - self.radius[moving]).min(axis=1)
+
+    def self_gap(self, A: Array, B: Array) -> Array:
+        """Smallest surface distance between the self-collision pairs (n,), m, for axes
+        A-B (n, K, 3) (inf without pairs)."""
+        if not len(self.pairs):
+            return np.full(A.shape[0], np.inf)
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
+        return (d - self.radius[i] - self.radius[j]).min(axis=1)
 
     def segments(self, q: Array) -> tuple[Array, Array, Array, Array]:
         """Capsule axes and the flange/reflector state for ``q`` (n, dof) rad.

@@ -30,11 +30,14 @@ from robocal._core.threads import single_threaded
 from robocal.kinematics import RobotDescription
 from robocal.planning._cell import Cell
 from robocal.planning._feasibility import FeasibilityChecker
-from robocal.planning._geometry import segment_box_distance, segment_distance
-
-Array = NDArray[np.float64]
-Mask = NDArray[np.bool_]
-Index = NDArray[np.intp]
+from robocal.planning._geometry import (
+    Array,
+    Index,
+    Mask,
+    map_rows,
+    segment_box_distance,
+    segment_distance,
+)
 
 #: Largest capsule travel between two samples, as a fraction of the capsule's radius.
 SAMPLE_FRACTION = 0.25
@@ -159,13 +162,34 @@ class MotionChecker:
         self.lever = _levers(robot, cm.names, self.feasibility.tool_offset)
         self.lever[:, cm.static] = 0.0
         self._C_abs = np.abs(robot.coupling_matrix)
-        #: swept-path verdicts of legs the planner has checked: (start, end, max step) bytes
-        #: -> (safe, reason or "" when not explained); a leg is checked once per plan
-        self.leg_verdicts: dict[bytes, tuple[bool, str]] = {}
-        # moves check_moves found safe (start + end bytes), valid for the limits they were
+        # swept-path verdicts of legs the planner has checked (see leg_verdicts) and moves
+        # check_moves found safe (start + end bytes), both valid for the geometry they were
         # checked against (the planner narrows the limits in place once)
+        self._leg_verdicts: dict[bytes, tuple[bool, str]] = {}
         self._safe_moves: set[bytes] = set()
-        self._safe_limits = self.limits.tobytes()
+        self._checked_under = self._geometry()
+
+    def _geometry(self) -> bytes:
+        """Everything a verdict depends on that can change in place: the limits, the floor,
+        the keep-out boxes, the clearance and the capsules' radii."""
+        return b"|".join(np.ascontiguousarray(a, dtype=float).tobytes() for a in (
+            self.limits, self.box_lo, self.box_hi, [self.floor_z, self.clearance],
+            self.capsules.radius, self.step))
+
+    def _valid(self) -> None:
+        now = self._geometry()
+        if now != self._checked_under:
+            self._leg_verdicts.clear()
+            self._safe_moves.clear()
+            self._checked_under = now
+
+    @property
+    def leg_verdicts(self) -> dict[bytes, tuple[bool, str]]:
+        """Swept-path verdicts of legs the planner has checked: (start, end, max step) bytes
+        -> (safe, reason or "" when not explained), so that a leg is checked once per plan;
+        emptied when the limits, the floor, the boxes, the clearance or the radii change."""
+        self._valid()
+        return self._leg_verdicts
 
     # -- sampling --------------------------------------------------------------------------------
     def intervals(self, q_from: Array, q_to: Array) -> NDArray[np.int64]:
@@ -219,9 +243,7 @@ class MotionChecker:
         coarse = (offset % _COARSE == 0) | (s == 1.0)
         room = np.full(len(q), -np.inf)      # samples of clearance to spare (coarse samples)
         idx = np.flatnonzero(coarse)
-        for i in range(0, len(idx), chunk):
-            part = idx[i:i + chunk]
-            room[part] = self._room(q[part], owner[part], q_from, q_to, n)
+        room[idx] = self._rooms(q, owner, idx, q_from, q_to, n, chunk)
         bad[idx] = room[idx] < 0.0
         failed = np.zeros(m, dtype=bool)
         failed[owner[bad]] = True
@@ -241,9 +263,7 @@ class MotionChecker:
             vouched = room_v >= 0.0
             room[at_h[vouched]] = room_v[vouched]
             idx = at_h[~vouched]
-            for i in range(0, len(idx), chunk):
-                part = idx[i:i + chunk]
-                room[part] = self._room(q[part], owner[part], q_from, q_to, n)
+            room[idx] = self._rooms(q, owner, idx, q_from, q_to, n, chunk)
             bad[idx] = room[idx] < 0.0
         safe = np.ones(m, dtype=bool)
         at = np.full(m, np.nan)
@@ -268,9 +288,7 @@ class MotionChecker:
         return [row.tobytes() for row in both]
 
     def _known_safe(self) -> set[bytes]:
-        if self._safe_limits != self.limits.tobytes():
-            self._safe_moves.clear()
-            self._safe_limits = self.limits.tobytes()
+        self._valid()
         return self._safe_moves
 
     def _remember(self, q_from: Array, q_to: Array) -> None:
@@ -318,19 +336,12 @@ class MotionChecker:
         A, B, _, _ = cm.segments(q)
         r = cm.radius
         moving = ~cm.static
-        floor = np.full(n, np.inf)
-        if moving.any():
-            zlow = np.minimum(A[:, moving, 2], B[:, moving, 2]) - r[moving]
-            floor = zlow.min(axis=1) - self.floor_z - self.clearance
+        floor = cm.lowest(A, B) - self.floor_z - self.clearance
         box = np.full(n, np.inf)
         if len(self.box_lo) and moving.any():
             d = self._box_distance(A[:, moving], B[:, moving], r[moving])
             box = (d - r[moving][None, :, None]).min(axis=(1, 2)) - self.clearance
-        selfm = np.full(n, np.inf)
-        if len(cm.pairs):
-            i, j = cm.pairs[:, 0], cm.pairs[:, 1]
-            d, _, _ = segment_distance(A[:, i], B[:, i], A[:, j], B[:, j])
-            selfm = (d - r[i] - r[j]).min(axis=1) - self.clearance
+        selfm = cm.self_gap(A, B) - self.clearance
         return lim, floor, box, selfm
 
     def _box_distance(self, A: Array, B: Array, r: Array) -> Array:
@@ -357,6 +368,15 @@ class MotionChecker:
         for i in range(0, len(q), chunk):
             out[i:i + chunk] = self._bad(q[i:i + chunk])
         return out
+
+    def _rooms(self, q: Array, owner: Index, idx: Index, q_from: Array, q_to: Array,
+               n: NDArray[np.int64], chunk: int) -> Array:
+        """:meth:`_room` of the samples ``idx`` of all samples ``q`` (of moves ``owner``)."""
+        def one(sl: slice) -> Array:
+            part = idx[sl]
+            return self._room(q[part], owner[part], q_from, q_to, n)
+
+        return np.concatenate([np.zeros(0), *map_rows(one, len(idx), chunk)])
 
     def _room(self, q: Array, owner: Index, q_from: Array, q_to: Array,
               n: NDArray[np.int64]) -> Array:

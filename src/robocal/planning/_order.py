@@ -14,6 +14,7 @@ shortened by any order.
 
 from __future__ import annotations
 
+import heapq
 import math
 
 import numpy as np
@@ -32,6 +33,15 @@ def move_times(qa: Array, qb: Array, speed: Array) -> Array:
         Seconds (when ``speed`` is in rad/s and ``q`` in rad).
     """
     return np.max(np.abs(np.asarray(qb) - np.asarray(qa)) / speed, axis=-1)
+
+
+def pairwise_move_times(q: Array, speed: Array) -> Array:
+    """Move times (n, n) between every two poses of ``q`` (n, dof): the same figures as
+    ``move_times(q[:, None], q[None], speed)`` without its (n, n, dof) temporary."""
+    D = np.zeros((len(q), len(q)))
+    for j in range(q.shape[1]):
+        np.maximum(D, np.abs(q[None, :, j] - q[:, None, j]) / speed[j], out=D)
+    return D
 
 
 def _path_cost(D: Array, start: Array, order: Index) -> float:
@@ -64,7 +74,7 @@ def order_poses(q: Array, speed: Array, *, start: Array | None = None,
     n = len(q)
     if n <= 1:
         return np.arange(n, dtype=np.intp)
-    D = move_times(q[:, None, :], q[None, :, :], speed) if cost is None else cost
+    D = pairwise_move_times(q, speed) if cost is None else cost
     s = move_times(start[None, :] if start is not None else q[:1], q, speed)
     # nearest neighbour from the start
     order = np.empty(n, dtype=np.intp)
@@ -143,3 +153,35 @@ def insert_via_points(q: Array, max_step: float, *, start: Array | None = None
         via.append(False)
         prev = qi
     return np.array(rows).reshape(-1, q.shape[1]), np.array(via, dtype=bool)
+
+
+def shortest_path(n: int, i: NDArray[np.intp], j: NDArray[np.intp], w: Array, source: int,
+                  goal: int) -> list[int] | None:
+    """Nodes of the shortest path from ``source`` to ``goal`` (both included) in the
+    undirected graph of ``n`` nodes and edges i[k]--j[k] of positive weight w[k], or None
+    when no path joins them (Dijkstra; the roadmaps have a few thousand edges)."""
+    adj: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+    for u, v, c in zip(i.tolist(), j.tolist(), w.tolist(), strict=True):
+        adj[u].append((v, c))
+        adj[v].append((u, c))
+    dist = [math.inf] * n
+    pred = [-1] * n
+    dist[source] = 0.0
+    heap = [(0.0, source)]
+    while heap:
+        d, u = heapq.heappop(heap)
+        if u == goal:
+            break
+        if d > dist[u]:
+            continue
+        for v, c in adj[u]:
+            if d + c < dist[v]:
+                dist[v] = d + c
+                pred[v] = u
+                heapq.heappush(heap, (d + c, v))
+    if not math.isfinite(dist[goal]):
+        return None
+    path = [goal]
+    while path[-1] != source:
+        path.append(pred[path[-1]])
+    return path[::-1]

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from robocal._core.joint_ranges import targets_outside
 from robocal.kinematics import CalibratedModel, RobotDescription
-from robocal.planning import targets_outside
 
 Array = NDArray[np.float64]
 

@@ -399,12 +399,16 @@ def _cpa(an: Analysis) -> str:
     return "\n".join(out)
 
 
+def _noted(sid: str, title: str, note: str) -> str:
+    """A section that only says why it has nothing to show (``note`` is HTML)."""
+    return f'<section id="{sid}"><h2>{title}</h2>\n<p class="note">{note}</p></section>'
+
+
 def _joints(an: Analysis, plots: Mapping[str, Plot]) -> str:
-    out = ['<section id="joints"><h2>Joint-dependent errors</h2>']
     if not an.joints:
-        out.append('<p class="note">The model has no joint-dependent terms (constant errors '
-                   "only).</p></section>")
-        return "\n".join(out)
+        return _noted("joints", "Joint-dependent errors", "The model has no joint-dependent "
+                      "terms (constant errors only).")
+    out = ['<section id="joints"><h2>Joint-dependent errors</h2>']
     out.append(f'<p class="note">Model <b>{esc(an.joint_model)}</b>. For each joint, the '
                "identified error of each component as a function of the joint angle "
                "(all terms except the constant one and gravity torsion), drawn about its mean over "
@@ -442,11 +446,10 @@ def _joints(an: Analysis, plots: Mapping[str, Plot]) -> str:
 
 
 def _ident(an: Analysis, plots: Mapping[str, Plot]) -> str:
-    out = ['<section id="identifiability"><h2>Identifiability</h2>']
+    if an.ident is None:
+        return _noted("identifiability", "Identifiability", "No calibrated model.")
     idt = an.ident
-    if idt is None:
-        out.append('<p class="note">No calibrated model.</p></section>')
-        return "\n".join(out)
+    out = ['<section id="identifiability"><h2>Identifiability</h2>']
     cond = "–" if idt.condition is None else f"{idt.condition:.3g}"
     rank = "–" if idt.rank is None else str(idt.rank)
     out.append(_table(["parameters", "free", "removed (unidentifiable)", "rank", "condition"],
@@ -484,11 +487,11 @@ def _ident(an: Analysis, plots: Mapping[str, Plot]) -> str:
 
 
 def _iso(an: Analysis, plots: Mapping[str, Plot]) -> str:
-    out = ['<section id="iso"><h2>ISO 9283 pose accuracy and repeatability</h2>']
+    title = "ISO 9283 pose accuracy and repeatability"
     if not an.iso:
-        out.append('<p class="note">The ISO 9283 cube poses P1–P5 were not measured with '
-                   "repeats in this campaign.</p></section>")
-        return "\n".join(out)
+        return _noted("iso", title, "The ISO 9283 cube poses P1–P5 were not measured with "
+                      "repeats in this campaign.")
+    out = [f'<section id="iso"><h2>{title}</h2>']
     has_model = any(r.ap_model_m is not None for r in an.iso)
     rows = [[r.name, str(r.n), mm(r.ap_m), *(mm(v) for v in r.ap_xyz_m), mm(r.rp_m)]
             + ([mm(r.ap_model_m)] if has_model else []) for r in an.iso]
@@ -515,12 +518,12 @@ def _iso(an: Analysis, plots: Mapping[str, Plot]) -> str:
 
 
 def _workspace(an: Analysis, plots: Mapping[str, Plot]) -> str:
-    out = ['<section id="workspace"><h2>Predicted accuracy over the workspace</h2>']
+    title = "Predicted accuracy over the workspace"
     w = an.work
     if w is None:
-        out.append('<p class="note">Not available: the model has no parameter covariance.</p>'
-                   "</section>")
-        return "\n".join(out)
+        return _noted("workspace", title, "Not available: the model has no parameter "
+                      "covariance.")
+    out = [f'<section id="workspace"><h2>{title}</h2>']
     s = w.sigma
     out.append(_table(["configurations", "median 1σ", "95 % 1σ", "max 1σ"],
                       [[str(s.size), f"{mm(float(np.median(s)), 4)} mm",

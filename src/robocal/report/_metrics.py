@@ -504,38 +504,31 @@ def _f(v: float | None, unit: str = " mm", digits: int = 3) -> str:
     return f"{v:.{digits}f}{unit}"
 
 
-def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
-    """Apply the acceptance thresholds (see :class:`Acceptance`) to ``j``."""
-    if j is None or j.stats is None:
-        why = "no calibrated model with accuracy figures to judge."
-        return Verdict(FAILED, f"Calibration failed: {why}",
-                       (Check("model", FAIL, "no calibrated model"),), why.capitalize())
-    checks: list[Check] = []
-    rms_mm = j.stats.rms_m * 1e3
-    base_mm = None if j.baseline is None else j.baseline.rms_m * 1e3
+def _improvement(j: Judged, acc: Acceptance, rms_mm: float, base_mm: float | None
+                 ) -> tuple[Check, float | None]:
+    """The improvement-over-nominal check and the percentage described (None: unknown)."""
     pct = None if j.described is None else j.described.rms
-    st = j.status.lower()
-    if st and any(w in st for w in ("fail", "not converged", "notconverged", "error")):
-        checks.append(Check("fit status", FAIL, f"the fit reported status {j.status!r}"))
-    # improvement over nominal
     if pct is None and base_mm is not None and base_mm > 0:
         pct = 100.0 * (1.0 - rms_mm / base_mm)
     if pct is None:
-        checks.append(Check("improvement", WARN, "no nominal baseline: the improvement over the "
-                                                 "nominal model cannot be shown"))
-    elif pct <= 0.0:
-        checks.append(Check("improvement", FAIL,
-                            f"{j.on} RMS {_f(rms_mm)} is not below the nominal "
-                            f"{_f(base_mm)}: the model does not improve accuracy"))
-    elif pct < acc.min_percent_described:
-        checks.append(Check("improvement", WARN,
-                            f"describes only {pct:.1f} % of the nominal error (RMS-based); "
-                            f"threshold {acc.min_percent_described:.0f} %"))
-    else:
-        checks.append(Check("improvement", PASS,
-                            f"describes {pct:.1f} % of the nominal error (RMS-based; "
-                            f"threshold {acc.min_percent_described:.0f} %)"))
-    # absolute limits
+        return Check("improvement", WARN, "no nominal baseline: the improvement over the "
+                                          "nominal model cannot be shown"), pct
+    if pct <= 0.0:
+        return Check("improvement", FAIL,
+                     f"{j.on} RMS {_f(rms_mm)} is not below the nominal "
+                     f"{_f(base_mm)}: the model does not improve accuracy"), pct
+    if pct < acc.min_percent_described:
+        return Check("improvement", WARN,
+                     f"describes only {pct:.1f} % of the nominal error (RMS-based); "
+                     f"threshold {acc.min_percent_described:.0f} %"), pct
+    return Check("improvement", PASS,
+                 f"describes {pct:.1f} % of the nominal error (RMS-based; "
+                 f"threshold {acc.min_percent_described:.0f} %)"), pct
+
+
+def _limits(j: Judged, stats: ErrorStats, acc: Acceptance, rms_mm: float) -> list[Check]:
+    """The absolute checks: plausibility, RMS limit, max-error limit."""
+    checks: list[Check] = []
     if rms_mm > acc.implausible_rms_mm:
         checks.append(Check("plausibility", FAIL,
                             f"{j.on} RMS {_f(rms_mm)} is implausible for a calibrated robot "
@@ -546,14 +539,18 @@ def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
         checks.append(Check("RMS limit", PASS if ok else FAIL,
                             f"{j.on} RMS {_f(rms_mm)} {'≤' if ok else '>'} limit "
                             f"{_f(acc.max_rms_mm)}"))
-    if acc.max_error_mm is not None:
-        mx = j.stats.max_m * 1e3
-        if math.isfinite(mx):
-            ok = mx <= acc.max_error_mm
-            checks.append(Check("max-error limit", PASS if ok else FAIL,
-                                f"{j.on} max error {_f(mx)} {'≤' if ok else '>'} limit "
-                                f"{_f(acc.max_error_mm)}"))
-    # held-out data and over-fitting
+    mx = stats.max_m * 1e3
+    if acc.max_error_mm is not None and math.isfinite(mx):
+        ok = mx <= acc.max_error_mm
+        checks.append(Check("max-error limit", PASS if ok else FAIL,
+                            f"{j.on} max error {_f(mx)} {'≤' if ok else '>'} limit "
+                            f"{_f(acc.max_error_mm)}"))
+    return checks
+
+
+def _held_out(j: Judged, acc: Acceptance, rms_mm: float) -> list[Check]:
+    """Held-out data, over-fitting, extrapolation and outlier checks."""
+    checks: list[Check] = []
     if j.on != "validation":
         checks.append(Check("held-out poses", WARN,
                             "no validation poses: judged on the calibration poses, which "
@@ -570,7 +567,6 @@ def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
                             f"(ratio {ratio:.2f}{expl}; limit {limit:.2f})"))
     if j.extrapolation:
         checks.append(Check("extrapolation", WARN, j.extrapolation))
-    # outliers
     if j.n_poses > 0:
         frac = j.n_outliers / j.n_poses
         status = (FAIL if frac > acc.fail_outlier_fraction
@@ -578,6 +574,25 @@ def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
         checks.append(Check("outliers", status,
                             f"{j.n_outliers} of {j.n_poses} poses rejected as outliers "
                             f"({100 * frac:.1f} %; limit {100 * acc.max_outlier_fraction:.0f} %)"))
+    return checks
+
+
+def verdict(j: Judged | None, acc: Acceptance) -> Verdict:
+    """Apply the acceptance thresholds (see :class:`Acceptance`) to ``j``."""
+    if j is None or j.stats is None:
+        why = "no calibrated model with accuracy figures to judge."
+        return Verdict(FAILED, f"Calibration failed: {why}",
+                       (Check("model", FAIL, "no calibrated model"),), why.capitalize())
+    checks: list[Check] = []
+    rms_mm = j.stats.rms_m * 1e3
+    base_mm = None if j.baseline is None else j.baseline.rms_m * 1e3
+    st = j.status.lower()
+    if st and any(w in st for w in ("fail", "not converged", "notconverged", "error")):
+        checks.append(Check("fit status", FAIL, f"the fit reported status {j.status!r}"))
+    improvement, pct = _improvement(j, acc, rms_mm, base_mm)
+    checks.append(improvement)
+    checks += _limits(j, j.stats, acc, rms_mm)
+    checks += _held_out(j, acc, rms_mm)
     worst = max((c.status for c in checks), key=lambda s: {PASS: 0, INFO: 0, WARN: 1,
                                                            FAIL: 2}[s])
     outcome = {PASS: SUCCEEDED, INFO: SUCCEEDED, WARN: MARGINAL, FAIL: FAILED}[worst]

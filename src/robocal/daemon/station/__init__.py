@@ -210,6 +210,12 @@ def _report_path(st: dict[str, Any]) -> Path:
     return Path(st["files"]) / "report.html"
 
 
+def _report_box(st: dict[str, Any]) -> str:
+    rendering = (st.get("report") or {}).get("state") == "rendering"
+    return _pages.report_box(st["id"], _report_path(st).is_file() and not rendering,
+                             rendering=rendering)
+
+
 def _campaign_live(svc: CalibrationService, st: dict[str, Any], s: Session,
                    comp: dict[str, Any]) -> str:
     rows = svc.store.measurement_columns(st["id"], ("attempts", "beam_losses", "measured_at"))
@@ -239,7 +245,7 @@ async def campaign_view(request: web.Request) -> web.StreamResponse:
     if request.query.get("fragment") == "live":
         resp: web.StreamResponse = web.json_response({
             "live": live, "banner": _banner(svc, comp),
-            "report": _pages.report_box(st["id"], _report_path(st).is_file())})
+            "report": _report_box(st)})
         return _finish(_headers(resp), s, new)
     page = _pages.campaign_page(st, live, session=s, banner_html=_banner(svc, comp),
                                 has_report=_report_path(st).is_file())

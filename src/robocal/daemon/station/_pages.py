@@ -372,7 +372,9 @@ def campaign_live(st: dict[str, Any], *, session: Session, steps: list[Step], pr
     if rolled_back:
         pushed += f"<p id=\"rolled-back\">Rolled back at {_when(rolled_back)}.</p>"
     report = ""
-    if has_report:
+    if _rendering(st):
+        report = "<p id=\"report-rendering\">Report rendering…</p>"
+    elif has_report:
         report = (f"<p><a href=\"/campaigns/{e(st['id'])}/report\" target=\"_blank\" "
                   "rel=\"noopener\">Open the report in a new tab</a></p>")
     pct = 0 if not st["poses_total"] else round(100 * prog.measured / prog.total)
@@ -397,8 +399,17 @@ def campaign_live(st: dict[str, Any], *, session: Session, steps: list[Step], pr
         "</div></section></div>")
 
 
-def report_box(cid: str, has_report: bool) -> str:
-    """The embedded report (empty until the fit wrote it)."""
+def _rendering(st: dict[str, Any]) -> bool:
+    """Whether the campaign's report is being rendered after its fit."""
+    return (st.get("report") or {}).get("state") == "rendering"
+
+
+def report_box(cid: str, has_report: bool, *, rendering: bool = False) -> str:
+    """The embedded report (a note while it renders after the fit, empty before)."""
+    if rendering:
+        return ("<section class=\"card\" data-rendering=\"1\" aria-labelledby=\"rep-h\">"
+                "<h2 id=\"rep-h\">Report</h2><p class=\"muted\">Report rendering: the fit is "
+                "stored; the report appears here when its figures are drawn.</p></section>")
     if not has_report:
         return ""
     return ("<section class=\"card\" aria-labelledby=\"rep-h\"><h2 id=\"rep-h\">Report"
@@ -410,7 +421,8 @@ def campaign_page(st: dict[str, Any], live_html: str, *, session: Session, banne
                   has_report: bool) -> str:
     """The campaign page: head, ``#live`` (steps, progress, fits, actions), plot, report."""
     cid = st["id"]
-    report = f"<div id=\"reportbox\">{report_box(cid, has_report)}</div>"
+    report = (f"<div id=\"reportbox\">"
+              f"{report_box(cid, has_report, rendering=_rendering(st))}</div>")
     body = (
         f"<h1>{e(st.get('name') or cid)} <small>{e(cid)} · {e(st['robot'])}</small></h1>"
         f"<div id=\"live\">{live_html}</div>"

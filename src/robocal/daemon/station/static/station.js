@@ -30,9 +30,13 @@
         const box = document.getElementById("bannerbox");
         if (box && d.banner !== undefined && box.innerHTML !== d.banner) box.innerHTML = d.banner;
         if (live && live.innerHTML !== d.live) swap(live, d.live);
-        // the report appears once, when the fit has written it (not reloaded on every event)
+        // the report appears once, when it has been written after the fit (not reloaded on
+        // every event); the "rendering" note before it is replaced
         const rep = document.getElementById("reportbox");
-        if (rep && d.report && !rep.firstElementChild) rep.innerHTML = d.report;
+        const placeholder = rep && rep.querySelector("[data-rendering]");
+        if (rep && d.report && (!rep.firstElementChild || placeholder) && rep.innerHTML !== d.report) {
+          rep.innerHTML = d.report;
+        }
         if (body.dataset.page === "campaign") plot();
       }
     } catch (e) { /* the daemon restarting: the next event or reconnect retries */ }
@@ -60,7 +64,8 @@
 
   if (liveUrl && window.EventSource) {
     const es = new EventSource("/events?after=" + encodeURIComponent(body.dataset.seq || "0"));
-    for (const kind of ["state", "pose", "retry", "warmup", "fit", "compensation", "log"]) {
+    for (const kind of ["state", "pose", "retry", "warmup", "fit", "compensation", "report",
+                        "log"]) {
       es.addEventListener(kind, refresh);
     }
     es.onopen = () => { body.dataset.sse = "open"; };
