@@ -177,3 +177,10 @@ class RobotDriverBase(DriverBase):
 
     def _check_target(self, q_rad: Sequence[float]) -> tuple[float, ...]:
         return check_joint_target(q_rad, self.joint_limits_rad, kind=self.kind)
+
+    def _move_target(
+        self, q_rad: Sequence[float], speed_pct: float | None
+    ) -> tuple[tuple[float, ...], float]:
+        """Checked target (radians; LimitViolation, nothing sent) and speed (% of maximum)."""
+        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
+        return self._check_target(q_rad), speed

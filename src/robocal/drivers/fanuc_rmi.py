@@ -450,18 +450,11 @@ class FanucRmiRobot(RobotDriverBase,
     ) -> api.JointReading:
         """Move to ``q_rad`` (radians) with FINE termination; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured joint limits (nothing is sent).
-        MotionRejected
-            The controller refused the motion or faulted while executing it.
-        DriverTimeout
-            The motion did not complete within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; MotionRejected when the
+        controller refuses the motion or faults while executing it.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._live_stream()
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         q_deg = [math.degrees(v) for v in q]
         deadline = time.monotonic() + timeout
         gen = self._stop_gen

@@ -237,20 +237,12 @@ class KukaKvpRobot(RobotDriverBase,
     ) -> api.JointReading:
         """Move to ``q_rad`` (radians) through the RC_* handshake; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured limits (nothing sent), or refused by the loop.
-        MotionRejected
-            The loop reported a motion fault or a bad speed.
-        MotionStopped
-            :meth:`stop` halted the move.
-        DriverTimeout
-            ``RC_ACK_SEQ`` did not reach ``RC_CMD_SEQ`` within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; LimitViolation also when the
+        loop refuses the target, MotionStopped when :meth:`stop` halted the move,
+        DriverTimeout when ``RC_ACK_SEQ`` does not reach ``RC_CMD_SEQ``.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._ensure_connected()
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         deadline = time.monotonic() + timeout
         gen = self._stop_gen
         await self._write("RC_TARGET", kvp.format_e6axis([math.degrees(v) for v in q]))

@@ -365,18 +365,11 @@ class ModbusPlcRobot(RobotDriverBase,
     ) -> api.JointReading:
         """Move to ``q_rad`` (radians) through the handshake; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured limits (nothing sent), or refused by the PLC.
-        MotionRejected
-            The PLC reported an error for the motion.
-        DriverTimeout
-            ``ACK_SEQ`` did not reach ``CMD_SEQ`` within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; LimitViolation also when the
+        PLC refuses the target, DriverTimeout when ``ACK_SEQ`` does not reach ``CMD_SEQ``.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         m = self.options.register_map
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         q_deg = [math.degrees(v) for v in q] + [0.0] * (m.joints - len(q))
         try:
             target = mb.encode_f32(q_deg, m.word_order)

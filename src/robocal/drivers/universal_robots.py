@@ -483,12 +483,11 @@ class UniversalRobotsRobot(RobotDriverBase, api.CompensationSink, api.Compensati
         DriverTimeout
             The motion did not complete within ``timeout`` seconds.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._live()
         gen = self._stop_gen
         self._check_modes()
         o = self.options
-        speed = o.default_speed_pct if speed_pct is None else speed_pct
         v = max(1e-4, min(100.0, speed) / 100.0 * o.max_joint_speed_rad_s)
         line = f"movej({prim.script_literal(q)}, a={o.acceleration_rad_s2!r}, v={v!r})"
         try:
