@@ -41,7 +41,7 @@ from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.protocols import LineStream, TcpTransport, await_reply
 from robocal.protocols import fanuc_rmi as rmi
-from robocal.protocols.session import Request, RmiSession
+from robocal.protocols.session import Request, RmiSession, Window
 
 __all__ = ["FanucRmiOptions", "FanucRmiRobot"]
 
@@ -384,15 +384,11 @@ class FanucRmiRobot(RobotDriverBase,
             try:
                 with self.translate_errors():
                     await stream.write_line(rmi.encode({"Command": name, **fields}))
-                packet = await await_reply(fut, req.deadline - time.monotonic())
-            except TimeoutError as err:
-                self._expire()
-                raise errors.DriverTimeout(
-                    f"no reply to {name} within {wait:.3g} s", kind=self.kind
-                ) from err
-            finally:
-                self._session.commands.drop(req)
-                self._waiters.pop(req, None)
+            except BaseException:
+                self._forget(self._session.commands, req)
+                raise
+            packet = await self._reply(self._session.commands, req, fut,
+                                       f"no reply to {name} within {wait:.3g} s")
         if packet.name == "Unknown":
             raise errors.OperationError(
                 f"controller could not parse {name}: {rmi.describe_error(packet.error_id or 0)}",
@@ -433,16 +429,23 @@ class FanucRmiRobot(RobotDriverBase,
                     self._session.withdraw(req)
                     self._waiters.pop(req, None)
                     raise
-            try:
-                return await await_reply(fut, deadline - time.monotonic())
-            except TimeoutError as err:
-                self._expire()
-                raise errors.DriverTimeout(
-                    f"instruction SequenceID {req.key} not completed in time", kind=self.kind
-                ) from err
-            finally:
-                self._session.instructions.drop(req)
-                self._waiters.pop(req, None)
+            return await self._reply(self._session.instructions, req, fut,
+                                     f"instruction SequenceID {req.key} not completed in time")
+
+    def _forget(self, window: Window[Any], req: Request[Any]) -> None:
+        window.drop(req)
+        self._waiters.pop(req, None)
+
+    async def _reply(self, window: Window[Any], req: Request[Any],
+                     fut: asyncio.Future[rmi.Packet], late: str) -> rmi.Packet:
+        """Await the reply to ``req`` until its deadline (DriverTimeout ``late``); then drop it."""
+        try:
+            return await await_reply(fut, req.deadline - time.monotonic())
+        except TimeoutError as err:
+            self._expire()
+            raise errors.DriverTimeout(late, kind=self.kind) from err
+        finally:
+            self._forget(window, req)
 
     # --- robot API -----------------------------------------------------------------------------
     async def move_to(
