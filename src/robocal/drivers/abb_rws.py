@@ -43,7 +43,7 @@ from pydantic import Field
 from robocal import errors
 from robocal.compensation import CompensationTable, JointCorrection
 from robocal.drivers import api
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.protocols import abb_rws as rws
 
@@ -112,9 +112,7 @@ class AbbRwsOptions(RobotOptions):
     cfg_robot: str = Field(default="ROB_1", pattern=r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 
 
-class AbbRwsRobot(RobotDriverBase,
-                  api.CompensationSink, api.CompensationSlots, api.CompensationSnapshots,
-                  api.ControllerCalibrationReadable):
+class AbbRwsRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """ABB controller through Robot Web Services and the RobocalServer RAPID module.
 
     Parameters

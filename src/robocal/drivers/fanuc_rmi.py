@@ -37,7 +37,7 @@ from pydantic import Field
 from robocal import errors
 from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
 from robocal.drivers import api
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.protocols import LineStream, TcpTransport, await_reply
 from robocal.protocols import fanuc_rmi as rmi
@@ -93,8 +93,7 @@ class FanucRmiOptions(RobotOptions):
     override_pct: int | None = Field(default=None, ge=1, le=100)
 
 
-class FanucRmiRobot(RobotDriverBase,
-                    api.CompensationSink, api.CompensationSlots, api.CompensationSnapshots):
+class FanucRmiRobot(CompensatingRobotBase):
     """FANUC R-30iB Plus controller through RMI.
 
     Parameters

@@ -37,7 +37,7 @@ from pydantic import Field
 from robocal import errors
 from robocal.compensation import CompensationTable, TargetRow
 from robocal.drivers import api
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.protocols import TcpTransport
 from robocal.protocols import kuka_kvp as kvp
@@ -89,9 +89,7 @@ class KukaKvpOptions(RobotOptions):
 _ABS_ACTIVE = frozenset({"#ACTIVATED", "TRUE"})
 
 
-class KukaKvpRobot(RobotDriverBase,
-                   api.CompensationSink, api.CompensationSlots, api.CompensationSnapshots,
-                   api.ControllerCalibrationReadable):
+class KukaKvpRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """KUKA KRC4/KRC5 running robocal_loop, through KUKAVARPROXY.
 
     Parameters

@@ -33,7 +33,7 @@ from robocal import errors
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
 from robocal.drivers import api
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, table_diff
 from robocal.drivers._modbus_client import ModbusClient
 from robocal.protocols import modbus as mb
@@ -101,8 +101,7 @@ class PlcStatus:
     table_crc: int
 
 
-class ModbusPlcRobot(RobotDriverBase,
-                     api.CompensationSink, api.CompensationSlots, api.CompensationSnapshots):
+class ModbusPlcRobot(CompensatingRobotBase):
     """Robot commanded through a Modbus-TCP register handshake.
 
     Parameters

@@ -40,7 +40,7 @@ from pydantic import Field, field_validator
 from robocal import errors
 from robocal.compensation import CompensationTable, JointCorrection, TargetRow
 from robocal.drivers import api
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.protocols import TcpTransport
 from robocal.protocols import ur_dashboard as dash
@@ -114,8 +114,7 @@ class _ProgramFailed(Exception):
     """A robocal program ended in a runtime exception."""
 
 
-class UniversalRobotsRobot(RobotDriverBase, api.CompensationSink, api.CompensationSlots,
-                           api.CompensationSnapshots, api.ControllerCalibrationReadable):
+class UniversalRobotsRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """A UR e-Series or CB3 arm (PolyScope 3.x/5.x) through its network interfaces.
 
     Parameters
