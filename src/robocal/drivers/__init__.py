@@ -9,6 +9,7 @@ simulators in :mod:`robocal.drivers.sim`).
 True
 """
 
+from robocal.drivers import api
 from robocal.drivers._base import DriverBase, DriverOptions, RobotDriverBase, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
 from robocal.drivers._context import DriverContext
@@ -21,61 +22,25 @@ from robocal.drivers._registry import (
     load_tracker_driver,
 )
 from robocal.drivers._retry import RETRYABLE, measure_with_retry, with_retry
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    Connectable,
-    ControllerCalibration,
-    ControllerCalibrationReadable,
-    JointMover,
-    JointReader,
-    JointReading,
-    JointTemperatureReader,
-    JointTemperatures,
-    PointMeasurer,
-    RobotDriver,
-    Stoppable,
-    TrackerDriver,
-    TrackerReading,
-    check_joint_target,
-    require,
-)
+from robocal.drivers.api import *  # noqa: F403 (its __all__ is re-exported below)
 
 __all__ = [
     "RETRYABLE",
     "ROBOT_GROUP",
     "TRACKER_GROUP",
-    "CompensationSink",
-    "CompensationSlots",
-    "CompensationSnapshots",
-    "Connectable",
-    "ControllerCalibration",
-    "ControllerCalibrationReadable",
     "ControllerSnapshot",
     "DriverBase",
     "DriverContext",
     "DriverOptions",
-    "JointMover",
-    "JointReader",
-    "JointReading",
-    "JointTemperatureReader",
-    "JointTemperatures",
-    "PointMeasurer",
-    "RobotDriver",
     "RobotDriverBase",
     "RobotOptions",
-    "Stoppable",
-    "TrackerDriver",
-    "TrackerReading",
     "available",
-    "check_joint_target",
     "driver_class",
     "load_robot_driver",
     "load_tracker_driver",
     "measure_with_retry",
-    "require",
     "snapshot_diff",
     "table_diff",
     "with_retry",
 ]
+__all__ += api.__all__

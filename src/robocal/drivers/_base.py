@@ -10,7 +10,12 @@ from typing import Any, ClassVar, Literal, Self
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from robocal.drivers.api import check_joint_target
+from robocal.drivers.api import (
+    CompensationSink,
+    CompensationSlots,
+    CompensationSnapshots,
+    check_joint_target,
+)
 from robocal.errors import (
     ConfigError,
     ConnectFailed,
@@ -21,7 +26,9 @@ from robocal.errors import (
     VerificationMismatch,
 )
 
-__all__ = ["DriverBase", "DriverOptions", "RobotDriverBase", "RobotOptions", "validate_options"]
+__all__ = [
+    "CompensatingRobotBase",
+    "DriverBase", "DriverOptions", "RobotDriverBase", "RobotOptions", "validate_options"]
 
 DriverState = Literal["new", "connecting", "connected", "closed"]
 
@@ -177,3 +184,16 @@ class RobotDriverBase(DriverBase):
 
     def _check_target(self, q_rad: Sequence[float]) -> tuple[float, ...]:
         return check_joint_target(q_rad, self.joint_limits_rad, kind=self.kind)
+
+    def _move_target(
+        self, q_rad: Sequence[float], speed_pct: float | None
+    ) -> tuple[tuple[float, ...], float]:
+        """Checked target (radians; LimitViolation, nothing sent) and speed (% of maximum)."""
+        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
+        return self._check_target(q_rad), speed
+
+
+class CompensatingRobotBase(
+    RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots
+):
+    """Base for controller drivers that write, re-read and snapshot compensation tables."""

@@ -40,29 +40,11 @@ from typing import Any, ClassVar, Literal
 import aiohttp
 from pydantic import Field
 
+from robocal import errors
 from robocal.compensation import CompensationTable, JointCorrection
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers import api
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    ControllerCalibration,
-    ControllerCalibrationReadable,
-    JointReading,
-    check_joint_target,
-)
-from robocal.errors import (
-    CompensationError,
-    ConfigError,
-    ConnectFailed,
-    DriverTimeout,
-    MotionRejected,
-    MotionStopped,
-    OperationError,
-    ProtocolError,
-    UnexpectedReply,
-)
 from robocal.protocols import abb_rws as rws
 
 __all__ = ["AbbRwsOptions", "AbbRwsRobot", "RwsRequestError"]
@@ -72,7 +54,7 @@ _SEQ, _DONE, _SPEED, _TARGET = "rc_seq", "rc_done", "rc_speed", "rc_target"
 _COMP, _COMP_N, _COMP_KIND, _COMP_SUM = "rc_comp", "rc_comp_n", "rc_comp_kind", "rc_comp_sum"
 
 
-class RwsRequestError(OperationError):
+class RwsRequestError(errors.OperationError):
     """The controller answered a request with an error (``status``, controller ``code``)."""
 
     def __init__(self, message: str, *, kind: str, status: int, code: int) -> None:
@@ -130,8 +112,7 @@ class AbbRwsOptions(RobotOptions):
     cfg_robot: str = Field(default="ROB_1", pattern=r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 
 
-class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots,
-                  ControllerCalibrationReadable):
+class AbbRwsRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """ABB controller through Robot Web Services and the RobocalServer RAPID module.
 
     Parameters
@@ -149,8 +130,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         super().__init__(options)
         o = self.options
         if self.dof > 6:
-            raise ConfigError("a jointtarget holds at most 6 robot axes", source=self.kind,
-                              key="joint_limits_deg")
+            raise errors.ConfigError("a jointtarget holds at most 6 robot axes", source=self.kind,
+                                     key="joint_limits_deg")
         self.dialect: rws.Dialect = "rws1" if o.robotware == 6 else "rws2"
         scheme = o.scheme or ("http" if o.robotware == 6 else "https")
         port = o.port or (80 if scheme == "http" else 443)
@@ -189,7 +170,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         """
         http = self._http
         if http is None:
-            raise ConnectFailed("not connected; call connect() first", kind=self.kind)
+            raise errors.ConnectFailed("not connected; call connect() first", kind=self.kind)
         headers = dict(req.headers)
         for attempt in range(2):
             if attempt:
@@ -204,19 +185,23 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
                     status, ctype = resp.status, resp.headers.get("Content-Type", "")
                     www = resp.headers.get("WWW-Authenticate", "")
             except TimeoutError as err:
-                raise DriverTimeout(f"{req.method} {req.path}: no answer within "
-                                    f"{self.options.request_timeout_s} s", kind=self.kind) from err
+                raise errors.DriverTimeout(
+                    f"{req.method} {req.path}: no answer within "
+                    f"{self.options.request_timeout_s} s", kind=self.kind) from err
             except aiohttp.ClientError as err:
-                raise ConnectFailed(f"{req.method} {req.path}: {err}", kind=self.kind) from err
+                raise errors.ConnectFailed(
+                    f"{req.method} {req.path}: {err}", kind=self.kind) from err
             if status != 401:
                 break
             if attempt:
-                raise ConnectFailed(f"the controller refused user {self.user!r}", kind=self.kind)
+                raise errors.ConnectFailed(
+                    f"the controller refused user {self.user!r}", kind=self.kind)
             if self.dialect == "rws1":
                 try:
                     self._challenge = rws.parse_challenge(www)
-                except ProtocolError as err:
-                    raise ConnectFailed(f"bad digest challenge: {err}", kind=self.kind) from err
+                except errors.ProtocolError as err:
+                    raise errors.ConnectFailed(
+                        f"bad digest challenge: {err}", kind=self.kind) from err
                 self._nc = 0
         if status >= 400:
             e = rws.parse_error(status, body, ctype)
@@ -228,8 +213,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         _, ctype, body = await self._call(req)
         try:
             return rws.parse_states(body, ctype)
-        except ProtocolError as err:
-            raise UnexpectedReply(f"{req.path}: {err}") from err
+        except errors.ProtocolError as err:
+            raise errors.UnexpectedReply(f"{req.path}: {err}") from err
 
     async def _read_var(self, name: str) -> str:
         o = self.options
@@ -243,8 +228,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
     async def _read_num(self, name: str) -> float:
         try:
             return rws.parse_num(await self._read_var(name))
-        except ProtocolError as err:
-            raise UnexpectedReply(f"{name}: {err}") from err
+        except errors.ProtocolError as err:
+            raise errors.UnexpectedReply(f"{name}: {err}") from err
 
     async def _field(self, req: rws.Request, name: str) -> str:
         return rws.single(await self._get(req), name)
@@ -261,7 +246,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             raise
         return rws.parse_cfg_instances(items)
 
-    async def controller_calibration(self) -> ControllerCalibration:
+    async def controller_calibration(self) -> api.ControllerCalibration:
         """The MOC robot instance and motor calibration offsets; Absolute Accuracy is active
         when the robot's ``use_robot_calib`` names a calibration other than ``*uncalib``."""
         robot = await self._cfg("ROBOT", self.options.cfg_robot)
@@ -270,7 +255,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         facts = {f"MOC/ROBOT/{self.options.cfg_robot}": attrs,
                  "MOC/MOTOR_CALIB": await self._cfg("MOTOR_CALIB")}
         active = None if calib is None else not calib.lower().endswith("uncalib")
-        return ControllerCalibration("abb-rws-cfg-moc", facts, absolute_accuracy=active)
+        return api.ControllerCalibration("abb-rws-cfg-moc", facts, absolute_accuracy=active)
 
     # --- connection ----------------------------------------------------------------------------
     async def _connect_impl(self, timeout: float) -> None:
@@ -281,8 +266,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             try:
                 ssl = ssl_module.create_default_context(cafile=o.ca_file)
             except (OSError, ssl_module.SSLError) as err:
-                raise ConnectFailed(f"cannot load ca_file {o.ca_file}: {err}",
-                                    kind=self.kind) from err
+                raise errors.ConnectFailed(f"cannot load ca_file {o.ca_file}: {err}",
+                                           kind=self.kind) from err
         self._http = aiohttp.ClientSession(
             cookie_jar=aiohttp.CookieJar(unsafe=True),
             timeout=aiohttp.ClientTimeout(total=min(o.request_timeout_s, timeout)),
@@ -293,29 +278,32 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             async with asyncio.timeout(timeout):
                 await self._start_session(deadline)
         except TimeoutError as err:
-            raise DriverTimeout(f"connect took longer than {timeout} s", kind=self.kind) from err
+            raise errors.DriverTimeout(
+                f"connect took longer than {timeout} s", kind=self.kind) from err
         except RwsRequestError as err:
             hint = ""
             if err.status == 404:
                 hint = (f"; is the {o.module} module (deploy/abb/RobocalServer.mod) loaded "
                         f"in {o.task}?")
-            raise ConnectFailed(f"{err}{hint}", kind=self.kind) from err
+            raise errors.ConnectFailed(f"{err}{hint}", kind=self.kind) from err
 
     async def _start_session(self, deadline: float) -> None:
         o = self.options
         mode = await self._field(rws.opmode(self.dialect), "opmode")
         if mode != "AUTO":
-            raise ConnectFailed(f"the controller is in {mode}, not AUTO: turn the key to AUTO "
-                                "(remote start needs it)", kind=self.kind)
+            raise errors.ConnectFailed(
+                f"the controller is in {mode}, not AUTO: turn the key to AUTO "
+                "(remote start needs it)", kind=self.kind)
         state = await self._field(rws.ctrlstate(self.dialect), "ctrlstate")
         if state != "motoron":
             if not o.motors_on:
-                raise ConnectFailed(f"controller state {state}: motors are off",
-                                    kind=self.kind)
+                raise errors.ConnectFailed(f"controller state {state}: motors are off",
+                                           kind=self.kind)
             await self._call(rws.motors_on(self.dialect))
             state = await self._field(rws.ctrlstate(self.dialect), "ctrlstate")
             if state != "motoron":
-                raise ConnectFailed(f"motors did not come on (state {state})", kind=self.kind)
+                raise errors.ConnectFailed(
+                    f"motors did not come on (state {state})", kind=self.kind)
         await self._read_num(_DONE)  # the module is there
         await self._restart_program(deadline)
         self.log.info("rws session", robotware=o.robotware, url=self.base_url,
@@ -340,8 +328,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             if await self._read_num(_DONE) == seq:
                 break
             if time.monotonic() > deadline:
-                raise DriverTimeout("RobocalServer did not start (rc_done never followed "
-                                    "rc_seq)", kind=self.kind)
+                raise errors.DriverTimeout("RobocalServer did not start (rc_done never followed "
+                                           "rc_seq)", kind=self.kind)
             await asyncio.sleep(self.options.poll_interval_s)
         self._seq = int(seq)
 
@@ -357,7 +345,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
 
     # --- motion --------------------------------------------------------------------------------
     async def move_to(self, q_rad: Sequence[float], *, speed_pct: float | None = None,
-                      timeout: float = 60.0) -> JointReading:
+                      timeout: float = 60.0) -> api.JointReading:
         """Move to ``q_rad`` (radians) with MoveAbsJ, wait in position (``fine``), return the
         actual joints.
 
@@ -379,21 +367,24 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         gen = self._stop_gen
         async with self._cmd_lock:
             if gen != self._stop_gen:
-                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+                raise errors.MotionStopped(
+                    "stop requested before the move was sent", kind=self.kind)
             state = await self._field(rws.execution(self.dialect), "ctrlexecstate")
             if gen != self._stop_gen:
-                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+                raise errors.MotionStopped(
+                    "stop requested before the move was sent", kind=self.kind)
             if state != "running":
                 self.log.warning("RAPID was stopped; restarting RobocalServer")
                 try:
                     await self._restart_program(deadline)
                 except RwsRequestError as err:
-                    raise MotionRejected(f"cannot restart RobocalServer: {err}",
-                                         kind=self.kind) from err
+                    raise errors.MotionRejected(f"cannot restart RobocalServer: {err}",
+                                                kind=self.kind) from err
             await self._write_var(_TARGET, rws.format_jointtarget([math.degrees(v) for v in q]))
             await self._write_var(_SPEED, rws.format_num(max(0.01, min(100.0, speed))))
             if gen != self._stop_gen:
-                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+                raise errors.MotionStopped(
+                    "stop requested before the move was sent", kind=self.kind)
             seq = self._seq + 1
             await self._write_var(_SEQ, rws.format_num(seq))
             self._seq = seq
@@ -403,19 +394,20 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
     async def _wait_done(self, seq: int, gen: int, deadline: float, timeout: float) -> None:
         while True:
             if gen != self._stop_gen:
-                raise MotionStopped("motion stopped by request", kind=self.kind)
+                raise errors.MotionStopped("motion stopped by request", kind=self.kind)
             if await self._read_num(_DONE) == seq:
                 return
             state = await self._field(rws.execution(self.dialect), "ctrlexecstate")
             if gen != self._stop_gen:
-                raise MotionStopped("motion stopped by request", kind=self.kind)
+                raise errors.MotionStopped("motion stopped by request", kind=self.kind)
             if state != "running":
                 if await self._read_num(_DONE) == seq:
                     return
-                raise MotionRejected(f"RAPID execution stopped during the move{await self._elog()}",
-                                     kind=self.kind)
+                raise errors.MotionRejected(
+                    f"RAPID execution stopped during the move{await self._elog()}",
+                    kind=self.kind)
             if time.monotonic() > deadline:
-                raise DriverTimeout(f"not in position after {timeout} s", kind=self.kind)
+                raise errors.DriverTimeout(f"not in position after {timeout} s", kind=self.kind)
             await asyncio.sleep(self.options.poll_interval_s)
 
     async def _elog(self) -> str:
@@ -426,15 +418,15 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
                 return f": {items[0].get('code', '')} {items[0].get('title', '')}"
         return ""
 
-    async def read_joints(self) -> JointReading:
+    async def read_joints(self) -> api.JointReading:
         """The actual joints (``/rw/motionsystem/mechunits/ROB_1/jointtarget``), radians."""
         self._ensure_connected()
         items = await self._get(rws.jointtarget(self.dialect, self.options.mechunit))
         try:
             q_deg = rws.parse_jointtarget_state(items, self.dof)
-        except ProtocolError as err:
-            raise UnexpectedReply(f"jointtarget: {err}") from err
-        return JointReading(tuple(math.radians(v) for v in q_deg), time.time())
+        except errors.ProtocolError as err:
+            raise errors.UnexpectedReply(f"jointtarget: {err}") from err
+        return api.JointReading(tuple(math.radians(v) for v in q_deg), time.time())
 
     async def read_robtarget(self) -> rws.RobTarget:
         """The TCP pose of tool0 in the base frame (mm, quaternion)."""
@@ -474,12 +466,12 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
             rows = [r for r in table.targets or [] if r.status == "ok"]
             n = max((r.index + 1 for r in rows), default=0)
             if n > self.options.comp_size:
-                raise CompensationError(f"target index {n - 1} does not fit rc_comp"
-                                        f"{{{self.options.comp_size}}}")
+                raise errors.CompensationError(f"target index {n - 1} does not fit rc_comp"
+                                               f"{{{self.options.comp_size}}}")
             out = [rws.JointTarget((0.0,) * 6)] * n
             for r in rows:
-                check_joint_target([math.radians(v) for v in r.q_deg], self.joint_limits_rad,
-                                   kind=self.kind)
+                api.check_joint_target([math.radians(v) for v in r.q_deg], self.joint_limits_rad,
+                                       kind=self.kind)
                 out[r.index] = rws.JointTarget(tuple(r.q_deg) + (0.0,) * (6 - len(r.q_deg)))
         elif table.kind == "joint":
             for e in table.joints or []:
@@ -488,11 +480,11 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
                     out.append(rws.JointTarget((float(e.joint), src, q, dq,
                                                 e.interpolation_error_bound_deg, 0.0)))
             if len(out) > self.options.comp_size:
-                raise CompensationError(f"{len(out)} grid points do not fit rc_comp"
-                                        f"{{{self.options.comp_size}}}")
+                raise errors.CompensationError(f"{len(out)} grid points do not fit rc_comp"
+                                               f"{{{self.options.comp_size}}}")
         else:
-            raise CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
-                                    f"not {table.kind!r}")
+            raise errors.CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
+                                           f"not {table.kind!r}")
         return out
 
     async def write_compensation(self, table: CompensationTable) -> None:
@@ -538,8 +530,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         n = int(await self._read_num(_COMP_N))
         try:
             items = rws.parse_jointtarget_array(await self._read_var(_COMP))[:n]
-        except ProtocolError as err:
-            raise UnexpectedReply(f"{_COMP}: {err}") from err
+        except errors.ProtocolError as err:
+            raise errors.UnexpectedReply(f"{_COMP}: {err}") from err
         update: dict[str, Any]
         if table.kind == "targets":
             rows = []
@@ -553,8 +545,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         elif table.kind == "joint":
             update = {"joints": _decode_joint(items) if kind == "joint" else []}
         else:
-            raise CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
-                                    f"not {table.kind!r}")
+            raise errors.CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
+                                           f"not {table.kind!r}")
         back = table.model_copy(update=update)
         return back.model_copy(update={"checksum": back.compute_checksum()})
 
@@ -562,8 +554,8 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         """The four RobocalServer compensation variables verbatim (RAPID literal text)."""
         self._ensure_connected()
         if table.kind not in self.supported_compensation:
-            raise CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
-                                    f"not {table.kind!r}")
+            raise errors.CompensationError(f"{self.kind} stores 'targets' and 'joint' tables, "
+                                           f"not {table.kind!r}")
         items = {name: await self._read_var(name)
                  for name in (_COMP, _COMP_N, _COMP_KIND, _COMP_SUM)}
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
@@ -574,7 +566,7 @@ class AbbRwsRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compensa
         self._ensure_connected()
         for name, value in snapshot.items.items():
             if name not in (_COMP, _COMP_N, _COMP_KIND, _COMP_SUM):
-                raise CompensationError(f"snapshot slot {name!r} is not a {self.kind} slot")
+                raise errors.CompensationError(f"snapshot slot {name!r} is not a {self.kind} slot")
             await self._write_var(name, str(value))
         self._last_table = None
         back = {name: await self._read_var(name) for name in snapshot.items}
@@ -601,5 +593,5 @@ def _decode_joint(items: Sequence[rws.JointTarget]) -> list[JointCorrection]:
                 joint=joint, source_joint=src or None, q_deg=[t.robax[2] for t in g],
                 dq_deg=[t.robax[3] for t in g], interpolation_error_bound_deg=g[0].robax[4]))
         except ValueError as err:
-            raise UnexpectedReply(f"rc_comp holds no valid joint table: {err}") from err
+            raise errors.UnexpectedReply(f"rc_comp holds no valid joint table: {err}") from err
     return out

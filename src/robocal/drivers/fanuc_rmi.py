@@ -34,31 +34,14 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
+from robocal import errors
 from robocal.compensation import CompensationTable, Frame, FramesPayload, TargetRow
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers import api
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    JointReading,
-    check_joint_target,
-)
-from robocal.errors import (
-    CompensationError,
-    ConnectFailed,
-    DriverTimeout,
-    FramingError,
-    MotionRejected,
-    MotionStopped,
-    OperationError,
-    ProtocolError,
-    TransportError,
-    TransportTimeout,
-)
 from robocal.protocols import LineStream, TcpTransport, await_reply
 from robocal.protocols import fanuc_rmi as rmi
-from robocal.protocols.session import Request, RmiSession
+from robocal.protocols.session import Request, RmiSession, Window
 
 __all__ = ["FanucRmiOptions", "FanucRmiRobot"]
 
@@ -110,7 +93,7 @@ class FanucRmiOptions(RobotOptions):
     override_pct: int | None = Field(default=None, ge=1, le=100)
 
 
-class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
+class FanucRmiRobot(CompensatingRobotBase):
     """FANUC R-30iB Plus controller through RMI.
 
     Parameters
@@ -157,14 +140,14 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         finally:
             await conn.close()
         if reply.error_id:
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"FRC_Connect refused: {rmi.describe_error(reply.error_id)}", kind=self.kind
             )
         major = reply.get_int("MajorVersion")
         minor = _int_or(reply.body.get("MinorVersion"), 0)
         self.controller_version = (major, minor)
         if major < o.min_major_version:
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"controller runs RMI MajorVersion {major}; robocal needs {o.min_major_version} "
                 "or later because older versions make FRC_ReadJointAngles return commanded, "
                 "not actual (encoder) joint angles, which is useless for calibration",
@@ -192,7 +175,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             tp_mode=status.body.get("TPMode"),
         )
         if _int_or(status.body.get("TPMode"), 0):
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 "the teach pendant is enabled: disable it (AUTO mode) and connect again",
                 kind=self.kind,
             )
@@ -202,7 +185,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             await self._command("FRC_Abort", check=False)
             init = await self._command("FRC_Initialize", check=False, GroupMask=1 << (o.group - 1))
         if init.error_id in (7004, 7015):
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 "FRC_Initialize refused: RMI_MOVE is the selected TP program; select another "
                 "program on the teach pendant and connect again",
                 kind=self.kind,
@@ -211,7 +194,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             alarm = ""
             with contextlib.suppress(Exception):
                 alarm = f"; controller alarm: {await self.read_error()}"
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"FRC_Initialize refused: {rmi.describe_error(init.error_id)}{alarm}",
                 kind=self.kind,
             )
@@ -230,10 +213,10 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             try:
                 await main.open(timeout=max(0.1, deadline - time.monotonic()))
                 return main
-            except TransportError as err:
+            except errors.TransportError as err:
                 remaining = deadline - time.monotonic()
                 if attempt == _SESSION_PORT_ATTEMPTS or remaining <= delay:
-                    raise ConnectFailed(
+                    raise errors.ConnectFailed(
                         f"session port {port} not listening after {attempt} attempts: {err}",
                         kind=self.kind,
                     ) from err
@@ -251,13 +234,13 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                 # Past the deadline only packets already waiting are taken (non-blocking).
                 late += 1
                 if late > _LATE_PACKETS:
-                    raise DriverTimeout(f"no {name} reply in time", kind=self.kind)
+                    raise errors.DriverTimeout(f"no {name} reply in time", kind=self.kind)
             try:
                 packet = rmi.decode(await stream.read_line(timeout=max(0.0, remaining)))
-            except TransportTimeout as err:
-                raise DriverTimeout(f"no {name} reply in time", kind=self.kind) from err
-            except (FramingError, ProtocolError) as err:
-                if isinstance(err, TransportError):
+            except errors.TransportTimeout as err:
+                raise errors.DriverTimeout(f"no {name} reply in time", kind=self.kind) from err
+            except (errors.FramingError, errors.ProtocolError) as err:
+                if isinstance(err, errors.TransportError):
                     raise
                 self.bad_packets += 1
                 self.log.warning("malformed RMI line ignored", error=str(err)[:120])
@@ -287,7 +270,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         if stream is not None:
             await stream.transport.close()
         self._stream = None
-        self._fail_pending(ConnectFailed("driver closed", kind=self.kind))
+        self._fail_pending(errors.ConnectFailed("driver closed", kind=self.kind))
 
     @property
     def _next_seq(self) -> int:
@@ -326,20 +309,20 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         while True:
             try:
                 line = await stream.read_line(timeout=3600.0)
-            except TransportTimeout:
+            except errors.TransportTimeout:
                 continue
-            except TransportError as err:
+            except errors.TransportError as err:
                 if self._lost is None:
-                    self._lost = ConnectFailed(f"connection lost: {err}", kind=self.kind)
+                    self._lost = errors.ConnectFailed(f"connection lost: {err}", kind=self.kind)
                 self._fail_pending(self._lost)
                 return
-            except FramingError as err:
+            except errors.FramingError as err:
                 self.bad_packets += 1
                 self.log.warning("over-long RMI line skipped", error=str(err)[:120])
                 continue
             try:
                 packet = rmi.decode(line)
-            except ProtocolError as err:
+            except errors.ProtocolError as err:
                 self.bad_packets += 1
                 self.log.warning(
                     "malformed RMI packet ignored", error=str(err)[:120], line=line[:80].hex()
@@ -360,7 +343,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         elif receipt.kind == "fault":
             seq = packet.sequence_id
             self.log.warning("controller system fault", sequence_id=seq)
-            exc = MotionRejected(
+            exc = errors.MotionRejected(
                 f"controller system fault while executing SequenceID {seq}; "
                 "the controller holds until reset",
                 kind=self.kind,
@@ -369,7 +352,8 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             for req in receipt.failed:
                 self._settle(req, exc)
         elif receipt.kind == "terminate":
-            self._lost = ConnectFailed("controller terminated the RMI session", kind=self.kind)
+            self._lost = errors.ConnectFailed(
+                "controller terminated the RMI session", kind=self.kind)
             self._fail_pending(self._lost)
         elif receipt.kind == "disconnect":
             if self._disconnected is not None and not self._disconnected.done():
@@ -391,7 +375,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         """Send one command and wait for its reply (commands are strictly one at a time)."""
         stream = self._stream
         if stream is None or self._lost is not None:
-            raise self._lost or ConnectFailed("not connected", kind=self.kind)
+            raise self._lost or errors.ConnectFailed("not connected", kind=self.kind)
         wait = self.options.reply_timeout_s if timeout is None else timeout
         async with self._cmd_lock:
             req = self._session.command(name, time.monotonic() + wait)
@@ -399,22 +383,18 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
             try:
                 with self.translate_errors():
                     await stream.write_line(rmi.encode({"Command": name, **fields}))
-                packet = await await_reply(fut, req.deadline - time.monotonic())
-            except TimeoutError as err:
-                self._expire()
-                raise DriverTimeout(
-                    f"no reply to {name} within {wait:.3g} s", kind=self.kind
-                ) from err
-            finally:
-                self._session.commands.drop(req)
-                self._waiters.pop(req, None)
+            except BaseException:
+                self._forget(self._session.commands, req)
+                raise
+            packet = await self._reply(self._session.commands, req, fut,
+                                       f"no reply to {name} within {wait:.3g} s")
         if packet.name == "Unknown":
-            raise OperationError(
+            raise errors.OperationError(
                 f"controller could not parse {name}: {rmi.describe_error(packet.error_id or 0)}",
                 kind=self.kind,
             )
         if check and packet.error_id:
-            raise OperationError(
+            raise errors.OperationError(
                 f"{name} refused: {rmi.describe_error(packet.error_id)}", kind=self.kind
             )
         return packet
@@ -448,35 +428,35 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                     self._session.withdraw(req)
                     self._waiters.pop(req, None)
                     raise
-            try:
-                return await await_reply(fut, deadline - time.monotonic())
-            except TimeoutError as err:
-                self._expire()
-                raise DriverTimeout(
-                    f"instruction SequenceID {req.key} not completed in time", kind=self.kind
-                ) from err
-            finally:
-                self._session.instructions.drop(req)
-                self._waiters.pop(req, None)
+            return await self._reply(self._session.instructions, req, fut,
+                                     f"instruction SequenceID {req.key} not completed in time")
+
+    def _forget(self, window: Window[Any], req: Request[Any]) -> None:
+        window.drop(req)
+        self._waiters.pop(req, None)
+
+    async def _reply(self, window: Window[Any], req: Request[Any],
+                     fut: asyncio.Future[rmi.Packet], late: str) -> rmi.Packet:
+        """Await the reply to ``req`` until its deadline (DriverTimeout ``late``); then drop it."""
+        try:
+            return await await_reply(fut, req.deadline - time.monotonic())
+        except TimeoutError as err:
+            self._expire()
+            raise errors.DriverTimeout(late, kind=self.kind) from err
+        finally:
+            self._forget(window, req)
 
     # --- robot API -----------------------------------------------------------------------------
     async def move_to(
         self, q_rad: Sequence[float], *, speed_pct: float | None = None, timeout: float = 60.0
-    ) -> JointReading:
+    ) -> api.JointReading:
         """Move to ``q_rad`` (radians) with FINE termination; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured joint limits (nothing is sent).
-        MotionRejected
-            The controller refused the motion or faulted while executing it.
-        DriverTimeout
-            The motion did not complete within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; MotionRejected when the
+        controller refuses the motion or faults while executing it.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._live_stream()
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         q_deg = [math.degrees(v) for v in q]
         deadline = time.monotonic() + timeout
         gen = self._stop_gen
@@ -484,7 +464,8 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         def build(seq: int) -> dict[str, Any]:
             # Called just before sending: a stop() since move_to began cancels the move.
             if gen != self._stop_gen:
-                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+                raise errors.MotionStopped(
+                    "stop requested before the move was sent", kind=self.kind)
             return rmi.joint_motion_jrep(seq, q_deg, speed_pct=speed)
 
         for attempt in range(3):
@@ -498,17 +479,17 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                 )
                 self._session.hold = True
                 continue
-            raise MotionRejected(
+            raise errors.MotionRejected(
                 f"FRC_JointMotionJRep refused: {rmi.describe_error(eid)}", kind=self.kind, code=eid
             )
-        raise MotionRejected("motion refused after recovery", kind=self.kind)
+        raise errors.MotionRejected("motion refused after recovery", kind=self.kind)
 
-    async def read_joints(self) -> JointReading:
+    async def read_joints(self) -> api.JointReading:
         """Return the actual joint angles from ``FRC_ReadJointAngles`` (radians)."""
         self._live_stream()
         packet = await self._command("FRC_ReadJointAngles", Group=self.options.group)
         q_deg = rmi.joint_angles(packet.body, self.dof)
-        return JointReading(tuple(math.radians(v) for v in q_deg), time.time())
+        return api.JointReading(tuple(math.radians(v) for v in q_deg), time.time())
 
     async def stop(self) -> None:
         """Halt motion with ``FRC_Abort``, then ``FRC_Initialize`` again for the next move.
@@ -535,18 +516,18 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         async with self._seq_lock:
             self._stop_gen += 1
             abort = await self._command("FRC_Abort", check=False)
-            stopped = MotionStopped("motion stopped by request (FRC_Abort)", kind=self.kind)
+            stopped = errors.MotionStopped("motion stopped by request (FRC_Abort)", kind=self.kind)
             for req in self._session.instructions.clear():
                 self._settle(req, stopped)
             # RMIT-009 "RMI is not running": nothing was running, which is a stop too.
             if abort.error_id and abort.error_id != rmi.rmit(9):
-                raise OperationError(
+                raise errors.OperationError(
                     f"FRC_Abort refused: {rmi.describe_error(abort.error_id)}", kind=self.kind
                 )
             group_mask = 1 << (self.options.group - 1)
             init = await self._command("FRC_Initialize", check=False, GroupMask=group_mask)
             if init.error_id:
-                raise OperationError(
+                raise errors.OperationError(
                     f"FRC_Initialize after FRC_Abort refused: "
                     f"{rmi.describe_error(init.error_id)}",
                     kind=self.kind,
@@ -580,7 +561,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         elif table.kind == "targets":
             await self._write_targets(table)
         else:
-            raise CompensationError(
+            raise errors.CompensationError(
                 f"{self.kind} stores only 'frames' and 'targets' tables, not {table.kind!r}"
             )
         self._last_table = table
@@ -590,7 +571,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
 
     async def _write_frames(self, table: CompensationTable) -> None:
         if table.frames is None:
-            raise CompensationError("frames table without a frames payload")
+            raise errors.CompensationError("frames table without a frames payload")
         o = self.options
         base, tool = table.frames.base, table.frames.tool
         await self._command(
@@ -609,10 +590,10 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
     def _pr_rows(self, table: CompensationTable) -> list[TargetRow]:
         rows = [r for r in (table.targets or []) if r.status == "ok"]
         if self.dof > 6:
-            raise CompensationError("targets tables through PRs support at most 6 joints")
+            raise errors.CompensationError("targets tables through PRs support at most 6 joints")
         for r in rows:
             self._pr_numbers(r.index)
-            check_joint_target(
+            api.check_joint_target(
                 [math.radians(v) for v in r.q_deg], self.joint_limits_rad, kind=self.kind
             )
         return rows
@@ -627,7 +608,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
         """
         o = self.options
         if not 0 <= 2 * index + 1 < o.pr_count:
-            raise CompensationError(
+            raise errors.CompensationError(
                 f"target index {index} needs PR[{o.pr_base + 2 * index}] and "
                 f"PR[{o.pr_base + 2 * index + 1}], outside the configured "
                 f"PR[{o.pr_base}..{o.pr_base + o.pr_count - 1}]"
@@ -690,7 +671,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                         "configuration": dict(config) if isinstance(config, Mapping) else {},
                     }
         else:
-            raise CompensationError(
+            raise errors.CompensationError(
                 f"{self.kind} stores only 'frames' and 'targets' tables, not {table.kind!r}"
             )
         return ControllerSnapshot(driver=self.kind, covers=table.kind, items=items)
@@ -718,7 +699,7 @@ class FanucRmiRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compen
                     Position=rmi.frame_fields(*value["position"]), Group=o.group,
                 )
             else:
-                raise CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
+                raise errors.CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
         self._last_table = None
         dummy = _snapshot_template(snapshot, o.pr_base)
         back = await self.snapshot_compensation(dummy)

@@ -34,30 +34,11 @@ from typing import Any, ClassVar
 
 from pydantic import Field
 
+from robocal import errors
 from robocal.compensation import CompensationTable, TargetRow
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers import api
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    ControllerCalibration,
-    ControllerCalibrationReadable,
-    JointReading,
-    check_joint_target,
-)
-from robocal.errors import (
-    CompensationError,
-    ConnectFailed,
-    DriverTimeout,
-    LimitViolation,
-    MotionRejected,
-    MotionStopped,
-    OperationError,
-    TransportError,
-    UnexpectedReply,
-    VerificationMismatch,
-)
 from robocal.protocols import TcpTransport
 from robocal.protocols import kuka_kvp as kvp
 from robocal.protocols.session import Request, Window
@@ -108,8 +89,7 @@ class KukaKvpOptions(RobotOptions):
 _ABS_ACTIVE = frozenset({"#ACTIVATED", "TRUE"})
 
 
-class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots,
-                   ControllerCalibrationReadable):
+class KukaKvpRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """KUKA KRC4/KRC5 running robocal_loop, through KUKAVARPROXY.
 
     Parameters
@@ -144,7 +124,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         """One KVP read (``value`` None) or write; returns the reply (``ok`` not checked)."""
         transport = self._transport
         if self.state not in ("connected", "connecting") or transport is None:
-            raise ConnectFailed("not connected; call connect() first", kind=self.kind)
+            raise errors.ConnectFailed("not connected; call connect() first", kind=self.kind)
         if self._lost is not None:
             raise self._lost
         timeout = self.options.request_timeout_s
@@ -157,9 +137,9 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
                 with self.translate_errors():
                     await transport.write(kvp.encode_request(req))
                     return await self._reply_to(transport, sent)
-            except (ConnectFailed, DriverTimeout, TransportError) as err:
+            except (errors.ConnectFailed, errors.DriverTimeout, errors.TransportError) as err:
                 # The stream is out of step (or gone): no later reply can be trusted.
-                self._lost = ConnectFailed(f"KVP link lost: {err}", kind=self.kind)
+                self._lost = errors.ConnectFailed(f"KVP link lost: {err}", kind=self.kind)
                 raise self._lost from err
             finally:
                 self._window.drop(sent)
@@ -177,20 +157,20 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
             now = time.monotonic()
             if self._window.timeout(now):
                 timeout = self.options.request_timeout_s
-                raise DriverTimeout(f"no KVP reply for {sent.name} within {timeout} s",
-                                    kind=self.kind)
+                raise errors.DriverTimeout(f"no KVP reply for {sent.name} within {timeout} s",
+                                           kind=self.kind)
             self._framer.feed(await transport.read(4096, timeout=sent.deadline - now))
 
     async def _read(self, name: str) -> str:
         reply = await self._request(name)
         if not reply.ok:
-            raise OperationError(f"KVP cannot read {name}", kind=self.kind)
+            raise errors.OperationError(f"KVP cannot read {name}", kind=self.kind)
         return reply.value
 
     async def _write(self, name: str, value: str) -> str:
         reply = await self._request(name, value)
         if not reply.ok:
-            raise OperationError(f"KVP refused {name}={value[:60]}", kind=self.kind)
+            raise errors.OperationError(f"KVP refused {name}={value[:60]}", kind=self.kind)
         return reply.value
 
     async def _read_int(self, name: str) -> int:
@@ -206,13 +186,13 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         self.robot_name = kvp.parse_string(await self._read("$ROBNAME[]")).strip()
         state = (await self._read("$PRO_STATE1")).strip()
         if state != "#P_ACTIVE":
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"the robot interpreter is not running ($PRO_STATE1 {state}): select "
                 "robocal_loop and start it in AUT or EXT", kind=self.kind)
         try:
             cmd, ack = await self._read_int("RC_CMD_SEQ"), await self._read_int("RC_ACK_SEQ")
-        except OperationError as err:
-            raise ConnectFailed(
+        except errors.OperationError as err:
+            raise errors.ConnectFailed(
                 "RC_CMD_SEQ/RC_ACK_SEQ unknown: robocal_loop.dat is not loaded "
                 "(deploy/kuka/)", kind=self.kind) from err
         self._seq = max(cmd, ack)
@@ -232,7 +212,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         self._transport = None
 
     # --- controller calibration ----------------------------------------------------------------
-    async def controller_calibration(self) -> ControllerCalibration:
+    async def controller_calibration(self) -> api.ControllerCalibration:
         """``$ABS_ACCUR``, ``$MAMES[i]`` and the machine data as KRL text (None: unknown)."""
         names = ["$ABS_ACCUR", *(f"$MAMES[{i}]" for i in range(1, self.dof + 1)),
                  *self.options.calibration_variables]
@@ -241,7 +221,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
             reply = await self._request(name)
             facts[name] = reply.value.strip() if reply.ok else None
         abs_accur = facts["$ABS_ACCUR"]
-        return ControllerCalibration(
+        return api.ControllerCalibration(
             "kuka-kvp-system-variables", facts,
             absolute_accuracy=None if abs_accur is None else abs_accur.upper() in _ABS_ACTIVE)
 
@@ -252,29 +232,21 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
 
     async def move_to(
         self, q_rad: Sequence[float], *, speed_pct: float | None = None, timeout: float = 60.0
-    ) -> JointReading:
+    ) -> api.JointReading:
         """Move to ``q_rad`` (radians) through the RC_* handshake; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured limits (nothing sent), or refused by the loop.
-        MotionRejected
-            The loop reported a motion fault or a bad speed.
-        MotionStopped
-            :meth:`stop` halted the move.
-        DriverTimeout
-            ``RC_ACK_SEQ`` did not reach ``RC_CMD_SEQ`` within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; LimitViolation also when the
+        loop refuses the target, MotionStopped when :meth:`stop` halted the move,
+        DriverTimeout when ``RC_ACK_SEQ`` does not reach ``RC_CMD_SEQ``.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._ensure_connected()
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         deadline = time.monotonic() + timeout
         gen = self._stop_gen
         await self._write("RC_TARGET", kvp.format_e6axis([math.degrees(v) for v in q]))
         await self._write("RC_SPEED", kvp.format_int(max(1, min(100, round(speed)))))
         if gen != self._stop_gen:
-            raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+            raise errors.MotionStopped("stop requested before the move was sent", kind=self.kind)
         seq = self._next_seq()
         self._move_pending = True
         await self._write("RC_CMD_SEQ", kvp.format_int(seq))
@@ -283,7 +255,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
             if ack == seq:
                 break
             if time.monotonic() > deadline:
-                raise DriverTimeout(
+                raise errors.DriverTimeout(
                     f"robocal_loop did not acknowledge move {seq} within {timeout:.3g} s "
                     f"(RC_ACK_SEQ {ack})", kind=self.kind)
             await asyncio.sleep(self.options.poll_interval_s)
@@ -292,20 +264,21 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         if status == _DONE:
             return await self.read_joints()
         if status == _STOPPED:
-            raise MotionStopped(f"move {seq} stopped (RC_STOP)", kind=self.kind)
+            raise errors.MotionStopped(f"move {seq} stopped (RC_STOP)", kind=self.kind)
         if status == _ERROR:
             code = await self._read_int("RC_ERROR")
             text = f"robocal_loop refused move {seq}: RC_ERROR {code} ({_ERRORS.get(code, '?')})"
             if code == 1:
-                raise LimitViolation(text, kind=self.kind)
-            raise MotionRejected(text, kind=self.kind, code=code)
-        raise OperationError(f"move {seq} acknowledged with RC_STATUS {status}", kind=self.kind)
+                raise errors.LimitViolation(text, kind=self.kind)
+            raise errors.MotionRejected(text, kind=self.kind, code=code)
+        raise errors.OperationError(
+            f"move {seq} acknowledged with RC_STATUS {status}", kind=self.kind)
 
-    async def read_joints(self) -> JointReading:
+    async def read_joints(self) -> api.JointReading:
         """Return the actual joint angles from ``$AXIS_ACT`` (radians)."""
         self._ensure_connected()
         q_deg = kvp.parse_e6axis(await self._read("$AXIS_ACT"), components=self.dof)
-        return JointReading(tuple(math.radians(v) for v in q_deg), time.time())
+        return api.JointReading(tuple(math.radians(v) for v in q_deg), time.time())
 
     async def _halt(self) -> None:
         """Write RC_STOP=TRUE and wait until the loop's interrupt has cleared it."""
@@ -313,7 +286,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         deadline = time.monotonic() + self.options.stop_timeout_s
         while kvp.parse_bool(await self._read("RC_STOP")):
             if time.monotonic() > deadline:
-                raise DriverTimeout(
+                raise errors.DriverTimeout(
                     f"RC_STOP not cleared within {self.options.stop_timeout_s} s: is "
                     "robocal_loop running with its interrupt on?", kind=self.kind)
             await asyncio.sleep(self.options.poll_interval_s)
@@ -339,17 +312,17 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
     # --- compensation --------------------------------------------------------------------------
     def _rows(self, table: CompensationTable) -> list[TargetRow]:
         if table.kind != "targets":
-            raise CompensationError(
+            raise errors.CompensationError(
                 f"{self.kind} stores only 'targets' tables (RC_COMP), not {table.kind!r}")
         rows = [r for r in (table.targets or []) if r.status == "ok"]
         for r in rows:
             if not 0 <= r.index < self.options.comp_size:
-                raise CompensationError(
+                raise errors.CompensationError(
                     f"target index {r.index} does not fit RC_COMP[1..{self.options.comp_size}]")
             if len(r.q_deg) != self.dof:
-                raise CompensationError(f"target row {r.index} has {len(r.q_deg)} joints")
-            check_joint_target([math.radians(v) for v in r.q_deg], self.joint_limits_rad,
-                               kind=self.kind)
+                raise errors.CompensationError(f"target row {r.index} has {len(r.q_deg)} joints")
+            api.check_joint_target([math.radians(v) for v in r.q_deg], self.joint_limits_rad,
+                                   kind=self.kind)
         return rows
 
     async def write_compensation(self, table: CompensationTable) -> None:
@@ -404,9 +377,9 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
         try:
             return kvp.parse_e6axis(await self._read(f"RC_COMP[{element}]"),
                                     components=self.dof)
-        except UnexpectedReply as err:
-            raise VerificationMismatch(f"RC_COMP[{element}] unreadable: {err}",
-                                       kind=self.kind, diff=[str(err)]) from err
+        except errors.UnexpectedReply as err:
+            raise errors.VerificationMismatch(f"RC_COMP[{element}] unreadable: {err}",
+                                              kind=self.kind, diff=[str(err)]) from err
 
     async def snapshot_compensation(self, table: CompensationTable) -> ControllerSnapshot:
         """What ``RC_COMP`` holds in the rows ``table`` would write, and ``RC_COMP_N``."""
@@ -436,7 +409,7 @@ class KukaKvpRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compens
                 await self._write(f"RC_COMP[{element}]", kvp.format_e6axis(list(value)))
                 back[key] = await self._comp_row(element)
             else:
-                raise CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
+                raise errors.CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
         self._last_table = None
         read = snapshot.model_copy(update={"items": back})
         diff = snapshot_diff(snapshot, read, tol=self.options.verify_tol)

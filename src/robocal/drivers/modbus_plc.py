@@ -29,30 +29,13 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
+from robocal import errors
 from robocal._core.clock import SYSTEM_CLOCK, Clock
 from robocal.compensation import CompensationTable
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers import api
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, table_diff
 from robocal.drivers._modbus_client import ModbusClient
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    JointReading,
-    check_joint_target,
-)
-from robocal.errors import (
-    CompensationError,
-    ConnectFailed,
-    DriverTimeout,
-    FramingError,
-    LimitViolation,
-    MotionRejected,
-    MotionStopped,
-    OperationError,
-    TransportError,
-    VerificationMismatch,
-)
 from robocal.protocols import modbus as mb
 
 __all__ = ["ModbusPlcOptions", "ModbusPlcRobot"]
@@ -118,7 +101,7 @@ class PlcStatus:
     table_crc: int
 
 
-class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, CompensationSnapshots):
+class ModbusPlcRobot(CompensatingRobotBase):
     """Robot commanded through a Modbus-TCP register handshake.
 
     Parameters
@@ -167,7 +150,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         await client.connect(timeout=timeout)
         st = await self._read_status()
         if o.map_version is not None and st.map_version != o.map_version:
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"PLC reports MAP_VERSION {st.map_version}, expected {o.map_version}",
                 kind=self.kind,
             )
@@ -220,7 +203,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         if hb != self._plc_hb:
             self._plc_hb, self._plc_hb_time = hb, now
         elif now - self._plc_hb_time > self.options.heartbeat_timeout_s and self._fault is None:
-            self._fault = OperationError(
+            self._fault = errors.OperationError(
                 f"PLC heartbeat unchanged for {now - self._plc_hb_time:.1f} s; PLC program "
                 "stopped or link frozen",
                 kind=self.kind,
@@ -241,8 +224,8 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                     return
                 st = await self._read_status()
                 self._note_plc_heartbeat(st.plc_heartbeat)
-            except (TransportError, ConnectFailed) as err:
-                self._fault = ConnectFailed(f"connection lost: {err}", kind=self.kind)
+            except (errors.TransportError, errors.ConnectFailed) as err:
+                self._fault = errors.ConnectFailed(f"connection lost: {err}", kind=self.kind)
                 self.log.error("modbus link lost", error=str(err))
                 return
             except Exception as err:
@@ -254,7 +237,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         m = self.options.register_map
         client = self._client
         if client is None:
-            raise ConnectFailed("not connected", kind=self.kind)
+            raise errors.ConnectFailed("not connected", kind=self.kind)
         s0, s1 = m.status_span()
         with self.translate_errors():
             if m.status_area == "input":
@@ -310,7 +293,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             if st.ack_seq == seq:
                 return st
             if time.monotonic() > deadline:
-                raise DriverTimeout(
+                raise errors.DriverTimeout(
                     f"PLC did not acknowledge {cmd.name} (CMD_SEQ {seq}) within "
                     f"{timeout:.3g} s (STATUS {st.status}, ACK_SEQ {st.ack_seq})",
                     kind=self.kind,
@@ -329,7 +312,8 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                 for address, words in writes:
                     await client.write_registers(address, words)
                 if gen != self._stop_gen and cmd == mb.Cmd.MOVE_JOINT:
-                    raise MotionStopped("stop requested before the move started", kind=self.kind)
+                    raise errors.MotionStopped(
+                        "stop requested before the move started", kind=self.kind)
                 if cmd == mb.Cmd.MOVE_JOINT:
                     self._move_unacked = True
                 seq = await self._start(client, cmd)
@@ -340,7 +324,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                         raise self._fault
                     if st.ack_seq != seq and gen != self._stop_gen:
                         # ABORT took over CMD_SEQ; stop() waits for its acknowledgement.
-                        raise MotionStopped(
+                        raise errors.MotionStopped(
                             f"{cmd.name} (CMD_SEQ {seq}) aborted by stop()", kind=self.kind
                         )
 
@@ -350,7 +334,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         if st.status == mb.Status.ERROR:
             self._raise(cmd, st.error_code)
         if st.status != mb.Status.DONE:
-            raise OperationError(
+            raise errors.OperationError(
                 f"{cmd.name} acknowledged with STATUS {st.status}, expected 2 (done)",
                 kind=self.kind,
             )
@@ -363,40 +347,33 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             name = f"code {code}"
         text = f"PLC refused {cmd.name}: ERROR_CODE {code} ({name})"
         if code == mb.PlcError.LIMIT:
-            raise LimitViolation(text, kind=self.kind)
+            raise errors.LimitViolation(text, kind=self.kind)
         if code in (mb.PlcError.TABLE_CRC, mb.PlcError.TABLE_HEADER):
-            raise VerificationMismatch(text, kind=self.kind, diff=[name])
+            raise errors.VerificationMismatch(text, kind=self.kind, diff=[name])
         if cmd == mb.Cmd.MOVE_JOINT:
-            raise MotionRejected(text, kind=self.kind, code=code)
-        raise OperationError(text, kind=self.kind)
+            raise errors.MotionRejected(text, kind=self.kind, code=code)
+        raise errors.OperationError(text, kind=self.kind)
 
-    def _joints(self, st: PlcStatus) -> JointReading:
+    def _joints(self, st: PlcStatus) -> api.JointReading:
         q = st.actual_deg[: self.dof]
-        return JointReading(tuple(math.radians(v) for v in q), time.time())
+        return api.JointReading(tuple(math.radians(v) for v in q), time.time())
 
     # --- robot API -----------------------------------------------------------------------------
     async def move_to(
         self, q_rad: Sequence[float], *, speed_pct: float | None = None, timeout: float = 60.0
-    ) -> JointReading:
+    ) -> api.JointReading:
         """Move to ``q_rad`` (radians) through the handshake; return the actual joints.
 
-        Raises
-        ------
-        LimitViolation
-            Target outside the configured limits (nothing sent), or refused by the PLC.
-        MotionRejected
-            The PLC reported an error for the motion.
-        DriverTimeout
-            ``ACK_SEQ`` did not reach ``CMD_SEQ`` within ``timeout`` seconds.
+        Raises as :meth:`robocal.drivers.api.JointMover.move_to`; LimitViolation also when the
+        PLC refuses the target, DriverTimeout when ``ACK_SEQ`` does not reach ``CMD_SEQ``.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         m = self.options.register_map
-        speed = self.options.default_speed_pct if speed_pct is None else speed_pct
         q_deg = [math.degrees(v) for v in q] + [0.0] * (m.joints - len(q))
         try:
             target = mb.encode_f32(q_deg, m.word_order)
-        except FramingError as err:
-            raise LimitViolation(str(err), kind=self.kind) from err
+        except errors.FramingError as err:
+            raise errors.LimitViolation(str(err), kind=self.kind) from err
         speed_word = max(1, min(100, round(speed)))
         if m.speed == m.target + len(target):
             writes = [(m.target, [*target, speed_word])]
@@ -405,7 +382,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         st = await self._command(mb.Cmd.MOVE_JOINT, writes, timeout)
         return self._joints(st)
 
-    async def read_joints(self) -> JointReading:
+    async def read_joints(self) -> api.JointReading:
         """Ask the PLC to publish the actual joints (``READ_ACTUAL``); return them (radians)."""
         st = await self._command(mb.Cmd.READ_ACTUAL, [], self.options.request_timeout_s * 2)
         return self._joints(st)
@@ -453,7 +430,8 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             joints = sealed.joints or []
             points = {len(j.q_deg) for j in joints} | {len(j.dq_deg) for j in joints}
             if len(points) != 1:
-                raise CompensationError("joint tables need the same grid length for every joint")
+                raise errors.CompensationError(
+                    "joint tables need the same grid length for every joint")
             for j in joints:
                 values += [*j.q_deg, *j.dq_deg]
             for jm in meta["joints"]:
@@ -463,10 +441,10 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             rows = sealed.targets or []
             dofs = {len(r.q_deg) for r in rows}
             if len(dofs) > 1:
-                raise CompensationError("target rows have different joint counts")
+                raise errors.CompensationError("target rows have different joint counts")
             for r in rows:
                 if r.status == "ok":
-                    check_joint_target(
+                    api.check_joint_target(
                         [math.radians(v) for v in r.q_deg], self.joint_limits_rad, kind=self.kind
                     )
                 values += r.q_deg
@@ -475,7 +453,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             dof, n_points = (dofs.pop() if dofs else self.dof), len(rows)
         else:
             if sealed.frames is None:
-                raise CompensationError("frames table without a frames payload")
+                raise errors.CompensationError("frames table without a frames payload")
             for f in (sealed.frames.base, sealed.frames.tool):
                 values += [f.x, f.y, f.z, f.w, f.p, f.r]
             del meta["frames"]
@@ -497,7 +475,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
             meta = json.loads(block.meta.decode("ascii"))
             kind = _CODE_KIND[block.kind]
         except (ValueError, KeyError) as err:
-            raise FramingError(f"table block metadata unreadable: {err}") from err
+            raise errors.FramingError(f"table block metadata unreadable: {err}") from err
         v = list(block.values)
         if kind == "joint":
             p = block.points
@@ -517,7 +495,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         try:
             table = CompensationTable.model_validate(meta)
         except ValueError as err:
-            raise FramingError(f"table block does not hold a valid table: {err}") from err
+            raise errors.FramingError(f"table block does not hold a valid table: {err}") from err
         if block.dtype == "float32":
             # Values were rounded to FLOAT32 on the way: reseal the table as stored.
             table = table.sealed()
@@ -539,10 +517,10 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         sealed = table if table.checksum else table.sealed()
         try:
             words = mb.encode_table_block(self._block(sealed), m.word_order)
-        except FramingError as err:
-            raise CompensationError(f"table cannot be encoded: {err}") from err
+        except errors.FramingError as err:
+            raise errors.CompensationError(f"table cannot be encoded: {err}") from err
         if len(words) > m.table_words:
-            raise CompensationError(
+            raise errors.CompensationError(
                 f"table needs {len(words)} registers, the map reserves {m.table_words}"
             )
         st = await self._command(
@@ -599,12 +577,12 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
                     return header
                 try:
                     total = mb.table_block_length(header, m.word_order)
-                except FramingError:
+                except errors.FramingError:
                     if strict:
                         raise
                     return header
                 if strict and total > m.table_words:
-                    raise FramingError(
+                    raise errors.FramingError(
                         f"table block claims {total} registers, the map has {m.table_words}"
                     )
                 total = min(max(total, mb.TABLE_HEADER_WORDS), m.table_words)
@@ -631,7 +609,7 @@ class ModbusPlcRobot(RobotDriverBase, CompensationSink, CompensationSlots, Compe
         m = self.options.register_map
         words = [int(w) for w in snapshot.items.get(f"hr:{m.table}", [])]
         if not words or len(words) > m.table_words:
-            raise CompensationError(f"snapshot holds no {self.kind} table registers")
+            raise errors.CompensationError(f"snapshot holds no {self.kind} table registers")
         if words[0] == mb.TABLE_MAGIC:
             await self._command(
                 mb.Cmd.APPLY_TABLE, [(m.table, words)], self.options.request_timeout_s * 4

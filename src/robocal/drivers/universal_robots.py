@@ -37,31 +37,11 @@ from typing import Any, ClassVar
 
 from pydantic import Field, field_validator
 
+from robocal import errors
 from robocal.compensation import CompensationTable, JointCorrection, TargetRow
-from robocal.drivers._base import DriverOptions, RobotDriverBase, RobotOptions
+from robocal.drivers import api
+from robocal.drivers._base import CompensatingRobotBase, DriverOptions, RobotOptions
 from robocal.drivers._compensation import ControllerSnapshot, snapshot_diff, table_diff
-from robocal.drivers.api import (
-    CompensationSink,
-    CompensationSlots,
-    CompensationSnapshots,
-    ControllerCalibration,
-    ControllerCalibrationReadable,
-    JointReading,
-    JointTemperatures,
-    check_joint_target,
-)
-from robocal.errors import (
-    CompensationError,
-    ConnectFailed,
-    DriverTimeout,
-    FramingError,
-    MotionRejected,
-    MotionStopped,
-    OperationError,
-    ProtocolError,
-    TransportError,
-    UnexpectedReply,
-)
 from robocal.protocols import TcpTransport
 from robocal.protocols import ur_dashboard as dash
 from robocal.protocols import ur_primary as prim
@@ -134,8 +114,7 @@ class _ProgramFailed(Exception):
     """A robocal program ended in a runtime exception."""
 
 
-class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
-                           CompensationSnapshots, ControllerCalibrationReadable):
+class UniversalRobotsRobot(CompensatingRobotBase, api.ControllerCalibrationReadable):
     """A UR e-Series or CB3 arm (PolyScope 3.x/5.x) through its network interfaces.
 
     Parameters
@@ -191,8 +170,9 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     async def _connect_impl(self, timeout: float) -> None:
         try:
             await self._connect_steps(timeout)
-        except UnexpectedReply as err:
-            raise ConnectFailed(f"unexpected dashboard reply: {err}", kind=self.kind) from err
+        except errors.UnexpectedReply as err:
+            raise errors.ConnectFailed(
+                f"unexpected dashboard reply: {err}", kind=self.kind) from err
 
     async def _connect_steps(self, timeout: float) -> None:
         o = self.options
@@ -205,15 +185,15 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         await self._dash.open(timeout=timeout)
         greeting = await self._dash_line(deadline - time.monotonic())
         if not greeting.startswith("Connected: Universal Robots Dashboard Server"):
-            raise ConnectFailed(f"not a UR dashboard server: {greeting!r}", kind=self.kind)
+            raise errors.ConnectFailed(f"not a UR dashboard server: {greeting!r}", kind=self.kind)
         self.polyscope_version = await self.dashboard("PolyscopeVersion")
         if not dash.parse_true(await self.dashboard("is in remote control")):
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 "the robot is in local mode: switch PolyScope to remote control and connect "
                 "again", kind=self.kind)
         safety = dash.parse_safety(await self.dashboard("safetystatus"))
         if safety != "NORMAL":
-            raise ConnectFailed(
+            raise errors.ConnectFailed(
                 f"safety status is {safety}: inspect the robot, clear it on the teach pendant "
                 "(or 'unlock protective stop') and connect again", kind=self.kind)
         await self._ensure_running()
@@ -228,8 +208,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                 while "robot_mode" not in self._state:
                     await self._next_state(deadline - time.monotonic())
         except TimeoutError as err:
-            raise DriverTimeout("no kinematics info or RTDE data in time",
-                                kind=self.kind) from err
+            raise errors.DriverTimeout("no kinematics info or RTDE data in time",
+                                       kind=self.kind) from err
         self._token = int(self._state[self._reg_int])
         self.log.info("ur session", polyscope=self.polyscope_version,
                       controller=self.controller_version,
@@ -242,17 +222,17 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         if mode == "RUNNING":
             return
         if not o.power_on:
-            raise ConnectFailed(f"robot mode is {mode}, not RUNNING (power_on is off)",
-                                kind=self.kind)
+            raise errors.ConnectFailed(f"robot mode is {mode}, not RUNNING (power_on is off)",
+                                       kind=self.kind)
         deadline = time.monotonic() + o.power_on_timeout_s
         if mode in ("POWER_OFF", "CONFIRM_SAFETY", "BOOTING"):
             reply = await self.dashboard("power on")
             if not reply.startswith("Powering on"):
-                raise ConnectFailed(f"power on refused: {reply!r}", kind=self.kind)
+                raise errors.ConnectFailed(f"power on refused: {reply!r}", kind=self.kind)
             await self._wait_mode({"IDLE", "RUNNING"}, deadline)
         reply = await self.dashboard("brake release")
         if not reply.startswith("Brake releasing"):
-            raise ConnectFailed(f"brake release refused: {reply!r}", kind=self.kind)
+            raise errors.ConnectFailed(f"brake release refused: {reply!r}", kind=self.kind)
         await self._wait_mode({"RUNNING"}, deadline)
 
     async def _wait_mode(self, modes: set[str], deadline: float) -> None:
@@ -262,8 +242,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             if mode in modes:
                 return
             if time.monotonic() + delay > deadline:
-                raise DriverTimeout(f"robot mode still {mode}, waiting for {sorted(modes)}",
-                                    kind=self.kind)
+                raise errors.DriverTimeout(f"robot mode still {mode}, waiting for {sorted(modes)}",
+                                           kind=self.kind)
             await asyncio.sleep(delay)
             delay = min(2 * delay, 0.25)
 
@@ -286,8 +266,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
 
         pkg = await ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
         if not pkg.payload or not pkg.payload[0]:
-            raise ConnectFailed("the controller refused RTDE protocol version 2",
-                                kind=self.kind)
+            raise errors.ConnectFailed("the controller refused RTDE protocol version 2",
+                                       kind=self.kind)
         pkg = await ask(rtde.encode(rtde.GET_URCONTROL_VERSION), rtde.GET_URCONTROL_VERSION)
         self.controller_version = rtde.parse_controller_version(pkg.payload)
         base = o.register_base
@@ -298,12 +278,12 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         rid, types = rtde.parse_recipe_reply(pkg.payload)
         if rid == 0 or len(types) != len(names):
             bad = [n for n, t in zip(names, types, strict=False) if t in ("NOT_FOUND", "IN_USE")]
-            raise ConnectFailed(f"RTDE output recipe refused (variables {bad or types})",
-                                kind=self.kind)
+            raise errors.ConnectFailed(f"RTDE output recipe refused (variables {bad or types})",
+                                       kind=self.kind)
         self._names, self._types = names, types
         pkg = await ask(rtde.encode(rtde.START), rtde.START)
         if not pkg.payload or not pkg.payload[0]:
-            raise ConnectFailed("RTDE start refused", kind=self.kind)
+            raise errors.ConnectFailed("RTDE start refused", kind=self.kind)
         self._tasks.append(asyncio.create_task(self._rtde_loop(conn, framer), name="ur-rtde"))
 
     async def _close_impl(self) -> None:
@@ -320,7 +300,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             if conn is not None:
                 await conn.close()
         self._rtde = self._primary = self._dash = None
-        self._fail_waiters(ConnectFailed("driver closed", kind=self.kind))
+        self._fail_waiters(errors.ConnectFailed("driver closed", kind=self.kind))
 
     def _fail_waiters(self, exc: Exception, only: set[int] | None = None) -> None:
         for token, fut in list(self._waiters.items()):
@@ -332,7 +312,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
 
     def _lose(self, err: Exception) -> None:
         if self._lost is None:
-            self._lost = ConnectFailed(f"connection lost: {err}", kind=self.kind)
+            self._lost = errors.ConnectFailed(f"connection lost: {err}", kind=self.kind)
         self._fail_waiters(self._lost)
         self._fresh.set()
 
@@ -345,7 +325,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
     async def _dash_line(self, timeout: float) -> str:
         conn = self._dash
         if conn is None:
-            raise ConnectFailed("dashboard not connected", kind=self.kind)
+            raise errors.ConnectFailed("dashboard not connected", kind=self.kind)
         deadline = time.monotonic() + timeout
         while True:
             line = self._dash_framer.next_line()
@@ -358,7 +338,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         """Send one Dashboard server command and return its reply line."""
         conn = self._dash
         if conn is None:
-            raise ConnectFailed("dashboard not connected", kind=self.kind)
+            raise errors.ConnectFailed("dashboard not connected", kind=self.kind)
         async with self._dash_lock:
             sent = self._dash_window.open(
                 "dashboard", command, time.monotonic() + self.options.reply_timeout_s
@@ -382,7 +362,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                     elif pkg.type == rtde.TEXT_MESSAGE:
                         self.log.warning("rtde message",
                                          text=rtde.parse_text_message(pkg.payload))
-        except (TransportError, FramingError, ProtocolError) as err:
+        except (errors.TransportError, errors.FramingError, errors.ProtocolError) as err:
             self._lose(err)
 
     def _on_state(self, state: dict[str, Any]) -> None:
@@ -403,9 +383,9 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         emergency stop, or a stop from the pendant or dashboard after the program ran."""
         running = int(state["runtime_state"]) == RuntimeState.PLAYING
         if not self._modes_ok():
-            self._fail_waiters(MotionRejected(f"program ended: {self._modes()}", kind=self.kind,
-                                              code=int(state["safety_mode"])),
-                               only=set(pending))
+            lost = errors.MotionRejected(f"program ended: {self._modes()}", kind=self.kind,
+                                         code=int(state["safety_mode"]))
+            self._fail_waiters(lost, only=set(pending))
             return
         started = int(state[self._reg_start])
         if not running and started in pending:
@@ -432,7 +412,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                 for mtype, body in framer.messages():
                     try:
                         msg = prim.decode_message(mtype, body)
-                    except ProtocolError as err:
+                    except errors.ProtocolError as err:
                         self.log.warning("bad primary message", error=str(err)[:120])
                         continue
                     if isinstance(msg, prim.RobotState) and msg.kinematics is not None:
@@ -442,7 +422,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                         self.runtime_exceptions.append(msg.text)
                         self.log.warning("runtime exception", text=msg.text, line=msg.line)
                         self._fail_waiters(_ProgramFailed(msg.text))
-        except (TransportError, FramingError) as err:
+        except (errors.TransportError, errors.FramingError) as err:
             self._lose(err)
 
     async def _run(self, body: Sequence[str], *, timeout: float, motion: bool = False,
@@ -452,10 +432,11 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         stop() intervenes, DriverTimeout."""
         conn = self._primary
         if conn is None:
-            raise ConnectFailed("not connected", kind=self.kind)
+            raise errors.ConnectFailed("not connected", kind=self.kind)
         async with self._program_lock:
             if gen is not None and gen != self._stop_gen:
-                raise MotionStopped("stop requested before the move was sent", kind=self.kind)
+                raise errors.MotionStopped(
+                    "stop requested before the move was sent", kind=self.kind)
             self._token = (self._token + 1) % (1 << 31)
             token = self._token
             fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
@@ -478,15 +459,15 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             async with asyncio.timeout(timeout):
                 return await fut
         except TimeoutError as err:
-            raise DriverTimeout(f"program rc_{token} did not finish within {timeout:.3g} s",
-                                kind=self.kind) from err
+            raise errors.DriverTimeout(f"program rc_{token} did not finish within {timeout:.3g} s",
+                                       kind=self.kind) from err
         finally:
             self._waiters.pop(token, None)
             self._motion.discard(token)
 
     # --- motion --------------------------------------------------------------------------------
     async def move_to(self, q_rad: Sequence[float], *, speed_pct: float | None = None,
-                      timeout: float = 60.0) -> JointReading:
+                      timeout: float = 60.0) -> api.JointReading:
         """Move with ``movej`` to ``q_rad`` (radians), wait in position, return the joints.
 
         Raises
@@ -501,19 +482,18 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         DriverTimeout
             The motion did not complete within ``timeout`` seconds.
         """
-        q = self._check_target(q_rad)
+        q, speed = self._move_target(q_rad, speed_pct)
         self._live()
         gen = self._stop_gen
         self._check_modes()
         o = self.options
-        speed = o.default_speed_pct if speed_pct is None else speed_pct
         v = max(1e-4, min(100.0, speed) / 100.0 * o.max_joint_speed_rad_s)
         line = f"movej({prim.script_literal(q)}, a={o.acceleration_rad_s2!r}, v={v!r})"
         try:
             state = await self._run([line], timeout=timeout, motion=True, gen=gen)
         except _ProgramFailed as err:
-            raise MotionRejected(f"movej failed: {err}", kind=self.kind) from err
-        return JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
+            raise errors.MotionRejected(f"movej failed: {err}", kind=self.kind) from err
+        return api.JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
 
     def _modes(self) -> str:
         mode = int(self._state.get("robot_mode", RobotMode.NO_CONTROLLER))
@@ -529,28 +509,28 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
 
     def _check_modes(self) -> None:
         if not self._modes_ok():
-            raise MotionRejected(f"{self._modes()}: cannot move", kind=self.kind,
-                                 code=int(self._state.get("safety_mode", 0)))
+            raise errors.MotionRejected(f"{self._modes()}: cannot move", kind=self.kind,
+                                        code=int(self._state.get("safety_mode", 0)))
 
     def _recent_state(self) -> dict[str, Any]:
         """The newest RTDE package; DriverTimeout when it is older than the reply timeout."""
         self._live()
         if time.monotonic() - self._state_time > self.options.reply_timeout_s:
-            raise DriverTimeout("no RTDE data for longer than the reply timeout",
-                                kind=self.kind)
+            raise errors.DriverTimeout("no RTDE data for longer than the reply timeout",
+                                       kind=self.kind)
         return self._state
 
-    async def read_joints(self) -> JointReading:
+    async def read_joints(self) -> api.JointReading:
         """Return ``actual_q`` from the newest RTDE package (radians)."""
         state = self._recent_state()
-        return JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
+        return api.JointReading(tuple(float(x) for x in state["actual_q"]), time.time())
 
-    async def read_joint_temperatures(self) -> JointTemperatures:
+    async def read_joint_temperatures(self) -> api.JointTemperatures:
         """Return ``joint_temperatures`` (°C) from the newest RTDE package, stamped with its
         ``timestamp`` (seconds since the controller started)."""
         state = self._recent_state()
-        return JointTemperatures(tuple(float(x) for x in state["joint_temperatures"]),
-                                 float(state["timestamp"]))
+        return api.JointTemperatures(tuple(float(x) for x in state["joint_temperatures"]),
+                                     float(state["timestamp"]))
 
     async def stop(self) -> None:
         """Halt motion with ``stopj`` (a program of its own, which replaces the running one).
@@ -573,8 +553,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         if self._lost is not None:
             raise self._lost
         self._stop_gen += 1
-        self._fail_waiters(MotionStopped("motion stopped by request (stopj)", kind=self.kind),
-                           only=set(self._motion))
+        stopped = errors.MotionStopped("motion stopped by request (stopj)", kind=self.kind)
+        self._fail_waiters(stopped, only=set(self._motion))
         if not self._modes_ok():
             # A protective or emergency stop, or power off: the controller has halted the
             # arm already and would refuse to run a program.
@@ -584,11 +564,11 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         try:
             await self._run([f"stopj({decel!r})"], timeout=self.options.reply_timeout_s)
         except _ProgramFailed as err:
-            raise OperationError(f"stopj failed: {err}", kind=self.kind) from err
+            raise errors.OperationError(f"stopj failed: {err}", kind=self.kind) from err
         self.log.info("stopped")
 
     # --- controller calibration ----------------------------------------------------------------
-    async def controller_calibration(self) -> ControllerCalibration:
+    async def controller_calibration(self) -> api.ControllerCalibration:
         """The controller's own kinematic calibration (the kinematics info: its DH table, SI,
         per-joint checksums and calibration status); UR has no absolute-accuracy option.
 
@@ -597,7 +577,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         (a new calibration takes effect after a reboot, which ends the session).
         """
         if self.kinematics is None or self._lost is not None:
-            raise ConnectFailed("no kinematics info received; connect first", kind=self.kind)
+            raise errors.ConnectFailed("no kinematics info received; connect first", kind=self.kind)
         self._kin_event.clear()
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(self.options.reply_timeout_s):
@@ -606,7 +586,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         facts = {"checksums": k.fingerprint(), "calibration_status": k.calibration_status,
                  "dh_theta_rad": list(k.dh_theta), "dh_a_m": list(k.dh_a),
                  "dh_d_m": list(k.dh_d), "dh_alpha_rad": list(k.dh_alpha)}
-        return ControllerCalibration("ur-kinematics-info", facts, absolute_accuracy=False)
+        return api.ControllerCalibration("ur-kinematics-info", facts, absolute_accuracy=False)
 
     # --- compensation --------------------------------------------------------------------------
     def _slots(self, table: CompensationTable) -> dict[str, int]:
@@ -620,7 +600,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                 out[f"{p}jq_{c.joint}"] = len(c.q_deg)
                 out[f"{p}jdq_{c.joint}"] = len(c.dq_deg)
             return out
-        raise CompensationError(
+        raise errors.CompensationError(
             f"{self.kind} stores only 'targets' and 'joint' tables, not {table.kind!r}")
 
     def _values(self, table: CompensationTable) -> dict[str, list[float]]:
@@ -632,12 +612,12 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
                 if r.status != "ok":
                     continue
                 q = [math.radians(v) for v in r.q_deg]
-                check_joint_target(q, self.joint_limits_rad, kind=self.kind)
+                api.check_joint_target(q, self.joint_limits_rad, kind=self.kind)
                 out[f"{p}wp_{r.index}"] = q
         else:
             for c in table.joints or []:
                 if not 1 <= c.joint <= self.dof:
-                    raise CompensationError(f"joint {c.joint} is not a joint of this robot")
+                    raise errors.CompensationError(f"joint {c.joint} is not a joint of this robot")
                 out[f"{p}jq_{c.joint}"] = [math.radians(v) for v in c.q_deg]
                 out[f"{p}jdq_{c.joint}"] = [math.radians(v) for v in c.dq_deg]
         return out
@@ -649,7 +629,8 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             try:
                 await self._run(body, timeout=self.options.reply_timeout_s)
             except _ProgramFailed as err:
-                raise CompensationError(f"writing installation variables failed: {err}") from err
+                raise errors.CompensationError(
+                    f"writing installation variables failed: {err}") from err
 
     async def _read_variables(self, slots: Mapping[str, int]) -> dict[str, list[float]]:
         refs = [(name, k) for name, n in slots.items() for k in range(n)]
@@ -662,7 +643,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
             try:
                 state = await self._run(body, timeout=self.options.reply_timeout_s)
             except _ProgramFailed as err:
-                raise CompensationError(
+                raise errors.CompensationError(
                     f"reading installation variables failed ({err}); are they declared in "
                     "the installation with enough elements?") from err
             flat += [float(state[f"output_double_register_{base + m}"])
@@ -747,7 +728,7 @@ class UniversalRobotsRobot(RobotDriverBase, CompensationSink, CompensationSlots,
         for key, value in snapshot.items.items():
             slot, _, name = key.partition(":")
             if slot != "var" or not name.startswith(self.options.variable_prefix):
-                raise CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
+                raise errors.CompensationError(f"snapshot slot {key!r} is not a {self.kind} slot")
             values[name] = [float(v) for v in value]
         await self._write_variables(values)
         self._last_table = None

@@ -27,27 +27,14 @@ modbus
     :mod:`robocal.drivers`, the server in :mod:`robocal.drivers.sim`).
 """
 
+from robocal.protocols import transport
 from robocal.protocols.framing import CRLF, LineFramer
 from robocal.protocols.lines import LineStream
-from robocal.protocols.transport import (
-    SerialTransport,
-    TcpTransport,
-    ThreadSerialTransport,
-    Transport,
-    await_reply,
-    open_transport,
-    poll_ready_io,
-)
+from robocal.protocols.transport import *  # noqa: F403 (its __all__ is re-exported below)
 
 __all__ = [
     "CRLF",
     "LineFramer",
     "LineStream",
-    "SerialTransport",
-    "TcpTransport",
-    "ThreadSerialTransport",
-    "Transport",
-    "await_reply",
-    "open_transport",
-    "poll_ready_io",
 ]
+__all__ += transport.__all__

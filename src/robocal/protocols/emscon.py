@@ -31,6 +31,7 @@ from enum import IntEnum
 from typing import Any, ClassVar, Literal
 
 from robocal.errors import FramingError, UnexpectedReply
+from robocal.protocols.framing import StreamBuffer
 
 __all__ = [
     "DEFAULT_PORT",
@@ -740,7 +741,7 @@ def as_dict(packet: Packet) -> dict[str, Any]:
 
 
 # --- framing -----------------------------------------------------------------------------------
-class PacketFramer:
+class PacketFramer(StreamBuffer):
     """Cut a byte stream into emScon frames using the ``lPacketSize`` field.
 
     Bytes may arrive in any split (even inside the 8-byte header) or several packets at
@@ -762,20 +763,11 @@ class PacketFramer:
     ) -> None:
         if not HEADER.size <= min_size <= max_size:
             raise ValueError("need 8 <= min_size <= max_size")
+        super().__init__()
         self.min_size = min_size
         self.max_size = max_size
-        self._buf = bytearray()
         self._broken: str | None = None
         self.recent: deque[bytes] = deque(maxlen=history)
-
-    def feed(self, data: bytes) -> None:
-        """Append received bytes."""
-        self._buf += data
-
-    @property
-    def buffered(self) -> int:
-        """Bytes received but not yet returned as a frame."""
-        return len(self._buf)
 
     @property
     def broken(self) -> bool:

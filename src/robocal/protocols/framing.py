@@ -20,12 +20,29 @@ from collections.abc import Iterator
 
 from robocal.errors import FramingError
 
-__all__ = ["CRLF", "LineFramer"]
+__all__ = ["CRLF", "LineFramer", "StreamBuffer"]
 
 CRLF = b"\r\n"
 
 
-class LineFramer:
+class StreamBuffer:
+    """Receive buffer every framer starts from: :meth:`feed` appends bytes as they arrive,
+    :attr:`buffered` counts those not yet returned as a frame."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> None:
+        """Append received bytes."""
+        self._buf += data
+
+    @property
+    def buffered(self) -> int:
+        """Bytes received and not yet returned as a frame."""
+        return len(self._buf)
+
+
+class LineFramer(StreamBuffer):
     """Split a byte stream into lines and encode lines for the wire.
 
     Parameters
@@ -39,8 +56,8 @@ class LineFramer:
     def __init__(self, *, max_length: int = 512, history: int = 32) -> None:
         if max_length < 1:
             raise ValueError("max_length must be positive")
+        super().__init__()
         self.max_length = max_length
-        self._buf = bytearray()
         self._discarding = False
         self.recent: deque[bytes] = deque(maxlen=history)
         #: First bytes of the last over-long line dropped (a bridge reads its tag from them).
@@ -64,15 +81,6 @@ class LineFramer:
             )
         self.recent.append(b"> " + data)
         return data + CRLF
-
-    def feed(self, data: bytes) -> None:
-        """Append received bytes to the internal buffer."""
-        self._buf += data
-
-    @property
-    def buffered(self) -> int:
-        """Number of bytes received but not yet returned as a line."""
-        return len(self._buf)
 
     def next_line(self) -> bytes | None:
         """Return the next complete line (without terminator), or ``None`` if none is complete.

@@ -27,6 +27,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from robocal.errors import FramingError, UnexpectedReply
+from robocal.protocols.framing import StreamBuffer
 
 __all__ = [
     "AXIS_NAMES",
@@ -211,24 +212,12 @@ def decode_reply(msg: bytes) -> Reply:
     return Reply(msg_id, mode, _text(value), tail[-1] == 1)
 
 
-class KvpFramer:
+class KvpFramer(StreamBuffer):
     """Split a byte stream into whole KVP messages (both directions share the framing).
 
     A ``length`` field below the smallest message (3 bytes) cannot be resynchronised from:
     :meth:`next_message` raises FramingError and the connection should be closed.
     """
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-
-    def feed(self, data: bytes) -> None:
-        """Append received bytes."""
-        self._buf += data
-
-    @property
-    def buffered(self) -> int:
-        """Bytes received and not yet returned."""
-        return len(self._buf)
 
     def next_message(self) -> bytes | None:
         """Return the next whole message (header included), or None if more bytes are needed.

@@ -342,11 +342,14 @@ class ThreadSerialTransport:
         except (OSError, serial.SerialException, ValueError) as err:
             raise TransportError(f"{self.url}: cannot open: {err}") from err
 
+    def _port(self) -> serial.SerialBase:
+        if self._ser is None:
+            raise TransportError(f"{self.url}: not open")
+        return self._ser
+
     async def write(self, data: bytes) -> None:
         """Write in a worker thread."""
-        ser = self._ser
-        if ser is None:
-            raise TransportError(f"{self.url}: not open")
+        ser = self._port()
         try:
             await asyncio.to_thread(ser.write, data)
         except (OSError, serial.SerialException) as err:
@@ -354,9 +357,7 @@ class ThreadSerialTransport:
 
     async def read(self, max_bytes: int = 4096, *, timeout: float) -> bytes:
         """Read in worker-thread slices until data arrives or ``timeout`` expires."""
-        ser = self._ser
-        if ser is None:
-            raise TransportError(f"{self.url}: not open")
+        ser = self._port()
         deadline = time.monotonic() + timeout
         while True:
             try:
