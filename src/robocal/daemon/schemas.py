@@ -59,7 +59,7 @@ class _Closed(BaseModel):
 
 
 # --- campaigns -------------------------------------------------------------------------------
-#: Where a push's table is now (one truth: :meth:`CalibrationService.push_states`).
+#: Where a push's table is now (one truth: :meth:`CompensationManager.push_states`).
 CompensationStateName = Literal["active", "superseded", "rolled back"]
 
 

@@ -5,8 +5,7 @@ in-process. Methods take an ``actor`` (who asked) that goes into the transitions
 log. One campaign measures at a time (the robot is one); fits run in a worker
 (:mod:`~robocal.daemon.fit_tasks`) while the next campaign measures; pushes, rollbacks and their
 verification runs are the compensation component's (:mod:`~robocal.daemon.compensating`).
-On :meth:`start`, campaigns left ``running`` by a crash resume at their first unmeasured pose,
-and ``measured`` ones are fitted again.
+On :meth:`start`, campaigns left ``running`` resume at their first unmeasured pose.
 """
 
 from __future__ import annotations
@@ -84,9 +83,9 @@ class CalibrationService:
             config=config, robot=self.robot, store=self.store, hub=self.hub,
             journal=self.journal, events=self.events, reports=self.reports, campaigns=self,
             secret=self._secret)
-        #: drift checks and the reuse refits they recommend (ADR 0041)
-        self.checks = CheckRuns(config=config, robot=self.robot, store=self.store,
-                                events=self.events, campaigns=self, reports=self.reports)
+        self.checks = CheckRuns(  # drift checks and the reuse refits they recommend (ADR 0041)
+            config=config, robot=self.robot, store=self.store, events=self.events,
+            campaigns=self, reports=self.reports)
         self._started = time.time()
         self.pose_times: list[float] = []
         self._shutdown_stopped = False
@@ -199,22 +198,10 @@ class CalibrationService:
             out.append(d)
         return out
 
-    def push_states(self) -> dict[str, str]:
-        """Journal key of every completed push -> ``active``, ``superseded`` or ``rolled
-        back``: the one source status, list, the API and the report read."""
-        return self.compensator.push_states()
-
-    def push_fates(self) -> dict[str, dict[str, str | None]]:
-        """:meth:`push_states` with ``superseded_by``, ``rolled_back_by``, ``rolled_back_at``."""
-        return self.compensator.push_fates()
-
     def measurements(self, cid: str) -> builtins.list[Measurement]:
         """Stored measurements of a campaign."""
         self.store.campaign(cid)
         return self.store.measurements(cid)
-
-    def _measurement_log(self, cid: str, rows: builtins.list[Measurement]) -> dict[str, Any]:
-        return self.fits.measurement_log(cid, rows)
 
     def _overhead(self) -> float | None:
         if not self.pose_times:
@@ -482,8 +469,7 @@ class CalibrationService:
         return await self.compensator.runs.wait(key, timeout=timeout)
 
     def report_records(self) -> dict[str, dict[str, Any]]:
-        """Campaign id -> its report's Compensation section: approval, pushes and their fates
-        (and the drift checks of its model)."""
+        """Campaign id -> its report's Compensation section (approval, pushes, checks)."""
         return self.checks.report_records(self.compensator.report_records())
 
     def campaign_compensation(self, cid: str) -> builtins.list[dict[str, Any]]:
@@ -495,9 +481,8 @@ class CalibrationService:
         return self.compensator.compensation()
 
     async def report_file(self, cid: str, name: str) -> Path | None:
-        """The campaign's report file ``name`` (``report.html``, ``report.json``) once the
-        report of its fit is rendered (at most 60 s) and a rewrite pending after an action
-        has ended (at most 30 s); None if absent."""
+        """The report file ``name`` (``report.html``, ``report.json``) once the fit's report
+        is rendered (≤ 60 s) and a rewrite pending after an action ended (≤ 30 s), or None."""
         self.store.campaign(cid)
         with contextlib.suppress(TimeoutError):
             await self.fits.report_settled(cid, 60.0)   # rendered after the fit

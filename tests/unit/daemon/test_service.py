@@ -178,7 +178,7 @@ async def test_occasional_faults_are_retried(service):
     beam = sum(r.beam_losses for r in rows)
     assert retries > 0 and 0 < beam <= retries
     # the report's measurement log counts from the store, not from fixed numbers
-    log = svc._measurement_log(st["id"], rows)
+    log = svc.fits.measurement_log(st["id"], rows)
     assert (log["planned"], log["measured"], log["retries"], log["beam_losses"]) == \
         (30, 30, retries, beam)
 
