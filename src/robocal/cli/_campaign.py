@@ -517,6 +517,24 @@ def _summary(s: dict[str, Any], config: Path | None) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Longest a watch that reached ``fitted`` waits for the fit's report (it renders after the fit
+#: is stored, ADR 0048), so that its summary names the report the operator reads next.
+REPORT_WAIT_S = 120.0
+
+
+def _with_report(c: Any, cid: str, after: int) -> dict[str, Any]:
+    """The campaign's status, once the report of its fit is no longer rendering (or after
+    :data:`REPORT_WAIT_S`): waits on ``report`` events by long-polling from ``after``."""
+    deadline = time.monotonic() + REPORT_WAIT_S
+    s: dict[str, Any] = c.request("GET", f"/campaigns/{cid}")
+    while (s.get("report") or {}).get("state") == "rendering" and time.monotonic() < deadline:
+        left = max(1, min(10, int(deadline - time.monotonic())))
+        got = c.request("GET", f"/events/poll?after={after}&timeout={left}&campaign={cid}")
+        after = max([after, *(int(ev.get("seq", after)) for ev in got["events"])])
+        s = c.request("GET", f"/campaigns/{cid}")
+    return s
+
+
 def watch(args: argparse.Namespace) -> int:
     """Follow the campaign's current run until the daemon needs the operator.
 
@@ -579,7 +597,7 @@ def watch(args: argparse.Namespace) -> int:
             last = int(c.request("GET", f"/events/poll?after={2**62}&timeout=0")["last_seq"])
             if last < after:  # the daemon restarted: its sequence numbers did too
                 after = 0
-    final = c.request("GET", f"/campaigns/{args.id}")
+    final = _with_report(c, args.id, after)
     code = _exit_code(str(final["state"]), measure_only)
     if args.json:
         sys.stdout.write(json.dumps({"kind": "summary", "campaign": args.id,
