@@ -72,7 +72,7 @@ from robocal.kinematics import (
     ErrorModelSpec,
     KinematicModel,
     RobotDescription,
-    rigid_fit,
+    kabsch,
 )
 from robocal.planning import load_cell
 
@@ -149,6 +149,11 @@ class Predictor:
     #: Largest joint step (rad) from a primed pose answered by its first-order expansion
     #: (error <= ~|dq|^2 x reach: a few micrometres at 1e-3 rad); beyond, the model is called.
     LINEAR_STEP = 1e-3
+    #: The alignment is refitted after each of the first ``REFIT_ALL`` poses, then after every
+    #: ``REFIT_EVERY``-th: one more pose among dozens moves it by far less than the gate
+    #: (``max_distance_mm``) can tell, and the refit was a fifth of the daemon's per-pose cost.
+    REFIT_ALL = 32
+    REFIT_EVERY = 8
 
     def __init__(self, robot: RobotDescription, model: CalibratedModel | None = None, *,
                  min_poses: int = 6) -> None:
@@ -163,10 +168,13 @@ class Predictor:
                 return nominal.positions(np.atleast_2d(q), x)
 
             self._predict = predict
-        # model and tracker points (m) of the measured poses, rows [:_n] of growing buffers
+        # the measured poses' model and tracker points (m) as running moments about the first
+        # of each (the alignment then costs a 3 x 3 SVD per pose, whatever the count)
         self._n = 0
-        self._src = np.empty((64, 3))
-        self._dst = np.empty((64, 3))
+        self._origin: tuple[Array, Array] | None = None
+        self._sum = np.zeros((2, 3))        # Σ s, Σ d
+        self._ss = np.zeros((3, 3))         # Σ s sᵀ
+        self._sd = np.zeros((3, 3))         # Σ s dᵀ
         self._T: Array | None = None
         self._last: tuple[tuple[float, ...], Array] | None = None
         self._primed_q: Array | None = None
@@ -209,13 +217,17 @@ class Predictor:
 
     def add(self, q_rad: Sequence[float] | Array, p_m: Sequence[float] | Array) -> None:
         """Record one measured pose (actual joints, rad; point, m)."""
-        if self._n == len(self._src):
-            self._src = np.concatenate([self._src, np.empty_like(self._src)])
-            self._dst = np.concatenate([self._dst, np.empty_like(self._dst)])
-        self._src[self._n] = self._model_point(q_rad)
-        self._dst[self._n] = np.asarray(p_m, dtype=float)
+        src, dst = self._model_point(q_rad), np.asarray(p_m, dtype=float)
+        if self._origin is None:
+            self._origin = (src.copy(), dst.copy())
+        s, d = src - self._origin[0], dst - self._origin[1]
+        self._sum[0] += s
+        self._sum[1] += d
+        self._ss += np.outer(s, s)
+        self._sd += np.outer(s, d)
         self._n += 1
-        self._T = None
+        if self._n <= self.REFIT_ALL or self._n % self.REFIT_EVERY == 0:
+            self._T = None
 
     def __len__(self) -> int:
         return self._n
@@ -225,11 +237,17 @@ class Predictor:
         if self._n < self.min_poses:
             return None
         if self._T is None:
-            src, dst = self._src[:self._n], self._dst[:self._n]
-            # Collinear or coincident poses make the rotation ambiguous; wait for more.
-            if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-4) < 2:
+            assert self._origin is not None
+            n = self._n
+            cs, cd = self._sum / n
+            # Collinear or coincident poses make the rotation ambiguous; wait for more (the
+            # centred points' singular values are the square roots of their scatter's
+            # eigenvalues).
+            scatter = self._ss - n * np.outer(cs, cs)
+            if np.count_nonzero(np.linalg.eigvalsh(scatter) > 1e-8) < 2:
                 return None
-            self._T = rigid_fit(src, dst)
+            self._T = kabsch(self._sd - n * np.outer(cs, cd), cs + self._origin[0],
+                             cd + self._origin[1])
         s = self._model_point(q_rad)
         pred = self._T[:3, :3] @ s + self._T[:3, 3]
         return float(np.linalg.norm(pred - np.asarray(p_m, dtype=float)))

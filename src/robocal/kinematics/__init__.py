@@ -25,6 +25,7 @@ from robocal.kinematics._spec import (
 )
 from robocal.kinematics._transforms import (
     euler_xyz_to_matrix,
+    kabsch,
     matrix_to_euler_xyz,
     matrix_to_wpr,
     rigid_fit,
@@ -59,6 +60,7 @@ __all__ = [
     "euler_xyz_to_matrix",
     "evaluate_basis",
     "gravity_torques",
+    "kabsch",
     "link_radii",
     "load_robot",
     "load_urdf",

@@ -57,7 +57,13 @@ def rigid_fit(src: Array, dst: Array, weights: Array | None = None) -> Array:
     w = w / w.sum()
     cs = w @ src
     cd = w @ dst
-    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    return kabsch((src - cs).T @ ((dst - cd) * w[:, None]), cs, cd)
+
+
+def kabsch(H: Array, cs: Array, cd: Array) -> Array:
+    """Rigid transform T (4, 4) taking the centroid ``cs`` (3,) to ``cd`` (3,) whose rotation
+    best aligns the points of the cross-covariance ``H`` (3, 3) = Σ w (s - cs)(d - cd)ᵀ (any
+    positive scale)."""
     U, _, Vt = np.linalg.svd(H)
     D = np.eye(3)
     D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T))

@@ -115,3 +115,38 @@ async def test_retry_backoff_waits_on_the_service_clock(make_config):
         assert "no valid reading after 3 attempts" in st["reason"]
     finally:
         await svc.stop()
+
+
+def test_distances_match_a_rigid_fit_over_the_poses_measured_so_far():
+    """The running-moment alignment gives the distances of a full Kabsch fit: to rounding
+    while it refits every pose, within a few micrometres once it refits every few poses."""
+    from robocal.kinematics import rigid_fit
+
+    robot = load_robot("fanuc_lrmate200i")
+    rng = np.random.default_rng(3)
+    pred = Predictor(robot, min_poses=6)
+    R = np.asarray(euler_xyz_to_matrix(0.3, -0.2, 1.0))
+    t = np.array([2.0, -1.0, 0.5])
+    src: list[np.ndarray] = []
+    dst: list[np.ndarray] = []
+    for i, q in enumerate(rng.uniform(-1.0, 1.0, (120, robot.dof))):
+        s = pred._model_point(q)
+        d = R @ s + t + rng.normal(0.0, 2e-5, 3)
+        if i >= 6:
+            T = rigid_fit(np.array(src), np.array(dst))
+            ref = float(np.linalg.norm(T[:3, :3] @ s + T[:3, 3] - d))
+            got = pred.distance(q, d)
+            assert got is not None
+            assert abs(got - ref) < (1e-12 if i <= Predictor.REFIT_ALL else 5e-6)
+        pred.add(q, d)
+        src.append(s)
+        dst.append(d)
+
+
+def test_no_distance_while_the_poses_are_collinear():
+    robot = load_robot("fanuc_lrmate200i")
+    pred = Predictor(robot, min_poses=3)
+    q0 = np.zeros(robot.dof)
+    for k in range(5):  # one joint of a straight-line point set: the same model point
+        pred.add(q0, np.array([k * 0.1, 0.0, 0.0]))
+    assert pred.distance(q0, np.zeros(3)) is None
