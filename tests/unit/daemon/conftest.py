@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +12,7 @@ import pytest
 
 from robocal.daemon._plan import CampaignPlan, parse_plan, plan_from_poses
 from robocal.daemon.config import AppConfig, parse_config
+from robocal.daemon.service import CalibrationService
 from robocal.kinematics import load_robot
 
 ROBOT = "fanuc_lrmate200i"
@@ -48,6 +49,30 @@ def make_config(tmp_path: Path) -> Callable[..., AppConfig]:
         return parse_config(base_config(tmp_path, **sections), source="test")
 
     return make
+
+
+@pytest.fixture
+async def service(make_config: Callable[..., AppConfig]) -> AsyncIterator[
+        Callable[..., Awaitable[CalibrationService]]]:
+    """A factory of started services on ``make_config(**sections)``; all are stopped after
+    the test."""
+    made: list[CalibrationService] = []
+
+    async def make(**sections: Any) -> CalibrationService:
+        svc = CalibrationService(make_config(**sections))
+        await svc.start()
+        made.append(svc)
+        return svc
+
+    yield make
+    for svc in made:
+        await svc.stop()
+
+
+@pytest.fixture
+async def svc(service: Callable[..., Awaitable[CalibrationService]]) -> CalibrationService:
+    """A started service on the default test configuration."""
+    return await service()
 
 
 def random_plan(n: int, *, seed: int = 0, validation: int = 0, via_every: int = 0) -> CampaignPlan:

@@ -20,14 +20,6 @@ TOKEN = "s3cret-token-0123456789"
 
 
 @pytest.fixture
-async def svc(make_config):
-    s = CalibrationService(make_config())
-    await s.start()
-    yield s
-    await s.stop()
-
-
-@pytest.fixture
 async def client(svc):
     async with TestClient(TestServer(make_app(svc))) as c:
         yield c

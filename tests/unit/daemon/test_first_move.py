@@ -10,10 +10,8 @@ from __future__ import annotations
 import asyncio
 import copy
 import math
-from typing import Any
 
 import numpy as np
-import pytest
 
 from robocal.daemon._plan import parse_plan, plan_from_poses
 from robocal.daemon.config import parse_config
@@ -25,21 +23,6 @@ from tests.unit.daemon.conftest import ROBOT
 # an LR Mate pose beside the pedestal of the demo cell: safe where it stands, but the straight
 # joint move from it to the demo plan's first pose takes the tool into the pedestal clearance
 BESIDE_PEDESTAL = [136.0, 91.0, -140.0, -44.0, -12.0, -122.0]
-
-
-@pytest.fixture
-async def service(make_config):
-    made: list[CalibrationService] = []
-
-    async def make(**sections: Any) -> CalibrationService:
-        svc = CalibrationService(make_config(**sections))
-        await svc.start()
-        made.append(svc)
-        return svc
-
-    yield make
-    for svc in made:
-        await svc.stop()
 
 
 async def robot_at(svc: CalibrationService, q_deg: list[float]) -> MockRobot:

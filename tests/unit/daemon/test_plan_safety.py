@@ -9,7 +9,6 @@ from typing import Any
 import pytest
 
 from robocal.daemon._plan import parse_plan
-from robocal.daemon.service import CalibrationService
 from robocal.errors import ConfigError
 from robocal.planning import Cell, load_cell, plan_campaign
 from tests.unit.daemon.conftest import ROBOT
@@ -34,21 +33,6 @@ def with_pose(doc: dict[str, Any], k: int, q: list[float]) -> dict[str, Any]:
     out["poses"][k]["joints_deg"] = q
     assert out["poses"][k]["move_clear"] is True  # the file's own flag claims it is fine
     return out
-
-
-@pytest.fixture
-async def service(make_config):
-    made: list[CalibrationService] = []
-
-    async def make(**sections: Any) -> CalibrationService:
-        svc = CalibrationService(make_config(**sections))
-        await svc.start()
-        made.append(svc)
-        return svc
-
-    yield make
-    for svc in made:
-        await svc.stop()
 
 
 async def test_planned_campaign_is_accepted(service, table_plan) -> None:

@@ -9,7 +9,6 @@ import pytest
 
 from robocal.daemon import pushing
 from robocal.daemon._plan import parse_plan, plan_from_poses
-from robocal.daemon.service import CalibrationService
 from robocal.errors import CompensationError
 from robocal.kinematics import load_robot
 from tests.unit.daemon.conftest import ROBOT
@@ -32,21 +31,6 @@ def _program(path: Path, j6: list[float]) -> Path:
     rows = [f"10,40,-20,30,{40 if i % 2 else -40},{v}" for i, v in enumerate(j6)]
     path.write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(rows) + "\n")
     return path
-
-
-@pytest.fixture
-async def service(make_config):
-    services: list[CalibrationService] = []
-
-    async def make(**sections):
-        svc = CalibrationService(make_config(**sections))
-        await svc.start()
-        services.append(svc)
-        return svc
-
-    yield make
-    for svc in services:
-        await svc.stop()
 
 
 async def test_push_refuses_a_program_mostly_outside_coverage_unless_forced(service, tmp_path):

@@ -41,21 +41,6 @@ def program_plan(n: int, *, seed: int = 0, validation: int = 10):
                       source="test", strict=False)
 
 
-@pytest.fixture
-async def service(make_config):
-    services: list[CalibrationService] = []
-
-    async def make(**sections):
-        svc = CalibrationService(make_config(**sections))
-        await svc.start()
-        services.append(svc)
-        return svc
-
-    yield make
-    for svc in services:
-        await svc.stop()
-
-
 def _unique(svc, cid):
     rows = svc.store.measurements(cid)
     idx = [r.pose_idx for r in rows]

@@ -26,14 +26,6 @@ VIEWER = "viewer-token-fedcba9876543210"
 
 
 @pytest.fixture
-async def svc(make_config):
-    s = CalibrationService(make_config())
-    await s.start()
-    yield s
-    await s.stop()
-
-
-@pytest.fixture
 async def client(svc):
     async with TestClient(TestServer(make_app(svc, token=TOKEN, viewer_token=VIEWER))) as c:
         yield c

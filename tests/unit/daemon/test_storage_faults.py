@@ -28,14 +28,6 @@ from tests.unit.daemon.conftest import random_plan
 DISK_FULL = "database or disk is full"
 
 
-@pytest.fixture
-async def svc(make_config):
-    s = CalibrationService(make_config())
-    await s.start()
-    yield s
-    await s.stop()
-
-
 def _disk_full(where: str) -> None:
     raise sqlite3.OperationalError(DISK_FULL)
 
