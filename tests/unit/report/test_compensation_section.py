@@ -32,7 +32,7 @@ def test_section_is_added_once_and_replaced_with_the_measured_numbers(tmp_path):
     assert page.count('<section id="compensation">') == 1
     assert page.index('id="compensation"') < page.index("</main>")
     assert "0.0123" in page and "1.0500" in page and "1.0412" in page and "alice" in page
-    assert "data:image/png;base64," in page  # the before/after plot
+    assert "data:image/svg+xml;base64," in page  # the before/after plot
     # the measured before -> after right under the verdict, not only at the end
     top = page[:page.index('id="compensation"')]
     assert page.index('<div id="push-result"') == page.index("</section>") + len("</section>")

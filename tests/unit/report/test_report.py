@@ -4,23 +4,23 @@ exist and decode, the page is self-contained, and the verdict goes both ways."""
 from __future__ import annotations
 
 import base64
-import io
+import html as html_lib
 import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from robocal.errors import ConfigError
 from robocal.kinematics import CalibratedModel
 from robocal.report import Acceptance, MeasurementLog, ReportInput, write_report
 from tests.unit.report.conftest import Campaign
 
-IMG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)" width="(\d+)" '
+IMG = re.compile(r'<img src="data:image/svg\+xml;base64,([A-Za-z0-9+/=]+)" width="(\d+)" '
                  r'height="(\d+)" alt="([^"]*)">')
 
 
@@ -115,19 +115,23 @@ def test_iso_and_workspace_and_log(campaign: Campaign, full: Written) -> None:
                for c in j["components"].values())
 
 
-def test_plots_are_embedded_pngs(full: Written) -> None:
+def test_plots_are_embedded_svgs(full: Written) -> None:
     imgs = IMG.findall(full.html)
     assert len(imgs) == full.html.count("<img")
     keys = full.summary["figures"]
     assert set(keys) == {"summary", "histograms", "per_pose", "singular_values", "workspace",
                          "iso", "coverage", *(f"joint{j}" for j in range(1, 7))}
     assert len(imgs) == len(keys)
+    ns = "{http://www.w3.org/2000/svg}"
     for b64, w, h, alt in imgs:
-        im = Image.open(io.BytesIO(base64.b64decode(b64)))
-        assert im.format == "PNG" and im.size == (int(w), int(h)) and alt
-        assert im.size[0] > 300 and im.size[1] > 150
-        # not a blank canvas
-        assert len(np.unique(np.asarray(im.convert("L")))) > 20
+        root = ElementTree.fromstring(base64.b64decode(b64))  # well-formed XML
+        assert root.tag == f"{ns}svg" and alt
+        assert (root.get("width"), root.get("height")) == (w, h)
+        assert int(w) > 300 and int(h) > 150
+        assert root.findtext(f"{ns}title") == html_lib.unescape(alt)
+        # not an empty canvas: drawn series and labelled ticks
+        assert len(root.findall(f".//{ns}path")) > 5
+        assert len(root.findall(f".//{ns}text")) > 6
 
 
 def test_page_is_self_contained(full: Written) -> None:

@@ -178,18 +178,17 @@ def test_the_default_rms_limit_grows_with_the_robots_reach() -> None:
 def test_the_overview_uses_a_log_axis_when_bars_span_decades(campaign: Campaign,
                                                              monkeypatch) -> None:
     """0.009 mm next to 2.5 mm: the overview switches to a log axis (both bars visible)."""
-    from matplotlib.axes import Axes
-
     from robocal.report._figures import needs_log_axis, summary_plot
+    from robocal.report._svg import Axes
 
     assert needs_log_axis(np.array([2.5, 1.08, 0.009, np.nan]))
     assert not needs_log_axis(np.array([0.5, 0.1, 0.05]))
     scales: list[str] = []
     real = Axes.set_xscale
 
-    def spy(self: Axes, value: str, **kw: object) -> None:
+    def spy(self: Axes, value: str) -> None:
         scales.append(value)
-        real(self, value, **kw)
+        real(self, value)  # type: ignore[arg-type]
 
     monkeypatch.setattr(Axes, "set_xscale", spy)
     an = analyse(ReportInput(models={"nominal": campaign.fits["nominal"].calibrated,
