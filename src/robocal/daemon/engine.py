@@ -37,6 +37,7 @@ import asyncio
 import math
 import time
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 import structlog
@@ -180,6 +181,7 @@ class Predictor:
         self._primed_q: Array | None = None
         self._primed_p: Array | None = None
         self._primed_J: Array | None = None
+        self._next = 0  # the primed row the next reading most likely belongs to
 
     def prime(self, q_rad: Array) -> None:
         """Predict the planned joints ``q_rad`` (n, dof) at once, with the joint Jacobian
@@ -206,10 +208,17 @@ class Predictor:
         s = None
         if self._primed_q is not None and self._primed_q.shape[1] == q.size:
             assert self._primed_p is not None and self._primed_J is not None
-            dq = q - self._primed_q
-            i = int(np.argmin(np.abs(dq).max(axis=1)))
-            if np.abs(dq[i]).max() <= self.LINEAR_STEP:
-                s = self._primed_p[i] + self._primed_J[i] @ dq[i]
+            # poses are measured in plan order: try the row after the last one matched
+            # before searching them all (the search is most of a call's cost)
+            i = self._next
+            dqi = q - self._primed_q[i] if i < len(self._primed_q) else None
+            if dqi is None or np.abs(dqi).max() > self.LINEAR_STEP:
+                dq = q - self._primed_q
+                i = int(np.argmin(np.abs(dq).max(axis=1)))
+                dqi = dq[i]
+            if np.abs(dqi).max() <= self.LINEAR_STEP:
+                s = self._primed_p[i] + self._primed_J[i] @ dqi
+                self._next = i + 1
         if s is None:
             s = np.asarray(self._predict(q)[0], dtype=float)
         self._last = (key, s)
@@ -279,9 +288,11 @@ class CampaignRunner:
         self.actor = actor
         self.limits = limits_with_margin(robot, config.limits.joint_margin_deg)
         self.pose_times: list[float] = []
+        self._temps_from: object = None
+        self._reads_temps = False
 
     def _state(self, cid: str) -> CampaignState:
-        return self.store.campaign(cid).state
+        return self.store.state(cid)
 
     def _transition(self, cid: str, to: CampaignState, reason: str = "") -> None:
         rec = self.store.transition(cid, to, actor=self.actor, reason=reason)
@@ -410,9 +421,12 @@ class CampaignRunner:
         """Joint temperatures (°C) and their controller time (s); ``((), None)`` when the
         robot's driver does not read them."""
         robot = await self.hub.robot()
-        if not isinstance(robot, JointTemperatureReader):
+        if self._temps_from is not robot:  # a Protocol isinstance costs ~10 us: once a driver
+            self._temps_from, self._reads_temps = robot, isinstance(robot,
+                                                                    JointTemperatureReader)
+        if not self._reads_temps:
             return (), None
-        reading = await robot.read_joint_temperatures()
+        reading = await cast("JointTemperatureReader", robot).read_joint_temperatures()
         return tuple(float(v) for v in reading.temps_c), float(reading.timestamp)
 
     async def _warm_up(self, cid: str, poses: Sequence[PoseRow]) -> CampaignState | None:

@@ -423,7 +423,7 @@ class CalibrationService:
         wanted = {CampaignState(s) for s in states} | set(FINAL)
         async with asyncio.timeout(timeout), self.events.subscribe() as q:
             while True:
-                if self.store.campaign(cid).state in wanted:
+                if self.store.state(cid) in wanted:
                     if report:
                         await self.fits.report_settled(cid, timeout)
                     return self.status(cid)

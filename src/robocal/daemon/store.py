@@ -612,6 +612,18 @@ class Store:
         return [PoseRow(int(r[0]), str(r[1]), tuple(json.loads(r[2])), bool(r[3]))
                 for r in rows]
 
+    def state(self, cid: str) -> CampaignState:
+        """The campaign's state alone, as :meth:`campaign` reports it (a transition held in
+        memory by a storage fault included), without counting its measurements: the runner
+        asks before every pose."""
+        held = self._pending.get(cid)
+        if held is not None:
+            return held[1]
+        row = self.db.execute("SELECT state FROM campaigns WHERE id=?", (cid,)).fetchone()
+        if row is None:
+            raise UnknownCampaign(f"no campaign {cid!r}")
+        return CampaignState(row[0])
+
     def measured_indices(self, cid: str) -> set[int]:
         """Indices of the poses already measured."""
         rows = self.db.execute(

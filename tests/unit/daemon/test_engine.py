@@ -54,6 +54,23 @@ def test_a_primed_predictor_answers_near_planned_poses_without_calling_the_model
     assert calls == [(robot.dof,)]
 
 
+def test_a_primed_predictor_out_of_plan_order_finds_the_right_pose():
+    """Readings usually come in plan order (the next planned row is tried first); out of
+    order, or repeated, they still get the prediction of their own planned pose."""
+    robot, q, p = _cell(1)
+    q_act = q + np.random.default_rng(4).normal(0.0, 1e-4, q.shape)
+    plain, primed = Predictor(robot, min_poses=6), Predictor(robot, min_poses=6)
+    primed.prime(q)
+    order = [*range(8), 15, 3, 19, 0, 9, 9, 10]
+    for i in order:
+        plain.add(q_act[i], p[i])
+        primed.add(q_act[i], p[i])
+        a, b = plain.distance(q_act[i], p[i]), primed.distance(q_act[i], p[i])
+        assert (a is None) == (b is None) and (a is None or abs(a - b) < 1e-7)
+        assert np.allclose(primed._model_point(q_act[i]), plain._model_point(q_act[i]),
+                           atol=1e-7)
+
+
 def test_limits_with_margin():
     robot = load_robot("fanuc_lrmate200i")
     lim = limits_with_margin(robot, 2.0)

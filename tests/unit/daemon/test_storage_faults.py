@@ -111,8 +111,10 @@ async def test_pause_during_a_storage_fault_answers_and_is_kept(svc):
         body = await r.json()
         assert r.status == 200, body
         assert body["state"] == "paused" and "lunch" in body["reason"]
-        # the robot is not driven
+        # the robot is not driven: the runner's state check sees the pause held in memory
         await eventually(lambda: svc.health()["measuring"] is None, 30)
+        assert svc.store.pending and svc.store.state(cid).value == "paused"
+        assert svc.store.campaign(cid).state == svc.store.state(cid)
         svc.store.fault_hook = _disk_full  # now every write fails
         r = await http.post(f"/campaigns/{cid}/resume")
         body = await r.json()
