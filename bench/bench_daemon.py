@@ -10,7 +10,7 @@ alone, and optionally
 
 Run from the repository root::
 
-    /work/venv/bin/python bench/bench_daemon.py [--poses 200] [--demo]
+    .venv/bin/python bench/bench_daemon.py [--poses 200] [--rounds 5] [--demo]
 """
 
 from __future__ import annotations
@@ -124,20 +124,31 @@ async def _main(args: argparse.Namespace) -> None:
     q = _poses(args.poses)
     cell = SimCell(robot=ROBOT, seed=1, fanuc=FanucSimOptions(time_scale=0.0), modbus=False,
                    ltp=LtpSimOptions(time_scale=0.0))
+    bare, daemon = [], []
     with tempfile.TemporaryDirectory() as tmp:
         async with cell:
-            bare = await _bare(cell, q, args.samples)
-            daemon = await _daemon(cell, q, args.samples, Path(tmp) / "state")
+            # bare and daemon alternate, so a change of machine load hits both alike
+            for r in range(args.rounds):
+                bare.append(await _bare(cell, q, args.samples))
+                daemon.append(await _daemon(cell, q, args.samples, Path(tmp) / f"state{r}"))
             await asyncio.sleep(0.1)
         commit = _store_commit(Path(tmp))
-    print(f"poses: {args.poses}, samples per reading: {args.samples}")
+    b, d = np.array(bare), np.array(daemon)  # (rounds, 2): wall, CPU s per pose
+    ratio = d / b
+    print(f"poses: {args.poses}, samples per reading: {args.samples}, rounds: {args.rounds} "
+          "(bare and daemon alternating; per round the median per pose)")
     print(f"machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
-    print(f"bare drivers          {bare[0] * 1e3:8.2f} ms wall, {bare[1] * 1e3:6.2f} ms CPU per "
-          "pose (median)")
-    print(f"daemon engine         {daemon[0] * 1e3:8.2f} ms wall, {daemon[1] * 1e3:6.2f} ms CPU "
-          "per pose (median)")
-    print(f"daemon / bare         {daemon[0] / bare[0]:8.2f} x wall, {daemon[1] / bare[1]:6.2f} x "
-          "CPU  [acceptance <= 1.3 x]")
+    for r in range(args.rounds):
+        print(f"  round {r + 1}: bare {b[r, 0] * 1e3:.2f} / {b[r, 1] * 1e3:.2f} ms, daemon "
+              f"{d[r, 0] * 1e3:.2f} / {d[r, 1] * 1e3:.2f} ms (wall / CPU), ratio "
+              f"{ratio[r, 0]:.2f} / {ratio[r, 1]:.2f}")
+    mb, md, mr = np.median(b, axis=0), np.median(d, axis=0), np.median(ratio, axis=0)
+    print(f"bare drivers          {mb[0] * 1e3:8.2f} ms wall, {mb[1] * 1e3:6.2f} ms CPU per "
+          "pose (median of rounds)")
+    print(f"daemon engine         {md[0] * 1e3:8.2f} ms wall, {md[1] * 1e3:6.2f} ms CPU "
+          "per pose (median of rounds)")
+    print(f"daemon / bare         {mr[0]:8.2f} x wall, {mr[1]:6.2f} x CPU (median of the "
+          "rounds' ratios)  [acceptance <= 1.3 x]")
     print(f"store commit (NORMAL) {commit[0] * 1e3:8.2f} ms per measurement")
     print(f"store commit (FULL)   {commit[1] * 1e3:8.2f} ms per audit record")
 
@@ -146,6 +157,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--poses", type=int, default=200)
     p.add_argument("--samples", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=5, help="bare/daemon pairs (default 5)")
     p.add_argument("--demo", action="store_true", help="also time 'robocal demo'")
     args = p.parse_args()
     configure_logging("warning", "console")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
+import math
 import os
 import sqlite3
 import uuid
@@ -183,6 +184,15 @@ class PoseRow:
     purpose: str
     q_deg: tuple[float, ...]
     measure: bool = True
+
+
+def _floats_json(values: Sequence[float]) -> str:
+    """``json.dumps(list(values))`` for floats, without the encoder's per-call set-up (a
+    measurement row has three such lists, written once per pose)."""
+    vals = [float(v) for v in values]
+    if all(math.isfinite(v) for v in vals):
+        return "[" + ", ".join(map(repr, vals)) + "]"
+    return json.dumps(vals)
 
 
 class Store:
@@ -643,11 +653,11 @@ class Store:
                     "x_mm, y_mm, z_mm, sx_mm, sy_mm, sz_mm, rms_mm, samples, attempts, "
                     "distance_mm, weather, measured_at, beam_losses, temps) "
                     "VALUES(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
-                    (cid, m.pose_idx, m.purpose, json.dumps(list(m.q_cmd_deg)),
-                     json.dumps(list(m.q_act_deg)), *m.p_mm,
+                    (cid, m.pose_idx, m.purpose, _floats_json(m.q_cmd_deg),
+                     _floats_json(m.q_act_deg), *m.p_mm,
                      *(m.sigma_mm if m.sigma_mm is not None else (None, None, None)),
                      m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
-                     m.measured_at, m.beam_losses, json.dumps(list(m.temps_c))),
+                     m.measured_at, m.beam_losses, _floats_json(m.temps_c)),
                 )
                 db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
         except sqlite3.IntegrityError:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import sqlite3
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robocal.daemon.campaign import CampaignState
 from robocal.daemon.schemas import Measurement
@@ -106,3 +109,12 @@ def test_table_stack_push_and_rollback(store):
         store.db.execute("DELETE FROM pushes")
     assert [a["action"] for a in store.audit_log()] == ["compensation.push"] * 3 + [
         "compensation.rollback"]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=8))
+def test_float_lists_are_written_as_json_dumps_writes_them(values):
+    from robocal.daemon.store import _floats_json
+
+    assert _floats_json(values) == json.dumps(values)
+    assert _floats_json(tuple(values)) == json.dumps(values)
