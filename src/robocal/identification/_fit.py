@@ -464,6 +464,7 @@ def _finish(f: Fitter, kind: str, final: Solution, const: Solution | None,
     }
     if final.thermal is not None:
         cal.fit["thermal"] = final.thermal
+        cal.model_id = cal.compute_id()  # the hash covers the thermal term (scheme 3)
     if extra_fit:
         cal.fit.update(extra_fit)
     warnings = _warnings(cal, data.q[inl], validation, val_out, val_all)

@@ -32,6 +32,7 @@ from robocal._core.files import atomic_write_text, json_default
 from robocal._core.schema import fail, key, list_of, load
 from robocal.errors import ConfigError
 from robocal.kinematics._integrity import (
+    COVERS,
     HASHED,
     SCHEME,
     builtin_nominal,
@@ -74,6 +75,9 @@ class CalibratedModel:
     # values they were read into (unit conversions do not round-trip bit for bit)
     _raw: tuple[tuple[Any, ...], dict[str, Any]] | None = field(default=None, repr=False,
                                                                 compare=False)
+    # the hash scheme of the file a model was read from: its id is recomputed, and the model
+    # written again, under that scheme (an earlier one stays readable as it was sealed)
+    _scheme: str = field(default=SCHEME, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.params = np.asarray(self.params, dtype=float)
@@ -100,7 +104,15 @@ class CalibratedModel:
         Hashes the sections as MODEL.json holds them (a loaded model keeps the values it read),
         so the id of a loaded file is recomputed bit for bit and an edited file is recognised.
         """
-        return digests(self._sections())[0][:16]
+        return digests({**self._sections(), "fit": self.fit}, scheme=self.scheme)[0][:16]
+
+    @property
+    def scheme(self) -> str:
+        """The hash scheme of this model's id and seal: the one of the file it was read from,
+        unless that one does not cover a thermal term the model now has."""
+        if "fit.thermal" in COVERS[self._scheme] or not self.fit.get("thermal"):
+            return self._scheme
+        return SCHEME
 
     def _fingerprint(self) -> tuple[Any, ...]:
         cov = None if self.covariance is None else self.covariance.tobytes()
@@ -167,7 +179,8 @@ class CalibratedModel:
         """JSON-ready dict (mm, deg); ``secret`` (the site secret) adds an HMAC-SHA256 of the
         hashed sections to the ``integrity`` record."""
         sections = self._sections()
-        sha, mac = digests(sections, secret)
+        scheme = self.scheme
+        sha, mac = digests({**sections, "fit": self.fit}, secret, scheme)
         out: dict[str, Any] = {
             "format": MODEL_FORMAT,
             "model_id": self.model_id,
@@ -177,7 +190,7 @@ class CalibratedModel:
             "metrics": self.metrics,
             "fit": self.fit,
             "data": self.data,
-            "integrity": {"scheme": SCHEME, "covers": list(HASHED), "sha256": sha,
+            "integrity": {"scheme": scheme, "covers": list(COVERS[scheme]), "sha256": sha,
                           **({} if mac is None else {"hmac_sha256": mac})},
         }
         return out
@@ -247,6 +260,9 @@ class CalibratedModel:
         if verify:  # last, so that a malformed or implausible part is named first
             check_seal(d, source, secret)
         out._raw = (out._fingerprint(), {k: d.get(k) for k in HASHED})
+        seal = d.get("integrity")
+        if isinstance(seal, dict) and seal.get("scheme") in COVERS:
+            out._scheme = str(seal["scheme"])
         return out
 
     @classmethod

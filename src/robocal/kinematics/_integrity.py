@@ -4,8 +4,9 @@ physical plausibility of the robot description a model carries.
 The hash covers every section that changes predictions or limits (:data:`HASHED`): the robot
 description (joint geometry, limits, names, base, flange, tool), the error-model structure,
 the tracker <- base reference, the parameters with their sigmas, the covariance, the covered
-joint range and the fallback model. It is computed over the canonical JSON of those sections
-as the file holds them (mm, deg), so a file hashes the same before and after loading.
+joint range and the fallback model; since scheme 3 also the thermal term (``fit.thermal``).
+It is computed over the canonical JSON of those sections as the file holds them (mm, deg), so
+a file hashes the same before and after loading.
 """
 
 from __future__ import annotations
@@ -28,8 +29,14 @@ from robocal.kinematics._robot import Joint, RobotDescription, load_toml_robot
 HASHED: Final = ("format", "robot", "error_model", "T_tracker_base_ref_mm", "parameters",
                  "covariance", "coverage_deg", "fallback")
 
-#: What the ``integrity`` record of a file written by this version says it covers.
-SCHEME: Final = "robocal.model-hash/2"
+#: What the ``integrity`` record of a file written by this version says it covers: the
+#: :data:`HASHED` sections and the thermal term (``fit.thermal``, ADR 0042), which changes
+#: the predictions at given joint temperatures.
+SCHEME: Final = "robocal.model-hash/3"
+
+#: Schemes a file may carry, and what each covers. Version 2 (before the thermal term was
+#: covered) is read when its file has no thermal term.
+COVERS: Final = {"robocal.model-hash/2": HASHED, SCHEME: (*HASHED, "fit.thermal")}
 
 #: Largest difference of a model's robot description from its nominal one: DH lengths and
 #: base/flange offsets (mm), DH angles and base/flange rotations (deg). Joint limits may be
@@ -47,9 +54,21 @@ def canonical(sections: dict[str, Any]) -> bytes:
                       default=json_default).encode()
 
 
-def digests(sections: dict[str, Any], key: bytes | None = None) -> tuple[str, str | None]:
-    """(sha256 hex, HMAC-SHA256 hex with ``key`` or None) of the hashed ``sections``."""
-    text = canonical({k: sections.get(k) for k in HASHED})
+def hashed(d: dict[str, Any], scheme: str = SCHEME) -> dict[str, Any]:
+    """What ``scheme`` covers of the MODEL.json mapping ``d``: its :data:`HASHED` sections,
+    and under version 3 the thermal term (``fit.thermal``; null when there is none)."""
+    out = {k: d.get(k) for k in HASHED}
+    if "fit.thermal" in COVERS[scheme]:
+        fit = d.get("fit")
+        out["fit.thermal"] = fit.get("thermal") if isinstance(fit, dict) else None
+    return out
+
+
+def digests(sections: dict[str, Any], key: bytes | None = None, scheme: str = SCHEME
+            ) -> tuple[str, str | None]:
+    """(sha256 hex, HMAC-SHA256 hex with ``key`` or None) of what ``scheme`` covers of the
+    MODEL.json mapping ``sections`` (:func:`hashed`)."""
+    text = canonical(hashed(sections, scheme))
     mac = None if key is None else hmac.new(key, text, hashlib.sha256).hexdigest()
     return hashlib.sha256(text).hexdigest(), mac
 
@@ -65,12 +84,17 @@ def check_seal(d: dict[str, Any], source: str, key: bytes | None) -> None:
         wrong site signature.
     """
     seal = d.get("integrity")
-    if not isinstance(seal, dict) or seal.get("scheme") != SCHEME:
+    scheme = seal.get("scheme") if isinstance(seal, dict) else None
+    if not isinstance(seal, dict) or scheme not in COVERS:
         raise ConfigError(
             "written by an earlier robocal whose model_id does not cover the robot "
             "description, covariance and covered range: refit the model (robocal fit, or "
             "the daemon's campaign) to get a verifiable file", source=source, key="integrity")
-    sha, mac = digests(d, key)
+    if "fit.thermal" not in COVERS[scheme] and hashed(d)["fit.thermal"] is not None:
+        raise ConfigError(
+            f"the thermal term (fit.thermal) is not covered by this file's {scheme} hash: "
+            "refit the model to get a verifiable file", source=source, key="fit.thermal")
+    sha, mac = digests(d, key, scheme)
     if d.get("model_id") != sha[:16] or seal.get("sha256") != sha:
         raise ConfigError(
             f"the content does not match its model_id {d.get('model_id')!r} (it hashes to "

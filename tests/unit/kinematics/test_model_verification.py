@@ -145,3 +145,50 @@ def test_commands_refuse_a_bad_model_in_one_line(good: Doc, tmp_path: Path, comm
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err and str(p) in err
+
+
+def _with_thermal(good: Doc) -> Doc:
+    """``good`` refitted with a thermal term: the term is in ``fit.thermal``, and the id and
+    seal are those a fit writes (scheme 3)."""
+    cm = CalibratedModel.from_dict(copy.deepcopy(good))
+    cm.fit["thermal"] = {"components": ["dz"], "coefficients_mm_per_c": [0.004] * 6,
+                         "t_ref_c": 21.5}
+    cm.model_id = cm.compute_id()
+    return cm.to_dict()
+
+
+def test_the_thermal_term_is_covered_by_the_hash(good: Doc, tmp_path: Path) -> None:
+    d = _with_thermal(good)
+    assert d["integrity"]["scheme"] == "robocal.model-hash/3"
+    assert "fit.thermal" in d["integrity"]["covers"] and d["model_id"] != good["model_id"]
+    p = tmp_path / "MODEL.json"
+    p.write_text(json.dumps(d))
+    assert CalibratedModel.load(p).model_id == d["model_id"]
+    d["fit"]["thermal"]["coefficients_mm_per_c"][2] = 0.04  # ten times the growth of J3
+    p.write_text(json.dumps(d))
+    with pytest.raises(ConfigError, match="does not match its model_id"):
+        CalibratedModel.load(p)
+    # the rest of ``fit`` stays free-form: a note does not change the id
+    d = _with_thermal(good)
+    d["fit"]["note"] = "checked by the night shift"
+    p.write_text(json.dumps(d))
+    assert CalibratedModel.load(p).model_id == d["model_id"]
+
+
+def test_a_scheme_2_file_loads_unless_it_carries_a_thermal_term(good: Doc,
+                                                                tmp_path: Path) -> None:
+    """Files written before scheme 3 verify as they were written; one with a thermal term,
+    which its hash did not cover, is refused with the key named."""
+    from robocal.kinematics._integrity import digests
+
+    d = copy.deepcopy(good)
+    d["integrity"] = {"scheme": "robocal.model-hash/2", "covers": [],
+                      "sha256": digests(d, scheme="robocal.model-hash/2")[0]}
+    d["model_id"] = d["integrity"]["sha256"][:16]
+    p = tmp_path / "MODEL.json"
+    p.write_text(json.dumps(d))
+    assert CalibratedModel.load(p).model_id == d["model_id"]
+    d["fit"] = {"thermal": {"components": ["dz"], "coefficients_mm_per_c": [0.0] * 6}}
+    p.write_text(json.dumps(d))
+    with pytest.raises(ConfigError, match=r"fit\.thermal"):
+        CalibratedModel.load(p)

@@ -266,9 +266,10 @@ def test_random_chains_import_with_the_same_fk(joints: list[tuple], seed: int) -
     for k in range(len(q)):
         T = urdf_fk(text, dict(zip(names, q[k], strict=True)), f"l{len(joints)}")
         # nearly parallel axes have far-away common normals (long a, d): rounding grows with
-        # the DH lengths, the documented limit of the standard-DH form
+        # the DH lengths, the documented limit of the standard-DH form (hypothesis found a
+        # chain at 1.2e-13 x the summed lengths: axes 0.02 rad from parallel, 1.3 km normals)
         scale = 1.0 + sum(abs(j.a) + abs(j.d) for j in robot.joints)
-        assert np.abs(T[:3, 3] - o[k]).max() < 1e-13 * scale
+        assert np.abs(T[:3, 3] - o[k]).max() < 1e-12 * scale
         assert np.abs(T[:3, :3] - R[k]).max() < 1e-11
 
 
