@@ -74,12 +74,30 @@ CREATE TABLE IF NOT EXISTS reuse_sources(
 
 
 # --- the judgement (pure) ----------------------------------------------------------------------
-def judge(rms_mm: float, max_mm: float, growth_mm: float | None, cfg: CheckConfig
-          ) -> tuple[Verdict, list[str]]:
-    """The verdict of a check and why (each threshold reached, worst first)."""
+def rms_thresholds(cfg: CheckConfig, model_rms_mm: float | None
+                   ) -> tuple[tuple[float, str], tuple[float, str]]:
+    """(warn, fail) RMS thresholds (mm) with where each comes from: the absolute one, or
+    ``*_rms_ratio`` times the model's held-out RMS when configured, known and lower."""
+    out = []
+    for level in ("warn", "fail"):
+        limit, why = float(getattr(cfg, f"{level}_rms_mm")), ""
+        ratio = getattr(cfg, f"{level}_rms_ratio")
+        if ratio is not None and model_rms_mm is not None and model_rms_mm > 0 \
+                and ratio * model_rms_mm < limit:
+            limit = ratio * model_rms_mm
+            why = f" ({ratio:g} x the model's held-out {model_rms_mm:.4f} mm)"
+        out.append((limit, why))
+    return out[0], out[1]
+
+
+def judge(rms_mm: float, max_mm: float, growth_mm: float | None, cfg: CheckConfig,
+          model_rms_mm: float | None = None) -> tuple[Verdict, list[str]]:
+    """The verdict of a check and why (each threshold reached, worst first);
+    ``model_rms_mm``, the model's held-out RMS, for the relative RMS thresholds."""
     verdict: Verdict = "pass"
     reasons: list[str] = []
-    values = (("RMS", rms_mm, cfg.warn_rms_mm, cfg.fail_rms_mm),
+    (warn_rms, warn_why), (fail_rms, fail_why) = rms_thresholds(cfg, model_rms_mm)
+    values = (("RMS", rms_mm, min(warn_rms, fail_rms), fail_rms),
               ("max", max_mm, cfg.warn_max_mm, cfg.fail_max_mm),
               ("growth since the last check", growth_mm, cfg.warn_growth_mm,
                cfg.fail_growth_mm))
@@ -90,7 +108,8 @@ def judge(rms_mm: float, max_mm: float, growth_mm: float | None, cfg: CheckConfi
         if level is None:
             continue
         limit = fail if level == "fail" else warn
-        reasons.append(f"{what} {value:.4f} mm >= {level} threshold {limit:g} mm")
+        why = (fail_why if level == "fail" else warn_why) if what == "RMS" else ""
+        reasons.append(f"{what} {value:.4f} mm >= {level} threshold {limit:.4g} mm{why}")
         if _RANK[level] > _RANK[verdict]:
             verdict = level
     reasons.sort(key=lambda r: " fail " not in r)
@@ -504,7 +523,7 @@ def evaluate(cal: CalibratedModel, rows: Sequence[Measurement],
     rms, mx = float(np.sqrt(np.mean(e**2))), float(np.max(e))
     prev = None if previous is None else previous.get("rms_mm")
     growth = None if prev is None else rms - float(prev)
-    verdict, reasons = judge(rms, mx, growth, cfg)
+    verdict, reasons = judge(rms, mx, growth, cfg, model_rms_mm)
     constant = constant_refit_rms_mm(cal, q, p)
     return {"n": len(rows), "rms_mm": round(rms, 5), "max_mm": round(mx, 5),
             "mean_mm": round(float(np.mean(e)), 5),

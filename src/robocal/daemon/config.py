@@ -327,6 +327,10 @@ class CheckConfig(_Model):
     refit of the joint offsets and the tracker placement would bring its error back under
     ``warn_rms_mm`` or within ``reuse_ratio`` times the model's own held-out RMS, else a full
     calibration (also from ``full_rms_mm`` on).
+
+    ``warn_rms_ratio`` / ``fail_rms_ratio`` (optional) judge the RMS against the model's own
+    held-out RMS as well: a check warns (fails) from that many times it on, when that is
+    below the absolute threshold (a model at 0.01 mm is drifting long before 0.1 mm).
     """
 
     poses: int = Field(default=20, ge=3, le=1000)
@@ -337,6 +341,8 @@ class CheckConfig(_Model):
     warn_growth_mm: float = Field(default=0.05, gt=0.0)
     fail_growth_mm: float = Field(default=0.15, gt=0.0)
     full_rms_mm: float = Field(default=1.0, gt=0.0)
+    warn_rms_ratio: float | None = Field(default=None, gt=1.0, le=1000.0)
+    fail_rms_ratio: float | None = Field(default=None, gt=1.0, le=1000.0)
     reuse_ratio: float = Field(default=1.25, ge=1.0, le=10.0)
     reuse_poses: int = Field(default=50, ge=11, le=10_000)
     reuse_validation_poses: int = Field(default=10, ge=1, le=10_000)
@@ -349,6 +355,10 @@ class CheckConfig(_Model):
             if not warn < fail:
                 raise ValueError(f"warn_{what}_mm ({warn}) must be below fail_{what}_mm "
                                  f"({fail})")
+        warn_r, fail_r = self.warn_rms_ratio, self.fail_rms_ratio
+        if warn_r is not None and fail_r is not None and not warn_r < fail_r:
+            raise ValueError(f"warn_rms_ratio ({warn_r}) must be below fail_rms_ratio "
+                             f"({fail_r})")
         if self.full_rms_mm < self.fail_rms_mm:
             raise ValueError(f"full_rms_mm ({self.full_rms_mm}) must not be below "
                              f"fail_rms_mm ({self.fail_rms_mm})")

@@ -56,6 +56,21 @@ def test_verdict_is_the_worst_threshold_reached(rms, mx, growth, verdict):
         assert "fail threshold" in reasons[0]
 
 
+def test_relative_rms_thresholds_judge_a_good_model_by_its_own_held_out_rms():
+    """A model at 0.009 mm held out drifting to 0.03 mm is still under the absolute warn
+    threshold (0.05 mm); with warn/fail at 3x/6x its held-out RMS it warns, then fails, and
+    the reason names where the threshold came from. Unset ratios or an unknown model RMS
+    leave the absolute thresholds; a ratio never raises a threshold."""
+    rel = CFG.model_copy(update={"warn_rms_ratio": 3.0, "fail_rms_ratio": 6.0})
+    assert judge(0.03, 0.05, None, CFG, 0.009)[0] == "pass"
+    verdict, reasons = judge(0.03, 0.05, None, rel, 0.009)
+    assert verdict == "warn" and "3 x the model's held-out 0.0090 mm" in reasons[0]
+    assert judge(0.055, 0.06, None, rel, 0.009)[0] == "fail"
+    assert judge(0.03, 0.05, None, rel, None)[0] == "pass"
+    assert judge(0.03, 0.05, None, rel, 0.05)[0] == "pass"   # 3 x 0.05 > 0.05 absolute
+    assert judge(0.05, 0.05, None, rel, 0.05)[0] == "warn"
+
+
 def test_recommendation_none_reuse_or_full():
     assert recommend("pass", 0.02, None, CFG)["action"] == "none"
     reuse = recommend("warn", 0.07, 0.01, CFG)
@@ -79,6 +94,8 @@ def test_recommendation_none_reuse_or_full():
     {"poses": 2},
     {"reuse_poses": 5},
     {"warn_rms": 0.1},
+    {"warn_rms_ratio": 4.0, "fail_rms_ratio": 3.0},
+    {"warn_rms_ratio": 0.5},
 ])
 def test_thresholds_are_validated(make_config, bad):
     with pytest.raises(ConfigError, match="check"):
