@@ -44,6 +44,9 @@ def register(sub: Any) -> None:
                    help="return once the check started (exit 0; its id is printed)")
     p.add_argument("--wait-timeout", type=float, default=3600.0, metavar="S",
                    help="longest wait for the check to be measured and judged, seconds")
+    p.add_argument("--wait-idle", type=float, default=0.0, metavar="S",
+                   help="while another campaign measures, wait up to S seconds for the robot "
+                        "to be free, then check (default 0: refuse at once)")
     add_client_options(p)
 
 
@@ -104,6 +107,28 @@ def history_text(checks: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _start(cli: Any, body: dict[str, Any], wait_idle: float) -> dict[str, Any]:
+    """Start the check; while another campaign measures (the daemon refuses with 409 and its
+    health names the campaign), wait up to ``wait_idle`` s for the robot to be free."""
+    from robocal.errors import ApiError
+
+    deadline = time.monotonic() + max(0.0, wait_idle)
+    told = ""
+    while True:
+        try:
+            return dict(cli.request("POST", "/checks", body))
+        except ApiError as err:
+            busy = err.status == 409 and cli.request("GET", "/health").get("measuring")
+            left = deadline - time.monotonic()
+            if not busy or left <= 0:
+                raise
+            if busy != told:
+                sys.stderr.write(f"robocal check: campaign {busy} is measuring; waiting up to "
+                                 f"{left:.0f} s for the robot to be free\n")
+                told = busy
+            time.sleep(min(1.0, left))
+
+
 def _wait(cli: Any, check: dict[str, Any], timeout: float) -> dict[str, Any]:
     """Follow the check until it is judged (or ``timeout`` s); progress on stderr."""
     deadline = time.monotonic() + timeout
@@ -157,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
             body["plan"] = json.loads(args.plan.read_text(encoding="utf-8"))
         except (OSError, ValueError) as err:
             raise ConfigError(f"cannot read the plan: {err}", source=str(args.plan)) from err
-    check = cli.request("POST", "/checks", body)
+    check = _start(cli, body, args.wait_idle)
     if args.no_wait:
         sys.stdout.write(f"{check['id']}\n")
         return 0

@@ -233,6 +233,43 @@ async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
         await svc.stop()
 
 
+async def test_a_check_waits_for_a_measuring_campaign_with_wait_idle(make_config, tmp_path,
+                                                                     capsys):
+    """While another campaign measures, ``robocal check`` refuses at once (exit 2), or with
+    ``--wait-idle`` waits for the robot to be free and then checks."""
+    from robocal.cli.main import main
+
+    sock = tmp_path / "api.sock"
+    svc = CalibrationService(_config(make_config, robot={"move_time_s": 0.05},
+                                     api={"socket": str(sock)}))
+    await svc.start()
+    api = ApiServer(svc, svc.config)
+    await api.start()
+
+    async def cli(*argv: str) -> tuple[int, str, str]:
+        rc = await asyncio.wait_for(asyncio.to_thread(main, ["check", *argv, "--socket",
+                                                             str(sock)]), 60)
+        out = capsys.readouterr()
+        return rc, out.out, out.err
+
+    try:
+        await _pushed(svc)
+        busy = await svc.create(program_plan(60), actor="t")  # ~3 s of moves
+        assert svc.measuring() == busy["id"]
+        rc, _, err = await cli()
+        assert rc == 2 and f"campaign {busy['id']} is measuring" in err
+        assert svc.checks.log.history() == []
+        rc, out, err = await cli("--wait-idle", "60")
+        assert rc == 0, err
+        assert f"campaign {busy['id']} is measuring; waiting up to" in err
+        assert svc.status(busy["id"])["poses_measured"] == 60  # it finished first
+        (check,) = svc.checks.log.history()
+        assert check["state"] == "done" and "PASS" in out
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
 async def test_api_event_log_and_station_show_the_latest_check_and_trend(svc, monkeypatch):
     cap = structlog.testing.LogCapture()
     structlog.configure(processors=[cap])
@@ -337,6 +374,8 @@ def test_the_systemd_units_run_a_check_the_cli_takes():
     assert argv[0].endswith("/robocal") and argv[1] == "check"
     args = build_parser("check", lazy=True).parse_args(argv[1:])
     assert args.config == Path("/etc/robocal/config.toml") and not args.no_wait
+    # the unit outlives the longest wait for the robot plus the check itself
+    assert float(unit["Service"]["TimeoutStartSec"]) > args.wait_idle + args.wait_timeout
     assert unit["Service"]["Type"] == "oneshot"
     assert unit["Unit"]["Requisite"] == "robocal.service"
     timer = configparser.ConfigParser(strict=False, interpolation=None)
