@@ -274,7 +274,9 @@ async def test_fanuc_stop_cancels_a_move_not_yet_sent(world):
         far = [lo + 0.8 * (hi - lo) for lo, hi in world.joint_limits_rad]
         async with robot._seq_lock:  # hold instructions back, as a running stop() does
             move = asyncio.create_task(robot.move_to(far, speed_pct=10, timeout=10))
-            await asyncio.sleep(0.01)
+            async with asyncio.timeout(5):  # until the move waits for the lock (no fixed sleep)
+                while not robot._seq_lock._waiters:
+                    await asyncio.sleep(0)
             robot._stop_gen += 1  # what stop() does under the lock
         with pytest.raises(MotionStopped):
             async with asyncio.timeout(5):
