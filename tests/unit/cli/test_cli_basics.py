@@ -161,10 +161,10 @@ def test_version_option(capsys: pytest.CaptureFixture[str]) -> None:
 def test_light_packages_leave_heavy_modules_unimported() -> None:
     """Why robocal.daemon and robocal.report keep lazy attributes: the client commands import
     robocal.daemon for its light modules, the configuration check robocal.report for
-    Acceptance; neither may pull in the service, the planner or matplotlib."""
+    Acceptance; neither may pull in the service, the planner or the report's figures."""
     src = ("import sys, robocal.daemon.client, robocal.report\n"
            "print(sorted(m for m in ('robocal.daemon.service', 'robocal.daemon._plan', "
-           "'robocal.daemon.main', 'robocal.report._write', 'matplotlib') "
+           "'robocal.daemon.main', 'robocal.report._write', 'robocal.report._figures') "
            "if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
