@@ -1,11 +1,11 @@
 """The calibration report: one self-contained HTML page plus a JSON summary.
 
 ``write_report(ReportInput(...), "report.html")`` writes ``report.html`` (plots as inline
-SVG drawn by robocal itself, ADR 0049; inline CSS, no scripts, readable offline) and ``report.json`` beside it. The
-first screen gives the verdict (succeeded / marginal / failed, with the reason) against
-:class:`Acceptance`; below: error before/after per model with the "% described" table,
-joint-dependent errors with ±2σ bands, identifiability, ISO 9283 AP/RP, predicted accuracy
-over the workspace, the measurement log and provenance.
+SVG drawn by robocal itself, ADR 0049; inline CSS, no scripts, readable offline) and
+``report.json`` beside it. The first screen gives the verdict (succeeded / marginal /
+failed, with the reason) against :class:`Acceptance`; below: error before/after per model
+with the "% described" table, joint-dependent errors with ±2σ bands, identifiability,
+ISO 9283 AP/RP, predicted accuracy over the workspace, the measurement log and provenance.
 """
 
 from typing import TYPE_CHECKING
