@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import structlog
 
 from robocal._core.files import atomic_write_text, json_default
 from robocal._core.measurements import MeasurementSet
@@ -39,7 +38,6 @@ if TYPE_CHECKING:  # imported where used: the daemon starts without identificati
 __all__ = ["LATER", "FitRunner", "RowsByPurpose", "build_fit_job", "measurement_set",
            "rows_by_purpose", "run_fit_job", "run_report_job"]
 
-_log = structlog.get_logger(__name__)
 _CPA = re.compile(r"^cpa-j(\d+)$")
 
 #: ``report`` value of a fit job whose report is rendered afterwards by :func:`run_report_job`
@@ -407,7 +405,11 @@ def _write_report(job: Mapping[str, Any], robot: RobotDescription,
         html_path, json_path = write_report(inp, out_dir)
     except (RobocalError, OSError, ValueError) as err:
         reason = f"report failed: {type(err).__name__}: {err}"
-        _log.warning("report failed", error=reason)
+        # structlog imported here: `robocal report CAMPAIGN` reads rows through this module
+        # and would pay ~0.07 s (structlog.dev and rich) for a logger it never uses
+        import structlog
+
+        structlog.get_logger(__name__).warning("report failed", error=reason)
         return {"skipped": reason}
     return {"paths": {"html": str(html_path), "json": str(json_path)}}
 
@@ -416,6 +418,8 @@ def _worker_init() -> None:  # pragma: no cover - runs in the worker process
     """Log warnings only, to stderr; die with the daemon (no orphan after a kill -9)."""
     import logging
     import sys
+
+    import structlog
 
     structlog.configure(
         processors=[structlog.processors.add_log_level,

@@ -171,6 +171,19 @@ def test_light_packages_leave_heavy_modules_unimported() -> None:
     assert out.stdout.strip() == "[]"
 
 
+def test_the_campaign_report_reads_its_rows_without_the_daemons_logging() -> None:
+    """``robocal report CAMPAIGN`` imports what input_from_campaign needs (store, config, the
+    rows helpers of robocal.daemon.fitting) and the report writer; structlog (with rich,
+    ~0.07 s) is the daemon's and stays unimported."""
+    src = ("import sys\n"
+           "import robocal.cli._report, robocal.daemon.fitting, robocal.daemon.store\n"
+           "import robocal.daemon.config, robocal.report._write\n"
+           "print(sorted(m for m in ('structlog', 'rich', 'matplotlib') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_every_verb_has_a_description_and_no_empty_default_is_shown() -> None:
     from robocal.cli.main import build_parser
 
