@@ -25,8 +25,12 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 Scale = Literal["linear", "log"]
 LegendLoc = Literal["above", "below", "best", "upper right", "upper left", "lower left",
-                    "lower right"]
-_CORNERS: tuple[LegendLoc, ...] = ("upper right", "upper left", "lower left", "lower right")
+                    "lower right", "center right", "center left", "upper center",
+                    "lower center"]
+# the inside places "best" chooses from, in order of preference on a tie
+_INSIDE: tuple[LegendLoc, ...] = ("upper right", "upper left", "lower left", "lower right",
+                                  "center right", "center left", "upper center",
+                                  "lower center")
 PX = 96.0  # pixels per inch
 TICK_FONT = 10.5
 LABEL_FONT = 11.5
@@ -569,8 +573,7 @@ class Axes:
         else:
             if loc == "best":
                 loc = self._best(w, h)
-            x0 = L + 8 if loc.endswith("left") else L + W - 8 - w
-            y0 = T + 6 if loc.startswith("upper") else T + H - 6 - h
+            x0, y0 = self._place(loc, w, h)
             out.append(f'<rect x="{x0 - 4:.1f}" y="{y0 - 2:.1f}" width="{w + 8:.1f}" '
                        f'height="{h + 4:.1f}" fill="#fff" fill-opacity=".8"/>')
         parts = [f'<g font-size="{size}" fill="#222">']
@@ -585,19 +588,36 @@ class Axes:
         out.append("".join(parts))
         return top
 
-    def _best(self, w: float, h: float) -> LegendLoc:
-        """The inside corner whose legend box would cover the fewest data points."""
-        pts = [(self.tx(it.x), self.ty(it.y)) for it in self.items
-               if it.kind in ("line", "stairs", "markers")]
-        if not pts:
-            return "upper right"
-        x = np.concatenate([p[0] for p in pts])
-        y = np.concatenate([p[1] for p in pts])
+    def _place(self, loc: LegendLoc, w: float, h: float) -> tuple[float, float]:
+        """Top-left corner (px) of a ``w`` x ``h`` legend box at an inside ``loc``."""
         L, T, W, H = self.left, self.top, self.width, self.height
-        best, least = _CORNERS[0], -1
-        for loc in _CORNERS:
-            x0 = L + 8 if loc.endswith("left") else L + W - 8 - w
-            y0 = T + 6 if loc.startswith("upper") else T + H - 6 - h
+        x0 = (L + 8 if loc.endswith("left") else L + W - 8 - w if loc.endswith("right")
+              else L + (W - w) / 2)
+        y0 = (T + 6 if loc.startswith("upper") else T + H - 6 - h if loc.startswith("lower")
+              else T + (H - h) / 2)
+        return x0, y0
+
+    def _best(self, w: float, h: float) -> LegendLoc:
+        """The inside place whose legend box would cover the least data: markers count
+        once each, lines by 8 points along each of their segments."""
+        xs, ys = [], []
+        for it in self.items:
+            if it.kind not in ("line", "stairs", "markers"):
+                continue
+            x, y = self.tx(it.x), self.ty(it.y)
+            if it.kind != "markers" and x.size >= 2:
+                # 8 samples per segment; segments through a non-finite point give NaN
+                t = np.linspace(0.0, 1.0, 8, endpoint=False)
+                x = (x[:-1, None] + np.diff(x)[:, None] * t).ravel()
+                y = (y[:-1, None] + np.diff(y)[:, None] * t).ravel()
+            xs.append(x)
+            ys.append(y)
+        if not xs:
+            return _INSIDE[0]
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        best, least = _INSIDE[0], -1
+        for loc in _INSIDE:
+            x0, y0 = self._place(loc, w, h)
             n = int(np.count_nonzero((x >= x0) & (x <= x0 + w) & (y >= y0) & (y <= y0 + h)))
             if least < 0 or n < least:
                 best, least = loc, n

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
@@ -161,3 +162,25 @@ def test_log_axis_and_equal_aspect() -> None:
 
 def test_viridis_ends() -> None:
     assert viridis([0.0, 1.0, 2.0, math.nan]) == ["#440154", "#fde725", "#fde725", "#440154"]
+
+
+def _legend_box(svg: ET.Element) -> tuple[float, float, float, float]:
+    """x0, y0, x1, y1 of the (only) inside legend's background box."""
+    (r,) = [e for e in svg.iter(f"{NS}rect") if e.get("fill-opacity") == ".8"]
+    x, y = float(r.get("x") or 0), float(r.get("y") or 0)
+    return x, y, x + float(r.get("width") or 0), y + float(r.get("height") or 0)
+
+
+def test_best_legend_avoids_lines_between_their_vertices() -> None:
+    fig = Figure(400, 300)
+    (ax,) = fig.subplots(1, 1, (50, 10, 40, 40))
+    # two long segments along the top and the bottom: every corner box crosses one
+    ax.line([0, 10], [10, 10], "#123456", label="top")
+    ax.line([0, 10], [0, 0], "#654321", label="bottom")
+    ax.legend("best")
+    (svg,) = figures(fig.svg("best", "best"))
+    _, y0, x1, y1 = _legend_box(svg)
+    ax._prepare()
+    top, bottom = ax.ty(np.array([10.0, 0.0])).tolist()
+    assert top < y0 and y1 < bottom  # between the lines, not on them
+    assert x1 > ax.left + ax.width - 10  # at the right (the first free place)
