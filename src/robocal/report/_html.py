@@ -68,6 +68,7 @@ background:#fdecea;color:#5c1a14}
 .flag.ok{border-color:#1e8e3e;background:#e6f4ea;color:#14371f}
 .flag.info{border-color:#8a94a6;background:#f1f3f6;color:#2b3240}
 .flag b{font-weight:700}
+@media print{figure{break-inside:avoid;box-shadow:none}}
 @media (max-width:900px){.first,.two{grid-template-columns:1fr}
 .cards{grid-template-columns:repeat(2,1fr)}}
 """
