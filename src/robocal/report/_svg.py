@@ -414,7 +414,7 @@ class Axes:
             t = log_ticks(*lim, n) if scale == "log" else nice_ticks(*lim, n)
             labels = tick_labels(t, scale)
             need = (sum(text_width(s, TICK_FONT) + 22 for s in labels) if axis == "x"
-                    else len(labels) * TICK_FONT * 1.6)
+                    else len(labels) * TICK_FONT * 2.5)
             if need <= (self.width if axis == "x" else self.height):
                 break
         return t, labels

@@ -184,3 +184,12 @@ def test_best_legend_avoids_lines_between_their_vertices() -> None:
     top, bottom = ax.ty(np.array([10.0, 0.0])).tolist()
     assert top < y0 and y1 < bottom  # between the lines, not on them
     assert x1 > ax.left + ax.width - 10  # at the right (the first free place)
+
+
+def test_y_ticks_keep_room_between_their_labels() -> None:
+    fig = Figure(400, 280)
+    (ax,) = fig.subplots(1, 1, (50, 10, 30, 44))  # 206 px tall, as the histograms
+    ax.line([0, 1], [0, 73], "#000")
+    (svg,) = figures(fig.svg("ticks", "ticks"))
+    assert [t for t in texts(svg) if t in {"0", "10", "20", "40", "60", "70"}] == [
+        "0", "20", "40", "60"]  # not 0, 10, ..., 70: labels 26 px apart, not 23
