@@ -146,8 +146,7 @@ def test_console_script_runs(files, tmp_path):
 
 
 # heavy packages that the fit/predict path must not load (start-up time, issue 14)
-_NOT_ON_FIT_PATH = ("scipy", "numpy.f2py", "matplotlib", "aiohttp", "pydantic", "structlog",
-                    "asyncio")
+_NOT_ON_FIT_PATH = ("scipy", "numpy.f2py", "aiohttp", "pydantic", "structlog", "asyncio")
 _IMPORTED = """
 import sys
 from robocal.cli.main import main

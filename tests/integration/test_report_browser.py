@@ -1,5 +1,6 @@
 """The report renders in a real browser: headless Chromium loads the page offline, every
-embedded plot decodes (naturalWidth > 0) and the first screen shows the verdict.
+inline SVG plot is laid out with its text inside the figure, and the first screen shows
+the verdict.
 
 Skipped, with the reason, when no Chromium is installed (CI installs Debian's ``chromium``).
 """
@@ -22,12 +23,19 @@ BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stab
 CHECK = """
 <script>
 window.addEventListener("load", () => {
-  const imgs = Array.from(document.images);
+  const figs = Array.from(document.querySelectorAll("figure > svg"));
+  // a text outside its figure's canvas would be cut off (rotated labels: see their anchor)
+  const outside = s => Array.from(s.querySelectorAll("text:not([transform])")).filter(t => {
+    const b = t.getBBox(), v = s.viewBox.baseVal;
+    return b.x < -1 || b.y < -1 || b.x + b.width > v.width + 1 || b.y + b.height > v.height + 1;
+  }).map(t => t.textContent);
   const out = {
-    n: imgs.length,
-    bad: imgs.filter(i => !(i.complete && i.naturalWidth > 0 && i.naturalHeight > 0))
-             .map(i => i.alt),
-    shown: imgs.map(i => Math.round(i.getBoundingClientRect().width)),
+    n: figs.length,
+    bad: figs.filter(s => !(s.getBoundingClientRect().height > 0
+                            && s.querySelectorAll("text").length > 0))
+             .map(s => s.getAttribute("aria-label")),
+    cut: figs.flatMap(outside),
+    shown: figs.map(s => Math.round(s.getBoundingClientRect().width)),
     badge: (document.querySelector("#verdict .badge") || {}).textContent || "",
     verdictTop: Math.round(document.querySelector("#verdict").getBoundingClientRect().top),
     requests: performance.getEntriesByType("resource").map(e => e.name)
@@ -86,7 +94,8 @@ def test_report_renders_in_headless_chromium(browser: str, tmp_path: Path) -> No
     assert m, f"no check output (exit {res.returncode}): {res.stderr[-2000:]}"
     got = json.loads(html.unescape(m.group(1)))
     assert got["n"] == n_figures > 8
-    assert got["bad"] == []                      # every plot decoded
+    assert got["bad"] == []                      # every plot is drawn, with its text
+    assert got["cut"] == []                      # no label runs off its figure
     assert min(got["shown"]) > 200               # and is laid out at a readable size
     assert got["requests"] == []                 # nothing fetched from anywhere
     assert "Calibration succeeded" in got["badge"]

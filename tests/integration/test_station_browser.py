@@ -260,8 +260,13 @@ async def _run(page: Page, url: str, svc: CalibrationService, plan_file: Path,
     # the report renders after the fit is stored (ADR 0048): the page swaps it in
     await page.wait_for_selector("iframe.report", timeout=WAIT_MS)
     assert await page.is_visible("iframe.report")
-    # the embedded report renders (sandboxed, its own inline styles and data: images)
+    # the embedded report renders (sandboxed, its own inline styles and inline SVG figures)
     await page.frame_locator("iframe.report").locator("#verdict").wait_for(timeout=WAIT_MS)
+    # with its figures drawn: inline SVG under the report's CSP, laid out at a readable size
+    plots = page.frame_locator("iframe.report").locator("figure > svg")
+    assert await plots.count() > 5
+    box = await plots.first.bounding_box()
+    assert box is not None and box["width"] > 200 and box["height"] > 100
     report = await page.request.get(f"{url}/campaigns/{cid}/report")
     assert report.status == 200 and "<html" in (await report.text()).lower()
 

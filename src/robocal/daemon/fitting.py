@@ -9,7 +9,6 @@ this module only arranges the data and calls it.
 
 from __future__ import annotations
 
-import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
@@ -486,6 +485,8 @@ class FitRunner:
         return await self._call(run_report_job, token)
 
     async def _call(self, fn: Callable[[Any], dict[str, Any]], arg: Any) -> dict[str, Any]:
+        import asyncio  # here: robocal report CAMPAIGN imports this module, not asyncio
+
         loop = asyncio.get_running_loop()
         fut = loop.run_in_executor(self._executor(), fn, arg)
         try:

@@ -1,11 +1,11 @@
 """The calibration report: one self-contained HTML page plus a JSON summary.
 
-``write_report(ReportInput(...), "report.html")`` writes ``report.html`` (plots embedded as
-PNG data URIs, inline CSS, no scripts, readable offline) and ``report.json`` beside it. The
-first screen gives the verdict (succeeded / marginal / failed, with the reason) against
-:class:`Acceptance`; below: error before/after per model with the "% described" table,
-joint-dependent errors with ±2σ bands, identifiability, ISO 9283 AP/RP, predicted accuracy
-over the workspace, the measurement log and provenance.
+``write_report(ReportInput(...), "report.html")`` writes ``report.html`` (plots as inline
+SVG drawn by robocal itself, ADR 0049; inline CSS, no scripts, readable offline) and
+``report.json`` beside it. The first screen gives the verdict (succeeded / marginal /
+failed, with the reason) against :class:`Acceptance`; below: error before/after per model
+with the "% described" table, joint-dependent errors with ±2σ bands, identifiability,
+ISO 9283 AP/RP, predicted accuracy over the workspace, the measurement log and provenance.
 """
 
 from typing import TYPE_CHECKING
@@ -41,10 +41,8 @@ if TYPE_CHECKING:
     from robocal.report._compensation import add_compensation_section
     from robocal.report._write import REPORT_FORMAT, summary, write_report
 
-# Lazy attributes, kept: the daemon's configuration check imports this package for Acceptance
-# alone. Since the figures are drawn as SVG by robocal itself (ADR 0049) writing costs little
-# to import (python -X importtime: _write about 0.03 s over the package), but nothing on
-# the configuration path needs it.
+# Lazy attributes, kept on purpose: the daemon's configuration check imports this package for
+# Acceptance alone, and the figures and page templates are needed only to write a report.
 def __getattr__(name: str) -> object:
     found: dict[str, object]
     if name in ("REPORT_FORMAT", "summary", "write_report"):

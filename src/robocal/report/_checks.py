@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.files import atomic_write_text
-from robocal.report._figures import Plot, new_figure, render
+from robocal.report._figures import Plot, grid, new_figure, render
 from robocal.report._html import _fig, _table, esc, nice_date, put_section
 
 __all__ = ["add_checks_section", "checks_html"]
@@ -35,21 +35,20 @@ def _plot(checks: Sequence[Mapping[str, Any]], thresholds: Mapping[str, Any]) ->
     done = [c for c in checks if isinstance(c.get("rms_mm"), int | float)]
     if len(done) < 2:
         return None
-    fig = new_figure(7.0, 2.6, (0.65, 0.1, 0.45, 0.3))
-    ax = fig.add_subplot()
-    x = [float(i) for i in range(len(done))]
-    ax.plot(x, [float(c["rms_mm"]) for c in done], color="#1f77b4", marker="o", ms=4,
-            hollow=False, line=True, label="RMS")
-    ax.plot(x, [float(c.get("max_mm") or math.nan) for c in done], color="#9e9e9e",
-            marker=".", ms=3, hollow=False, line=True, label="max")
+    fig = new_figure(7.0, 2.6)
+    (ax,) = grid(fig, 1, 1, (0.65, 0.1, 0.45, 0.3))
+    x = list(range(len(done)))
+    ax.line(x, [c["rms_mm"] for c in done], "#1f77b4", marker="o", size=3.5, label="RMS")
+    ax.line(x, [float(c.get("max_mm") or math.nan) for c in done], "#9e9e9e", marker=".",
+            size=2.0, label="max")
     for key, colour in (("warn_rms_mm", "#ff7f0e"), ("fail_rms_mm", "#d62728")):
         if isinstance(thresholds.get(key), int | float):
-            ax.axhline(float(thresholds[key]), color=colour, dash="4 3", lw=0.8,
-                       label=key.replace("_mm", "").replace("_", " "))
+            ax.hline(thresholds[key], colour, dash="--", width=1.0,
+                     label=key.replace("_mm", "").replace("_", " "))
     step = max(1, -(-len(done) // 12))
     ax.set_xticks(x[::step], [str(c["id"]) for c in done][::step])
-    ax.set_xlabel("check")
-    ax.set_ylabel("error vs model, mm")
+    ax.xlabel = "check"
+    ax.ylabel = "error vs model, mm"
     ax.legend("above", ncol=4)
     return render("checks", fig, "RMS and max error of each drift check, in order")
 

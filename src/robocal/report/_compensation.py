@@ -20,8 +20,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from robocal._core.files import atomic_write_text
-from robocal.report._figures import Plot, new_figure, render
+from robocal.report._figures import Plot, grid, new_figure, render
 from robocal.report._html import _fig, _table, esc, nice_date, put_section
 
 __all__ = ["add_compensation_section", "compensation_html"]
@@ -36,19 +38,19 @@ def _plot(entry: Mapping[str, Any]) -> Plot | None:
     rows = v.get("per_target") or []
     if not rows:
         return None
-    fig = new_figure(7.0, 2.6, (0.65, 0.1, 0.45, 0.3))
-    ax = fig.add_subplot()
-    x = [float(i) for i in range(len(rows))]
-    ax.bar([i - 0.2 for i in x], [float(r["before_mm"]) for r in rows], 0.4,
-           label="before (program targets)", color="#9e9e9e")
-    ax.bar([i + 0.2 for i in x], [float(r["after_mm"]) for r in rows], 0.4,
-           label="after (pushed values)", color="#1f77b4")
-    ax.set_yscale("log")
+    fig = new_figure(7.0, 2.6)
+    (ax,) = grid(fig, 1, 1, (0.65, 0.1, 0.45, 0.3))
+    x = np.arange(len(rows), dtype=float)
+    ax.bar(x - 0.2, [r["before_mm"] for r in rows], 0.4, "#9e9e9e",
+           label="before (program targets)")
+    ax.bar(x + 0.2, [r["after_mm"] for r in rows], 0.4, "#1f77b4",
+           label="after (pushed values)")
+    ax.yscale = "log"
     step = max(1, -(-len(rows) // 16))  # at most 16 labels, so they never overlap
     ax.set_xticks(x[::step], [str(r["index"]) for r in rows][::step])
-    ax.set_xlim(-0.6, len(rows) - 0.4)
-    ax.set_xlabel("target (row of the pushed table)")
-    ax.set_ylabel("position error, mm")
+    ax.xlim = (-0.5, len(rows) - 0.5)
+    ax.xlabel = "target (row of the pushed table)"
+    ax.ylabel = "position error, mm"
     ax.legend("above", ncol=2)
     return render(f"compensation-{entry.get('key', '')}", fig,
                   "position error of each verified target before and after the push")

@@ -1,4 +1,4 @@
-"""The self-contained HTML page: inline CSS, plots as data URIs, no scripts, no links out."""
+"""The self-contained HTML page: inline CSS, plots as inline SVG, no scripts, no links out."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ thead th{background:#eef1f6;font-weight:600}
 .note.warn{color:#b35c00}
 figure{margin:10px 0;background:#fff;border-radius:8px;padding:6px;
 box-shadow:0 1px 3px rgba(0,0,0,.08)}
-figure img{max-width:100%;height:auto;display:block}
+figure svg{max-width:100%;height:auto;display:block}
 figcaption{font-size:12.5px;color:#5a6375;padding:2px 6px}
 nav.toc{margin:16px 0 0;font-size:13px}
 nav.toc a{margin-right:14px;color:#1a57b5;text-decoration:none}
@@ -68,6 +68,7 @@ background:#fdecea;color:#5c1a14}
 .flag.ok{border-color:#1e8e3e;background:#e6f4ea;color:#14371f}
 .flag.info{border-color:#8a94a6;background:#f1f3f6;color:#2b3240}
 .flag b{font-weight:700}
+@media print{figure{break-inside:avoid;box-shadow:none}}
 @media (max-width:900px){.first,.two{grid-template-columns:1fr}
 .cards{grid-template-columns:repeat(2,1fr)}}
 """
@@ -130,8 +131,8 @@ def put_section(page: str, pattern: re.Pattern[str], section: str) -> str:
 def _fig(p: Plot | None, caption: str) -> str:
     if p is None:
         return ""
-    return (f'<figure><img src="{p.uri}" width="{p.width}" height="{p.height}" '
-            f'alt="{esc(p.alt)}"><figcaption>{caption}</figcaption></figure>')
+    # the markup carries role="img", the alt text as aria-label and <title> (ADR 0049)
+    return f"<figure>{p.svg}<figcaption>{caption}</figcaption></figure>"
 
 
 def _swatch(name: str, i: int = 0) -> str:

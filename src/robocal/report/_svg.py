@@ -1,825 +1,706 @@
-"""A small SVG plotter for the report's figures (ADR 0049).
+"""A small plotting module that writes SVG (ADR 0049): the report's figures, drawn by robocal.
 
-Figures are laid out on fixed margins in inches (96 px per inch), drawn with numpy-transformed
-coordinates and one ``<path>`` per series, and emitted as SVG text: no font rasterising, no
-text-extent search, no PNG encoding. Text widths are estimated (``text_width``), which is all
-the fixed layouts need. The API follows matplotlib's names where it can, so a figure reads
-like one, but only what the report draws is there.
+Just what the report needs: axes with "nice" linear ticks (1-2-5 steps) and log ticks
+(decades, or 1-2-5 per decade when few decades show), a grid, lines, open markers, bands,
+bars, shaded spans, horizontal/vertical rules, text, legends, titles, axis labels, subplot
+grids and a colour bar. Text is SVG ``<text>`` (the browser lays it out, so there is no glyph
+cost here); every string is XML-escaped. Coordinates are transformed with numpy and each
+series becomes one ``<path>`` (markers are relative sub-paths of it), so a figure costs a few
+string joins. Non-finite values (and non-positive ones on a log axis) are skipped.
+
+Sizes are CSS pixels (96 per inch); numbers are written with one decimal.
 """
 
 from __future__ import annotations
 
-import base64
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 Array = NDArray[np.float64]
-DPI = 96.0
-PT = DPI / 72.0  # px per typographic point
-FONT = "DejaVu Sans,Helvetica,Arial,sans-serif"
-MINUS = "\u2212"
-# Viridis (matplotlib's perceptually uniform colour map) sampled at 9 evenly spaced points;
-# values between them are interpolated linearly in RGB.
-VIRIDIS = ((68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141),
-           (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37))
 Scale = Literal["linear", "log"]
-_CB_AXES = 0.72  # the share of its box an axes with a colour bar keeps
+LegendLoc = Literal["above", "below", "best", "upper right", "upper left", "lower left",
+                    "lower right", "center right", "center left", "upper center",
+                    "lower center"]
+# the inside places "best" chooses from, in order of preference on a tie
+_INSIDE: tuple[LegendLoc, ...] = ("upper right", "upper left", "lower left", "lower right",
+                                  "center right", "center left", "upper center",
+                                  "lower center")
+PX = 96.0  # pixels per inch
+TICK_FONT = 10.5
+LABEL_FONT = 11.5
+TITLE_FONT = 12.5
+LEGEND_FONT = 10.0
+_CHAR = 0.58  # average glyph width / font size of the sans-serif fonts browsers pick
+TAB10 = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
+         "#7f7f7f", "#bcbd22", "#17becf")
+# viridis at 0, 0.1, ..., 1 (the published 11-step table)
+_VIRIDIS = ("#440154", "#482475", "#414487", "#355f8d", "#2a788e", "#21918c", "#22a884",
+            "#44bf70", "#7ad151", "#bddf26", "#fde725")
+# Marker outlines, relative to the point, for a marker of radius 1 (scaled per series).
+# Closed shapes are drawn open (no fill) so that overlapping points stay visible.
+_SHAPES: dict[str, tuple[tuple[tuple[str, tuple[float, ...]], ...], bool]] = {
+    "s": ((("m", (-0.85, -0.85)), ("h", (1.7,)), ("v", (1.7,)), ("h", (-1.7,)),
+           ("z", ())), True),
+    "^": ((("m", (0, -1.1)), ("l", (0.95, 1.65, -1.9, 0)), ("z", ())), True),
+    "v": ((("m", (0, 1.1)), ("l", (0.95, -1.65, -1.9, 0)), ("z", ())), True),
+    "<": ((("m", (-1.1, 0)), ("l", (1.65, 0.95, 0, -1.9)), ("z", ())), True),
+    ">": ((("m", (1.1, 0)), ("l", (-1.65, 0.95, 0, -1.9)), ("z", ())), True),
+    "D": ((("m", (0, -1.1)), ("l", (1.1, 1.1, -1.1, 1.1, -1.1, -1.1)), ("z", ())), True),
+    "h": ((("m", (0, -1)), ("l", (0.87, 0.5, 0, 1, -0.87, 0.5, -0.87, -0.5, 0, -1)),
+           ("z", ())), True),
+    "x": ((("m", (-0.8, -0.8)), ("l", (1.6, 1.6)), ("m", (0, -1.6)), ("l", (-1.6, 1.6))),
+          False),
+    "+": ((("m", (-1, 0)), ("h", (2,)), ("m", (-1, -1)), ("v", (2,))), False),
+    "P": ((("m", (-1, 0)), ("h", (2,)), ("m", (-1, -1)), ("v", (2,))), False),
+    "*": ((("m", (-1, 0)), ("h", (2,)), ("m", (-1.5, -0.87)), ("l", (1, 1.73)),
+           ("m", (0, -1.73)), ("l", (-1, 1.73))), False),
+    "|": ((("m", (0, -1)), ("v", (2,))), False),
+}
+_BAD_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
+_ID = re.compile(r"[^A-Za-z0-9_-]")
+_UID = "\x00"  # stands for the figure's id prefix until it is known (esc drops it from text)
 
 
-def esc(s: object) -> str:
-    """``s`` as XML character data or attribute value."""
-    return (str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-            .replace('"', "&quot;"))
+def esc(text: object) -> str:
+    """``text`` safe inside XML text and double-quoted attributes (characters XML forbids
+    are dropped)."""
+    t = _BAD_XML.sub("", str(text))
+    return t.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace(
+        '"', "&quot;")
 
 
-def text_width(s: str, size_px: float) -> float:
-    """Estimated width (px) of ``s`` in the sans-serif font at ``size_px``."""
-    return 0.58 * size_px * len(s)
+def text_width(text: str, size: float) -> float:
+    """Estimated width (px) of ``text`` at font ``size`` px (no font metrics: an average)."""
+    return len(text) * size * _CHAR
+
+
+def nice_ticks(lo: float, hi: float, max_n: int = 8) -> Array:
+    """3..``max_n`` ticks inside [lo, hi] at multiples of a 1-2-5 step (``lo < hi``)."""
+    span = hi - lo
+    if not (math.isfinite(span) and span > 0):
+        return np.array([lo]) if math.isfinite(lo) else np.array([])
+    base = 10.0 ** math.floor(math.log10(span)) / 100
+    eps = 1e-9
+    while True:
+        for m in (1.0, 2.0, 5.0):
+            step = m * base
+            k0, k1 = math.ceil(lo / step - eps), math.floor(hi / step + eps)
+            if k1 - k0 + 1 <= max_n:
+                t = np.arange(k0, k1 + 1, dtype=float) * step
+                t[np.abs(t) < step * 1e-6] = 0.0
+                return t
+        base *= 10
+
+
+def log_ticks(lo: float, hi: float, max_n: int = 8) -> Array:
+    """Ticks of a log axis on [lo, hi] (``0 < lo < hi``): decades (every n-th when more than
+    ``max_n``); with fewer than 3 decades inside, 1, 2 and 5 times each decade; with fewer
+    than 3 of those, :func:`nice_ticks`."""
+    a, b = math.log10(lo), math.log10(hi)
+    k0, k1 = math.ceil(a - 1e-9), math.floor(b + 1e-9)
+    n = k1 - k0 + 1
+    if n >= 3:
+        stride = -(-n // max_n)
+        return 10.0 ** np.arange(k0, k1 + 1, stride, dtype=float)
+    c = (np.array([1.0, 2.0, 5.0]) * 10.0 ** np.arange(k0 - 1, k1 + 1)[:, None]).ravel()
+    tol = (hi - lo) * 1e-9
+    c = c[(c >= lo - tol) & (c <= hi + tol)]
+    return c if c.size >= 3 else nice_ticks(lo, hi, max_n)
+
+
+def tick_labels(ticks: Array, scale: Scale) -> list[str]:
+    """Compact labels: ``%g`` on a log axis, on a linear one as many decimals as the step
+    needs; a real minus sign."""
+    if scale == "log" or ticks.size < 2:
+        out = [f"{v:g}" for v in ticks.tolist()]
+    else:
+        step = float(np.min(np.diff(ticks)))
+        big = float(np.max(np.abs(ticks)))
+        if big >= 1e6 or step < 1e-4:
+            out = [f"{v:g}" for v in ticks.tolist()]
+        else:
+            d = max(0, -math.floor(math.log10(step) + 1e-9))
+            out = [f"{v + 0.0:.{d}f}" for v in ticks.tolist()]
+    return [s.replace("-", "−") for s in out]
 
 
 def viridis(t: ArrayLike) -> list[str]:
-    """Hex colours of the values ``t`` in [0, 1] (clipped) on the viridis map."""
-    v = np.clip(np.nan_to_num(np.asarray(t, dtype=float), nan=0.0), 0.0, 1.0)
-    pos = v * (len(VIRIDIS) - 1)
-    i = np.minimum(pos.astype(int), len(VIRIDIS) - 2)
-    f = (pos - i)[:, None]
-    table = np.asarray(VIRIDIS, dtype=float)
-    rgb = np.rint(table[i] * (1 - f) + table[i + 1] * f).astype(int)
-    return [f"#{r:02x}{g:02x}{b:02x}" for r, g, b in rgb.tolist()]
+    """Colours of the viridis map at ``t`` in [0, 1] (clipped), interpolated in sRGB."""
+    v = np.clip(np.nan_to_num(np.asarray(t, dtype=float), nan=0.0), 0, 1) * (len(_VIRIDIS) - 1)
+    rgb = np.array([[int(h[i:i + 2], 16) for i in (1, 3, 5)] for h in _VIRIDIS], dtype=float)
+    i = np.minimum(v.astype(int), len(_VIRIDIS) - 2)
+    f = (v - i)[..., None]
+    c = np.rint(rgb[i] * (1 - f) + rgb[i + 1] * f).astype(int)
+    return [f"#{r:02x}{g:02x}{b:02x}" for r, g, b in c.reshape(-1, 3).tolist()]
 
 
-# ---------------------------------------------------------------------------- ticks
-
-def _fmt_step(v: float, decimals: int) -> str:
-    s = f"{v:.{decimals}f}"
-    if s.lstrip("-").strip("0.") == "":
-        s = s.lstrip("-")  # no "-0.0"
-    return s.replace("-", MINUS)
+def _num(v: float) -> str:
+    s = f"{v:.1f}"
+    return s[:-2] if s.endswith(".0") else s
 
 
-def linear_ticks(lo: float, hi: float, nbins: int = 6) -> tuple[Array, list[str]]:
-    """Tick positions at a 1-2-2.5-5 step, at most ``nbins`` intervals over [lo, hi], with
-    labels of just enough decimals for the step."""
-    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
-        return np.zeros(0), []
-    raw = (hi - lo) / nbins
-    mag = 10.0 ** math.floor(math.log10(raw))
-    step = next(m * mag for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * mag >= raw * (1 - 1e-9))
-    first = math.ceil(lo / step - 1e-9)
-    last = math.floor(hi / step + 1e-9)
-    ticks = np.arange(first, last + 1, dtype=float) * step
-    exp = math.floor(math.log10(step) + 1e-12)
-    decimals = max(0, -exp + (1 if round(step / 10.0 ** exp, 6) == 2.5 else 0))
-    return ticks, [_fmt_step(float(t), decimals) for t in ticks]
+def _pairs(cmd: NDArray[np.str_] | str, x: Array, y: Array) -> str:
+    """``cmd[i] x[i] y[i]`` joined, one decimal (the one loop per series)."""
+    if isinstance(cmd, str):
+        return "".join(f"{cmd}{a:.1f} {b:.1f}" for a, b in zip(x.tolist(), y.tolist(),
+                                                               strict=True))
+    return "".join(f"{c}{a:.1f} {b:.1f}" for c, a, b in zip(cmd.tolist(), x.tolist(),
+                                                            y.tolist(), strict=True))
 
 
-def _fmt_log(v: float) -> str:
-    return f"{v:g}".replace("-", MINUS)
-
-
-def log_ticks(lo: float, hi: float) -> tuple[Array, list[str]]:
-    """Decades in [lo, hi] (every k-th when there are many); with fewer than three decades
-    in view also 2 and 5 times each decade, so an axis always has labelled ticks."""
-    if not (lo > 0 and hi > lo and math.isfinite(hi)):
-        return np.zeros(0), []
-    d0, d1 = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
-    subs = (1.0, 2.0, 5.0) if hi <= 100 * lo else (1.0,)
-    every = max(1, math.ceil((d1 - d0) / 7))
-    vals = [m * 10.0 ** d for d in range(d0, d1 + 1) if (d - d0) % every == 0 for m in subs]
-    ticks = np.array([v for v in vals if lo * (1 - 1e-9) <= v <= hi * (1 + 1e-9)])
-    return ticks, [_fmt_log(float(t)) for t in ticks]
-
-
-# ---------------------------------------------------------------------------- markers
-
-def _marker_path(mk: str, r: float) -> tuple[str, str, bool]:
-    """(start offset "dx,dy" from the centre, relative path drawn from there, fillable) of
-    marker ``mk`` with half-size ``r`` px."""
-    def f(v: float) -> str:
-        return f"{v:.2f}".rstrip("0").rstrip(".") or "0"
-
-    d, h = f(2 * r), f(r)
+def _shape(mk: str, r: float) -> tuple[str, bool]:
+    """The relative path of marker ``mk`` at radius ``r`` px and whether it is closed."""
     if mk in ("o", "."):
-        return f"{-r:.2f},0", f"a{h},{h} 0 1 0 {d},0a{h},{h} 0 1 0 -{d},0z", True
-    if mk == "s":
-        return f"{-r:.2f},{-r:.2f}", f"h{d}v{d}h-{d}z", True
-    if mk == "D":
-        return f"0,{-r:.2f}", f"l{h},{h}l-{h},{h}l-{h},-{h}z", True
-    if mk in ("^", "v", "<"):
-        s = -1 if mk == "^" else 1
-        if mk == "<":
-            return f"{-r:.2f},0", f"l{d},-{h}v{d}z", True
-        return f"0,{s * r:.2f}", f"l{h},{f(-2 * s * r)}h-{d}z", True
-    if mk == "h":
-        a, b = f(r * 0.866), f(r * 0.5)
-        return f"0,{-r:.2f}", f"l{a},{b}v{h}l-{a},{b}l-{a},-{b}v-{h}z", True
-    if mk == "x":
-        return f"{-r:.2f},{-r:.2f}", f"l{d},{d}m0,-{d}l-{d},{d}", False
-    if mk in ("+", "P"):
-        return f"{-r:.2f},0", f"h{d}m-{h},-{h}v{d}", False
-    if mk == "*":
-        a, b = f(r * 0.95), f(r * 0.31)
-        return f"0,{-r:.2f}", (f"v{d}m-{a},-{f(r * 1.31)}l{f(r * 1.9)},{f(r * 0.62)}"
-                                f"m0,-{f(r * 0.62)}l-{f(r * 1.9)},{f(r * 0.62)}m{a},-{b}"), False
-    if mk == "|":
-        return f"0,{-r:.2f}", f"v{d}", False
-    raise ValueError(f"unknown marker {mk!r}")
+        return (f"m{-r:.1f} 0a{r:.1f} {r:.1f} 0 1 0 {2 * r:.1f} 0"
+                f"a{r:.1f} {r:.1f} 0 1 0 {-2 * r:.1f} 0"), True
+    parts, closed = _SHAPES.get(mk, _SHAPES["s"])
+    return "".join(c + " ".join(_num(v * r) for v in vals) for c, vals in parts), closed
 
 
-def _points_path(px: Array, py: Array, mk: str, r: float) -> tuple[str, bool]:
-    start, rel, fillable = _marker_path(mk, r)
-    sx, sy = (float(v) for v in start.split(","))
-    parts = [f"M{x:.1f},{y:.1f}{rel}" for x, y in zip((px + sx).tolist(), (py + sy).tolist(),
-                                                       strict=True)]
-    return "".join(parts), fillable
+def _dash(style: str | None) -> str:
+    return {"--": ' stroke-dasharray="5 3"', ":": ' stroke-dasharray="1.5 2.5"'}.get(
+        style or "", "")
 
-
-def _polyline(px: Array, py: Array) -> str:
-    """One path through the finite points; a non-finite value breaks the line."""
-    ok = np.isfinite(px) & np.isfinite(py)
-    out: list[str] = []
-    pen = False
-    for x, y, good in zip(px.tolist(), py.tolist(), ok.tolist(), strict=True):
-        if not good:
-            pen = False
-            continue
-        out.append(f"{'L' if pen else 'M'}{x:.1f},{y:.1f}")
-        pen = True
-    return "".join(out)
-
-
-# ---------------------------------------------------------------------------- artists
 
 @dataclass
-class _Line:
+class _Item:
+    kind: str
     x: Array
     y: Array
-    color: str
-    lw: float
-    dash: str | None
-    marker: str | None
-    ms: float
-    mew: float
-    hollow: bool
-    alpha: float
-    label: str | None
-    linestyle: bool
-
-
-@dataclass
-class _Rects:
-    x0: Array
-    x1: Array
-    y0: Array
-    y1: Array
-    colors: list[str]
-    alpha: float
-    hatch: bool
-    edge: str | None
-    label: str | None
-
-
-@dataclass
-class _Fill:
-    x: Array
-    y0: Array
-    y1: Array
-    color: str
-    alpha: float
-
-
-@dataclass
-class _Span:
-    axis: Literal["x", "y"]
-    a: float
-    b: float
-    color: str
-    alpha: float
-    lw: float = 0.0
+    x2: Array | None = None
+    y2: Array | None = None
+    color: str | list[str] = "#000"
+    alpha: float = 1.0
+    width: float = 1.2
     dash: str | None = None
+    marker: str | None = None
+    size: float = 3.0
+    filled: bool = False
+    hatch: bool = False
     label: str | None = None
-
-
-@dataclass
-class _Text:
-    x: float
-    y: float
-    s: str
-    axes_coords: bool
-    ha: str
-    va: str
-    color: str
-    size: float
-
-
-@dataclass
-class _Colored:
-    x: Array
-    y: Array
-    colors: list[str]
-    ms: float
-
-
-@dataclass
-class _Legend:
-    loc: str
-    ncol: int
-    size: float
-
-
-@dataclass
-class _Axis:
-    scale: Scale = "linear"
-    lim: tuple[float, float] | None = None
-    ticks: tuple[list[float], list[str]] | None = None
-    label: str = ""
-    inverted: bool = False
-
-
-@dataclass
-class Axes:
-    """One plot area: a box in figure pixels (left, top, width, height) and its artists."""
-
-    box: tuple[float, float, float, float]
-    artists: list[Any] = field(default_factory=list)
-    xaxis: _Axis = field(default_factory=_Axis)
-    yaxis: _Axis = field(default_factory=_Axis)
-    title: str = ""
-    title_size: float = 9.5
-    legend_: _Legend | None = None
-    equal: bool = False
-    colorbar: tuple[float, float, str] | None = None
-
-    # -- drawing
-    def plot(self, x: ArrayLike, y: ArrayLike, *, color: str, lw: float = 1.4,
-             dash: str | None = None, marker: str | None = None, ms: float = 3.4,
-             mew: float = 0.8, hollow: bool = True, alpha: float = 1.0,
-             label: str | None = None, line: bool | None = None) -> None:
-        """A series: a line (``line``; default when there is no marker) and/or markers
-        (``ms`` points across, open when ``hollow``)."""
-        self.artists.append(_Line(_arr(x), _arr(y), color, lw, dash, marker, ms, mew, hollow,
-                                  alpha, label, marker is None if line is None else line))
-
-    def barh(self, y: ArrayLike, width: ArrayLike, *, left: ArrayLike = 0.0,
-             height: float = 0.8, color: str | Sequence[str], alpha: float = 1.0,
-             hatch: bool = False, edgecolor: str | None = None,
-             label: str | None = None) -> None:
-        """Horizontal bars centred on ``y``."""
-        yc, w = np.broadcast_arrays(_arr(y), _arr(width))
-        x0 = np.broadcast_to(_arr(left), yc.shape)
-        self._rects(x0, x0 + w, yc - height / 2, yc + height / 2, color, alpha, hatch,
-                    edgecolor, label)
-
-    def bar(self, x: ArrayLike, height: ArrayLike, width: float = 0.8, *,
-            bottom: ArrayLike = 0.0, color: str | Sequence[str], alpha: float = 1.0,
-            label: str | None = None) -> None:
-        """Vertical bars centred on ``x``."""
-        xc, h = np.broadcast_arrays(_arr(x), _arr(height))
-        y0 = np.broadcast_to(_arr(bottom), xc.shape)
-        self._rects(xc - width / 2, xc + width / 2, y0, y0 + h, color, alpha, False, None,
-                    label)
-
-    def _rects(self, x0: Array, x1: Array, y0: Array, y1: Array,
-               color: str | Sequence[str], alpha: float, hatch: bool, edge: str | None,
-               label: str | None) -> None:
-        cols = [color] * x0.size if isinstance(color, str) else list(color)
-        self.artists.append(_Rects(np.asarray(x0, float), np.asarray(x1, float),
-                                   np.asarray(y0, float), np.asarray(y1, float), cols, alpha,
-                                   hatch, edge, label))
-
-    def hist(self, data: ArrayLike, bins: ArrayLike | int, *, color: str, lw: float = 1.6,
-             step: bool = True, alpha: float = 1.0, label: str | None = None) -> None:
-        """Histogram of the finite ``data``: a step outline (``step``) or filled bars."""
-        d = _arr(data)
-        counts, edges = np.histogram(d[np.isfinite(d)], bins=bins)
-        c = counts.astype(float)
-        if step:
-            x = np.repeat(edges, 2)
-            y = np.concatenate([[0.0], np.repeat(c, 2), [0.0]])
-            self.plot(x, y, color=color, lw=lw, label=label)
-        else:
-            self._rects(edges[:-1], edges[1:], np.zeros(c.size), c, color, alpha, False, None,
-                        label)
-        self.artists.append(_Span("y", 0.0, 0.0, "none", 0.0))  # the axis starts at 0
-
-    def fill_between(self, x: ArrayLike, y0: ArrayLike, y1: ArrayLike, *, color: str,
-                     alpha: float = 0.18) -> None:
-        """The band between two curves over ``x``."""
-        self.artists.append(_Fill(_arr(x), _arr(y0), _arr(y1), color, alpha))
-
-    def axvspan(self, a: float, b: float, *, color: str, alpha: float) -> None:
-        """A shaded vertical band over the whole height."""
-        self.artists.append(_Span("x", a, b, color, alpha))
-
-    def axhline(self, y: float, *, color: str, lw: float = 0.8, dash: str | None = None,
-                label: str | None = None) -> None:
-        """A horizontal reference line over the whole width."""
-        self.artists.append(_Span("y", y, y, color, 1.0, lw, dash, label))
-
-    def axvline(self, x: float, *, color: str, lw: float = 0.8,
-                dash: str | None = None) -> None:
-        """A vertical reference line over the whole height."""
-        self.artists.append(_Span("x", x, x, color, 1.0, lw, dash))
-
-    def scatter_colored(self, x: ArrayLike, y: ArrayLike, values: ArrayLike, *,
-                        vmin: float, vmax: float, ms: float = 2.6) -> None:
-        """Filled dots coloured by ``values`` on the viridis map over [vmin, vmax]."""
-        v = _arr(values)
-        t = (v - vmin) / (vmax - vmin) if vmax > vmin else np.zeros_like(v)
-        self.artists.append(_Colored(_arr(x), _arr(y), viridis(np.round(t * 31) / 31), ms))
-
-    def text(self, x: float, y: float, s: str, *, axes_coords: bool = False,
-             ha: str = "left", va: str = "center", color: str = "#222",
-             size: float = 7.5) -> None:
-        """Text at data (or axes-fraction) coordinates."""
-        self.artists.append(_Text(x, y, s, axes_coords, ha, va, color, size))
-
-    # -- axes
-    def set_xscale(self, s: Scale) -> None:
-        self.xaxis.scale = s
-
-    def set_yscale(self, s: Scale) -> None:
-        self.yaxis.scale = s
-
-    def set_xlim(self, lo: float, hi: float) -> None:
-        self.xaxis.lim = (lo, hi)
-
-    def set_ylim(self, lo: float, hi: float) -> None:
-        self.yaxis.lim = (lo, hi)
-
-    def set_xlabel(self, s: str) -> None:
-        self.xaxis.label = s
-
-    def set_ylabel(self, s: str) -> None:
-        self.yaxis.label = s
-
-    def set_title(self, s: str, size: float = 9.5) -> None:
-        self.title, self.title_size = s, size
-
-    def set_xticks(self, pos: Sequence[float], labels: Sequence[str]) -> None:
-        self.xaxis.ticks = ([float(p) for p in pos], [str(s) for s in labels])
-
-    def set_yticks(self, pos: Sequence[float], labels: Sequence[str]) -> None:
-        self.yaxis.ticks = ([float(p) for p in pos], [str(s) for s in labels])
-
-    def invert_yaxis(self) -> None:
-        self.yaxis.inverted = True
-
-    def set_aspect_equal(self) -> None:
-        """Equal data units per pixel on both axes (the limits grow, the box stays)."""
-        self.equal = True
-
-    def legend(self, loc: str = "best", ncol: int = 1, size: float = 7.5) -> None:
-        """A legend of the labelled artists: ``above`` / ``below`` the axes (outside,
-        centred), or inside at ``upper right``, ``upper left``, ``lower left``, ``lower
-        right`` or ``best`` (the corner with the fewest data points)."""
-        self.legend_ = _Legend(loc, ncol, size)
-
-    def has_data(self) -> bool:
-        """True when a series with points was drawn."""
-        return any(isinstance(a, _Line) and a.x.size for a in self.artists)
+    text: str = ""
+    anchor: str = "start"
+    sticky: str = ""  # "x"/"y": bars standing on zero along that axis
 
 
 def _arr(v: ArrayLike) -> Array:
     return np.atleast_1d(np.asarray(v, dtype=float))
 
 
-# ---------------------------------------------------------------------------- limits
-
-def _extent(ax: Axes, which: Literal["x", "y"], log: bool) -> tuple[float, float, bool, bool]:
-    """(lo, hi, sticky lo, sticky hi) of the data along ``which``."""
-    vals: list[Array] = []
-    sticky: list[float] = []
-    for a in ax.artists:
-        if isinstance(a, _Line | _Colored):
-            vals.append(a.x if which == "x" else a.y)
-        elif isinstance(a, _Rects):
-            lo_, hi_ = (a.x0, a.x1) if which == "x" else (a.y0, a.y1)
-            vals += [lo_, hi_]
-            if lo_.size and np.all(lo_ == lo_.flat[0]):  # bars from a common base
-                sticky.append(float(lo_.flat[0]))
-        elif isinstance(a, _Fill):
-            vals += [a.x] if which == "x" else [a.y0, a.y1]
-        elif isinstance(a, _Span) and a.axis == which and a.alpha >= 0:
-            if a.color == "none":
-                sticky.append(a.a)
-            if a.lw > 0 or a.color == "none":
-                vals.append(np.array([a.a, a.b]))
-    v = np.concatenate(vals) if vals else np.zeros(0)
-    v = v[np.isfinite(v) & ((v > 0) if log else True)]
-    if not v.size:
-        return (1.0, 10.0, False, False) if log else (0.0, 1.0, False, False)
-    lo, hi = float(v.min()), float(v.max())
-    return lo, hi, any(s == lo for s in sticky), any(s == hi for s in sticky)
-
-
-def _limits(ax: Axes, which: Literal["x", "y"]) -> tuple[float, float]:
-    axis = ax.xaxis if which == "x" else ax.yaxis
-    log = axis.scale == "log"
-    if axis.lim is not None:
-        lo, hi = axis.lim
-    else:
-        lo, hi, slo, shi = _extent(ax, which, log)
-        if log:
-            a, b = math.log10(lo), math.log10(hi)
-            if b - a < 1e-9:
-                a, b = a - 0.5, b + 0.5
-            m = 0.05 * (b - a)
-            lo, hi = 10 ** (a if slo else a - m), 10 ** (b if shi else b + m)
-        else:
-            if hi - lo <= 1e-12 * max(1.0, abs(hi)):
-                d = max(abs(hi) * 0.05, 1e-9)
-                lo, hi = lo - d, hi + d
-            m = 0.05 * (hi - lo)
-            lo, hi = (lo if slo else lo - m), (hi if shi else hi + m)
-    if log and lo <= 0:
-        lo = hi / 1e3 if hi > 0 else 1.0
-        hi = max(hi, lo * 10)
-    return float(lo), float(hi)
-
-
-# ---------------------------------------------------------------------------- figure
-
 @dataclass
+class Axes:
+    """One plotting area at (left, top, width, height) px in its figure."""
+
+    left: float
+    top: float
+    width: float
+    height: float
+    xscale: Scale = "linear"
+    yscale: Scale = "linear"
+    title: str = ""
+    xlabel: str = ""
+    ylabel: str = ""
+    title_size: float = TITLE_FONT
+    items: list[_Item] = field(default_factory=list)
+    xlim: tuple[float, float] | None = None
+    ylim: tuple[float, float] | None = None
+    xticks: tuple[Array, list[str]] | None = None
+    yticks: tuple[Array, list[str]] | None = None
+    y_inverted: bool = False
+    equal: bool = False
+    legend_spec: tuple[LegendLoc, int, float] | None = None
+    message: str = ""
+    _xl: tuple[float, float] = field(default=(0.0, 1.0), init=False)
+    _yl: tuple[float, float] = field(default=(0.0, 1.0), init=False)
+
+    # --- drawing -------------------------------------------------------------------------
+    def line(self, x: ArrayLike, y: ArrayLike, color: str, *, width: float = 1.2,
+             dash: str | None = None, marker: str | None = None, size: float = 3.0,
+             alpha: float = 1.0, label: str | None = None) -> None:
+        """A polyline (broken at non-finite points), optionally with markers."""
+        self.items.append(_Item("line", _arr(x), _arr(y), color=color, width=width,
+                                dash=dash, marker=marker, size=size, alpha=alpha,
+                                label=label, filled=marker == "."))
+
+    def markers(self, x: ArrayLike, y: ArrayLike, color: str, marker: str = "o", *,
+                size: float = 3.0, width: float = 1.0, alpha: float = 1.0,
+                filled: bool = False, label: str | None = None) -> None:
+        """Markers of radius ``size`` px, open unless ``filled``."""
+        self.items.append(_Item("markers", _arr(x), _arr(y), color=color, marker=marker,
+                                size=size, width=width, alpha=alpha, filled=filled,
+                                label=label))
+
+    def band(self, x: ArrayLike, lo: ArrayLike, hi: ArrayLike, color: str, *,
+             alpha: float = 0.18) -> None:
+        """The area between ``lo`` and ``hi`` along ``x`` (non-finite points dropped)."""
+        self.items.append(_Item("band", _arr(x), _arr(lo), y2=_arr(hi), color=color,
+                                alpha=alpha))
+
+    def rects(self, x0: ArrayLike, x1: ArrayLike, y0: ArrayLike, y1: ArrayLike,
+              color: str | Sequence[str], *, alpha: float = 1.0, hatch: bool = False,
+              label: str | None = None, sticky: str = "") -> None:
+        """Filled rectangles [x0, x1] x [y0, y1] (bars), one colour or one per rectangle."""
+        x0a, x1a, y0a, y1a = np.broadcast_arrays(_arr(x0), _arr(x1), _arr(y0), _arr(y1))
+        self.items.append(_Item("rects", x0a.astype(float), y0a.astype(float),
+                                x2=x1a.astype(float), y2=y1a.astype(float),
+                                color=color if isinstance(color, str) else list(color),
+                                alpha=alpha, hatch=hatch, label=label, sticky=sticky))
+
+    def bar(self, x: ArrayLike, height: ArrayLike, width: float, color: str | Sequence[str],
+            *, bottom: float = 0.0, alpha: float = 1.0, label: str | None = None) -> None:
+        """Vertical bars centred on ``x``."""
+        xa = _arr(x)
+        self.rects(xa - width / 2, xa + width / 2, bottom, height, color, alpha=alpha,
+                   label=label, sticky="y")
+
+    def barh(self, y: ArrayLike, left: ArrayLike, right: ArrayLike, height: float,
+             color: str | Sequence[str], *, alpha: float = 1.0, hatch: bool = False,
+             label: str | None = None) -> None:
+        """Horizontal bars centred on ``y`` from ``left`` to ``right``."""
+        ya = _arr(y)
+        self.rects(left, right, ya - height / 2, ya + height / 2, color, alpha=alpha,
+                   hatch=hatch, label=label, sticky="x")
+
+    def step_hist(self, data: ArrayLike, bins: ArrayLike, color: str, *, width: float = 1.5,
+                  label: str | None = None) -> None:
+        """The outline of the histogram of the finite ``data`` over the ``bins`` edges."""
+        d = _arr(data)
+        edges = _arr(bins)
+        counts = np.histogram(d[np.isfinite(d)], bins=edges)[0].astype(float)
+        x = np.repeat(edges, 2)
+        y = np.concatenate([[0.0], np.repeat(counts, 2), [0.0]])
+        self.line(x, y, color, width=width, label=label)
+        self.items[-1].kind = "stairs"
+        self.items[-1].sticky = "y"
+
+    def hist(self, data: ArrayLike, bins: int, color: str, *, alpha: float = 0.8) -> None:
+        """A filled histogram of the finite ``data`` in ``bins`` equal bins."""
+        d = _arr(data)
+        d = d[np.isfinite(d)]
+        if not d.size:
+            return
+        counts, edges = np.histogram(d, bins=bins)
+        self.rects(edges[:-1], edges[1:], 0.0, counts.astype(float), color, alpha=alpha,
+                   sticky="y")
+
+    def vspan(self, a: float, b: float, color: str = "#000", alpha: float = 0.06) -> None:
+        """A shaded band over the full height between x = a and x = b."""
+        self.items.append(_Item("vspan", _arr([a, b]), np.array([]), color=color,
+                                alpha=alpha))
+
+    def hline(self, y: float, color: str, *, width: float = 0.8, dash: str | None = None,
+              label: str | None = None) -> None:
+        """A horizontal rule across the axes at ``y``."""
+        self.items.append(_Item("hline", np.array([]), _arr([y]), color=color, width=width,
+                                dash=dash, label=label))
+
+    def vline(self, x: float, color: str, *, width: float = 0.8, dash: str | None = None,
+              label: str | None = None) -> None:
+        """A vertical rule across the axes at ``x``."""
+        self.items.append(_Item("vline", _arr([x]), np.array([]), color=color, width=width,
+                                dash=dash, label=label))
+
+    def text(self, x: float, y: float, text: str, *, size: float = 10.0,
+             anchor: str = "start", color: str = "#222") -> None:
+        """``text`` at data point (x, y), vertically centred."""
+        self.items.append(_Item("text", _arr([x]), _arr([y]), text=text, size=size,
+                                anchor=anchor, color=color))
+
+    def set_xticks(self, ticks: ArrayLike, labels: Sequence[str]) -> None:
+        """Fixed x ticks with their labels (categories)."""
+        self.xticks = (_arr(ticks), list(labels))
+
+    def set_yticks(self, ticks: ArrayLike, labels: Sequence[str]) -> None:
+        """Fixed y ticks with their labels (categories)."""
+        self.yticks = (_arr(ticks), list(labels))
+
+    def legend(self, loc: LegendLoc = "upper right", ncol: int = 1,
+               size: float = LEGEND_FONT) -> None:
+        """A legend of the labelled series, placed at ``loc``."""
+        self.legend_spec = (loc, max(1, ncol), size)
+
+    def note(self, text: str) -> None:
+        """A grey message in the middle of the axes (e.g. nothing to show)."""
+        self.message = text
+
+    # --- limits and transforms -------------------------------------------------------------
+    def _extent(self, axis: str) -> Array:
+        parts = []
+        for it in self.items:
+            if it.kind == "text":
+                continue
+            a, b = (it.x, it.x2) if axis == "x" else (it.y, it.y2)
+            parts.append(a)
+            if b is not None:
+                parts.append(b)
+        v = np.concatenate(parts) if parts else np.array([])
+        scale = self.xscale if axis == "x" else self.yscale
+        return v[np.isfinite(v) & (v > 0)] if scale == "log" else v[np.isfinite(v)]
+
+    def _limits(self, axis: str) -> tuple[float, float]:
+        fixed = self.xlim if axis == "x" else self.ylim
+        scale = self.xscale if axis == "x" else self.yscale
+        v = self._extent(axis)
+        if fixed is not None and all(math.isfinite(f) for f in fixed) and fixed[0] != fixed[1]:
+            lo, hi = sorted(fixed)
+            if scale == "log" and lo <= 0:
+                lo = float(v.min()) if v.size else hi / 10
+            return lo, hi
+        if not v.size:
+            return (1.0, 10.0) if scale == "log" else (0.0, 1.0)
+        lo, hi = float(v.min()), float(v.max())
+        if scale == "log":
+            a, b = math.log10(lo), math.log10(hi)
+            pad = 0.05 * (b - a) if b > a else 0.5
+            return 10 ** (a - pad), 10 ** (b + pad)
+        if hi == lo:
+            d = abs(lo) * 0.1 or 1.0
+            return lo - d, hi + d
+        pad = 0.05 * (hi - lo)
+        # bars standing on zero keep zero as the edge (no margin below the baseline)
+        zero = any(it.sticky == axis for it in self.items)
+        return (0.0 if zero and lo >= 0 else lo - pad,
+                0.0 if zero and hi <= 0 else hi + pad)
+
+    def _prepare(self) -> None:
+        self._xl = self._limits("x")
+        self._yl = self._limits("y")
+        if self.equal and self.xscale == self.yscale == "linear":
+            ux = (self._xl[1] - self._xl[0]) / self.width
+            uy = (self._yl[1] - self._yl[0]) / self.height
+            if ux > uy:
+                c, h = sum(self._yl) / 2, ux * self.height / 2
+                self._yl = (c - h, c + h)
+            else:
+                c, h = sum(self._xl) / 2, uy * self.width / 2
+                self._xl = (c - h, c + h)
+
+    @staticmethod
+    def _map(v: Array, lim: tuple[float, float], scale: Scale, p0: float, size: float) -> Array:
+        if scale == "log":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v = np.where(v > 0, np.log10(np.where(v > 0, v, 1.0)), np.nan)
+            a, b = math.log10(lim[0]), math.log10(lim[1])
+        else:
+            a, b = lim
+        return p0 + (v - a) * (size / (b - a))
+
+    def tx(self, x: Array) -> Array:
+        """Data x -> pixel x."""
+        return self._map(x, self._xl, self.xscale, self.left, self.width)
+
+    def ty(self, y: Array) -> Array:
+        """Data y -> pixel y (up unless inverted)."""
+        if self.y_inverted:
+            return self._map(y, self._yl, self.yscale, self.top, self.height)
+        return self._map(y, self._yl, self.yscale, self.top + self.height, -self.height)
+
+    def _ticks(self, axis: str) -> tuple[Array, list[str]]:
+        fixed = self.xticks if axis == "x" else self.yticks
+        lim = self._xl if axis == "x" else self._yl
+        if fixed is not None:
+            t, lab = fixed
+            ok = (t >= min(lim)) & (t <= max(lim))
+            return t[ok], [s for s, k in zip(lab, ok.tolist(), strict=True) if k]
+        scale = self.xscale if axis == "x" else self.yscale
+        # fewer ticks where their labels would crowd (narrow x axes, short y axes)
+        for n in range(8, 2, -1):
+            t = log_ticks(*lim, n) if scale == "log" else nice_ticks(*lim, n)
+            labels = tick_labels(t, scale)
+            need = (sum(text_width(s, TICK_FONT) + 22 for s in labels) if axis == "x"
+                    else len(labels) * TICK_FONT * 2.5)
+            if need <= (self.width if axis == "x" else self.height):
+                break
+        return t, labels
+
+    # --- SVG -------------------------------------------------------------------------------
+    def _svg(self, fig_uid: str, i: int, out: list[str]) -> None:
+        self._prepare()
+        uid = f"{fig_uid}-{i}"
+        L, T, W, H = self.left, self.top, self.width, self.height
+        B, R = T + H, L + W
+        xt, xlab = self._ticks("x")
+        yt, ylab = self._ticks("y")
+        px, py = self.tx(xt), self.ty(yt)
+        grid = "".join(f"M{x:.1f} {T:.1f}V{B:.1f}" for x in px.tolist()) + "".join(
+            f"M{L:.1f} {y:.1f}H{R:.1f}" for y in py.tolist())
+        ticks = "".join(f"M{x:.1f} {B:.1f}v3.5" for x in px.tolist()) + "".join(
+            f"M{L:.1f} {y:.1f}h-3.5" for y in py.tolist())
+        out.append(f'<path d="{grid}" stroke="#000" stroke-opacity=".12" stroke-width=".7"/>')
+        clip = f"{uid}-c"
+        out.append(f'<clipPath id="{clip}"><rect x="{L:.1f}" y="{T:.1f}" width="{W:.1f}" '
+                   f'height="{H:.1f}"/></clipPath><g clip-path="url(#{clip})">')
+        for it in self.items:
+            self._item(it, fig_uid, out)
+        out.append("</g>")
+        out.append(f'<path d="M{L:.1f} {T:.1f}V{B:.1f}H{R:.1f}{ticks}" stroke="#333" '
+                   'stroke-width=".8" fill="none"/>')
+        out.append(f'<g font-size="{TICK_FONT}" fill="#222" text-anchor="middle">'
+                   + "".join(f'<text x="{x:.1f}" y="{B + 15:.1f}">{esc(s)}</text>'
+                             for x, s in zip(px.tolist(), xlab, strict=True)) + "</g>")
+        out.append(f'<g font-size="{TICK_FONT}" fill="#222" text-anchor="end">'
+                   + "".join(f'<text x="{L - 6:.1f}" y="{y:.1f}" dy=".35em">{esc(s)}</text>'
+                             for y, s in zip(py.tolist(), ylab, strict=True)) + "</g>")
+        if self.xlabel:
+            out.append(f'<text x="{L + W / 2:.1f}" y="{B + 32:.1f}" font-size="{LABEL_FONT}" '
+                       f'text-anchor="middle">{esc(self.xlabel)}</text>')
+        if self.ylabel:
+            wide = max((text_width(s, TICK_FONT) for s in ylab), default=0.0)
+            x = L - wide - 14
+            out.append(f'<text transform="translate({x:.1f} {T + H / 2:.1f}) rotate(-90)" '
+                       f'font-size="{LABEL_FONT}" text-anchor="middle">{esc(self.ylabel)}'
+                       "</text>")
+        top = T - 6
+        if self.legend_spec is not None:
+            top = self._legend(out, top, fig_uid)
+        if self.title:
+            out.append(f'<text x="{L + W / 2:.1f}" y="{top:.1f}" font-size="{self.title_size}" '
+                       f'text-anchor="middle">{esc(self.title)}</text>')
+        if self.message:
+            out.append(f'<text x="{L + W / 2:.1f}" y="{T + H / 2:.1f}" dy=".35em" '
+                       f'fill="#777" text-anchor="middle">{esc(self.message)}</text>')
+
+    def _item(self, it: _Item, uid: str, out: list[str]) -> None:
+        op = f' opacity="{it.alpha:.2f}"' if it.alpha < 1 else ""
+        col = it.color if isinstance(it.color, str) else "#000"
+        L, T, W, H = self.left, self.top, self.width, self.height
+        if it.kind in ("line", "stairs"):
+            x, y = self.tx(it.x), self.ty(it.y)
+            ok = np.isfinite(x) & np.isfinite(y)
+            if ok.sum() >= 2:
+                start = ok & ~np.concatenate([[False], ok[:-1]])
+                cmd = np.where(start, "M", "L")[ok]
+                out.append(f'<path d="{_pairs(cmd, x[ok], y[ok])}" fill="none" stroke="{col}" '
+                           f'stroke-width="{it.width}" stroke-linejoin="round"'
+                           f'{_dash(it.dash)}{op}/>')
+            if it.marker:
+                self._markers(it, x, y, op, out)
+        elif it.kind == "markers":
+            self._markers(it, self.tx(it.x), self.ty(it.y), op, out)
+        elif it.kind == "band":
+            assert it.y2 is not None
+            x, lo, hi = self.tx(it.x), self.ty(it.y), self.ty(it.y2)
+            ok = np.isfinite(x) & np.isfinite(lo) & np.isfinite(hi)
+            if ok.sum() >= 2:
+                xs = np.concatenate([x[ok], x[ok][::-1]])
+                ys = np.concatenate([hi[ok], lo[ok][::-1]])
+                cmd = np.full(xs.size, "L")
+                cmd[0] = "M"
+                out.append(f'<path d="{_pairs(cmd, xs, ys)}Z" fill="{col}"{op}/>')
+        elif it.kind == "rects":
+            self._rects(it, uid, op, out)
+        elif it.kind == "vspan":
+            a, b = np.sort(self.tx(it.x))
+            if np.isfinite([a, b]).all() and b > a:
+                out.append(f'<rect x="{a:.1f}" y="{T:.1f}" width="{b - a:.1f}" '
+                           f'height="{H:.1f}" fill="{col}"{op}/>')
+        elif it.kind in ("hline", "vline"):
+            v = (self.ty(it.y) if it.kind == "hline" else self.tx(it.x))[0]
+            if math.isfinite(v):
+                d = f"M{L:.1f} {v:.1f}h{W:.1f}" if it.kind == "hline" else \
+                    f"M{v:.1f} {T:.1f}v{H:.1f}"
+                out.append(f'<path d="{d}" stroke="{col}" stroke-width="{it.width}"'
+                           f'{_dash(it.dash)}/>')
+        elif it.kind == "text":
+            x, y = self.tx(it.x)[0], self.ty(it.y)[0]
+            if math.isfinite(x) and math.isfinite(y):
+                out.append(f'<text x="{x:.1f}" y="{y:.1f}" dy=".35em" font-size="{it.size}" '
+                           f'text-anchor="{it.anchor}" fill="{col}">{esc(it.text)}</text>')
+
+    @staticmethod
+    def _markers(it: _Item, x: Array, y: Array, op: str, out: list[str]) -> None:
+        ok = np.isfinite(x) & np.isfinite(y)
+        if not ok.any():
+            return
+        shape, closed = _shape(it.marker or "o", it.size)
+        d = "".join(f"M{a:.1f} {b:.1f}{shape}" for a, b in zip(x[ok].tolist(), y[ok].tolist(),
+                                                               strict=True))
+        fill = it.color if it.filled and closed else "none"
+        out.append(f'<path d="{d}" fill="{fill}" stroke="{it.color}" '
+                   f'stroke-width="{it.width}"{op}/>')
+
+    def _rects(self, it: _Item, uid: str, op: str, out: list[str]) -> None:
+        assert it.x2 is not None and it.y2 is not None
+        xa, xb = self.tx(it.x), self.tx(it.x2)
+        ya, yb = self.ty(it.y), self.ty(it.y2)
+        # a bar starting at 0 on a log axis starts at the axis' edge
+        if self.xscale == "log":
+            xa = np.where(it.x <= 0, self.left, xa)
+        if self.yscale == "log":
+            ya = np.where(it.y <= 0, self.top + self.height, ya)
+        x0, x1 = np.minimum(xa, xb), np.maximum(xa, xb)
+        y0, y1 = np.minimum(ya, yb), np.maximum(ya, yb)
+        ok = np.isfinite(x0) & np.isfinite(x1) & np.isfinite(y0) & np.isfinite(y1)
+        cols = np.array([it.color] * it.x.size if isinstance(it.color, str) else it.color)
+        for c in dict.fromkeys(cols[ok].tolist()):
+            sel = ok & (cols == c)
+            d = "".join(f"M{a:.1f} {b:.1f}h{w:.1f}v{h:.1f}h{-w:.1f}z" for a, b, w, h in zip(
+                x0[sel].tolist(), y0[sel].tolist(), (x1 - x0)[sel].tolist(),
+                (y1 - y0)[sel].tolist(), strict=True))
+            out.append(f'<path d="{d}" fill="{c}"{op}/>')
+            if it.hatch:
+                out.append(f'<path d="{d}" fill="url(#{uid}-hatch)"/>')
+
+    def _entries(self) -> list[_Item]:
+        return [it for it in self.items if it.label]
+
+    def _legend(self, out: list[str], top: float, fig_uid: str) -> float:
+        """Draw the legend; return the baseline for a title above it."""
+        assert self.legend_spec is not None
+        loc, ncol, size = self.legend_spec
+        entries = self._entries()
+        if not entries:
+            return top
+        ncol = min(ncol, len(entries))
+        rows = -(-len(entries) // ncol)
+        sw, gap, row_h = 22.0, 12.0, size * 1.45
+        col_w = [max(text_width(entries[k].label or "", size)
+                     for k in range(c, len(entries), ncol)) + sw + 5 for c in range(ncol)]
+        w = sum(col_w) + gap * (ncol - 1)
+        h = rows * row_h
+        L, T, W, H = self.left, self.top, self.width, self.height
+        if loc == "above":
+            x0, y0 = L + (W - w) / 2, T - 4 - h
+            top = y0 - 4
+        elif loc == "below":
+            x0, y0 = L + (W - w) / 2, T + H + 40
+        else:
+            if loc == "best":
+                loc = self._best(w, h)
+            x0, y0 = self._place(loc, w, h)
+            out.append(f'<rect x="{x0 - 4:.1f}" y="{y0 - 2:.1f}" width="{w + 8:.1f}" '
+                       f'height="{h + 4:.1f}" fill="#fff" fill-opacity=".8"/>')
+        parts = [f'<g font-size="{size}" fill="#222">']
+        for k, it in enumerate(entries):
+            r, c = divmod(k, ncol)
+            x = x0 + sum(col_w[:c]) + gap * c
+            yc = y0 + (r + 0.5) * row_h
+            parts.append(self._swatch(it, x, yc, sw, fig_uid))
+            parts.append(f'<text x="{x + sw + 5:.1f}" y="{yc:.1f}" dy=".35em">'
+                         f'{esc(it.label)}</text>')
+        parts.append("</g>")
+        out.append("".join(parts))
+        return top
+
+    def _place(self, loc: LegendLoc, w: float, h: float) -> tuple[float, float]:
+        """Top-left corner (px) of a ``w`` x ``h`` legend box at an inside ``loc``."""
+        L, T, W, H = self.left, self.top, self.width, self.height
+        x0 = (L + 8 if loc.endswith("left") else L + W - 8 - w if loc.endswith("right")
+              else L + (W - w) / 2)
+        y0 = (T + 6 if loc.startswith("upper") else T + H - 6 - h if loc.startswith("lower")
+              else T + (H - h) / 2)
+        return x0, y0
+
+    def _best(self, w: float, h: float) -> LegendLoc:
+        """The inside place whose legend box would cover the least data: markers count
+        once each, lines by 8 points along each of their segments."""
+        xs, ys = [], []
+        for it in self.items:
+            if it.kind not in ("line", "stairs", "markers"):
+                continue
+            x, y = self.tx(it.x), self.ty(it.y)
+            if it.kind != "markers" and x.size >= 2:
+                # 8 samples per segment; segments through a non-finite point give NaN
+                t = np.linspace(0.0, 1.0, 8, endpoint=False)
+                x = (x[:-1, None] + np.diff(x)[:, None] * t).ravel()
+                y = (y[:-1, None] + np.diff(y)[:, None] * t).ravel()
+            xs.append(x)
+            ys.append(y)
+        if not xs:
+            return _INSIDE[0]
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        best, least = _INSIDE[0], -1
+        for loc in _INSIDE:
+            x0, y0 = self._place(loc, w, h)
+            n = int(np.count_nonzero((x >= x0) & (x <= x0 + w) & (y >= y0) & (y <= y0 + h)))
+            if least < 0 or n < least:
+                best, least = loc, n
+        return best
+
+    @staticmethod
+    def _swatch(it: _Item, x: float, yc: float, sw: float, fig_uid: str) -> str:
+        op = f' opacity="{it.alpha:.2f}"' if it.alpha < 1 else ""
+        col = it.color if isinstance(it.color, str) else it.color[0] if it.color else "#000"
+        if it.kind == "rects":
+            box = f'<rect x="{x:.1f}" y="{yc - 5:.1f}" width="{sw:.1f}" height="10" '
+            hatch = f'{box}fill="url(#{fig_uid}-hatch)"/>' if it.hatch else ""
+            return f'{box}fill="{col}"{op}/>{hatch}'
+
+        s = ""
+        if it.kind in ("line", "stairs", "hline", "vline"):
+            s = (f'<path d="M{x:.1f} {yc:.1f}h{sw:.1f}" stroke="{col}" '
+                 f'stroke-width="{it.width}"{_dash(it.dash)}{op}/>')
+        if it.marker or it.kind == "markers":
+            shape, closed = _shape(it.marker or "o", min(it.size, 5.0))
+            fill = col if it.filled and closed else "none"
+            s += (f'<path d="M{x + sw / 2:.1f} {yc:.1f}{shape}" fill="{fill}" stroke="{col}" '
+                  f'stroke-width="{it.width}"{op}/>')
+        return s
+
+
 class Figure:
-    """A figure of ``w`` x ``h`` inches whose axes sit inside fixed ``margins`` (left,
-    right, bottom, top; inches)."""
+    """A canvas of ``width`` x ``height`` px holding axes; :meth:`svg` writes the markup."""
 
-    w: float
-    h: float
-    margins: tuple[float, float, float, float]
-    wspace: float = 0.3
-    hspace: float = 0.5
-    axes: list[Axes] = field(default_factory=list)
+    def __init__(self, width: float, height: float) -> None:
+        self.width = width
+        self.height = height
+        self.axes: list[Axes] = []
+        self.extra: list[str] = []
 
-    def subplots(self, nrows: int = 1, ncols: int = 1) -> list[list[Axes]]:
-        """A grid of axes (rows of columns); gaps are ``wspace``/``hspace`` times the mean
-        axes width/height, as matplotlib's."""
-        left, right, bottom, top = (m * DPI for m in self.margins)
-        W, H = self.w * DPI - left - right, self.h * DPI - top - bottom
-        aw = W / (ncols + (ncols - 1) * self.wspace)
-        ah = H / (nrows + (nrows - 1) * self.hspace)
-        grid = [[Axes((left + c * aw * (1 + self.wspace), top + r * ah * (1 + self.hspace),
-                       aw, ah)) for c in range(ncols)] for r in range(nrows)]
-        self.axes += [a for row in grid for a in row]
-        return grid
+    def subplots(self, rows: int, cols: int, margins: tuple[float, float, float, float], *,
+                 wspace: float = 0.3, hspace: float = 0.5) -> list[Axes]:
+        """A grid of axes, row by row, inside ``margins`` (left, right, bottom, top; px);
+        ``wspace``/``hspace``: gaps as fractions of the mean axes width/height."""
+        left, right, bottom, top = margins
+        W, H = self.width - left - right, self.height - bottom - top
+        aw = W / (cols + wspace * (cols - 1))
+        ah = H / (rows + hspace * (rows - 1))
+        new = [Axes(left + c * aw * (1 + wspace), top + r * ah * (1 + hspace), aw, ah)
+               for r in range(rows) for c in range(cols)]
+        self.axes.extend(new)
+        return new
 
-    def add_subplot(self) -> Axes:
-        """One axes filling the margins."""
-        return self.subplots(1, 1)[0][0]
+    def colorbar(self, ax: Axes, lo: float, hi: float, label: str) -> None:
+        """A vertical viridis colour bar for values ``lo``..``hi`` right of ``ax``."""
+        x, y, w, h = ax.left + ax.width + 12, ax.top, 12.0, ax.height
+        stops = "".join(f'<stop offset="{k / 10:.1f}" stop-color="{c}"/>'
+                        for k, c in enumerate(_VIRIDIS))
+        if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+            lo, hi = (lo, lo + 1.0) if math.isfinite(lo) else (0.0, 1.0)
+        t = nice_ticks(lo, hi, 6)
+        py = y + h - (t - lo) / (hi - lo) * h
+        labels = tick_labels(t, "linear")
+        ticks = "".join(f"M{x + w:.1f} {p:.1f}h3" for p in py.tolist())
+        text = "".join(f'<text x="{x + w + 6:.1f}" y="{p:.1f}" dy=".35em">{esc(s)}</text>'
+                       for p, s in zip(py.tolist(), labels, strict=True))
+        wide = max((text_width(s, TICK_FONT) for s in labels), default=0.0)
+        self.extra.append(
+            f'<linearGradient id="{_UID}-cb" x1="0" y1="1" x2="0" y2="0">{stops}'
+            f'</linearGradient><rect x="{x:.1f}" y="{y:.1f}" width="{w}" height="{h:.1f}" '
+            f'fill="url(#{_UID}-cb)"/><path d="{ticks}" stroke="#333" stroke-width=".8"/>'
+            f'<g font-size="{TICK_FONT}" fill="#222">{text}</g>'
+            f'<text transform="translate({x + w + wide + 18:.1f} {y + h / 2:.1f}) '
+            f'rotate(-90)" font-size="{LABEL_FONT}" text-anchor="middle">{esc(label)}</text>')
 
-    def colorbar(self, ax: Axes, vmin: float, vmax: float, label: str) -> None:
-        """A viridis colour bar at the right of ``ax`` (which gives up 28 % of its width to
-        the bar, its tick labels and ``label``)."""
-        x, y, w, h = ax.box
-        ax.box = (x, y, w * _CB_AXES, h)
-        ax.colorbar = (vmin, vmax, label)
-
-    def svg(self, title: str = "") -> str:
-        """The whole figure as an SVG document."""
-        wpx, hpx = round(self.w * DPI), round(self.h * DPI)
-        out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{wpx}" height="{hpx}" '
-               f'viewBox="0 0 {wpx} {hpx}" font-family="{FONT}" font-size="{8 * PT:.2f}">',
-               f"<title>{esc(title)}</title>" if title else "",
-               '<defs><pattern id="hatch" patternUnits="userSpaceOnUse" width="6" height="6">'
-               '<path d="M-1,1l2,-2M0,6l6,-6M5,7l2,-2" stroke="#fff" stroke-width="1"/>'
-               '</pattern><linearGradient id="cmap" x1="0" y1="1" x2="0" y2="0">'
-               + "".join(f'<stop offset="{k / (len(VIRIDIS) - 1):.3f}" '
-                         f'stop-color="#{r:02x}{g:02x}{b:02x}"/>'
-                         for k, (r, g, b) in enumerate(VIRIDIS))
-               + "</linearGradient></defs>",
-               f'<rect width="{wpx}" height="{hpx}" fill="#fff"/>']
-        for k, ax in enumerate(self.axes):
-            out.append(_draw_axes(ax, k))
+    def svg(self, key: str, alt: str) -> str:
+        """The figure as one ``<svg>`` element (ids prefixed by ``key``, unique per page)."""
+        uid = "f-" + _ID.sub("_", key)
+        out = [f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {self.width:.0f} '
+               f'{self.height:.0f}" width="{self.width:.0f}" height="{self.height:.0f}" '
+               f'role="img" aria-label="{esc(alt)}" font-family="DejaVu Sans,Helvetica,'
+               f'Arial,sans-serif" font-size="{TICK_FONT}"><title>{esc(alt)}</title>'
+               f'<defs><pattern id="{uid}-hatch" patternUnits="userSpaceOnUse" width="6" '
+               f'height="6"><path d="M-1 1l2-2M0 6l6-6M5 7l2-2" stroke="#fff" '
+               f'stroke-width="1.2"/></pattern></defs>'
+               f'<rect width="100%" height="100%" fill="#fff"/>']
+        for i, ax in enumerate(self.axes):
+            ax._svg(uid, i, out)
+        out.extend(e.replace(_UID, uid) for e in self.extra)
         out.append("</svg>")
         return "".join(out)
-
-    def data_uri(self, title: str = "") -> str:
-        """The SVG as a base64 data URI for an ``<img>``."""
-        return "data:image/svg+xml;base64," + base64.b64encode(
-            self.svg(title).encode("utf-8")).decode("ascii")
-
-
-class _Map:
-    """Data to pixel coordinates of one axis."""
-
-    def __init__(self, lo: float, hi: float, p0: float, p1: float, log: bool) -> None:
-        self.log = log
-        self.lo, self.hi = (math.log10(lo), math.log10(hi)) if log else (lo, hi)
-        self.p0, self.p1 = p0, p1
-        self.k = (p1 - p0) / (self.hi - self.lo) if self.hi != self.lo else 0.0
-
-    def __call__(self, v: ArrayLike) -> Array:
-        a = np.asarray(v, dtype=float)
-        if self.log:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                a = np.where(a > 0, np.log10(np.where(a > 0, a, 1.0)), np.nan)
-        return self.p0 + (a - self.lo) * self.k
-
-
-def _equalise(ax: Axes, xl: tuple[float, float], yl: tuple[float, float]
-              ) -> tuple[tuple[float, float], tuple[float, float]]:
-    _, _, w, h = ax.box
-    sx, sy = (xl[1] - xl[0]) / w, (yl[1] - yl[0]) / h
-    if sx > sy:
-        c, half = (yl[0] + yl[1]) / 2, sx * h / 2
-        return xl, (c - half, c + half)
-    c, half = (xl[0] + xl[1]) / 2, sy * w / 2
-    return (c - half, c + half), yl
-
-
-def _dash(d: str | None) -> str:
-    return f' stroke-dasharray="{d}"' if d else ""
-
-
-def _op(alpha: float, attr: str = "opacity") -> str:
-    return f' {attr}="{alpha:.2f}"' if alpha < 1 else ""
-
-
-def _draw_axes(ax: Axes, k: int) -> str:
-    x0, y0, w, h = ax.box
-    xl, yl = _limits(ax, "x"), _limits(ax, "y")
-    if ax.equal and ax.xaxis.scale == ax.yaxis.scale == "linear":
-        xl, yl = _equalise(ax, xl, yl)
-    fx = _Map(*xl, x0, x0 + w, ax.xaxis.scale == "log")
-    ybot, ytop = (y0, y0 + h) if ax.yaxis.inverted else (y0 + h, y0)
-    fy = _Map(*yl, ybot, ytop, ax.yaxis.scale == "log")
-    out = [f'<g id="ax{k}">']
-    clip = f"c{k}"
-    out.append(f'<clipPath id="{clip}"><rect x="{x0:.1f}" y="{y0:.1f}" width="{w:.1f}" '
-               f'height="{h:.1f}"/></clipPath>')
-    xt, xlab = _ticks(ax.xaxis, xl)
-    yt, ylab = _ticks(ax.yaxis, yl)
-    # grid
-    grid = "".join(f"M{p:.1f},{y0:.1f}v{h:.1f}" for p in fx(xt).tolist()) + "".join(
-        f"M{x0:.1f},{p:.1f}h{w:.1f}" for p in fy(yt).tolist())
-    if grid:
-        out.append(f'<path d="{grid}" stroke="#b0b0b0" stroke-opacity="0.3" '
-                   'stroke-width="0.8" fill="none"/>')
-    body: list[str] = []
-    for a in ax.artists:
-        body.append(_draw_artist(a, fx, fy, ax.box))
-    out.append(f'<g clip-path="url(#{clip})">{"".join(body)}</g>')
-    out += [a for a in (_draw_text(t, fx, fy, ax.box) for t in ax.artists
-                        if isinstance(t, _Text)) if a]
-    # spines, ticks, labels
-    out.append(f'<path d="M{x0:.1f},{y0:.1f}V{y0 + h:.1f}H{x0 + w:.1f}" stroke="#000" '
-               'stroke-width="1" fill="none"/>')
-    fs = 8 * PT
-    ticks = "".join(f"M{p:.1f},{y0 + h:.1f}v4.7" for p in fx(xt).tolist()) + "".join(
-        f"M{x0:.1f},{p:.1f}h-4.7" for p in fy(yt).tolist())
-    if ticks:
-        out.append(f'<path d="{ticks}" stroke="#000" stroke-width="1"/>')
-    out += [f'<text x="{p:.1f}" y="{y0 + h + 7 + fs * 0.8:.1f}" text-anchor="middle">'
-            f"{esc(s)}</text>" for p, s in zip(fx(xt).tolist(), xlab, strict=True)]
-    out += [f'<text x="{x0 - 7:.1f}" y="{p + fs * 0.35:.1f}" text-anchor="end">{esc(s)}</text>'
-            for p, s in zip(fy(yt).tolist(), ylab, strict=True)]
-    tw = max((text_width(s, fs) for s in ylab), default=0.0)
-    if ax.xaxis.label:
-        out.append(f'<text x="{x0 + w / 2:.1f}" y="{y0 + h + 9 + fs * 1.9:.1f}" '
-                   f'text-anchor="middle">{esc(ax.xaxis.label)}</text>')
-    if ax.yaxis.label:
-        ylx, yly = x0 - 10 - tw - fs * 0.4, y0 + h / 2
-        out.append(f'<text x="{ylx:.1f}" y="{yly:.1f}" text-anchor="middle" '
-                   f'transform="rotate(-90 {ylx:.1f} {yly:.1f})">{esc(ax.yaxis.label)}</text>')
-    if ax.title:
-        out.append(f'<text x="{x0 + w / 2:.1f}" y="{y0 - 6:.1f}" text-anchor="middle" '
-                   f'font-size="{ax.title_size * PT:.2f}">{esc(ax.title)}</text>')
-    if ax.colorbar is not None:
-        out.append(_draw_colorbar(ax))
-    if ax.legend_ is not None:
-        out.append(_draw_legend(ax, fx, fy))
-    out.append("</g>")
-    return "".join(out)
-
-
-def _ticks(axis: _Axis, lim: tuple[float, float]) -> tuple[Array, list[str]]:
-    lo, hi = min(lim), max(lim)
-    if axis.ticks is not None:
-        pos, labels = axis.ticks
-        keep = [i for i, p in enumerate(pos) if lo - 1e-9 * abs(hi - lo) <= p <= hi + 1e-9
-                * abs(hi - lo)]
-        return np.array([pos[i] for i in keep]), [labels[i] for i in keep]
-    return log_ticks(lo, hi) if axis.scale == "log" else linear_ticks(lo, hi)
-
-
-Box = tuple[float, float, float, float]
-
-
-def _draw_line(a: _Line, fx: _Map, fy: _Map, box: Box) -> str:
-    px, py = fx(a.x), fy(a.y)
-    s = []
-    if a.linestyle and px.size:
-        d = _polyline(px, py)
-        if d:
-            s.append(f'<path d="{d}" stroke="{a.color}" stroke-width="{a.lw * PT:.2f}" '
-                     f'fill="none" stroke-linejoin="round"{_dash(a.dash)}{_op(a.alpha)}/>')
-    if a.marker is not None:
-        ok = np.isfinite(px) & np.isfinite(py)
-        if ok.any():
-            d, fillable = _points_path(px[ok], py[ok], a.marker, a.ms * PT / 2)
-            fill = "none" if (a.hollow or not fillable) else a.color
-            s.append(f'<path d="{d}" stroke="{a.color}" stroke-width="{a.mew * PT:.2f}" '
-                     f'fill="{fill}"{_op(a.alpha)}/>')
-    return "".join(s)
-
-
-def _draw_rects(a: _Rects, fx: _Map, fy: _Map, box: Box) -> str:
-    # a bar from 0 on a log axis starts at the axis' edge
-    px0 = np.where(fx.log & (a.x0 <= 0), fx.p0, fx(a.x0))
-    py0 = np.where(fy.log & (a.y0 <= 0), fy.p0, fy(a.y0))
-    px1, py1 = fx(a.x1), fy(a.y1)
-    good = np.isfinite(px0) & np.isfinite(px1) & np.isfinite(py0) & np.isfinite(py1)
-    cols = np.array(a.colors)
-    s = []
-    for c in dict.fromkeys(a.colors):
-        ok = good & (cols == c)
-        if not ok.any():
-            continue
-        xa, xb = np.minimum(px0[ok], px1[ok]), np.maximum(px0[ok], px1[ok])
-        ya, yb = np.minimum(py0[ok], py1[ok]), np.maximum(py0[ok], py1[ok])
-        d = "".join(f"M{p:.1f},{q:.1f}h{r:.1f}v{t:.1f}h-{r:.1f}z" for p, q, r, t in
-                    zip(xa.tolist(), ya.tolist(), (xb - xa).tolist(), (yb - ya).tolist(),
-                        strict=True))
-        edge = f' stroke="{a.edge}" stroke-width="0.7"' if a.edge else ""
-        s.append(f'<path d="{d}" fill="{c}"{_op(a.alpha, "fill-opacity")}{edge}/>')
-        if a.hatch:
-            s.append(f'<path d="{d}" fill="url(#hatch)"/>')
-    return "".join(s)
-
-
-def _draw_fill(a: _Fill, fx: _Map, fy: _Map, box: Box) -> str:
-    px, p0, p1 = fx(a.x), fy(a.y0), fy(a.y1)
-    ok = np.isfinite(px) & np.isfinite(p0) & np.isfinite(p1)
-    if not ok.any():
-        return ""
-    xs = np.concatenate([px[ok], px[ok][::-1]])
-    ys = np.concatenate([p1[ok], p0[ok][::-1]])
-    return f'<path d="{_polyline(xs, ys)}z" fill="{a.color}"{_op(a.alpha, "fill-opacity")}/>'
-
-
-def _draw_span(a: _Span, fx: _Map, fy: _Map, box: Box) -> str:
-    x0, y0, w, h = box
-    if a.color == "none":
-        return ""
-    if a.axis == "x":
-        pa, pb = sorted(fx(np.array([a.a, a.b])).tolist())
-        if a.lw > 0:
-            return (f'<path d="M{pa:.1f},{y0:.1f}v{h:.1f}" stroke="{a.color}" '
-                    f'stroke-width="{a.lw * PT:.2f}"{_dash(a.dash)}/>')
-        return (f'<rect x="{pa:.1f}" y="{y0:.1f}" width="{pb - pa:.1f}" height="{h:.1f}" '
-                f'fill="{a.color}"{_op(a.alpha, "fill-opacity")}/>')
-    (p,) = fy(np.array([a.a])).tolist()
-    return (f'<path d="M{x0:.1f},{p:.1f}h{w:.1f}" stroke="{a.color}" '
-            f'stroke-width="{a.lw * PT:.2f}"{_dash(a.dash)}/>')
-
-
-def _draw_colored(a: _Colored, fx: _Map, fy: _Map, box: Box) -> str:
-    px, py = fx(a.x), fy(a.y)
-    ok = np.isfinite(px) & np.isfinite(py)
-    cols = np.array(a.colors)
-    s = []
-    for c in dict.fromkeys(a.colors):
-        sel = ok & (cols == c)
-        if sel.any():
-            d, _ = _points_path(px[sel], py[sel], "o", a.ms * PT / 2)
-            s.append(f'<path d="{d}" fill="{c}"/>')
-    return "".join(s)
-
-
-_DRAW: dict[type, Any] = {_Line: _draw_line, _Rects: _draw_rects, _Fill: _draw_fill,
-                          _Span: _draw_span, _Colored: _draw_colored}
-
-
-def _draw_artist(a: Any, fx: _Map, fy: _Map, box: Box) -> str:
-    draw = _DRAW.get(type(a))
-    return draw(a, fx, fy, box) if draw is not None else ""
-
-
-def _draw_text(t: _Text, fx: _Map, fy: _Map, box: tuple[float, float, float, float]) -> str:
-    x0, y0, w, h = box
-    if t.axes_coords:
-        px, py = x0 + t.x * w, y0 + (1 - t.y) * h
-    else:
-        px, py = float(fx(np.array([t.x]))[0]), float(fy(np.array([t.y]))[0])
-    if not (math.isfinite(px) and math.isfinite(py)):
-        return ""
-    fs = t.size * PT
-    dy = {"center": 0.35, "top": 0.8, "bottom": 0.0}.get(t.va, 0.35) * fs
-    anchor = {"left": "start", "center": "middle", "right": "end"}.get(t.ha, "start")
-    return (f'<text x="{px:.1f}" y="{py + dy:.1f}" text-anchor="{anchor}" '
-            f'font-size="{fs:.2f}" fill="{t.color}">{esc(t.s)}</text>')
-
-
-def _draw_colorbar(ax: Axes) -> str:
-    assert ax.colorbar is not None
-    vmin, vmax, label = ax.colorbar
-    x, y, w, h = ax.box
-    bx, bw = x + w / _CB_AXES * 0.76, w / _CB_AXES * 0.035
-    f = _Map(vmin, vmax, y + h, y, False) if vmax > vmin else _Map(0, 1, y + h, y, False)
-    ticks, labels = linear_ticks(vmin, vmax, 5) if vmax > vmin else (np.zeros(0), [])
-    fs = 8 * PT
-    out = [f'<rect x="{bx:.1f}" y="{y:.1f}" width="{bw:.1f}" height="{h:.1f}" '
-           'fill="url(#cmap)" stroke="#000" stroke-width="0.8"/>']
-    out += [f'<path d="M{bx + bw:.1f},{p:.1f}h3.5" stroke="#000"/><text x="{bx + bw + 5:.1f}" '
-            f'y="{p + fs * 0.35:.1f}">{esc(s)}</text>'
-            for p, s in zip(f(ticks).tolist(), labels, strict=True)]
-    lx = bx + bw + 8 + max((text_width(s, fs) for s in labels), default=0) + fs * 1.1
-    out.append(f'<text x="{lx:.1f}" y="{y + h / 2:.1f}" text-anchor="middle" '
-               f'transform="rotate(-90 {lx:.1f} {y + h / 2:.1f})">{esc(label)}</text>')
-    return "".join(out)
-
-
-def _entries(ax: Axes) -> list[tuple[str, Any]]:
-    out: list[tuple[str, Any]] = []
-    for a in ax.artists:
-        label = getattr(a, "label", None)
-        if label:
-            out.append((label, a))
-    return out
-
-
-def _best_corner(ax: Axes, fx: _Map, fy: _Map, lw: float, lh: float) -> str:
-    x0, y0, w, h = ax.box
-    pts = []
-    for a in ax.artists:
-        if isinstance(a, _Line) and a.x.size:
-            px, py = fx(a.x), fy(a.y)
-            if a.linestyle and a.x.size > 1:  # points along the segments, not just vertices
-                t = np.linspace(0.0, a.x.size - 1.0, 40 * a.x.size)
-                idx = np.arange(a.x.size, dtype=float)
-                px, py = np.interp(t, idx, px), np.interp(t, idx, py)
-            pts.append((px, py))
-    if not pts:
-        return "upper right"
-    px = np.concatenate([p[0] for p in pts])
-    py = np.concatenate([p[1] for p in pts])
-    best, score = "upper right", math.inf
-    for loc in ("upper right", "upper left", "lower left", "lower right"):
-        lx = x0 + w - lw - 4 if "right" in loc else x0 + 4
-        ly = y0 + 4 if "upper" in loc else y0 + h - lh - 4
-        n = int(np.sum((px >= lx) & (px <= lx + lw) & (py >= ly) & (py <= ly + lh)))
-        if n < score:
-            best, score = loc, n
-    return best
-
-
-def _draw_legend(ax: Axes, fx: _Map, fy: _Map) -> str:
-    assert ax.legend_ is not None
-    entries = _entries(ax)
-    if not entries:
-        return ""
-    lg = ax.legend_
-    fs = lg.size * PT
-    ncol = max(1, min(lg.ncol, len(entries)))
-    nrow = -(-len(entries) // ncol)
-    sw = 2.0 * fs  # swatch
-    colw = sw + 6 + max(text_width(s, fs) for s, _ in entries) + 10
-    lw, lh = ncol * colw, nrow * fs * 1.45
-    x0, y0, w, h = ax.box
-    loc = lg.loc if lg.loc != "best" else _best_corner(ax, fx, fy, lw, lh)
-    if loc == "above":
-        lx, ly = x0 + (w - lw) / 2, y0 - lh - 2
-    elif loc == "below":
-        lx, ly = x0 + (w - lw) / 2, y0 + h + 8 + 8 * PT * 2.4
-    else:
-        lx = x0 + w - lw - 4 if "right" in loc else x0 + 4
-        ly = y0 + 4 if "upper" in loc else y0 + h - lh - 4
-    out = []
-    for i, (label, a) in enumerate(entries):
-        r, c = divmod(i, ncol)
-        ex, ey = lx + c * colw, ly + r * fs * 1.45 + fs * 0.75
-        out.append(_swatch(a, ex, ey, sw))
-        out.append(f'<text x="{ex + sw + 5:.1f}" y="{ey + fs * 0.35:.1f}" '
-                   f'font-size="{fs:.2f}">{esc(label)}</text>')
-    return "".join(out)
-
-
-def _swatch(a: Any, x: float, y: float, sw: float) -> str:
-    if isinstance(a, _Line):
-        s = ""
-        if a.linestyle:
-            s += (f'<path d="M{x:.1f},{y:.1f}h{sw:.1f}" stroke="{a.color}" '
-                  f'stroke-width="{a.lw * PT:.2f}"{_dash(a.dash)}/>')
-        if a.marker is not None:
-            d, fillable = _points_path(np.array([x + sw / 2]), np.array([y]), a.marker,
-                                       a.ms * PT / 2)
-            fill = "none" if (a.hollow or not fillable) else a.color
-            s += (f'<path d="{d}" stroke="{a.color}" stroke-width="{a.mew * PT:.2f}" '
-                  f'fill="{fill}"/>')
-        return s
-    if isinstance(a, _Rects):
-        hatch = (f'<rect x="{x:.1f}" y="{y - 4:.1f}" width="{sw:.1f}" height="8" '
-                 'fill="url(#hatch)"/>' if a.hatch else "")
-        return (f'<rect x="{x:.1f}" y="{y - 4:.1f}" width="{sw:.1f}" height="8" '
-                f'fill="{a.colors[0] if a.colors else "#888"}"{_op(a.alpha, "fill-opacity")}/>'
-                + hatch)
-    if isinstance(a, _Span):
-        return (f'<path d="M{x:.1f},{y:.1f}h{sw:.1f}" stroke="{a.color}" '
-                f'stroke-width="{a.lw * PT:.2f}"{_dash(a.dash)}/>')
-    return ""

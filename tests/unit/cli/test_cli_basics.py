@@ -161,10 +161,10 @@ def test_version_option(capsys: pytest.CaptureFixture[str]) -> None:
 def test_light_packages_leave_heavy_modules_unimported() -> None:
     """Why robocal.daemon and robocal.report keep lazy attributes: the client commands import
     robocal.daemon for its light modules, the configuration check robocal.report for
-    Acceptance; neither may pull in the service, the planner or matplotlib."""
+    Acceptance; neither may pull in the service, the planner or the report's figures."""
     src = ("import sys, robocal.daemon.client, robocal.report\n"
            "print(sorted(m for m in ('robocal.daemon.service', 'robocal.daemon._plan', "
-           "'robocal.daemon.main', 'robocal.report._write', 'matplotlib') "
+           "'robocal.daemon.main', 'robocal.report._write', 'robocal.report._figures') "
            "if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
@@ -174,11 +174,12 @@ def test_light_packages_leave_heavy_modules_unimported() -> None:
 def test_the_campaign_report_reads_its_rows_without_the_daemons_logging() -> None:
     """``robocal report CAMPAIGN`` imports what input_from_campaign needs (store, config, the
     rows helpers of robocal.daemon.fitting) and the report writer; structlog (with rich,
-    ~0.07 s) is the daemon's and stays unimported."""
+    ~0.07 s) and asyncio (~0.02 s) are the daemon's and stay unimported."""
     src = ("import sys\n"
            "import robocal.cli._report, robocal.daemon.fitting, robocal.daemon.store\n"
            "import robocal.daemon.config, robocal.report._write\n"
-           "print(sorted(m for m in ('structlog', 'rich', 'matplotlib') if m in sys.modules))\n")
+           "print(sorted(m for m in ('structlog', 'rich', 'matplotlib', 'asyncio') "
+           "if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"

@@ -30,6 +30,7 @@ from robocal.daemon.service import CalibrationService
 from robocal.errors import CampaignError, ConfigError
 from tests.unit.daemon.test_service import program_plan
 from tests.unit.daemon.test_station import TOKEN, VIEWER, _csrf, _sign_in
+from tests.unit.report.svgdoc import figures, texts
 
 CFG = CheckConfig(warn_rms_mm=0.05, fail_rms_mm=0.1, warn_max_mm=0.2, fail_max_mm=0.4,
                   warn_growth_mm=0.04, fail_growth_mm=0.1, full_rms_mm=0.5, reuse_poses=20,
@@ -358,7 +359,9 @@ def test_report_section_shows_the_checks_and_their_trend(tmp_path):
     section = page[page.index('<section id="checks">'):]
     assert "Latest: check 3" in section and "<b>warn</b>" in section
     assert "re-calibrate with --reuse" in section and "0.0600" in section
-    assert section.count("<tr>") == 4 and "<img src=\"data:image/" in section
+    assert section.count("<tr>") == 4
+    (plot,) = figures(section)  # RMS and max of each check against the thresholds
+    assert {"RMS", "max", "warn rms", "fail rms", "check"} <= set(texts(plot))
     assert json.loads((tmp_path / "report.json").read_text())["checks"] == checks
     assert not add_checks_section(tmp_path / "none", [])
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from robocal.report import add_compensation_section
+from tests.unit.report.svgdoc import figures, texts
 
 
 def _entry(after_rms: float) -> dict:
@@ -32,7 +33,9 @@ def test_section_is_added_once_and_replaced_with_the_measured_numbers(tmp_path):
     assert page.count('<section id="compensation">') == 1
     assert page.index('id="compensation"') < page.index("</main>")
     assert "0.0123" in page and "1.0500" in page and "1.0412" in page and "alice" in page
-    assert "data:image/svg+xml;base64," in page  # the before/after plot
+    (plot,) = figures(page)  # the before/after plot
+    assert {"before (program targets)", "after (pushed values)",
+            "position error, mm"} <= set(texts(plot))
     # the measured before -> after right under the verdict, not only at the end
     top = page[:page.index('id="compensation"')]
     assert page.index('<div id="push-result"') == page.index("</section>") + len("</section>")

@@ -11,6 +11,7 @@ import pytest
 
 from robocal.cli.main import main
 from tests.unit.report.conftest import Campaign
+from tests.unit.report.svgdoc import figures, texts, title
 
 
 def test_report_shows_coverage_and_counts_targets_outside(
@@ -44,7 +45,11 @@ def test_report_shows_coverage_and_counts_targets_outside(
     html = out.read_text()
     assert '<section id="coverage">' in html and 'href="#coverage"' in html
     assert "2 of 3 program targets lie outside" in html
-    assert 'alt="Per-joint coverage with the program targets"' in html
+    (plot,) = [s for s in figures(html) if title(s) == "Per-joint coverage with the program "
+                                                         "targets"]
+    assert ("grey: limits, blue: calibrated range, black: measured, ticks: 3 program targets "
+            "(2 outside, red)") in texts(plot)
+    assert {"J1", "J6", "joint value (deg)"} <= set(texts(plot))
 
 
 def test_report_without_targets_still_shows_the_ranges(

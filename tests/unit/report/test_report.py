@@ -3,14 +3,11 @@ exist and decode, the page is self-contained, and the verdict goes both ways."""
 
 from __future__ import annotations
 
-import base64
-import html as html_lib
 import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -19,9 +16,7 @@ from robocal.errors import ConfigError
 from robocal.kinematics import CalibratedModel
 from robocal.report import Acceptance, MeasurementLog, ReportInput, write_report
 from tests.unit.report.conftest import Campaign
-
-IMG = re.compile(r'<img src="data:image/svg\+xml;base64,([A-Za-z0-9+/=]+)" width="(\d+)" '
-                 r'height="(\d+)" alt="([^"]*)">')
+from tests.unit.report.svgdoc import NS, figures, texts, title
 
 
 @dataclass
@@ -115,27 +110,33 @@ def test_iso_and_workspace_and_log(campaign: Campaign, full: Written) -> None:
                for c in j["components"].values())
 
 
-def test_plots_are_embedded_svgs(full: Written) -> None:
-    imgs = IMG.findall(full.html)
-    assert len(imgs) == full.html.count("<img")
+def test_plots_are_inline_svg(full: Written) -> None:
+    svgs = figures(full.html)  # every figure is well-formed XML
+    assert full.html.count("<figure>") == len(svgs) and "<img" not in full.html
     keys = full.summary["figures"]
     assert set(keys) == {"summary", "histograms", "per_pose", "singular_values", "workspace",
                          "iso", "coverage", *(f"joint{j}" for j in range(1, 7))}
-    assert len(imgs) == len(keys)
-    ns = "{http://www.w3.org/2000/svg}"
-    for b64, w, h, alt in imgs:
-        root = ElementTree.fromstring(base64.b64decode(b64))  # well-formed XML
-        assert root.tag == f"{ns}svg" and alt
-        assert (root.get("width"), root.get("height")) == (w, h)
-        assert int(w) > 300 and int(h) > 150
-        assert root.findtext(f"{ns}title") == html_lib.unescape(alt)
-        # not an empty canvas: drawn series and labelled ticks
-        assert len(root.findall(f".//{ns}path")) > 5
-        assert len(root.findall(f".//{ns}text")) > 6
+    assert len(svgs) == len(keys)
+    for svg in svgs:
+        w, h = int(svg.get("width", 0)), int(svg.get("height", 0))
+        assert svg.get("viewBox") == f"0 0 {w} {h}" and w > 300 and h > 150
+        assert svg.get("role") == "img" and svg.get("aria-label") == title(svg) != ""
+        assert len(list(svg.iter(f"{NS}path"))) >= 4 and len(texts(svg)) > 5  # not blank
+    ids = re.findall(r' id="([^"]+)"', full.html)
+    assert len(ids) == len(set(ids))  # the figures' ids do not collide on the page
+    by_alt = {title(s): s for s in svgs}
+    per_pose = by_alt["Position error per pose for every model"]
+    assert {"nominal", "constant", "high-order", "auto"} <= set(texts(per_pose))
+    assert "error (mm, log)" in texts(per_pose)
+    joint1 = next(s for a, s in by_alt.items() if a.startswith("Joint 1:"))
+    assert {"residuals vs joint angle", "joint 1 (deg)", "constant, val."} <= set(texts(joint1))
+    assert any(t.startswith("δx (") for t in texts(joint1))
 
 
 def test_page_is_self_contained(full: Written) -> None:
-    low = full.html.lower()
+    # the figures name their SVG namespace and refer to their own clip paths and patterns
+    low = full.html.lower().replace('xmlns="http://www.w3.org/2000/svg"', "")
+    low = re.sub(r'url\(#f-[a-z0-9_-]+\)', "", low)
     for bad in ("http://", "https://", "<script", "<link", "url(", "src=\"/", "@import"):
         assert bad not in low, bad
     assert low.startswith("<!doctype html>") and low.rstrip().endswith("</html>")

@@ -12,6 +12,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal.identification import FitOptions, fit
 from robocal.report import MeasurementLog, ReportInput, write_report
 from robocal.simulation import VirtualCell, WarmUpDrift
+from tests.unit.report.svgdoc import figures, texts, title
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -39,8 +40,9 @@ def test_report_shows_temperatures_and_the_thermal_term(tmp_path: Path):
                            tmp_path / "r.html")
     page = Path(html).read_text()
     assert "<h3>Thermal state</h3>" in page
-    assert 'alt="Joint temperatures against time"' in page
-    assert 'alt="Position error of the selected model against temperature"' in page
+    plots = {title(svg): texts(svg) for svg in figures(page)}
+    assert {"J1", "J6", "joint temperature (°C)"} <= set(plots["Joint temperatures against time"])
+    assert "auto error (mm)" in plots["Position error of the selected model against temperature"]
     assert "µm/°C" in page and "linear thermal term" in page
 
 
