@@ -380,57 +380,87 @@ class _CV:
         Schur complements on the factorised base of each fold (``fold_bases``): a group of g
         columns then costs O(k g^2) per fold for k base columns, and each prior O(g^3).
         Groups of equal size are evaluated together as stacked arrays (the ripple family
-        alone is a few hundred two-column groups). ``also_active``: further columns the
-        fold factors keep (candidates of later calls).
+        alone is a few hundred two-column groups), and the small systems of every fold are
+        solved in one stacked call (a forward round of small groups is otherwise dominated
+        by the per-call cost of hundreds of tiny solves). ``also_active``: further columns
+        the fold factors keep (candidates of later calls).
         """
         self.evaluations += sum(len(p) for _, p in options)
         out = [np.zeros(len(p)) for _, p in options]
         by_size: dict[int, list[int]] = {}
         for i, (gcols, _) in enumerate(options):
             by_size.setdefault(len(gcols), []).append(i)
-        # groups of one size in batches of at most ~32 MB of stacked temporaries (the map
-        # groups have hundreds of columns and each is tried with several priors)
+        # groups of one size in batches of at most ~32 MB of stacked temporaries over all
+        # folds (the map groups have hundreds of columns, each tried with several priors)
         k = len(base_cols)
         batches = []
         for idx_all in by_size.values():
             g = len(options[idx_all[0]][0])
             n_opt = max(len(options[i][1]) for i in idx_all)
-            step = max(1, int(32e6 // (8 * (4 * k * g + 4 * n_opt * g * g))))
+            step = max(1, int(32e6 // (8 * self.K * (4 * k * g + 4 * n_opt * g * g))))
             batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
         extra = [] if also_active is None else [also_active]
         act = np.unique(np.concatenate([c for c, _ in options] + extra))
         bases = self.fold_bases(base_cols, base_pen, act)
+        ixbb = np.ix_(base_cols, base_cols)
+        # per fold: training right-hand side and solution of the base model, the held-out
+        # residual correlation it leaves, and its held-out sum of squares
+        pre = []
         for f, fb in enumerate(bases):
-            Gf = self.G_f[f]
-            Gtr_b = self._train(f, base_cols, act)           # (k, a)
-            btr_all = self.b - self.b_f[f]
-            btr = btr_all[base_cols]
+            btr = self.b[base_cols] - self.b_f[f][base_cols]
             dA = fb.Ainv @ btr
             bf_b = self.b_f[f][base_cols]
-            GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
-            const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
-            Gf_b = Gf[np.ix_(base_cols, act)]
-            for idx in batches:
-                C = np.stack([options[i][0] for i in idx])          # (m, g) superset columns
-                A = np.searchsorted(act, C)                         # (m, g) active positions
-                cc = (C[:, :, None], C[:, None, :])
+            GdA = self.G_f[f][ixbb] @ dA
+            pre.append((btr, dA, bf_b - GdA, float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)))
+        for idx in batches:
+            C = np.stack([options[i][0] for i in idx])              # (m, g) superset columns
+            m, g = C.shape
+            A = np.searchsorted(act, C)                             # (m, g) active positions
+            cc = (C[:, :, None], C[:, None, :])
+            ixbc = np.ix_(base_cols, C.ravel())
+            G_bc = self.G[ixbc]                                     # (k, m g)
+            G_cc = self.G[cc]
+            opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
+            pens = np.stack([p for i in idx for p in options[i][1]])
+            # a group's priors differ by multiples of one positive semidefinite matrix (a
+            # map's smoothness grid): its least definite system is the one of smallest trace
+            tr_pen = np.trace(pens, axis1=1, axis2=2)
+            least = np.zeros(len(opt_of), dtype=bool)
+            for a in range(m):
+                e_a = np.flatnonzero(opt_of == a)
+                least[e_a[int(np.argmin(tr_pen[e_a]))]] = True
+            parts = []
+            Ms, rhss = [], []
+            for f, fb in enumerate(bases):
+                Gf = self.G_f[f]
+                btr, dA, res_b, _ = pre[f]
                 X = fb.X[:, A].transpose(1, 0, 2)                   # (m, k, g)
                 Xt = X.transpose(0, 2, 1)
-                Gf_bg = Gf_b[:, A].transpose(1, 0, 2)               # (m, k, g)
-                S0 = (self.G[cc] - Gf[cc]) - Gtr_b[:, A].transpose(1, 2, 0) @ X
-                rhs = btr_all[C] - Xt @ btr
+                Gf_bg = Gf[ixbc].reshape(k, m, g).transpose(1, 0, 2)  # (m, k, g)
+                Gtr_gb = (G_bc.reshape(k, m, g).transpose(1, 2, 0)
+                          - Gf_bg.transpose(0, 2, 1))               # (m, g, k)
+                Gf_cc = Gf[cc]
+                S0 = (G_cc - Gf_cc) - Gtr_gb @ X
+                rhs = (self.b[C] - self.b_f[f][C]) - Xt @ btr
                 # held-out SSE as a quadratic in dg (db = dA - X dg): dg^T Q dg + 2 lin dg
-                lin = Xt @ (bf_b - GdA) - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
-                opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
-                M = S0[opt_of] + np.stack([p for i in idx for p in options[i][1]])
-                dg = _spd_solve_stack(M, rhs[opt_of])
-                Qdg = _held_out_q(X, fb.Y[:, A].transpose(1, 0, 2), Gf_bg, Gf[cc], dg, opt_of)
-                vals = const_part + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
-                e = 0
-                for i in idx:
-                    n_p = len(options[i][1])
-                    out[i] += vals[e:e + n_p]
-                    e += n_p
+                lin = Xt @ res_b - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
+                Ms.append(S0[opt_of] + pens)
+                rhss.append(rhs[opt_of])
+                parts.append((X, fb.Y[:, A].transpose(1, 0, 2), Gf_bg, Gf_cc, lin))
+            dg_all = _spd_solve_stack(np.concatenate(Ms), np.concatenate(rhss),
+                                      np.tile(least, self.K))
+            del Ms, rhss
+            E = len(opt_of)
+            vals = np.zeros(E)
+            for f, (X, Y, Gf_bg, Gf_cc, lin) in enumerate(parts):
+                dg = dg_all[f * E:(f + 1) * E]
+                Qdg = _held_out_q(X, Y, Gf_bg, Gf_cc, dg, opt_of)
+                vals += pre[f][3] + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
+            e = 0
+            for i in idx:
+                n_p = len(options[i][1])
+                out[i] += vals[e:e + n_p]
+                e += n_p
         return [list(o) for o in out]
 
 
@@ -506,11 +536,18 @@ def close_pairs(q: Array, tol: float) -> IntArray:
     return np.concatenate(out).astype(np.intp) if out else np.zeros((0, 2), dtype=np.intp)
 
 
-def _spd_solve_stack(M: Array, r: Array) -> Array:
+def _spd_solve_stack(M: Array, r: Array, proof: NDArray[np.bool_] | None = None) -> Array:
     """Solve stacked SPD systems ``M[e] x[e] = r[e]``, M (E, g, g), r (E, g); singular ones by
-    least squares."""
+    least squares.
+
+    ``proof`` (E,): the matrices whose Cholesky factorisation is taken as the proof that all
+    are positive definite (default: every one). A caller may leave a matrix out when it is
+    a proven one plus a positive semidefinite matrix (a map's prior at a larger smoothness
+    weight): the factorisation only proves definiteness, and costs half the solve.
+    """
     try:
-        np.linalg.cholesky(M)   # raises unless every matrix of the stack is positive definite
+        # raises unless every matrix checked is positive definite
+        np.linalg.cholesky(M if proof is None or proof.all() else M[proof])
         if not np.all(np.isfinite(M)):
             raise np.linalg.LinAlgError("matrix is not finite")
         return np.asarray(np.linalg.solve(M, r[..., None])[..., 0], dtype=np.float64)

@@ -160,3 +160,61 @@ def test_a_group_almost_in_the_span_of_the_base_makes_the_factors_be_recomputed(
     cv._cache = None
     fresh = cv.scores_added(base2, pen2, options)
     np.testing.assert_allclose(updated, fresh, rtol=1e-12)
+
+
+def _direct_scores(cv: _CV, base: np.ndarray, options) -> list[list[float]]:
+    """``base + group`` scored one model at a time (``_CV.score``, one solve per fold)."""
+    k = len(base)
+    out = []
+    for cols, pens in options:
+        row = []
+        for pen in pens:
+            P = np.zeros((k + len(cols), k + len(cols)))
+            P[k:, k:] = pen
+            row.append(cv.score(np.r_[base, cols], P))
+        out.append(row)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fold_stacked_scores_equal_one_model_at_a_time(seed: int):
+    """All folds' systems solved in one stacked call, and a smoothness family's definiteness
+    proven by its least definite member, give the scores of direct per-model solves."""
+    rng = np.random.default_rng(100 + seed)
+    cv = _random_cv(rng, K=4, P=30, n=120)
+    base = np.sort(rng.choice(30, size=6, replace=False))
+    rest = np.setdiff1d(np.arange(30), base)
+    D = np.diff(np.eye(5), 2, axis=0)
+    D2 = D.T @ D
+    options = [(rest[[0]], [np.zeros((1, 1))]), (rest[[1]], [np.zeros((1, 1))]),
+               (rest[2:4], [np.zeros((2, 2))]), (rest[4:6], [0.1 * np.eye(2)]),
+               # map-like groups: a ridge plus a smoothness grid (unsorted on purpose)
+               (rest[6:11], [lam * D2 + 1e-3 * np.eye(5) for lam in (10.0, 0.01, 1.0)]),
+               (rest[11:16], [lam * D2 + 1e-3 * np.eye(5) for lam in (0.1, 100.0)])]
+    stacked = cv.scores_added(base, np.zeros((6, 6)), options)
+    direct = _direct_scores(cv, base, options)
+    for s_row, d_row in zip(stacked, direct, strict=True):
+        np.testing.assert_allclose(s_row, d_row, rtol=1e-10)
+
+
+def test_a_family_with_a_singular_member_falls_back_for_every_system():
+    """When the least definite system of a family is singular (no prior, dependent
+    columns) the stack is solved system by system (least squares where singular), as
+    direct solves are."""
+    rng = np.random.default_rng(11)
+    K, P, n = 3, 10, 60
+    J = rng.normal(size=(K * n, P))
+    J[:, 9] = J[:, 8]                                 # columns 8 and 9 are identical
+    r = rng.normal(size=K * n)
+    cv = _CV(np.stack([J[f::K].T @ J[f::K] for f in range(K)]),
+             np.stack([J[f::K].T @ r[f::K] for f in range(K)]),
+             np.array([r[f::K] @ r[f::K] for f in range(K)]))
+    base = np.arange(4)
+    options = [(np.array([8, 9]), [np.zeros((2, 2)), np.eye(2)]),
+               (np.array([5, 6]), [np.zeros((2, 2))])]
+    stacked = cv.scores_added(base, np.zeros((4, 4)), options)
+    assert np.all(np.isfinite(stacked[0]))
+    np.testing.assert_allclose(stacked[1], _direct_scores(cv, base, options[1:])[0],
+                               rtol=1e-10)
+    np.testing.assert_allclose(stacked[0][1], _direct_scores(cv, base, options[:1])[0][1],
+                               rtol=1e-10)
