@@ -145,15 +145,16 @@ SCHUR_RTOL = 1e-8
 class _FoldBase:
     """Factorised base model of one CV fold: what adding a candidate group needs.
 
-    ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns,
-    ``X = Ainv @ Gtr[base, act]`` (k, a) and ``Y = Gf[base, base] @ X`` (k, a) for the
-    *active* superset columns ``act`` (the candidates' columns), so a candidate group only
-    indexes columns of X and Y.
+    ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns
+    and ``X = Ainv @ Gtr[base, act]`` (k, a) for the *active* superset columns ``act`` (the
+    candidates' columns), so a candidate group only indexes columns of X. (The held-out
+    matrix ``Gf[base, base]`` is applied to ``X dg`` per option instead of being carried
+    as ``Gf[base, base] @ X``: updating that product cost O(k g a) per added group and
+    fold, more than the products it saved; see ``_held_out_q``.)
     """
 
     Ainv: Array
     X: Array
-    Y: Array
 
 
 class _CV:
@@ -218,8 +219,7 @@ class _CV:
         bases = []
         for f in range(self.K):
             Ainv = _inv_spd(Gb - self.G_f[f][ixb])
-            X = Ainv @ self._train(f, base_cols, act)
-            bases.append(_FoldBase(Ainv, X, self.G_f[f][ixb] @ X))
+            bases.append(_FoldBase(Ainv, Ainv @ self._train(f, base_cols, act)))
         self._cache = (base_cols.copy(), base_pen.copy(), act.copy(), bases)
         return bases
 
@@ -232,7 +232,7 @@ class _CV:
     def _columns(old_act: IntArray, fb: _FoldBase, act: IntArray) -> _FoldBase:
         """``fb`` (columns ``old_act``) restricted to the active columns ``act`` (a subset)."""
         pos = np.searchsorted(old_act, act)
-        return _FoldBase(fb.Ainv, fb.X[:, pos], fb.Y[:, pos])
+        return _FoldBase(fb.Ainv, fb.X[:, pos])
 
     def train_gains(self, base_cols: IntArray, base_pen: Array, C: Array, pens: Array,
                     act: IntArray) -> Array:
@@ -260,7 +260,6 @@ class _CV:
                 gpen: Array) -> _FoldBase | None:
         """``fb`` for base columns ``b`` extended by active columns ``g`` with prior ``gpen``;
         None when the update would lose too many digits (see ``SCHUR_RTOL``)."""
-        Gf = self.G_f[f]
         pg = np.searchsorted(act, g)
         Xg = fb.X[:, pg]                                    # Ainv @ Gtr[b, g]
         Gtr_gb = self._train(f, g, b)
@@ -276,10 +275,7 @@ class _CV:
         X_top = fb.X + Xg @ R
         XS = Xg @ Sinv
         Ainv = np.block([[fb.Ainv + XS @ Xg.T, -XS], [-XS.T, Sinv]])
-        Gf_bg = Gf[np.ix_(b, g)]
-        Y_top = fb.Y + fb.Y[:, pg] @ R - Gf_bg @ R
-        Y_bot = Gf_bg.T @ X_top - Gf[np.ix_(g, g)] @ R
-        return _FoldBase(Ainv, np.vstack([X_top, -R]), np.vstack([Y_top, Y_bot]))
+        return _FoldBase(Ainv, np.vstack([X_top, -R]))
 
     def score(self, cols: IntArray, pen: Array) -> float:
         """CV sum of squares (whitened) of the model with columns ``cols`` and prior ``pen``."""
@@ -296,7 +292,7 @@ class _CV:
         return total
 
     def keep_inverses_only(self) -> None:
-        """Let the forward selection's X and Y go: the later passes need the inverses only."""
+        """Let the forward selection's X go: the later passes need the inverses only."""
         c = self._cache
         if c is not None:
             self._inv_cache = (c[0], c[1], [fb.Ainv for fb in c[3]])
@@ -321,7 +317,7 @@ class _CV:
                       repen: tuple[IntArray, Array] | None = None) -> None:
         """Keep the fold inverses of a variant chosen from ``scores_varied`` (low-rank update).
 
-        The forward selection's factors (and their X, Y) are let go first, and the inverses
+        The forward selection's factors (and their X) are let go first, and the inverses
         replaced fold by fold: with maps each is ~1,700^2 doubles, five folds ~120 MB.
         """
         invs = self.fold_inverses(cols, pen)
@@ -410,8 +406,10 @@ class _CV:
             btr = self.b[base_cols] - self.b_f[f][base_cols]
             dA = fb.Ainv @ btr
             bf_b = self.b_f[f][base_cols]
-            GdA = self.G_f[f][ixbb] @ dA
-            pre.append((btr, dA, bf_b - GdA, float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)))
+            Gf_bb = self.G_f[f][ixbb]
+            GdA = Gf_bb @ dA
+            pre.append((btr, dA, bf_b - GdA, float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA),
+                        Gf_bb))
         for idx in batches:
             C = np.stack([options[i][0] for i in idx])              # (m, g) superset columns
             m, g = C.shape
@@ -433,7 +431,7 @@ class _CV:
             Ms, rhss = [], []
             for f, fb in enumerate(bases):
                 Gf = self.G_f[f]
-                btr, dA, res_b, _ = pre[f]
+                btr, dA, res_b, _, _ = pre[f]
                 X = fb.X[:, A].transpose(1, 0, 2)                   # (m, k, g)
                 Xt = X.transpose(0, 2, 1)
                 Gf_bg = Gf[ixbc].reshape(k, m, g).transpose(1, 0, 2)  # (m, k, g)
@@ -446,15 +444,15 @@ class _CV:
                 lin = Xt @ res_b - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
                 Ms.append(S0[opt_of] + pens)
                 rhss.append(rhs[opt_of])
-                parts.append((X, fb.Y[:, A].transpose(1, 0, 2), Gf_bg, Gf_cc, lin))
+                parts.append((X, Gf_bg, Gf_cc, lin))
             dg_all = _spd_solve_stack(np.concatenate(Ms), np.concatenate(rhss),
                                       np.tile(least, self.K))
             del Ms, rhss
             E = len(opt_of)
             vals = np.zeros(E)
-            for f, (X, Y, Gf_bg, Gf_cc, lin) in enumerate(parts):
+            for f, (X, Gf_bg, Gf_cc, lin) in enumerate(parts):
                 dg = dg_all[f * E:(f + 1) * E]
-                Qdg = _held_out_q(X, Y, Gf_bg, Gf_cc, dg, opt_of)
+                Qdg = _held_out_q(X, pre[f][4], Gf_bg, Gf_cc, dg, opt_of)
                 vals += pre[f][3] + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
             e = 0
             for i in idx:
@@ -464,24 +462,26 @@ class _CV:
         return [list(o) for o in out]
 
 
-def _held_out_q(X: Array, Y: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray
+def _held_out_q(X: Array, Gbb: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray
                 ) -> Array:
-    """``Q dg`` (E, g) for the held-out quadratic ``Q = X^T Y - X^T Gbg - Gbg^T X + Ggg``.
+    """``Q dg`` (E, g) for the held-out quadratic ``Q = X^T Gbb X - X^T Gbg - Gbg^T X + Ggg``.
 
-    X, Y, Gbg (m, k, g) and Ggg (m, g, g) per group; dg (E, g) per option, option e of group
-    ``opt_of[e]``. Matrix-vector products, O(k g) per option: forming Q costs O(k g^2) per
-    group, which for the maps (g of several hundred) dominated the forward selection.
+    X, Gbg (m, k, g) and Ggg (m, g, g) per group, Gbb (k, k) the fold's held-out normal
+    matrix of the base; dg (E, g) per option, option e of group ``opt_of[e]``.
+    Matrix-vector products, O(k g + k^2) per option: forming Q costs O(k g^2) per group,
+    which for the maps (g of several hundred) dominated the forward selection.
     """
     if len(opt_of) == X.shape[0]:                               # one option per group
         d = dg[..., None]
-        u = X @ d
-        return np.asarray((X.transpose(0, 2, 1) @ (Y @ d - Gbg @ d)
+        u = X @ d                                               # (m, k, 1)
+        return np.asarray((X.transpose(0, 2, 1) @ (Gbb @ u - Gbg @ d)
                            - Gbg.transpose(0, 2, 1) @ u + Ggg @ d)[..., 0], dtype=np.float64)
     out = np.empty_like(dg)
     for a in np.unique(opt_of):
         e = opt_of == a
         D = dg[e].T                                                 # (g, n_options)
-        Qd = X[a].T @ (Y[a] @ D - Gbg[a] @ D) - Gbg[a].T @ (X[a] @ D) + Ggg[a] @ D
+        U = X[a] @ D
+        Qd = X[a].T @ (Gbb @ U - Gbg[a] @ D) - Gbg[a].T @ U + Ggg[a] @ D
         out[e] = Qd.T
     return out
 
