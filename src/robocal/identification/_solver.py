@@ -129,8 +129,9 @@ class Problem:
             assert self.W_rot is not None
             p, R, J6 = self.model.pose_jacobian(self.q[rows], x)
             Jw6 = np.empty((len(rows), 6, len(cols)))
-            Jw6[:, :3] = np.einsum("nij,njk->nik", self.W[rows], J6[:, :3][:, :, cols])
-            Jw6[:, 3:] = np.einsum("nij,njk->nik", self.W_rot[rows], J6[:, 3:][:, :, cols])
+            J6 = np.take(J6, cols, axis=2)
+            Jw6[:, :3] = np.einsum("nij,njk->nik", self.W[rows], J6[:, :3])
+            Jw6[:, 3:] = np.einsum("nij,njk->nik", self.W_rot[rows], J6[:, 3:])
             rw6 = np.empty((len(rows), 6))
             rw6[:, :3] = np.einsum("nij,nj->ni", self.W[rows], self.y[rows] - p)
             rw6[:, 3:] = np.einsum("nij,nj->ni", self.W_rot[rows],
@@ -138,7 +139,8 @@ class Problem:
             return Jw6.reshape(-1, len(cols)), rw6.ravel()
         p, J = self.model.jacobian(self.q[rows], x)
         W = self.W[rows]
-        Jw = np.einsum("nij,njk->nik", W, J[:, :, cols]).reshape(-1, len(cols))
+        # np.take, not J[:, :, cols]: a fancy index on the last axis is ~5x slower
+        Jw = np.einsum("nij,njk->nik", W, np.take(J, cols, axis=2)).reshape(-1, len(cols))
         rw = np.einsum("nij,nj->ni", W, self.y[rows] - p).ravel()
         return Jw, rw
 
