@@ -396,18 +396,27 @@ def term_tier(name: str) -> int:
     return 400
 
 
-def _tsqr(prob: Problem, x: Array, rows: IntArray, cols: IntArray, scale: Array) -> Array:
-    """R factor (<= k, k) of the column-scaled whitened Jacobian, chunk by chunk."""
+def _normal_and_r(prob: Problem, x: Array, rows: IntArray, cols: IntArray
+                  ) -> tuple[Array, Array]:
+    """Normal matrix ``J^T J`` (k, k) and an R factor (<= k, k) of the whitened Jacobian of
+    ``cols``, from one pass over the Jacobian chunks (each chunk's Jacobian costs as much as
+    the two products together)."""
+    k = len(cols)
+    A = np.zeros((k, k))
     R: Array | None = None
     for ch in prob.chunks(rows):
         if len(ch) == 0:
             continue
         Jw, _ = prob.whitened_jacobian(x, ch, cols)
-        X = Jw / scale if R is None else np.vstack([R, Jw / scale])
+        A += Jw.T @ Jw
+        if not np.all(np.isfinite(Jw)):
+            return A, np.zeros((0, k))      # the caller reports the non-finite matrix
+        X = Jw if R is None else np.vstack([R, Jw])
         # numpy stub types every mode as QRResult; mode="r" returns the R array alone
         R = np.linalg.qr(X, mode="r")  # type: ignore[assignment]
-    assert R is not None
-    return R
+    if R is None:
+        R = np.zeros((0, k))
+    return A, R
 
 
 def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
@@ -429,7 +438,9 @@ def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
     names = prob.model.names
     cols = np.asarray(cols, dtype=np.intp)
     k = len(cols)
-    A = prob.normal_equations(x, rows, cols)[0] if factor is None else factor[0]
+    if factor is None:
+        factor = _normal_and_r(prob, x, rows, cols)
+    A = factor[0]
     norms = np.sqrt(np.clip(np.diag(A), 0.0, None))
     nz = norms > 1e-12 * max(float(norms.max()), 1e-300)
     keep = np.zeros(k, dtype=bool)
@@ -445,8 +456,7 @@ def analyse_jacobian(prob: Problem, x: Array, rows: IntArray, cols: IntArray, *,
     # rounding, and tol could not be resolved
     # Householder QR is invariant to column scaling up to rounding, so a factor of the
     # unscaled Jacobian, scaled afterwards, serves as well
-    R = (_tsqr(prob, x, rows, sub, norms[nz]) if factor is None
-         else factor[1][:, nz] / norms[nz])
+    R = factor[1][:, nz] / norms[nz]
     try:
         _, S, Vt = np.linalg.svd(R, full_matrices=False)
     except np.linalg.LinAlgError:
