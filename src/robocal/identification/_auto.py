@@ -170,6 +170,8 @@ class _CV:
         # base columns, their prior, the active columns and each fold's factorised base
         self._cache: tuple[IntArray, Array, IntArray, list[_FoldBase]] | None = None
         self._inv_cache: tuple[IntArray, Array, list[Array]] | None = None
+        # held-out normal matrix of each fold over the columns of the model last varied
+        self._held_cache: tuple[IntArray, list[Array]] | None = None
 
     def fold_bases(self, base_cols: IntArray, base_pen: Array, act: IntArray
                    ) -> list[_FoldBase]:
@@ -334,6 +336,19 @@ class _CV:
             del P
         self._inv_cache = (new_cols.copy(), new_pen.copy(), invs)
 
+    def held_out_blocks(self, cols: IntArray) -> list[Array]:
+        """Held-out normal matrix of each fold over ``cols``, kept while the columns stay:
+        the smoothness refinement varies only priors, and gathering K blocks of k^2 from
+        the P x P fold matrices cost more than its Woodbury updates."""
+        c = self._held_cache
+        if c is not None and np.array_equal(c[0], cols):
+            return c[1]
+        self._held_cache = None
+        ix = np.ix_(cols, cols)
+        blocks = [np.asarray(self.G_f[f][ix]) for f in range(self.K)]
+        self._held_cache = (cols.copy(), blocks)
+        return blocks
+
     def scores_varied(self, cols: IntArray, pen: Array, drops: Sequence[IntArray],
                       repens: Sequence[tuple[IntArray, Array]]) -> tuple[list[float], list[float]]:
         """CV scores of variants of the model (``cols``, ``pen``) without refitting it.
@@ -347,11 +362,11 @@ class _CV:
         self.evaluations += len(drops) + len(repens)
         s_drop = np.zeros(len(drops))
         s_pen = np.zeros(len(repens))
-        ix = np.ix_(cols, cols)
+        held = self.held_out_blocks(cols)
         for f, P in enumerate(self.fold_inverses(cols, pen)):
             btr = self.b[cols] - self.b_f[f][cols]
             bf = self.b_f[f][cols]
-            Gf = self.G_f[f][ix]
+            Gf = held[f]
             d = P @ btr
             for i, p in enumerate(drops):
                 # the reduced solution embedded in full coordinates (zero on the block):

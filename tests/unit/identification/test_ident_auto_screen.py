@@ -217,3 +217,28 @@ def test_a_family_with_a_singular_member_falls_back_for_every_system():
                                rtol=1e-10)
     np.testing.assert_allclose(stacked[0][1], _direct_scores(cv, base, options[:1])[0][1],
                                rtol=1e-10)
+
+
+def test_varied_scores_equal_direct_scores_across_a_changed_model():
+    """Block drops and prior changes (backward pass, smoothness refinement) score as direct
+    fits, before and after a variant is adopted (the held-out blocks kept for the model's
+    columns are renewed when its columns change)."""
+    rng = np.random.default_rng(21)
+    cv = _random_cv(rng, K=3, P=20, n=100)
+    cols = np.array([0, 1, 2, 3, 7, 8, 9, 12, 13])
+    pen = np.zeros((9, 9))
+    pen[4:7, 4:7] = 0.2 * np.eye(3)
+    drop, blk = np.array([7, 8]), np.array([4, 5, 6])
+    dpen = 0.5 * np.eye(3)
+    for _ in range(2):
+        dropped, repen = cv.scores_varied(cols, pen, [drop], [(blk, dpen)])
+        keep = np.setdiff1d(np.arange(len(cols)), drop)
+        assert dropped[0] == pytest.approx(cv.score(cols[keep], pen[np.ix_(keep, keep)]),
+                                           rel=1e-10)
+        pen2 = pen.copy()
+        pen2[np.ix_(blk, blk)] += dpen
+        assert repen[0] == pytest.approx(cv.score(cols, pen2), rel=1e-10)
+        # adopt the drop: the next round scores the smaller model
+        cv.adopt_variant(cols, pen, cols[keep], pen[np.ix_(keep, keep)], drop=drop)
+        cols, pen = cols[keep], pen[np.ix_(keep, keep)]
+        drop = np.array([len(cols) - 1])
