@@ -145,15 +145,16 @@ SCHUR_RTOL = 1e-8
 class _FoldBase:
     """Factorised base model of one CV fold: what adding a candidate group needs.
 
-    ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns,
-    ``X = Ainv @ Gtr[base, act]`` (k, a) and ``Y = Gf[base, base] @ X`` (k, a) for the
-    *active* superset columns ``act`` (the candidates' columns), so a candidate group only
-    indexes columns of X and Y.
+    ``Ainv`` (k, k) is the inverse training normal matrix (plus prior) of the base columns
+    and ``X = Ainv @ Gtr[base, act]`` (k, a) for the *active* superset columns ``act`` (the
+    candidates' columns), so a candidate group only indexes columns of X. (The held-out
+    matrix ``Gf[base, base]`` is applied to ``X dg`` per option instead of being carried
+    as ``Gf[base, base] @ X``: updating that product cost O(k g a) per added group and
+    fold, more than the products it saved; see ``_held_out_q``.)
     """
 
     Ainv: Array
     X: Array
-    Y: Array
 
 
 class _CV:
@@ -169,6 +170,8 @@ class _CV:
         # base columns, their prior, the active columns and each fold's factorised base
         self._cache: tuple[IntArray, Array, IntArray, list[_FoldBase]] | None = None
         self._inv_cache: tuple[IntArray, Array, list[Array]] | None = None
+        # held-out normal matrix of each fold over the columns of the model last varied
+        self._held_cache: tuple[IntArray, list[Array]] | None = None
 
     def fold_bases(self, base_cols: IntArray, base_pen: Array, act: IntArray
                    ) -> list[_FoldBase]:
@@ -218,8 +221,7 @@ class _CV:
         bases = []
         for f in range(self.K):
             Ainv = _inv_spd(Gb - self.G_f[f][ixb])
-            X = Ainv @ self._train(f, base_cols, act)
-            bases.append(_FoldBase(Ainv, X, self.G_f[f][ixb] @ X))
+            bases.append(_FoldBase(Ainv, Ainv @ self._train(f, base_cols, act)))
         self._cache = (base_cols.copy(), base_pen.copy(), act.copy(), bases)
         return bases
 
@@ -232,7 +234,7 @@ class _CV:
     def _columns(old_act: IntArray, fb: _FoldBase, act: IntArray) -> _FoldBase:
         """``fb`` (columns ``old_act``) restricted to the active columns ``act`` (a subset)."""
         pos = np.searchsorted(old_act, act)
-        return _FoldBase(fb.Ainv, fb.X[:, pos], fb.Y[:, pos])
+        return _FoldBase(fb.Ainv, fb.X[:, pos])
 
     def train_gains(self, base_cols: IntArray, base_pen: Array, C: Array, pens: Array,
                     act: IntArray) -> Array:
@@ -260,7 +262,6 @@ class _CV:
                 gpen: Array) -> _FoldBase | None:
         """``fb`` for base columns ``b`` extended by active columns ``g`` with prior ``gpen``;
         None when the update would lose too many digits (see ``SCHUR_RTOL``)."""
-        Gf = self.G_f[f]
         pg = np.searchsorted(act, g)
         Xg = fb.X[:, pg]                                    # Ainv @ Gtr[b, g]
         Gtr_gb = self._train(f, g, b)
@@ -276,10 +277,7 @@ class _CV:
         X_top = fb.X + Xg @ R
         XS = Xg @ Sinv
         Ainv = np.block([[fb.Ainv + XS @ Xg.T, -XS], [-XS.T, Sinv]])
-        Gf_bg = Gf[np.ix_(b, g)]
-        Y_top = fb.Y + fb.Y[:, pg] @ R - Gf_bg @ R
-        Y_bot = Gf_bg.T @ X_top - Gf[np.ix_(g, g)] @ R
-        return _FoldBase(Ainv, np.vstack([X_top, -R]), np.vstack([Y_top, Y_bot]))
+        return _FoldBase(Ainv, np.vstack([X_top, -R]))
 
     def score(self, cols: IntArray, pen: Array) -> float:
         """CV sum of squares (whitened) of the model with columns ``cols`` and prior ``pen``."""
@@ -296,7 +294,7 @@ class _CV:
         return total
 
     def keep_inverses_only(self) -> None:
-        """Let the forward selection's X and Y go: the later passes need the inverses only."""
+        """Let the forward selection's X go: the later passes need the inverses only."""
         c = self._cache
         if c is not None:
             self._inv_cache = (c[0], c[1], [fb.Ainv for fb in c[3]])
@@ -321,7 +319,7 @@ class _CV:
                       repen: tuple[IntArray, Array] | None = None) -> None:
         """Keep the fold inverses of a variant chosen from ``scores_varied`` (low-rank update).
 
-        The forward selection's factors (and their X, Y) are let go first, and the inverses
+        The forward selection's factors (and their X) are let go first, and the inverses
         replaced fold by fold: with maps each is ~1,700^2 doubles, five folds ~120 MB.
         """
         invs = self.fold_inverses(cols, pen)
@@ -338,6 +336,19 @@ class _CV:
             del P
         self._inv_cache = (new_cols.copy(), new_pen.copy(), invs)
 
+    def held_out_blocks(self, cols: IntArray) -> list[Array]:
+        """Held-out normal matrix of each fold over ``cols``, kept while the columns stay:
+        the smoothness refinement varies only priors, and gathering K blocks of k^2 from
+        the P x P fold matrices cost more than its Woodbury updates."""
+        c = self._held_cache
+        if c is not None and np.array_equal(c[0], cols):
+            return c[1]
+        self._held_cache = None
+        ix = np.ix_(cols, cols)
+        blocks = [np.asarray(self.G_f[f][ix]) for f in range(self.K)]
+        self._held_cache = (cols.copy(), blocks)
+        return blocks
+
     def scores_varied(self, cols: IntArray, pen: Array, drops: Sequence[IntArray],
                       repens: Sequence[tuple[IntArray, Array]]) -> tuple[list[float], list[float]]:
         """CV scores of variants of the model (``cols``, ``pen``) without refitting it.
@@ -351,11 +362,11 @@ class _CV:
         self.evaluations += len(drops) + len(repens)
         s_drop = np.zeros(len(drops))
         s_pen = np.zeros(len(repens))
-        ix = np.ix_(cols, cols)
+        held = self.held_out_blocks(cols)
         for f, P in enumerate(self.fold_inverses(cols, pen)):
             btr = self.b[cols] - self.b_f[f][cols]
             bf = self.b_f[f][cols]
-            Gf = self.G_f[f][ix]
+            Gf = held[f]
             d = P @ btr
             for i, p in enumerate(drops):
                 # the reduced solution embedded in full coordinates (zero on the block):
@@ -380,78 +391,112 @@ class _CV:
         Schur complements on the factorised base of each fold (``fold_bases``): a group of g
         columns then costs O(k g^2) per fold for k base columns, and each prior O(g^3).
         Groups of equal size are evaluated together as stacked arrays (the ripple family
-        alone is a few hundred two-column groups). ``also_active``: further columns the
-        fold factors keep (candidates of later calls).
+        alone is a few hundred two-column groups), and the small systems of every fold are
+        solved in one stacked call (a forward round of small groups is otherwise dominated
+        by the per-call cost of hundreds of tiny solves). ``also_active``: further columns
+        the fold factors keep (candidates of later calls).
         """
         self.evaluations += sum(len(p) for _, p in options)
         out = [np.zeros(len(p)) for _, p in options]
         by_size: dict[int, list[int]] = {}
         for i, (gcols, _) in enumerate(options):
             by_size.setdefault(len(gcols), []).append(i)
-        # groups of one size in batches of at most ~32 MB of stacked temporaries (the map
-        # groups have hundreds of columns and each is tried with several priors)
+        # groups of one size in batches of at most ~32 MB of stacked temporaries over all
+        # folds (the map groups have hundreds of columns, each tried with several priors)
         k = len(base_cols)
         batches = []
         for idx_all in by_size.values():
             g = len(options[idx_all[0]][0])
             n_opt = max(len(options[i][1]) for i in idx_all)
-            step = max(1, int(32e6 // (8 * (4 * k * g + 4 * n_opt * g * g))))
+            step = max(1, int(32e6 // (8 * self.K * (4 * k * g + 4 * n_opt * g * g))))
             batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
         extra = [] if also_active is None else [also_active]
         act = np.unique(np.concatenate([c for c, _ in options] + extra))
         bases = self.fold_bases(base_cols, base_pen, act)
+        ixbb = np.ix_(base_cols, base_cols)
+        # per fold: training right-hand side and solution of the base model, the held-out
+        # residual correlation it leaves, and its held-out sum of squares
+        pre = []
         for f, fb in enumerate(bases):
-            Gf = self.G_f[f]
-            Gtr_b = self._train(f, base_cols, act)           # (k, a)
-            btr_all = self.b - self.b_f[f]
-            btr = btr_all[base_cols]
+            btr = self.b[base_cols] - self.b_f[f][base_cols]
             dA = fb.Ainv @ btr
             bf_b = self.b_f[f][base_cols]
-            GdA = Gf[np.ix_(base_cols, base_cols)] @ dA
-            const_part = float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA)
-            Gf_b = Gf[np.ix_(base_cols, act)]
-            for idx in batches:
-                C = np.stack([options[i][0] for i in idx])          # (m, g) superset columns
-                A = np.searchsorted(act, C)                         # (m, g) active positions
-                cc = (C[:, :, None], C[:, None, :])
+            Gf_bb = self.G_f[f][ixbb]
+            GdA = Gf_bb @ dA
+            pre.append((btr, dA, bf_b - GdA, float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA),
+                        Gf_bb))
+        for idx in batches:
+            C = np.stack([options[i][0] for i in idx])              # (m, g) superset columns
+            m, g = C.shape
+            A = np.searchsorted(act, C)                             # (m, g) active positions
+            cc = (C[:, :, None], C[:, None, :])
+            ixbc = np.ix_(base_cols, C.ravel())
+            G_bc = self.G[ixbc]                                     # (k, m g)
+            G_cc = self.G[cc]
+            opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
+            pens = np.stack([p for i in idx for p in options[i][1]])
+            # a group's priors differ by multiples of one positive semidefinite matrix (a
+            # map's smoothness grid): its least definite system is the one of smallest trace
+            tr_pen = np.trace(pens, axis1=1, axis2=2)
+            least = np.zeros(len(opt_of), dtype=bool)
+            for a in range(m):
+                e_a = np.flatnonzero(opt_of == a)
+                least[e_a[int(np.argmin(tr_pen[e_a]))]] = True
+            parts = []
+            Ms, rhss = [], []
+            for f, fb in enumerate(bases):
+                Gf = self.G_f[f]
+                btr, dA, res_b, _, _ = pre[f]
                 X = fb.X[:, A].transpose(1, 0, 2)                   # (m, k, g)
                 Xt = X.transpose(0, 2, 1)
-                Gf_bg = Gf_b[:, A].transpose(1, 0, 2)               # (m, k, g)
-                S0 = (self.G[cc] - Gf[cc]) - Gtr_b[:, A].transpose(1, 2, 0) @ X
-                rhs = btr_all[C] - Xt @ btr
+                Gf_bg = Gf[ixbc].reshape(k, m, g).transpose(1, 0, 2)  # (m, k, g)
+                Gtr_gb = (G_bc.reshape(k, m, g).transpose(1, 2, 0)
+                          - Gf_bg.transpose(0, 2, 1))               # (m, g, k)
+                Gf_cc = Gf[cc]
+                S0 = (G_cc - Gf_cc) - Gtr_gb @ X
+                rhs = (self.b[C] - self.b_f[f][C]) - Xt @ btr
                 # held-out SSE as a quadratic in dg (db = dA - X dg): dg^T Q dg + 2 lin dg
-                lin = Xt @ (bf_b - GdA) - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
-                opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
-                M = S0[opt_of] + np.stack([p for i in idx for p in options[i][1]])
-                dg = _spd_solve_stack(M, rhs[opt_of])
-                Qdg = _held_out_q(X, fb.Y[:, A].transpose(1, 0, 2), Gf_bg, Gf[cc], dg, opt_of)
-                vals = const_part + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
-                e = 0
-                for i in idx:
-                    n_p = len(options[i][1])
-                    out[i] += vals[e:e + n_p]
-                    e += n_p
+                lin = Xt @ res_b - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
+                Ms.append(S0[opt_of] + pens)
+                rhss.append(rhs[opt_of])
+                parts.append((X, Gf_bg, Gf_cc, lin))
+            dg_all = _spd_solve_stack(np.concatenate(Ms), np.concatenate(rhss),
+                                      np.tile(least, self.K))
+            del Ms, rhss
+            E = len(opt_of)
+            vals = np.zeros(E)
+            for f, (X, Gf_bg, Gf_cc, lin) in enumerate(parts):
+                dg = dg_all[f * E:(f + 1) * E]
+                Qdg = _held_out_q(X, pre[f][4], Gf_bg, Gf_cc, dg, opt_of)
+                vals += pre[f][3] + np.sum(dg * (2.0 * lin[opt_of] + Qdg), axis=1)
+            e = 0
+            for i in idx:
+                n_p = len(options[i][1])
+                out[i] += vals[e:e + n_p]
+                e += n_p
         return [list(o) for o in out]
 
 
-def _held_out_q(X: Array, Y: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray
+def _held_out_q(X: Array, Gbb: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray
                 ) -> Array:
-    """``Q dg`` (E, g) for the held-out quadratic ``Q = X^T Y - X^T Gbg - Gbg^T X + Ggg``.
+    """``Q dg`` (E, g) for the held-out quadratic ``Q = X^T Gbb X - X^T Gbg - Gbg^T X + Ggg``.
 
-    X, Y, Gbg (m, k, g) and Ggg (m, g, g) per group; dg (E, g) per option, option e of group
-    ``opt_of[e]``. Matrix-vector products, O(k g) per option: forming Q costs O(k g^2) per
-    group, which for the maps (g of several hundred) dominated the forward selection.
+    X, Gbg (m, k, g) and Ggg (m, g, g) per group, Gbb (k, k) the fold's held-out normal
+    matrix of the base; dg (E, g) per option, option e of group ``opt_of[e]``.
+    Matrix-vector products, O(k g + k^2) per option: forming Q costs O(k g^2) per group,
+    which for the maps (g of several hundred) dominated the forward selection.
     """
     if len(opt_of) == X.shape[0]:                               # one option per group
         d = dg[..., None]
-        u = X @ d
-        return np.asarray((X.transpose(0, 2, 1) @ (Y @ d - Gbg @ d)
+        u = X @ d                                               # (m, k, 1)
+        return np.asarray((X.transpose(0, 2, 1) @ (Gbb @ u - Gbg @ d)
                            - Gbg.transpose(0, 2, 1) @ u + Ggg @ d)[..., 0], dtype=np.float64)
     out = np.empty_like(dg)
     for a in np.unique(opt_of):
         e = opt_of == a
         D = dg[e].T                                                 # (g, n_options)
-        Qd = X[a].T @ (Y[a] @ D - Gbg[a] @ D) - Gbg[a].T @ (X[a] @ D) + Ggg[a] @ D
+        U = X[a] @ D
+        Qd = X[a].T @ (Gbb @ U - Gbg[a] @ D) - Gbg[a].T @ U + Ggg[a] @ D
         out[e] = Qd.T
     return out
 
@@ -506,11 +551,18 @@ def close_pairs(q: Array, tol: float) -> IntArray:
     return np.concatenate(out).astype(np.intp) if out else np.zeros((0, 2), dtype=np.intp)
 
 
-def _spd_solve_stack(M: Array, r: Array) -> Array:
+def _spd_solve_stack(M: Array, r: Array, proof: NDArray[np.bool_] | None = None) -> Array:
     """Solve stacked SPD systems ``M[e] x[e] = r[e]``, M (E, g, g), r (E, g); singular ones by
-    least squares."""
+    least squares.
+
+    ``proof`` (E,): the matrices whose Cholesky factorisation is taken as the proof that all
+    are positive definite (default: every one). A caller may leave a matrix out when it is
+    a proven one plus a positive semidefinite matrix (a map's prior at a larger smoothness
+    weight): the factorisation only proves definiteness, and costs half the solve.
+    """
     try:
-        np.linalg.cholesky(M)   # raises unless every matrix of the stack is positive definite
+        # raises unless every matrix checked is positive definite
+        np.linalg.cholesky(M if proof is None or proof.all() else M[proof])
         if not np.all(np.isfinite(M)):
             raise np.linalg.LinAlgError("matrix is not finite")
         return np.asarray(np.linalg.solve(M, r[..., None])[..., 0], dtype=np.float64)

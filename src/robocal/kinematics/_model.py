@@ -360,7 +360,10 @@ class KinematicModel:
         J[:, :, :6] = st.lin[:, :, :6]
         J[:, :, 6:9] = st.R
         if B.shape[1]:
-            J[:, :, _OFF:] = st.lin[:, :, 6 + self._cols] * B[:, None, :]
+            # np.take: a fancy index on the last axis gathers element by element, ~4x
+            # slower at the ~1,600 columns of the auto superset
+            np.multiply(np.take(st.lin, 6 + self._cols, axis=2), B[:, None, :],
+                        out=J[:, :, _OFF:])
         return st.p, J
 
     def pose_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
@@ -378,8 +381,10 @@ class KinematicModel:
         J[:, 3:, :6] = st.ang[:, :, :6]
         J[:, :3, 6:9] = st.R
         if B.shape[1]:
-            J[:, :3, _OFF:] = st.lin[:, :, 6 + self._cols] * B[:, None, :]
-            J[:, 3:, _OFF:] = st.ang[:, :, 6 + self._cols] * B[:, None, :]
+            np.multiply(np.take(st.lin, 6 + self._cols, axis=2), B[:, None, :],
+                        out=J[:, :3, _OFF:])
+            np.multiply(np.take(st.ang, 6 + self._cols, axis=2), B[:, None, :],
+                        out=J[:, 3:, _OFF:])
         return st.p, st.R, J
 
     def joint_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
