@@ -480,16 +480,18 @@ class Store:
         return self.campaign(cid)
 
     def _record(self, row: sqlite3.Row) -> CampaignSummary:
-        n = self.db.execute(
-            "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
-        ).fetchone()[0]
+        # a measurement does not touch its campaign's row (one page less per pose): the last
+        # one counts as the campaign's update here
+        n, last = self.db.execute(
+            "SELECT COUNT(*), MAX(measured_at) FROM measurements WHERE campaign=?", (row["id"],)
+        ).fetchone()
         state, reason = CampaignState(row["state"]), row["reason"]
         held = self._pending.get(row["id"])
         if held is not None:
             state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
         return CampaignSummary(
-            id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
-            state=state, reason=reason, robot=row["robot"],
+            id=row["id"], name=row["name"], created=row["created"],
+            updated=max(row["updated"], last or ""), state=state, reason=reason, robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
@@ -659,7 +661,6 @@ class Store:
                      m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
                      m.measured_at, m.beam_losses, _floats_json(m.temps_c)),
                 )
-                db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
         except sqlite3.IntegrityError:
             return False
         return True
