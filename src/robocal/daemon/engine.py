@@ -622,8 +622,8 @@ class CampaignRunner:
              beam_losses: int = 0, temps_c: tuple[float, ...] = ()) -> Measurement:
         return Measurement(
             pose_idx=pose.idx, purpose=pose.purpose,
-            q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
-            q_act_deg=tuple(math.degrees(v) for v in q_act),
+            q_cmd_deg=tuple(map(math.degrees, q_cmd)),
+            q_act_deg=tuple(map(math.degrees, q_act)),
             p_mm=(r.position_m[0] * 1e3, r.position_m[1] * 1e3, r.position_m[2] * 1e3),
             sigma_mm=None if r.std_m is None else (r.std_m[0] * 1e3, r.std_m[1] * 1e3,
                                                     r.std_m[2] * 1e3),

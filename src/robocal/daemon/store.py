@@ -189,9 +189,9 @@ class PoseRow:
 def _floats_json(values: Sequence[float]) -> str:
     """``json.dumps(list(values))`` for floats, without the encoder's per-call set-up (a
     measurement row has three such lists, written once per pose)."""
-    vals = [float(v) for v in values]
-    if all(math.isfinite(v) for v in vals):
-        return "[" + ", ".join(map(repr, vals)) + "]"
+    vals = list(map(float, values))
+    if all(map(math.isfinite, vals)):
+        return str(vals)  # a list's str is its floats' reprs, ", "-separated, as json writes
     return json.dumps(vals)
 
 
