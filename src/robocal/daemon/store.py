@@ -480,18 +480,24 @@ class Store:
         return self.campaign(cid)
 
     def _record(self, row: sqlite3.Row) -> CampaignSummary:
-        # a measurement does not touch its campaign's row (one page less per pose): the last
-        # one counts as the campaign's update here
-        n, last = self.db.execute(
-            "SELECT COUNT(*), MAX(measured_at) FROM measurements WHERE campaign=?", (row["id"],)
-        ).fetchone()
+        n = self.db.execute(
+            "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
+        ).fetchone()[0]
+        # A measurement does not touch its campaign's row (one page less per pose): the last
+        # one counts as the campaign's update here. Measurements are a prefix of the plan,
+        # taken in order, so the last is the highest pose (found in the unique index; a
+        # MAX(measured_at) reads every row: 2 ms at 10,000 measurements).
+        last = self.db.execute(
+            "SELECT measured_at FROM measurements WHERE campaign=? ORDER BY pose_idx DESC "
+            "LIMIT 1", (row["id"],)).fetchone()
         state, reason = CampaignState(row["state"]), row["reason"]
         held = self._pending.get(row["id"])
         if held is not None:
             state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
         return CampaignSummary(
             id=row["id"], name=row["name"], created=row["created"],
-            updated=max(row["updated"], last or ""), state=state, reason=reason, robot=row["robot"],
+            updated=max(row["updated"], last[0] if last else ""), state=state, reason=reason,
+            robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
