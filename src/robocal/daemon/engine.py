@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import operator
 import time
 from collections.abc import Sequence
 from typing import cast
@@ -86,6 +87,7 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
+Vec = tuple[float, float, float]
 _log = structlog.get_logger(__name__)
 
 
@@ -170,17 +172,21 @@ class Predictor:
 
             self._predict = predict
         # the measured poses' model and tracker points (m) as running moments about the first
-        # of each (the alignment then costs a 3 x 3 SVD per pose, whatever the count)
+        # of each (the alignment then costs a 3 x 3 SVD per refit, whatever the count); the
+        # per-pose path is plain float arithmetic on 3- and 6-tuples (numpy's per-call cost on
+        # such tiny arrays was most of the predictor's time)
         self._n = 0
-        self._origin: tuple[Array, Array] | None = None
-        self._sum = np.zeros((2, 3))        # Σ s, Σ d
-        self._ss = np.zeros((3, 3))         # Σ s sᵀ
-        self._sd = np.zeros((3, 3))         # Σ s dᵀ
-        self._T: Array | None = None
-        self._last: tuple[tuple[float, ...], Array] | None = None
+        self._origin: tuple[Vec, Vec] | None = None
+        self._sum_s = [0.0, 0.0, 0.0]               # Σ s
+        self._sum_d = [0.0, 0.0, 0.0]               # Σ d
+        self._ss = [[0.0] * 3 for _ in range(3)]    # Σ s sᵀ
+        self._sd = [[0.0] * 3 for _ in range(3)]    # Σ s dᵀ
+        self._T: tuple[tuple[Vec, Vec, Vec], Vec] | None = None  # rotation rows, translation
+        self._last: tuple[tuple[float, ...], Vec] | None = None
         self._primed_q: Array | None = None
-        self._primed_p: Array | None = None
-        self._primed_J: Array | None = None
+        self._rows_q: list[tuple[float, ...]] = []
+        self._rows_p: list[Vec] = []
+        self._rows_J: list[tuple[tuple[float, ...], ...]] = []
         self._next = 0  # the primed row the next reading most likely belongs to
 
     def prime(self, q_rad: Array) -> None:
@@ -196,44 +202,61 @@ class Predictor:
         steps = np.concatenate([np.zeros((1, dof)), h * np.eye(dof), -h * np.eye(dof)])
         pts = np.asarray(self._predict((q[None, :, :] + steps[:, None, :]).reshape(-1, dof)))
         pts = pts.reshape(2 * dof + 1, n, 3)
+        J = ((pts[1:dof + 1] - pts[dof + 1:]) / (2 * h)).transpose(1, 2, 0)  # (n, 3, dof)
         self._primed_q = q
-        self._primed_p = pts[0]
-        self._primed_J = ((pts[1:dof + 1] - pts[dof + 1:]) / (2 * h)).transpose(1, 2, 0)
+        self._rows_q = [tuple(r) for r in q.tolist()]
+        self._rows_p = [(r[0], r[1], r[2]) for r in pts[0].tolist()]
+        self._rows_J = [tuple(tuple(row) for row in Ji) for Ji in J.tolist()]
 
-    def _model_point(self, q_rad: Sequence[float] | Array) -> Array:
-        key = tuple(float(v) for v in q_rad)
+    def _linear(self, i: int, q: tuple[float, ...]) -> Vec | None:
+        """First-order prediction at ``q`` from primed row ``i``; None if ``q`` is too far."""
+        dq = [a - b for a, b in zip(q, self._rows_q[i], strict=True)]
+        if max(map(abs, dq)) > self.LINEAR_STEP:
+            return None
+        p, J = self._rows_p[i], self._rows_J[i]
+        return (p[0] + sum(map(operator.mul, J[0], dq)), p[1] + sum(map(operator.mul, J[1], dq)),
+                p[2] + sum(map(operator.mul, J[2], dq)))
+
+    def _model_point(self, q_rad: Sequence[float] | Array) -> Vec:
+        key = tuple(map(float, q_rad))
         if self._last is not None and self._last[0] == key:
             return self._last[1]
-        q = np.asarray(key, dtype=float)
         s = None
-        if self._primed_q is not None and self._primed_q.shape[1] == q.size:
-            assert self._primed_p is not None and self._primed_J is not None
+        rows = self._rows_q
+        if rows and len(rows[0]) == len(key):
             # poses are measured in plan order: try the row after the last one matched
             # before searching them all (the search is most of a call's cost)
             i = self._next
-            dqi = q - self._primed_q[i] if i < len(self._primed_q) else None
-            if dqi is None or np.abs(dqi).max() > self.LINEAR_STEP:
-                dq = q - self._primed_q
-                i = int(np.argmin(np.abs(dq).max(axis=1)))
-                dqi = dq[i]
-            if np.abs(dqi).max() <= self.LINEAR_STEP:
-                s = self._primed_p[i] + self._primed_J[i] @ dqi
+            if i < len(rows):
+                s = self._linear(i, key)
+            if s is None:
+                assert self._primed_q is not None
+                i = int(np.argmin(np.abs(np.asarray(key) - self._primed_q).max(axis=1)))
+                s = self._linear(i, key)
+            if s is not None:
                 self._next = i + 1
         if s is None:
-            s = np.asarray(self._predict(q)[0], dtype=float)
+            x, y, z = np.asarray(self._predict(np.asarray(key))[0], dtype=float).tolist()
+            s = (x, y, z)
         self._last = (key, s)
         return s
 
     def add(self, q_rad: Sequence[float] | Array, p_m: Sequence[float] | Array) -> None:
         """Record one measured pose (actual joints, rad; point, m)."""
-        src, dst = self._model_point(q_rad), np.asarray(p_m, dtype=float)
+        src = self._model_point(q_rad)
+        x, y, z = map(float, p_m)
         if self._origin is None:
-            self._origin = (src.copy(), dst.copy())
-        s, d = src - self._origin[0], dst - self._origin[1]
-        self._sum[0] += s
-        self._sum[1] += d
-        self._ss += np.outer(s, s)
-        self._sd += np.outer(s, d)
+            self._origin = (src, (x, y, z))
+        o_s, o_d = self._origin
+        s = (src[0] - o_s[0], src[1] - o_s[1], src[2] - o_s[2])
+        d = (x - o_d[0], y - o_d[1], z - o_d[2])
+        for j in range(3):
+            self._sum_s[j] += s[j]
+            self._sum_d[j] += d[j]
+            ss, sd, sj = self._ss[j], self._sd[j], s[j]
+            for k in range(3):
+                ss[k] += sj * s[k]
+                sd[k] += sj * d[k]
         self._n += 1
         if self._n <= self.REFIT_ALL or self._n % self.REFIT_EVERY == 0:
             self._T = None
@@ -241,25 +264,38 @@ class Predictor:
     def __len__(self) -> int:
         return self._n
 
+    def _refit(self) -> bool:
+        """Align the model to the tracker from the moments; False while the poses are
+        collinear or coincident (the rotation is ambiguous then: wait for more)."""
+        assert self._origin is not None
+        n = self._n
+        cs, cd = np.array(self._sum_s) / n, np.array(self._sum_d) / n
+        # the centred points' singular values are the square roots of their scatter's
+        # eigenvalues
+        scatter = np.array(self._ss) - n * np.outer(cs, cs)
+        if np.count_nonzero(np.linalg.eigvalsh(scatter) > 1e-8) < 2:
+            return False
+        T = kabsch(np.array(self._sd) - n * np.outer(cs, cd), cs + np.array(self._origin[0]),
+                   cd + np.array(self._origin[1]))
+        R = T[:3, :3].tolist()
+        t = T[:3, 3].tolist()
+        self._T = ((R[0][0], R[0][1], R[0][2]), (R[1][0], R[1][1], R[1][2]),
+                   (R[2][0], R[2][1], R[2][2])), (t[0], t[1], t[2])
+        return True
+
     def distance(self, q_rad: Sequence[float], p_m: Sequence[float]) -> float | None:
         """Distance (m) of ``p_m`` from the aligned prediction at ``q_rad``; None if too early."""
         if self._n < self.min_poses:
             return None
-        if self._T is None:
-            assert self._origin is not None
-            n = self._n
-            cs, cd = self._sum / n
-            # Collinear or coincident poses make the rotation ambiguous; wait for more (the
-            # centred points' singular values are the square roots of their scatter's
-            # eigenvalues).
-            scatter = self._ss - n * np.outer(cs, cs)
-            if np.count_nonzero(np.linalg.eigvalsh(scatter) > 1e-8) < 2:
-                return None
-            self._T = kabsch(self._sd - n * np.outer(cs, cd), cs + self._origin[0],
-                             cd + self._origin[1])
+        if self._T is None and not self._refit():
+            return None
+        assert self._T is not None
+        (r0, r1, r2), t = self._T
         s = self._model_point(q_rad)
-        pred = self._T[:3, :3] @ s + self._T[:3, 3]
-        return float(np.linalg.norm(pred - np.asarray(p_m, dtype=float)))
+        x, y, z = map(float, p_m)
+        return math.hypot(r0[0] * s[0] + r0[1] * s[1] + r0[2] * s[2] + t[0] - x,
+                          r1[0] * s[0] + r1[1] * s[1] + r1[2] * s[2] + t[1] - y,
+                          r2[0] * s[0] + r2[1] * s[1] + r2[2] * s[2] + t[2] - z)
 
 
 class CampaignRunner:
@@ -337,9 +373,9 @@ class CampaignRunner:
                     if not pose.measure:
                         await self._move(pose)
                         continue
-                    row = await self._measure_pose(cid, pose, predictor)
+                    row, q_act, p_m = await self._measure_pose(cid, pose, predictor)
                     if self.store.add_measurement(cid, row):
-                        predictor.add(np.radians(row.q_act_deg), np.asarray(row.p_mm) * 1e-3)
+                        predictor.add(q_act, p_m)  # the joints validated: its point is cached
                     else:  # cannot happen while one runner owns the campaign; never duplicate
                         log.warning("pose already measured; reading discarded", pose=pose.idx)
                     done.add(pose.idx)
@@ -522,7 +558,9 @@ class CampaignRunner:
                             timeout=self.config.measurement.move_timeout_s)
 
     async def _measure_pose(self, cid: str, pose: PoseRow, predictor: Predictor
-                            ) -> Measurement:
+                            ) -> tuple[Measurement, tuple[float, ...], tuple[float, ...]]:
+        """Move to ``pose``, measure and validate; the row to store, the actual joints (rad)
+        and the reading (m)."""
         cfg = self.config.measurement
         tracker = await self.hub.tracker()
         q_cmd = await self._move(pose)
@@ -530,7 +568,7 @@ class CampaignRunner:
         if cfg.settle_s > 0:
             await self.clock.sleep(cfg.settle_s)
         joints = await robot.read_joints()
-        q_act = list(joints.q_rad)
+        q_act = tuple(joints.q_rad)
         self._check_deviation(f"pose {pose.idx}", q_act, q_cmd)
         temps, _ = await self._joint_temperatures()
         attempts = 0
@@ -561,7 +599,8 @@ class CampaignRunner:
             raise MeasurementError(
                 f"pose {pose.idx}: no valid reading after {attempts} attempts; last: "
                 f"{type(err).__name__}: {err}") from err
-        return self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses, temps)
+        return (self._row(pose, q_cmd, q_act, reading, attempts, distance, beam_losses, temps),
+                q_act, tuple(reading.position_m))
 
     def _validate(self, reading: TrackerReading, q_act: Sequence[float],
                   predictor: Predictor) -> float | None:
@@ -583,8 +622,8 @@ class CampaignRunner:
              beam_losses: int = 0, temps_c: tuple[float, ...] = ()) -> Measurement:
         return Measurement(
             pose_idx=pose.idx, purpose=pose.purpose,
-            q_cmd_deg=tuple(math.degrees(v) for v in q_cmd),
-            q_act_deg=tuple(math.degrees(v) for v in q_act),
+            q_cmd_deg=tuple(map(math.degrees, q_cmd)),
+            q_act_deg=tuple(map(math.degrees, q_act)),
             p_mm=(r.position_m[0] * 1e3, r.position_m[1] * 1e3, r.position_m[2] * 1e3),
             sigma_mm=None if r.std_m is None else (r.std_m[0] * 1e3, r.std_m[1] * 1e3,
                                                     r.std_m[2] * 1e3),

@@ -20,7 +20,7 @@ import collections
 import contextlib
 import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Collection
 from typing import Any
 
 from robocal.daemon.schemas import EVENT_MODELS
@@ -45,7 +45,9 @@ class EventBus:
         self.boot_id = secrets.token_hex(4)
         self._seq = 0
         self._buffer: collections.deque[dict[str, Any]] = collections.deque(maxlen=replay)
-        self._subscribers: set[asyncio.Queue[dict[str, Any] | None]] = set()
+        # each subscriber's queue and the kinds it takes (None: every kind)
+        self._subscribers: dict[asyncio.Queue[dict[str, Any] | None],
+                                frozenset[str] | None] = {}
         self._queue_size = queue_size
         self._closed = False
 
@@ -72,7 +74,9 @@ class EventBus:
         model.model_validate(event)  # pydantic's ValidationError is a ValueError
         self._seq += 1
         self._buffer.append(event)
-        for q in list(self._subscribers):
+        for q, kinds in list(self._subscribers.items()):
+            if kinds is not None and kind not in kinds:
+                continue  # not woken for what it does not watch (a pose event per pose)
             if q.full():
                 with contextlib.suppress(asyncio.QueueEmpty):
                     q.get_nowait()
@@ -100,16 +104,27 @@ class EventBus:
                 if e["seq"] > after and (campaign is None or e["campaign"] == campaign)]
 
     @contextlib.asynccontextmanager
-    async def subscribe(self) -> AsyncIterator[asyncio.Queue[dict[str, Any] | None]]:
-        """A queue receiving every new event; ``None`` means the bus closed."""
+    async def subscribe(self, kinds: Collection[str] | None = None
+                        ) -> AsyncIterator[asyncio.Queue[dict[str, Any] | None]]:
+        """A queue receiving every new event (only those of ``kinds`` if given); ``None``
+        means the bus closed.
+
+        Raises
+        ------
+        ValueError
+            If ``kinds`` names an unknown kind.
+        """
+        wanted = None if kinds is None else frozenset(kinds)
+        if wanted is not None and not wanted <= EVENT_MODELS.keys():
+            raise ValueError(f"unknown event kinds {sorted(wanted - EVENT_MODELS.keys())}")
         q: asyncio.Queue[dict[str, Any] | None] = asyncio.Queue(self._queue_size)
         if self._closed:
             q.put_nowait(None)
-        self._subscribers.add(q)
+        self._subscribers[q] = wanted
         try:
             yield q
         finally:
-            self._subscribers.discard(q)
+            self._subscribers.pop(q, None)
 
     def close(self) -> None:
         """Wake every subscriber with ``None`` (daemon shutdown)."""

@@ -421,7 +421,8 @@ class CalibrationService:
         ``report`` until the report of its fit is written too (it renders after the fit is
         stored); TimeoutError if it does not get there within ``timeout`` seconds."""
         wanted = {CampaignState(s) for s in states} | set(FINAL)
-        async with asyncio.timeout(timeout), self.events.subscribe() as q:
+        # woken by state events only (not by every pose); the 0.5 s re-check bounds the rest
+        async with asyncio.timeout(timeout), self.events.subscribe(("state",)) as q:
             while True:
                 if self.store.state(cid) in wanted:
                     if report:

@@ -189,9 +189,9 @@ class PoseRow:
 def _floats_json(values: Sequence[float]) -> str:
     """``json.dumps(list(values))`` for floats, without the encoder's per-call set-up (a
     measurement row has three such lists, written once per pose)."""
-    vals = [float(v) for v in values]
-    if all(math.isfinite(v) for v in vals):
-        return "[" + ", ".join(map(repr, vals)) + "]"
+    vals = list(map(float, values))
+    if all(map(math.isfinite, vals)):
+        return str(vals)  # a list's str is its floats' reprs, ", "-separated, as json writes
     return json.dumps(vals)
 
 
@@ -483,13 +483,21 @@ class Store:
         n = self.db.execute(
             "SELECT COUNT(*) FROM measurements WHERE campaign=?", (row["id"],)
         ).fetchone()[0]
+        # A measurement does not touch its campaign's row (one page less per pose): the last
+        # one counts as the campaign's update here. Measurements are a prefix of the plan,
+        # taken in order, so the last is the highest pose (found in the unique index; a
+        # MAX(measured_at) reads every row: 2 ms at 10,000 measurements).
+        last = self.db.execute(
+            "SELECT measured_at FROM measurements WHERE campaign=? ORDER BY pose_idx DESC "
+            "LIMIT 1", (row["id"],)).fetchone()
         state, reason = CampaignState(row["state"]), row["reason"]
         held = self._pending.get(row["id"])
         if held is not None:
             state, reason = held[1], f"{held[2]} (not yet saved: {self.fault or 'held'})"
         return CampaignSummary(
-            id=row["id"], name=row["name"], created=row["created"], updated=row["updated"],
-            state=state, reason=reason, robot=row["robot"],
+            id=row["id"], name=row["name"], created=row["created"],
+            updated=max(row["updated"], last[0] if last else ""), state=state, reason=reason,
+            robot=row["robot"],
             poses_total=int(row["poses_total"]), poses_measured=int(n),
             measure_only=bool(row["measure_only"]), plan_digest=row["plan_digest"],
             config_digest=row["config_digest"], selected_model=row["selected_model"],
@@ -659,7 +667,6 @@ class Store:
                      m.rms_mm, m.samples, m.attempts, m.distance_mm, json.dumps(m.weather),
                      m.measured_at, m.beam_losses, _floats_json(m.temps_c)),
                 )
-                db.execute("UPDATE campaigns SET updated=? WHERE id=?", (m.measured_at, cid))
         except sqlite3.IntegrityError:
             return False
         return True

@@ -201,7 +201,7 @@ class VerificationRuns:
 
     async def _wait_idle(self) -> None:
         """Wait until no campaign measures (the robot is one)."""
-        async with self.events.subscribe() as q:
+        async with self.events.subscribe(("state",)) as q:
             while self.campaigns.measuring() is not None:
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(0.5):

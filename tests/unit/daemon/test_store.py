@@ -59,6 +59,19 @@ def test_only_measurements_commit_without_fsync(store):
     assert [level for _, level in seen] == [2, 1, 2, 1, 2]
 
 
+def test_a_campaign_was_updated_when_its_last_measurement_was_taken(store):
+    """A measurement's commit writes its row alone; the campaign still reports the time of
+    its last measurement as its last update."""
+    rec = _campaign(store)
+    first = _row(0)
+    assert store.add_measurement(rec.id, first)
+    assert store.campaign(rec.id).updated == first.measured_at >= rec.updated
+    later = _row(1).model_copy(update={"measured_at": "2999-01-01T00:00:00.000+00:00"})
+    assert store.add_measurement(rec.id, later)
+    assert store.campaign(rec.id).updated == later.measured_at
+    assert [c.updated for c in store.campaigns()] == [later.measured_at]
+
+
 def test_measurements_are_unique_per_pose(store):
     rec = _campaign(store)
     assert rec.poses_total == 3  # the via-point is not measured
