@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -158,31 +159,31 @@ def test_version_option(capsys: pytest.CaptureFixture[str]) -> None:
     assert info.value.code == 0 and capsys.readouterr().out == f"robocal {version('robocal')}\n"
 
 
+def _loaded_after(imports: list[str], heavy: list[str]) -> list[str]:
+    """Which of ``heavy`` a fresh interpreter has loaded after importing ``imports``."""
+    src = (f"import json, sys, {', '.join(imports)}\n"
+           f"print(json.dumps(sorted(m for m in {heavy!r} if m in sys.modules)))\n")
+    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return list(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
 def test_light_packages_leave_heavy_modules_unimported() -> None:
     """Why robocal.daemon and robocal.report keep lazy attributes: the client commands import
     robocal.daemon for its light modules, the configuration check robocal.report for
     Acceptance; neither may pull in the service, the planner or the report's figures."""
-    src = ("import sys, robocal.daemon.client, robocal.report\n"
-           "print(sorted(m for m in ('robocal.daemon.service', 'robocal.daemon._plan', "
-           "'robocal.daemon.main', 'robocal.report._write', 'robocal.report._figures') "
-           "if m in sys.modules))\n")
-    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert _loaded_after(["robocal.daemon.client", "robocal.report"],
+                         ["robocal.daemon.service", "robocal.daemon._plan", "robocal.daemon.main",
+                          "robocal.report._write", "robocal.report._figures"]) == []
 
 
 def test_the_campaign_report_reads_its_rows_without_the_daemons_logging() -> None:
     """``robocal report CAMPAIGN`` imports what input_from_campaign needs (store, config, the
     rows helpers of robocal.daemon.fitting) and the report writer; structlog (with rich,
     ~0.07 s) and asyncio (~0.02 s) are the daemon's and stay unimported."""
-    src = ("import sys\n"
-           "import robocal.cli._report, robocal.daemon.fitting, robocal.daemon.store\n"
-           "import robocal.daemon.config, robocal.report._write\n"
-           "print(sorted(m for m in ('structlog', 'rich', 'matplotlib', 'asyncio') "
-           "if m in sys.modules))\n")
-    out = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert _loaded_after(["robocal.cli._report", "robocal.daemon.fitting", "robocal.daemon.store",
+                          "robocal.daemon.config", "robocal.report._write"],
+                         ["structlog", "rich", "matplotlib", "asyncio"]) == []
 
 
 def test_every_verb_has_a_description_and_no_empty_default_is_shown() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import configparser
+import contextlib
 import json
 import os
 import re
@@ -170,11 +171,14 @@ async def test_refit_of_the_constant_part_tells_offset_drift_from_other_errors(s
     assert constant_refit_rms_mm(cal, q[:5], wobble[:5]) is None  # too few poses
 
 
-async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
+@contextlib.asynccontextmanager
+async def _served(make_config, tmp_path, capsys, **config):
+    """A service with its API on a Unix socket, and ``cli(*argv)`` running ``robocal check``
+    against it: (exit code, stdout, stderr)."""
     from robocal.cli.main import main
 
     sock = tmp_path / "api.sock"
-    svc = CalibrationService(_config(make_config, api={"socket": str(sock)}))
+    svc = CalibrationService(_config(make_config, api={"socket": str(sock)}, **config))
     await svc.start()
     api = ApiServer(svc, svc.config)
     await api.start()
@@ -186,6 +190,14 @@ async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
         return rc, out.out, out.err
 
     try:
+        yield svc, cli
+    finally:
+        await api.stop()
+        await svc.stop()
+
+
+async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
+    async with _served(make_config, tmp_path, capsys) as (svc, cli):
         rc, _, err = await cli()
         assert rc == 2 and "no calibration's compensation is active" in err
         cid = await _pushed(svc)
@@ -229,31 +241,14 @@ async def test_cli_exit_codes_history_and_json(make_config, tmp_path, capsys):
         await svc.abort(refit, actor="t")
         rc, _, err = await cli("--recalibrate", "99")
         assert rc == 2 and "no check 99" in err
-    finally:
-        await api.stop()
-        await svc.stop()
 
 
 async def test_a_check_waits_for_a_measuring_campaign_with_wait_idle(make_config, tmp_path,
                                                                      capsys):
     """While another campaign measures, ``robocal check`` refuses at once (exit 2), or with
     ``--wait-idle`` waits for the robot to be free and then checks."""
-    from robocal.cli.main import main
-
-    sock = tmp_path / "api.sock"
-    svc = CalibrationService(_config(make_config, robot={"move_time_s": 0.05},
-                                     api={"socket": str(sock)}))
-    await svc.start()
-    api = ApiServer(svc, svc.config)
-    await api.start()
-
-    async def cli(*argv: str) -> tuple[int, str, str]:
-        rc = await asyncio.wait_for(asyncio.to_thread(main, ["check", *argv, "--socket",
-                                                             str(sock)]), 60)
-        out = capsys.readouterr()
-        return rc, out.out, out.err
-
-    try:
+    async with _served(make_config, tmp_path, capsys,
+                       robot={"move_time_s": 0.05}) as (svc, cli):
         await _pushed(svc)
         busy = await svc.create(program_plan(60), actor="t")  # ~3 s of moves
         assert svc.measuring() == busy["id"]
@@ -266,9 +261,6 @@ async def test_a_check_waits_for_a_measuring_campaign_with_wait_idle(make_config
         assert svc.status(busy["id"])["poses_measured"] == 60  # it finished first
         (check,) = svc.checks.log.history()
         assert check["state"] == "done" and "PASS" in out
-    finally:
-        await api.stop()
-        await svc.stop()
 
 
 async def test_api_event_log_and_station_show_the_latest_check_and_trend(svc, monkeypatch):
