@@ -51,6 +51,7 @@ from robocal.identification._models import (
     weak_penalty,
 )
 from robocal.identification._solver import Problem, analyse_jacobian
+from robocal.identification._structured import normal_blocks
 from robocal.kinematics import (
     COMPONENTS,
     ErrorModelSpec,
@@ -160,9 +161,9 @@ class _FoldBase:
 class _CV:
     """K-fold CV of linearised sub-models from per-fold normal matrices (column-scaled)."""
 
-    def __init__(self, G_f: Array, b_f: Array, c_f: Array) -> None:
+    def __init__(self, G_f: Array, b_f: Array, c_f: Array, G: Array | None = None) -> None:
         self.G_f, self.b_f, self.c_f = G_f, b_f, c_f
-        self.G = G_f.sum(axis=0)
+        self.G = G_f.sum(axis=0) if G is None else G   # (the sum over the folds)
         self.b = b_f.sum(axis=0)
         self.K = G_f.shape[0]
         self.evaluations = 0
@@ -674,7 +675,9 @@ def _superset(f: _Fitter, const: Solution, rows: IntArray) -> _Superset:
     base_terms = list(const.model.spec.terms)
     terms = list(base_terms)
     knots = [0] * f.robot.dof
-    for g in groups:
+    # the maps' columns last, one joint after another: the structured normal matrices
+    # (_structured.normal_blocks) accumulate in that order and need no permutation
+    for g in sorted(groups, key=lambda g: g.is_map):
         terms += g.terms
         if g.is_map:
             knots[g.joint] = g.n_knots
@@ -736,31 +739,20 @@ def _fold_normals(f: _Fitter, prob: Problem, x_c: Array, rows: IntArray, unpen: 
     P = len(prior_prec)
     fold_of = cv_folds(f.data.q[rows], opts.cv_folds, opts.seed,
                        math.radians(opts.cv_group_tol_deg))
-    G_f = np.zeros((opts.cv_folds, P, P))
-    b_f = np.zeros((opts.cv_folds, P))
-    c_f = np.zeros(opts.cv_folds)
-    R_un: Array | None = None
-    for ch in prob.chunks(np.arange(len(rows))):
-        Jw, rw = prob.whitened_jacobian(x_c, rows[ch], np.arange(P))
-        Ju = Jw[:, unpen] if R_un is None else np.vstack([R_un, Jw[:, unpen]])
-        R_un = np.linalg.qr(Ju, mode="r")  # type: ignore[assignment]
-        fo = np.repeat(fold_of[ch], 3)
-        for k in range(opts.cv_folds):
-            sel = fo == k
-            if sel.any():
-                Js = Jw[sel]
-                G_f[k] += Js.T @ Js
-                b_f[k] += Js.T @ rw[sel]
-                c_f[k] += float(rw[sel] @ rw[sel])
+    # map columns are sparse (four knots per pose): their blocks are formed per pose
+    G_f, b_f, c_f, R_un = normal_blocks(prob, x_c, rows, np.arange(P), fold_of, opts.cv_folds,
+                                        qr_cols=unpen)
     G = G_f.sum(axis=0)
     A_un = G[np.ix_(unpen, unpen)]
     s = np.sqrt(np.clip(np.diagonal(G), 0.0, None) + prior_prec)
-    del G
     s[s <= 1e-300] = 1.0
-    G_f /= np.outer(s, s)[None]
+    S = np.outer(s, s)
+    G_f /= S[None]
+    G /= S
+    del S
     b_f /= s[None]
     assert R_un is not None
-    return _CV(G_f, b_f, c_f), s, (A_un, R_un)
+    return _CV(G_f, b_f, c_f, G), s, (A_un, R_un)
 
 
 class _Selection:

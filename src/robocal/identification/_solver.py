@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import NotConverged, NotIdentifiable
 from robocal.identification._linalg import cho_solve, cholesky
+from robocal.identification._structured import has_maps, normal_blocks
 from robocal.kinematics import KinematicModel, Term
 
 Array = NDArray[np.float64]
@@ -144,6 +145,28 @@ class Problem:
         rw = np.einsum("nij,nj->ni", W, self.y[rows] - p).ravel()
         return Jw, rw
 
+    def whitened_factors(self, x: Array, rows: IntArray
+                         ) -> tuple[Array, Array, Array, Array]:
+        """The whitened Jacobian of a chunk in factored form (see
+        ``KinematicModel.jacobian_factors``): ``head`` (c, m, 9), ``sens`` (c, m, 6 dof), the
+        term basis ``B`` (c, n_terms) and the whitened residual (c, m), c = len(rows)."""
+        self.n_jacobians += 1
+        W = self.W[rows]
+        if self.R_obs is not None:
+            assert self.W_rot is not None
+            Wr = self.W_rot[rows]
+            p, R, head, sens, B = self.model.jacobian_factors(self.q[rows], x, orientation=True)
+            for M in (head, sens):
+                M[:, :3] = np.einsum("nij,njk->nik", W, M[:, :3])
+                M[:, 3:] = np.einsum("nij,njk->nik", Wr, M[:, 3:])
+            rw = np.empty((len(rows), 6))
+            rw[:, :3] = np.einsum("nij,nj->ni", W, self.y[rows] - p)
+            rw[:, 3:] = np.einsum("nij,nj->ni", Wr, rotation_vectors(self.R_obs[rows], R))
+            return head, sens, B, rw
+        p, _, head, sens, B = self.model.jacobian_factors(self.q[rows], x)
+        return (np.einsum("nij,njk->nik", W, head), np.einsum("nij,njk->nik", W, sens), B,
+                np.einsum("nij,nj->ni", W, self.y[rows] - p))
+
     def chunks(self, rows: IntArray) -> list[IntArray]:
         """Split ``rows`` into chunks of at most ``self.chunk`` poses, and of at most about
         ``JACOBIAN_CHUNK_BYTES`` of Jacobian: an ``auto`` model with joint-angle maps has
@@ -156,6 +179,10 @@ class Problem:
     def normal_equations(self, x: Array, rows: IntArray, cols: IntArray
                          ) -> tuple[Array, Array, float]:
         """Data normal matrix ``J^T J`` (k, k), ``J^T r`` (k,) and data cost over ``rows``."""
+        if has_maps(self, cols):
+            # joint-angle map columns are sparse: their blocks are formed per pose
+            G, b, c, _ = normal_blocks(self, x, rows, cols)
+            return G[0], b[0], float(c[0])
         k = len(cols)
         A = np.zeros((k, k))
         g = np.zeros(k)

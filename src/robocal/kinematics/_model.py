@@ -366,6 +366,37 @@ class KinematicModel:
                         out=J[:, :, _OFF:])
         return st.p, J
 
+    @property
+    def term_components(self) -> NDArray[np.intp]:
+        """Error component column (joint * 6 + component) of each term, shape (n_terms,)."""
+        return self._cols.copy()
+
+    def jacobian_factors(self, q: Array, x: Array, *, orientation: bool = False
+                         ) -> tuple[Array, Array, Array, Array, Array]:
+        """The Jacobian in factored form: positions (n, 3), flange rotations (n, 3, 3), the
+        columns of the base and tool parameters ``head`` (n, m, 9), the sensitivity to each
+        error component ``sens`` (n, m, 6 dof) and the term basis ``B`` (n, n_terms).
+
+        Column ``9 + t`` of :meth:`jacobian` (m = 3) or :meth:`pose_jacobian` (m = 6,
+        ``orientation``) is ``sens[:, :, term_components[t]] * B[:, None, t]``: a caller
+        that knows which basis columns are sparse (joint-angle map knots, four per pose)
+        can form normal matrices without the dense columns.
+        """
+        q, x = self._check(q, x)
+        E, _, B = self.joint_errors(q, x)
+        st = self._chain(q, x, E)
+        n = q.shape[0]
+        m = 6 if orientation else 3
+        head = np.zeros((n, m, _OFF))
+        head[:, :3, :6] = st.lin[:, :, :6]
+        head[:, :3, 6:9] = st.R
+        if orientation:
+            head[:, 3:, :6] = st.ang[:, :, :6]
+            sens = np.concatenate([st.lin[:, :, 6:], st.ang[:, :, 6:]], axis=1)
+        else:
+            sens = st.lin[:, :, 6:]
+        return st.p, st.R, head, sens, B
+
     def pose_jacobian(self, q: Array, x: Array) -> tuple[Array, Array, Array]:
         """Positions (n, 3), flange rotations (n, 3, 3) and d pose / d parameters (n, 6, P).
 
