@@ -128,6 +128,13 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
         if opts.auto_maps:
             K = knots_for_spacing(opts.map_spacing_deg)
             kn = span_knots(q[:, j], K)
+            # map_spacing_deg is the finest spacing: fewer poses widen it until a knot's
+            # support (four spacings) holds map_min_points poses on average over the arc
+            # the data span; finer knots would be set by the smoothness prior alone
+            h_deg = opts.map_min_points * (len(kn) * 360.0 / K) / (4.0 * max(len(q), 1))
+            if knots_for_spacing(h_deg) < K:
+                K = knots_for_spacing(h_deg)
+                kn = span_knots(q[:, j], K)
             counts = knot_counts(q[:, j], K)
             weak = weak_knots(kn, counts, opts.map_min_points)
             if len(kn) - len(weak) >= 4:

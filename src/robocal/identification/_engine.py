@@ -23,6 +23,7 @@ from robocal.identification._solver import (
     inverse_spd,
     levenberg_marquardt,
 )
+from robocal.identification._structured import has_maps, hat_blocks
 from robocal.identification._weights import (
     TrackerSigma,
     euler_xyz_matrices,
@@ -307,6 +308,12 @@ def hat_statistics(prob: Problem, x: Array, free: IntArray, Ninv: Array,
     t = np.empty(n)
     k = len(free)
     eye = np.eye(3)
+    if has_maps(prob, free):
+        # map columns are four knots per pose: the hat blocks from the factored Jacobian
+        H, r = hat_blocks(prob, x, np.arange(n), free, Ninv)
+        sign = np.where(in_fit, -1.0, 1.0)[:, None, None]
+        sol = np.linalg.solve(eye + sign * H + 1e-9 * eye, r[:, :, None])[:, :, 0]
+        return np.asarray(np.einsum("ni,ni->n", r, sol), dtype=np.float64)
     for ch in prob.chunks(np.arange(n)):
         Jw, rw = prob.whitened_jacobian(x, ch, free)
         c = len(ch)

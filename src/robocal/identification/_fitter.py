@@ -68,7 +68,8 @@ class FitOptions(EngineSettings):
         about each joint axis tried one at a time: fine gear/encoder ripple);
         ``auto_ripple_screen`` (how many of them, ranked by their score-test gain at the
         current model, are cross-validated in each round); ``auto_maps``
-        and ``map_spacing_deg`` (knot spacing of joint-angle maps); ``map_lambdas``
+        and ``map_spacing_deg`` (the finest knot spacing of joint-angle maps; sparser data
+        widen it until a knot's support holds ``map_min_points`` poses on average); ``map_lambdas``
         (relative smoothness weights tried by CV);
         ``map_ridge_deg`` (prior sigma of map values); knots with fewer than
         ``map_min_points`` poses in their support are tied to their neighbours (prior sigma

@@ -195,3 +195,51 @@ def normal_blocks(prob: Problem, x: Array, rows: IntArray, cols: IntArray,
             R = np.linalg.qr(Jq if R is None else np.vstack([R, Jq]), mode="r")  # type: ignore[assignment]
         acc.add(prob.q[rows[ch]], grp[ch], Jd, Sw, B, rw)
     return (*acc.result(), R)
+
+
+def hat_blocks(prob: Problem, x: Array, rows: IntArray, cols: IntArray, Ninv: Array
+               ) -> tuple[Array, Array]:
+    """Position blocks ``J_j Ninv J_j^T`` (n, 3, 3) of the hat matrix and the whitened
+    position residuals (n, 3) of the poses ``rows``, for the columns ``cols`` (k,) and the
+    inverse normal matrix ``Ninv`` (k, k) over them.
+
+    With a pose's map columns ``v_a b_a^T`` (sensitivity times its four knot weights) the
+    block is ``Jd Ndd Jd^T + sum_a (w_a v_a^T + v_a w_a^T) + sum_ab s_ab v_a v_b^T`` with
+    ``w_a = Jd N_da b_a`` and ``s_ab = b_a^T N_ab b_b`` (16 entries of ``Ninv`` per pose and
+    pair of maps): no product over every column per pose.
+    """
+    acc = _Accumulator(prob, cols, 1)
+    d = acc.dense
+    N_dd = Ninv[np.ix_(d, d)]
+    N_md = [Ninv[np.ix_(mp.local, d)] for mp in acc.maps]
+    H = np.empty((len(rows), 3, 3))
+    r_out = np.empty((len(rows), 3))
+    a0 = 0
+    for ch in prob.chunks(np.arange(len(rows))):
+        if len(ch) == 0:
+            continue
+        Hw, Sw, B, rw = prob.whitened_factors(x, rows[ch])
+        Jd = acc.dense_jacobian(Hw[:, :3], Sw[:, :3], B)              # position rows only
+        V = [Sw[:, :3, mp.comp] for mp in acc.maps]
+        h = np.einsum("nid,de,nje->nij", Jd, N_dd, Jd, optimize=True)
+        q = prob.q[rows[ch]]
+        PW = []
+        for a, mp in enumerate(acc.maps):
+            idx, w, _ = spline_weights(q[:, mp.joint], mp.n_knots)
+            pos = mp.col_of_knot[idx]
+            PW.append((np.where(pos >= 0, pos, 0), np.where(pos >= 0, w, 0.0)))
+            Z = np.take(B, acc.mterms[a], axis=1) @ N_md[a]            # (n, nd)
+            wa = np.einsum("nid,nd->ni", Jd, Z)
+            h += wa[:, :, None] * V[a][:, None, :] + V[a][:, :, None] * wa[:, None, :]
+        for a, mp in enumerate(acc.maps):
+            pa, wa_ = PW[a]
+            for b_ in range(a, len(acc.maps)):
+                pb, wb = PW[b_]
+                Nab = Ninv[np.ix_(mp.local, acc.maps[b_].local)]
+                s = np.einsum("np,nq,npq->n", wa_, wb, Nab[pa[:, :, None], pb[:, None, :]])
+                outer = V[a][:, :, None] * V[b_][:, None, :]
+                h += s[:, None, None] * (outer if b_ == a else outer + outer.transpose(0, 2, 1))
+        H[a0:a0 + len(ch)] = h
+        r_out[a0:a0 + len(ch)] = rw[:, :3]
+        a0 += len(ch)
+    return H, r_out

@@ -11,6 +11,7 @@ from robocal._core.measurements import MeasurementSet
 from robocal.errors import ConfigError, DataError, NotConverged
 from robocal.identification import FitOptions, fit
 from robocal.kinematics import CalibratedModel
+from robocal.simulation import VirtualCell
 
 from .conftest import make_data
 
@@ -167,3 +168,25 @@ def test_auto_offers_no_harmonic_a_joint_with_too_few_angles_can_tell_apart():
     keys = {g.key for g in candidate_groups(f, q)}
     assert not any(k.startswith("j6:fourier") or k.startswith("j6:ripple") for k in keys)
     assert {"j5:fourier1", "j5:fourier3"} <= keys and "j5:ripple40" in keys
+
+
+def test_map_knots_widen_where_the_data_are_too_sparse_for_the_finest_spacing():
+    # 1.25 deg knots on 250 poses put less than one pose in a knot's support; the spacing
+    # widens until a support holds map_min_points poses on average; dense data keep 1.25 deg
+    from robocal.identification._auto import candidate_groups
+    from robocal.identification._fitter import Fitter
+
+    cell = VirtualCell.create("fanuc_lrmate200i", "constant", seed=4)
+    rng = np.random.default_rng(4)
+    for n, widened in ((250, True), (4000, False)):
+        q = cell.random_joints(n, rng)
+        f = Fitter(cell.robot, MeasurementSet(q, np.zeros((n, 3))), FitOptions())
+        maps = [g for g in candidate_groups(f, q) if g.is_map]
+        assert len(maps) == 6
+        for g in maps:
+            arc_deg = len(g.knots) * 360.0 / g.n_knots
+            per_support = n * 4 * (360.0 / g.n_knots) / arc_deg
+            if widened:
+                assert g.n_knots < 288 and per_support >= 0.95 * f.opts.map_min_points
+            else:
+                assert g.n_knots == 288

@@ -127,3 +127,30 @@ def test_any_column_subset_and_grouping(data: st.DataObject) -> None:
     _close(G, Gd)
     _close(b, bd)
     _close(c, cd)
+
+
+@pytest.mark.parametrize("orientation", [False, True])
+def test_hat_blocks_equal_the_dense_products(orientation: bool) -> None:
+    from robocal.identification._engine import hat_statistics
+    from robocal.identification._structured import hat_blocks
+
+    prob, x = _problem(150, seed=6, orientation=orientation)
+    rng = np.random.default_rng(7)
+    cols = np.concatenate([np.arange(9), 9 + rng.permutation(prob.model.size - 9)])
+    A = rng.standard_normal((len(cols), len(cols)))
+    Ninv = A @ A.T / len(cols)
+    rows = np.arange(150)
+    H, r = hat_blocks(prob, x, rows, cols, Ninv)
+    Jw, rw = prob.whitened_jacobian(x, rows, cols)
+    m = 6 if orientation else 3
+    Jp = Jw.reshape(150, m, -1)[:, :3]
+    _close(H, np.einsum("nik,kl,njl->nij", Jp, Ninv, Jp))
+    _close(r, rw.reshape(150, m)[:, :3])
+    # the solver's statistic takes the factored path and gives the dense values
+    in_fit = rng.random(150) < 0.8
+    t = hat_statistics(prob, x, cols, Ninv, in_fit)
+    sign = np.where(in_fit, -1.0, 1.0)[:, None, None]
+    M = np.eye(3) + sign * np.einsum("nik,kl,njl->nij", Jp, Ninv, Jp) + 1e-9 * np.eye(3)
+    rp = rw.reshape(150, m)[:, :3]
+    want = np.einsum("ni,ni->n", rp, np.linalg.solve(M, rp[:, :, None])[:, :, 0])
+    assert np.allclose(t, want, rtol=1e-9, atol=0)
