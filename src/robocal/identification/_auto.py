@@ -406,15 +406,17 @@ class _CV:
         """
         self.evaluations += sum(len(p) for _, p in options)
         out = [np.zeros(len(p)) for _, p in options]
+        # groups of one size are stacked; the small parametric groups (1-12 columns) are
+        # stacked together, padded to the largest (see _pad): one batch instead of one per size
         by_size: dict[int, list[int]] = {}
         for i, (gcols, _) in enumerate(options):
-            by_size.setdefault(len(gcols), []).append(i)
+            by_size.setdefault(0 if len(gcols) <= PAD_UP_TO else len(gcols), []).append(i)
         # groups of one size in batches of at most ~32 MB of stacked temporaries over all
         # folds (the map groups have hundreds of columns, each tried with several priors)
         k = len(base_cols)
         batches = []
         for idx_all in by_size.values():
-            g = len(options[idx_all[0]][0])
+            g = max(len(options[i][0]) for i in idx_all)
             n_opt = max(len(options[i][1]) for i in idx_all)
             step = max(1, int(32e6 // (8 * self.K * (4 * k * g + 4 * n_opt * g * g))))
             batches += [idx_all[a:a + step] for a in range(0, len(idx_all), step)]
@@ -434,7 +436,7 @@ class _CV:
             pre.append((btr, dA, bf_b - GdA, float(self.c_f[f] - 2.0 * dA @ bf_b + dA @ GdA),
                         Gf_bb))
         for idx in batches:
-            C = np.stack([options[i][0] for i in idx])              # (m, g) superset columns
+            C, mask = _pad([options[i][0] for i in idx])            # (m, g) superset columns
             m, g = C.shape
             A = np.searchsorted(act, C)                             # (m, g) active positions
             cc = (C[:, :, None], C[:, None, :])
@@ -442,7 +444,12 @@ class _CV:
             G_bc = self.G[ixbc]                                     # (k, m g)
             G_cc = self.G[cc]
             opt_of = np.array([a for a, i in enumerate(idx) for _ in options[i][1]])
-            pens = np.stack([p for i in idx for p in options[i][1]])
+            pens = np.stack([_pad_square(p, g) for i in idx for p in options[i][1]])
+            if mask is not None:
+                # padding columns: zero in every gathered block, identity in the system
+                mm = mask[:, :, None] & mask[:, None, :]
+                G_bc *= mask.ravel()[None, :]
+                G_cc = G_cc * mm + (~mask)[:, :, None] * np.eye(g)[None]
             # a group's priors differ by multiples of one positive semidefinite matrix (a
             # map's smoothness grid): its least definite system is the one of smallest trace
             tr_pen = np.trace(pens, axis1=1, axis2=2)
@@ -456,15 +463,23 @@ class _CV:
                 Gf = self.G_f[f]
                 btr, dA, res_b, _, _ = pre[f]
                 X = fb.X[:, A].transpose(1, 0, 2)                   # (m, k, g)
-                Xt = X.transpose(0, 2, 1)
                 Gf_bg = Gf[ixbc].reshape(k, m, g).transpose(1, 0, 2)  # (m, k, g)
+                Gf_cc = Gf[cc]
+                bf_c = self.b_f[f][C]
+                btr_c = self.b[C] - bf_c
+                if mask is not None:
+                    X = X * mask[:, None, :]
+                    Gf_bg = Gf_bg * mask[:, None, :]
+                    Gf_cc = Gf_cc * mm
+                    bf_c = bf_c * mask
+                    btr_c = btr_c * mask
+                Xt = X.transpose(0, 2, 1)
                 Gtr_gb = (G_bc.reshape(k, m, g).transpose(1, 2, 0)
                           - Gf_bg.transpose(0, 2, 1))               # (m, g, k)
-                Gf_cc = Gf[cc]
                 S0 = (G_cc - Gf_cc) - Gtr_gb @ X
-                rhs = (self.b[C] - self.b_f[f][C]) - Xt @ btr
+                rhs = btr_c - Xt @ btr
                 # held-out SSE as a quadratic in dg (db = dA - X dg): dg^T Q dg + 2 lin dg
-                lin = Xt @ res_b - self.b_f[f][C] + Gf_bg.transpose(0, 2, 1) @ dA
+                lin = Xt @ res_b - bf_c + Gf_bg.transpose(0, 2, 1) @ dA
                 Ms.append(S0[opt_of] + pens)
                 rhss.append(rhs[opt_of])
                 parts.append((X, Gf_bg, Gf_cc, lin))
@@ -483,6 +498,32 @@ class _CV:
                 out[i] += vals[e:e + n_p]
                 e += n_p
         return [list(o) for o in out]
+
+
+# groups of up to this many columns are stacked together, padded (see _pad)
+PAD_UP_TO = 16
+
+
+def _pad(cols: Sequence[IntArray]) -> tuple[IntArray, NDArray[np.bool_] | None]:
+    """Column lists of unequal length (m,) as one (m, g) array, each padded with its own
+    first column, and the mask of real entries (None when none is padded). The caller
+    zeroes the padding in every gathered block and puts an identity on its diagonal, so
+    a padded coefficient solves to zero and changes no score."""
+    g = max(len(c) for c in cols)
+    if all(len(c) == g for c in cols):
+        return np.stack(cols), None
+    C = np.stack([np.concatenate([c, np.full(g - len(c), c[0])]) for c in cols])
+    mask = np.arange(g)[None, :] < np.array([len(c) for c in cols])[:, None]
+    return C.astype(np.intp), mask
+
+
+def _pad_square(P: Array, g: int) -> Array:
+    """``P`` (h, h) in the top-left corner of a (g, g) zero matrix."""
+    if P.shape[0] == g:
+        return P
+    out = np.zeros((g, g))
+    out[:P.shape[0], :P.shape[0]] = P
+    return out
 
 
 def _held_out_q(X: Array, Gbb: Array, Gbg: Array, Ggg: Array, dg: Array, opt_of: IntArray

@@ -177,8 +177,9 @@ def _direct_scores(cv: _CV, base: np.ndarray, options) -> list[list[float]]:
 
 @pytest.mark.parametrize("seed", range(4))
 def test_fold_stacked_scores_equal_one_model_at_a_time(seed: int):
-    """All folds' systems solved in one stacked call, and a smoothness family's definiteness
-    proven by its least definite member, give the scores of direct per-model solves."""
+    """All folds' systems solved in one stacked call, groups of different sizes stacked
+    padded, and a smoothness family's definiteness proven by its least definite member,
+    give the scores of direct per-model solves."""
     rng = np.random.default_rng(100 + seed)
     cv = _random_cv(rng, K=4, P=30, n=120)
     base = np.sort(rng.choice(30, size=6, replace=False))
