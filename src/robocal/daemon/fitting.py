@@ -504,8 +504,15 @@ class FitRunner:
         pool, self._pool = self._pool, None
         if pool is None:
             return
+        procs = []
         if isinstance(pool, concurrent.futures.ProcessPoolExecutor):
-            for proc in list(getattr(pool, "_processes", {}).values()):
+            procs = list(getattr(pool, "_processes", {}).values())
+            for proc in procs:
                 with contextlib.suppress(Exception):
                     proc.kill()
         pool.shutdown(wait=False, cancel_futures=True)
+        # reap the killed worker here (it is gone within milliseconds of SIGKILL): left to
+        # init, it stays a zombie of this process until the daemon exits
+        for proc in procs:
+            with contextlib.suppress(Exception):
+                proc.join(timeout=5.0)

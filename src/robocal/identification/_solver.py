@@ -181,8 +181,8 @@ class Problem:
         """Data normal matrix ``J^T J`` (k, k), ``J^T r`` (k,) and data cost over ``rows``."""
         if has_maps(self, cols):
             # joint-angle map columns are sparse: their blocks are formed per pose
-            G, b, c, _ = normal_blocks(self, x, rows, cols)
-            return G[0], b[0], float(c[0])
+            G_g, b_g, c_g, _ = normal_blocks(self, x, rows, cols)
+            return G_g[0], b_g[0], float(c_g[0])
         k = len(cols)
         A = np.zeros((k, k))
         g = np.zeros(k)
