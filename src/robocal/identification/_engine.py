@@ -227,9 +227,11 @@ class Engine:
         robust = self.s.detect_outliers if robust is None else robust
         pen_free = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
 
-        def run(x_start: Array, act: BoolArray) -> tuple[SolveInfo, Array]:
+        def run(x_start: Array, act: BoolArray,
+                start: tuple[Array, Array, float] | None = None) -> tuple[SolveInfo, Array]:
             info = levenberg_marquardt(prob, x_start, free, np.flatnonzero(act),
-                                       max_iter=self.s.max_iter, ftol=self.s.ftol)
+                                       max_iter=self.s.max_iter, ftol=self.s.ftol,
+                                       start=start)
             # a run that hits max_iter while creeping along a flat valley is kept (reported
             # as not converged, with its status): its last step gained almost nothing, or
             # the Gauss-Newton model says the minimum is within creep_remaining of its cost
@@ -259,8 +261,9 @@ class Engine:
             rounds += 1
             if np.array_equal(~flagged, active):
                 break
+            start = _moved_normals(prob, info, free, active, ~flagged)
             active = ~flagged
-            info, Ninv = run(info.x, active)
+            info, Ninv = run(info.x, active, start)
             if rounds >= self.s.outlier_max_rounds:
                 break
         x = info.x
@@ -299,6 +302,25 @@ class Engine:
         t = hat_statistics(prob, x, free, Ninv, active)
         s2 = max(median(t[active]) / CHI2_3_MEDIAN, 1e-300)
         return t / s2, s2, self.threshold(self.n)
+
+
+def _moved_normals(prob: Problem, info: SolveInfo, free: IntArray, before: BoolArray,
+                   after: BoolArray) -> tuple[Array, Array, float] | None:
+    """The normal equations at ``info.x`` over the poses ``after``, from the last run's over
+    ``before`` with the poses that left or joined the fit taken out or added (a pass over a
+    few poses instead of all); None when many changed."""
+    out = np.flatnonzero(before & ~after)
+    into = np.flatnonzero(after & ~before)
+    if len(out) + len(into) > 0.25 * max(int(after.sum()), 1):
+        return None
+    A, g, c = info.normal.copy(), info.gradient.copy(), info.data_cost
+    for rows, sign in ((out, -1.0), (into, 1.0)):
+        if len(rows):
+            dA, dg, dc = prob.normal_equations(info.x, rows, free)
+            A += sign * dA
+            g += sign * dg
+            c += sign * dc
+    return A, g, c
 
 
 def hat_statistics(prob: Problem, x: Array, free: IntArray, Ninv: Array,

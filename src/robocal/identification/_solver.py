@@ -145,17 +145,19 @@ class Problem:
         rw = np.einsum("nij,nj->ni", W, self.y[rows] - p).ravel()
         return Jw, rw
 
-    def whitened_factors(self, x: Array, rows: IntArray
+    def whitened_factors(self, x: Array, rows: IntArray, terms: IntArray | None = None
                          ) -> tuple[Array, Array, Array, Array]:
         """The whitened Jacobian of a chunk in factored form (see
         ``KinematicModel.jacobian_factors``): ``head`` (c, m, 9), ``sens`` (c, m, 6 dof), the
-        term basis ``B`` (c, n_terms) and the whitened residual (c, m), c = len(rows)."""
+        basis ``B`` (c, len(terms)) of the terms ``terms`` (None: all) and the whitened
+        residual (c, m), c = len(rows)."""
         self.n_jacobians += 1
         W = self.W[rows]
         if self.R_obs is not None:
             assert self.W_rot is not None
             Wr = self.W_rot[rows]
-            p, R, head, sens, B = self.model.jacobian_factors(self.q[rows], x, orientation=True)
+            p, R, head, sens, B = self.model.jacobian_factors(self.q[rows], x, orientation=True,
+                                                               terms=terms)
             for M in (head, sens):
                 M[:, :3] = np.einsum("nij,njk->nik", W, M[:, :3])
                 M[:, 3:] = np.einsum("nij,njk->nik", Wr, M[:, 3:])
@@ -163,7 +165,7 @@ class Problem:
             rw[:, :3] = np.einsum("nij,nj->ni", W, self.y[rows] - p)
             rw[:, 3:] = np.einsum("nij,nj->ni", Wr, rotation_vectors(self.R_obs[rows], R))
             return head, sens, B, rw
-        p, _, head, sens, B = self.model.jacobian_factors(self.q[rows], x)
+        p, _, head, sens, B = self.model.jacobian_factors(self.q[rows], x, terms=terms)
         return (np.einsum("nij,njk->nik", W, head), np.einsum("nij,njk->nik", W, sens), B,
                 np.einsum("nij,nj->ni", W, self.y[rows] - p))
 
@@ -249,7 +251,8 @@ class SolveInfo:
 
 def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray, *,
                         max_iter: int = 50, ftol: float = 1e-10, xtol: float = 1e-10,
-                        mu0: float = 1e-9, gtol: float = 1e-7) -> SolveInfo:
+                        mu0: float = 1e-9, gtol: float = 1e-7,
+                        start: tuple[Array, Array, float] | None = None) -> SolveInfo:
     """Minimise data cost over ``rows`` + prior, varying parameters ``free`` only.
 
     Column-scaled Levenberg-Marquardt on the normal equations (Cholesky; a truncated
@@ -261,6 +264,9 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
     below ``gtol`` (a minimum within rounding); otherwise the status is ``no-progress``, or
     ``non-finite`` when the trial steps produced non-finite model values. Hitting
     ``max_iter`` is status ``max-iterations``, never "converged".
+
+    ``start``: the data normal matrix, ``J^T r`` and data cost at ``x0`` over ``rows`` when
+    the caller has them (an outlier round updates the last run's), saving one pass.
     """
     x = np.array(x0, dtype=float)
     free = np.asarray(free, dtype=np.intp)
@@ -270,7 +276,7 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
         return SolveInfo(x, c, c - prob.prior_cost(x), 0, st, "no free parameters",
                          np.zeros((0, 0)), np.zeros(0))
     Pm = None if prob.penalty is None else prob.penalty[np.ix_(free, free)]
-    A, g, cd = prob.normal_equations(x, rows, free)
+    A, g, cd = prob.normal_equations(x, rows, free) if start is None else start
     cost = cd + prob.prior_cost(x)
     if not (math.isfinite(cost) and np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
         return SolveInfo(x, cost, cd, 0, NON_FINITE,

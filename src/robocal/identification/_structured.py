@@ -89,7 +89,6 @@ class _Accumulator:
         for mp in self.maps:
             self.spans.append(slice(a, a + len(mp.local)))
             a += len(mp.local)
-        self.mterms = [cols[mp.local] - _OFF for mp in self.maps]
         self.order = np.concatenate([self.dense] + [mp.local for mp in self.maps]).astype(np.intp)
 
     def dense_jacobian(self, Hw: Array, Sw: Array, B: Array) -> Array:
@@ -98,21 +97,38 @@ class _Accumulator:
         nh = len(self.head_cols)
         Jd = np.empty((n, m, self.nd))
         Jd[:, :, :nh] = np.take(Hw, self.head_cols, axis=2)
-        np.multiply(np.take(Sw, self.comp[self.terms], axis=2),
-                    np.take(B, self.terms, axis=1)[:, None, :], out=Jd[:, :, nh:])
+        np.multiply(np.take(Sw, self.comp[self.terms], axis=2), B[:, None, :],
+                    out=Jd[:, :, nh:])
         return Jd
 
-    def add(self, q: Array, g: IntArray, Jd: Array, Sw: Array, B: Array, rw: Array) -> None:
+    def map_bases(self, q: Array) -> list[tuple[Array, IntArray, Array]]:
+        """Per map: its basis columns (n, kj), built from each pose's four knot weights,
+        and those positions (n, 4) and weights (n, 4) (a knot not among the columns: weight
+        0 at position 0)."""
+        out = []
+        n = q.shape[0]
+        for mp in self.maps:
+            idx, w, _ = spline_weights(q[:, mp.joint], mp.n_knots)
+            pos = mp.col_of_knot[idx]
+            ok = pos >= 0
+            Bm = np.zeros((n, len(mp.local)))
+            Bm[np.nonzero(ok)[0], pos[ok]] = w[ok]   # a pose's four knots are distinct
+            out.append((Bm, np.where(ok, pos, 0), np.where(ok, w, 0.0)))
+        return out
+
+    def add(self, q: Array, g: IntArray, Jd: Array, Sw: Array, rw: Array) -> None:
         """Add a chunk: joint values (n, dof), groups (n,), dense Jacobian (n, m, nd), the
-        component sensitivities, the term basis and the residual (n, m)."""
+        component sensitivities (n, m, 6 dof) and the residual (n, m)."""
         nd, G, b = self.nd, self.G, self.b
         V = [Sw[:, :, mp.comp] for mp in self.maps]                   # (n, m) each
-        Bm = [np.take(B, t, axis=1) for t in self.mterms]             # (n, kj) each
+        mb = self.map_bases(q)
+        Bm = [B_ for B_, _, _ in mb]                                  # (n, kj) each
         Ud = [np.einsum("nmd,nm->nd", Jd, v) for v in V]
         tv = [np.einsum("nm,nm->n", v, rw) for v in V]
         for f in range(self.n_groups):
-            sel = np.flatnonzero(g == f) if self.n_groups > 1 else np.arange(len(g))
-            if len(sel) == 0:
+            # one group: slices, not copies
+            sel: slice | IntArray = np.flatnonzero(g == f) if self.n_groups > 1 else slice(None)
+            if isinstance(sel, np.ndarray) and len(sel) == 0:
                 continue
             Jf = Jd[sel].reshape(-1, nd)
             rf = rw[sel].ravel()
@@ -123,13 +139,8 @@ class _Accumulator:
                 Ba = Bm[a][sel]
                 G[f, sa, :nd] += Ba.T @ Ud[a][sel]
                 b[f, sa] += Ba.T @ tv[a][sel]
-        # map x map: 16 products per pose and pair of maps, scatter-added per group (a knot
-        # not among the columns gets weight 0 at position 0)
-        PW = []
-        for mp in self.maps:
-            idx, w, _ = spline_weights(q[:, mp.joint], mp.n_knots)
-            pos = mp.col_of_knot[idx]
-            PW.append((np.where(pos >= 0, pos, 0), np.where(pos >= 0, w, 0.0)))
+        # map x map: 16 products per pose and pair of maps, scatter-added per group
+        PW = [(p, w) for _, p, w in mb]
         for a, sa in enumerate(self.spans):
             pa, wa = PW[a]
             ka = sa.stop - sa.start
@@ -188,12 +199,12 @@ def normal_blocks(prob: Problem, x: Array, rows: IntArray, cols: IntArray,
     for ch in prob.chunks(np.arange(len(rows))):
         if len(ch) == 0:
             continue
-        Hw, Sw, B, rw = prob.whitened_factors(x, rows[ch])
+        Hw, Sw, B, rw = prob.whitened_factors(x, rows[ch], acc.terms)
         Jd = acc.dense_jacobian(Hw, Sw, B)
         if qr_d is not None:
             Jq = Jd.reshape(-1, acc.nd)[:, qr_d]
             R = np.linalg.qr(Jq if R is None else np.vstack([R, Jq]), mode="r")  # type: ignore[assignment]
-        acc.add(prob.q[rows[ch]], grp[ch], Jd, Sw, B, rw)
+        acc.add(prob.q[rows[ch]], grp[ch], Jd, Sw, rw)
     return (*acc.result(), R)
 
 
@@ -218,17 +229,14 @@ def hat_blocks(prob: Problem, x: Array, rows: IntArray, cols: IntArray, Ninv: Ar
     for ch in prob.chunks(np.arange(len(rows))):
         if len(ch) == 0:
             continue
-        Hw, Sw, B, rw = prob.whitened_factors(x, rows[ch])
+        Hw, Sw, B, rw = prob.whitened_factors(x, rows[ch], acc.terms)
         Jd = acc.dense_jacobian(Hw[:, :3], Sw[:, :3], B)              # position rows only
         V = [Sw[:, :3, mp.comp] for mp in acc.maps]
         h = np.einsum("nid,de,nje->nij", Jd, N_dd, Jd, optimize=True)
-        q = prob.q[rows[ch]]
-        PW = []
-        for a, mp in enumerate(acc.maps):
-            idx, w, _ = spline_weights(q[:, mp.joint], mp.n_knots)
-            pos = mp.col_of_knot[idx]
-            PW.append((np.where(pos >= 0, pos, 0), np.where(pos >= 0, w, 0.0)))
-            Z = np.take(B, acc.mterms[a], axis=1) @ N_md[a]            # (n, nd)
+        mb = acc.map_bases(prob.q[rows[ch]])
+        PW = [(p, w) for _, p, w in mb]
+        for a in range(len(acc.maps)):
+            Z = mb[a][0] @ N_md[a]                                      # (n, nd)
             wa = np.einsum("nid,nd->ni", Jd, Z)
             h += wa[:, :, None] * V[a][:, None, :] + V[a][:, :, None] * wa[:, None, :]
         for a, mp in enumerate(acc.maps):

@@ -138,7 +138,9 @@ class FeatureLayout:
     that of v (double-angle formulas; a level only uses earlier ones). ``poly_joints`` (J,),
     ``poly_order`` (J, L) (-1: unused) and ``poly_row`` (J, L): the Legendre features;
     ``p_terms``, ``p_row`` (P,): the poly terms and the row of their polynomial.
-    ``rest``: terms left to :func:`evaluate_basis` (maps, gravity).
+    ``maps``: per joint with a map, (joint, knots per revolution, its map terms, their knot
+    indices); a map's value comes from each pose's four spline weights.
+    ``rest``: terms left to :func:`evaluate_basis` (gravity).
     """
 
     K: int
@@ -152,6 +154,7 @@ class FeatureLayout:
     poly_row: NDArray[np.intp]
     p_terms: NDArray[np.intp]
     p_row: NDArray[np.intp]
+    maps: tuple[tuple[int, int, NDArray[np.intp], NDArray[np.intp]], ...]
     rest: NDArray[np.intp]
     rest_spec: ErrorModelSpec
 
@@ -196,13 +199,20 @@ def _feature_layout(spec: ErrorModelSpec, keys: list[tuple[int, float]],
             poly_row[r, i] = j * size + 2 * K + i
     p_row = [spec.terms[k].joint * size + 2 * K + orders[spec.terms[k].joint].index(
         spec.terms[k].index) for k in p_terms]
-    others = [k for k in rest if spec.terms[k].family != "poly"]
+    by_joint: dict[int, list[int]] = {}
+    for k in rest:
+        if spec.terms[k].family == "map":
+            by_joint.setdefault(spec.terms[k].joint, []).append(k)
+    maps = tuple((j, int(spec.map_knots[j]), np.array(ks, dtype=np.intp),
+                  np.array([spec.terms[k].index for k in ks], dtype=np.intp))
+                 for j, ks in sorted(by_joint.items()))
+    others = [k for k in rest if spec.terms[k].family not in ("poly", "map")]
     return FeatureLayout(
         K=K, L=L, size=size, harmonic_row=np.array(harmonic_row, dtype=np.intp),
         direct=np.array([u for u in range(len(keys)) if level[u] == 0], dtype=np.intp),
         doubled=doubled, poly_joints=np.array(poly_joints, dtype=np.intp),
         poly_order=poly_order, poly_row=poly_row, p_terms=np.array(p_terms, dtype=np.intp),
-        p_row=np.array(p_row, dtype=np.intp), rest=np.array(others, dtype=np.intp),
+        p_row=np.array(p_row, dtype=np.intp), maps=maps, rest=np.array(others, dtype=np.intp),
         rest_spec=ErrorModelSpec(spec.dof, tuple(spec.terms[k] for k in others),
                                  spec.map_knots, spec.label))
 
@@ -249,12 +259,15 @@ class ComponentWeights:
     ``W`` (dof, 12, size): per joint, rows 0-5 combine its block of features
     (:class:`FeatureLayout`) into its six error components, rows 6-11 into their
     derivatives by the joint value. ``e0`` (6 dof,): the constant terms summed per
-    component. ``S`` (6 dof, R): scatter of the remaining terms (weighted) to components.
+    component. ``maps``: per map of the layout, its component row and its coefficient per
+    knot of the revolution (zero where the map has no term). ``S`` (6 dof, R): scatter of
+    the remaining terms (weighted) to components.
     """
 
     W: Array
     e0: Array
     S: Array
+    maps: tuple[tuple[int, Array], ...] = ()
 
 
 def component_weights(plan: BasisPlan, coef: Array, cols: NDArray[np.intp], dof: int
@@ -287,7 +300,12 @@ def component_weights(plan: BasisPlan, coef: Array, cols: NDArray[np.intp], dof:
     np.add.at(e0, cols[plan.const], coef[plan.const])
     S = np.zeros((dof * 6, lay.rest.size))
     S[cols[lay.rest], np.arange(lay.rest.size)] = coef[lay.rest]
-    return ComponentWeights(W=W, e0=e0, S=S)
+    maps = []
+    for _, K, terms, knots in lay.maps:
+        by_knot = np.zeros(K)
+        np.add.at(by_knot, knots, coef[terms])
+        maps.append((int(cols[terms[0]]), by_knot))
+    return ComponentWeights(W=W, e0=e0, S=S, maps=tuple(maps))
 
 
 def joint_features(plan: BasisPlan, robot: RobotDescription, q: Array) -> Array:
@@ -335,7 +353,8 @@ def error_components(plan: BasisPlan, robot: RobotDescription, q: Array,
 
     Each joint's harmonics and polynomials are combined by one small matrix product per
     joint with their values (:func:`joint_features`), the constants are added as they
-    are, and maps and gravity terms go through :func:`evaluate_basis`.
+    are, maps from their four spline weights per pose, and gravity terms through
+    :func:`evaluate_basis`.
     """
     n, dof = q.shape
     width = dof * 6
@@ -348,6 +367,13 @@ def error_components(plan: BasisPlan, robot: RobotDescription, q: Array,
     else:
         E = np.repeat(weights.e0[:, None], n, axis=1)
         dE = np.zeros((width, n)) if derivative else None
+    for (j, K, _, _), (row, by_knot) in zip(lay.maps, weights.maps, strict=True):
+        # a map is four spline weights per pose: no column per knot
+        idx, w, dw = spline_weights(q[:, j], K)
+        c = by_knot[idx]
+        E[row] += np.einsum("nk,nk->n", c, w)
+        if dE is not None:
+            dE[row] += np.einsum("nk,nk->n", c, dw)
     if lay.rest.size:
         Br, dBr = evaluate_basis(lay.rest_spec, robot, q, derivative=derivative)
         E += weights.S @ Br.T

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from robocal.errors import ConfigError
 from robocal.kinematics._basis import (
+    BasisPlan,
     ComponentWeights,
     basis_plan,
     component_columns,
@@ -122,6 +123,8 @@ class KinematicModel:
         self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
         self._cols = component_columns(spec)
         self._plan = basis_plan(spec, robot)
+        # basis plans of term subsets (basis()), by the subset's index bytes
+        self._sub_plans: dict[bytes, tuple[ErrorModelSpec, BasisPlan]] = {}
         # what the last parameter vector fixes, arranged for the passes (_Prepared)
         self._prepared: _Prepared | None = None
         # joints whose error components are constants: their errors and DH transform fold
@@ -366,24 +369,41 @@ class KinematicModel:
                         out=J[:, :, _OFF:])
         return st.p, J
 
+    def basis(self, q: Array, terms: NDArray[np.intp] | None = None) -> Array:
+        """Basis values (n, len(terms)) of the terms ``terms`` (indices into the spec's
+        terms; None: all) at joint values ``q`` (n, dof) rad."""
+        if terms is None:
+            return evaluate_basis(self.spec, self.robot, q, plan=self._plan)[0]
+        key = np.asarray(terms, dtype=np.intp).tobytes()
+        sub = self._sub_plans.get(key)
+        if sub is None:
+            spec = ErrorModelSpec(self.spec.dof, tuple(self.spec.terms[int(t)] for t in terms),
+                                  self.spec.map_knots, label=self.spec.label)
+            sub = self._sub_plans[key] = (spec, basis_plan(spec, self.robot))
+        return evaluate_basis(sub[0], self.robot, q, plan=sub[1])[0]
+
     @property
     def term_components(self) -> NDArray[np.intp]:
         """Error component column (joint * 6 + component) of each term, shape (n_terms,)."""
         return self._cols.copy()
 
-    def jacobian_factors(self, q: Array, x: Array, *, orientation: bool = False
+    def jacobian_factors(self, q: Array, x: Array, *, orientation: bool = False,
+                         terms: NDArray[np.intp] | None = None
                          ) -> tuple[Array, Array, Array, Array, Array]:
         """The Jacobian in factored form: positions (n, 3), flange rotations (n, 3, 3), the
         columns of the base and tool parameters ``head`` (n, m, 9), the sensitivity to each
-        error component ``sens`` (n, m, 6 dof) and the term basis ``B`` (n, n_terms).
+        error component ``sens`` (n, m, 6 dof) and the basis ``B`` (n, len(terms)) of the
+        terms ``terms`` (indices into the spec's terms; None: all).
 
         Column ``9 + t`` of :meth:`jacobian` (m = 3) or :meth:`pose_jacobian` (m = 6,
-        ``orientation``) is ``sens[:, :, term_components[t]] * B[:, None, t]``: a caller
-        that knows which basis columns are sparse (joint-angle map knots, four per pose)
-        can form normal matrices without the dense columns.
+        ``orientation``) is ``sens[:, :, term_components[t]] * B[:, None, i]`` for
+        ``t = terms[i]``: a caller that knows which basis columns are sparse (joint-angle map
+        knots, four per pose) asks for the others only and forms normal matrices without
+        the dense map columns.
         """
         q, x = self._check(q, x)
-        E, _, B = self.joint_errors(q, x)
+        E, _ = self._errors(q, x)
+        B = self.basis(q, terms)
         st = self._chain(q, x, E)
         n = q.shape[0]
         m = 6 if orientation else 3

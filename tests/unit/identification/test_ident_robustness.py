@@ -173,3 +173,46 @@ def test_fit_warns_about_extrapolated_validation_poses_and_many_screened_ones():
     assert len(glitchy.validation_outliers) == 20
     assert glitchy.warnings == [w for w in glitchy.warnings if "20 of 200 validation" in w]
     assert len(glitchy.warnings) == 1
+
+
+def test_an_outlier_round_starts_from_the_last_normal_equations_updated() -> None:
+    """The next round's normal equations: the last run's, minus the poses that left the fit
+    and plus those that joined, equal a fresh pass over the new set; and a run started from
+    them gives the same solution as one that computes them."""
+    from robocal.identification._engine import _moved_normals
+
+    from robocal.identification._models import constant_spec
+
+    base, x0 = _problem(80)
+    # data a constant model describes (its LM runs converge), started a little off
+    rng = np.random.default_rng(6)
+    m = base.model.with_spec(constant_spec(base.model.robot))
+    x0 = x0[: m.size]
+    x_true = x0.copy()
+    x_true[9:] = 1e-4 * rng.standard_normal(m.size - 9)
+    y = m.positions(base.q, x_true) + 2e-5 * rng.standard_normal((base.n, 3))
+    prob = solver.Problem(m, base.q, y, whitening(y, TrackerSigma()))
+    x0 = x_true + 1e-5 * rng.standard_normal(m.size)
+    cand = np.arange(prob.model.size)
+    _, keep, _ = solver.analyse_jacobian(prob, x0, np.arange(prob.n), cand)
+    free = cand[keep]                                 # the identifiable parameters
+    before = np.ones(prob.n, dtype=bool)
+    before[[3, 40]] = False
+    info = solver.levenberg_marquardt(prob, x0, free, np.flatnonzero(before))
+    after = before.copy()
+    after[[3, 11, 57]] = [True, False, False]
+    start = _moved_normals(prob, info, free, before, after)
+    assert start is not None
+    A, g, c = prob.normal_equations(info.x, np.flatnonzero(after), free)
+    scale = np.abs(A).max()
+    assert np.max(np.abs(start[0] - A)) <= 1e-12 * scale
+    assert np.max(np.abs(start[1] - g)) <= 1e-12 * np.abs(g).max()
+    assert start[2] == pytest.approx(c, rel=1e-12)
+    fresh = solver.levenberg_marquardt(prob, info.x, free, np.flatnonzero(after))
+    warm = solver.levenberg_marquardt(prob, info.x, free, np.flatnonzero(after), start=start)
+    assert info.converged and fresh.converged and warm.converged
+    assert np.allclose(warm.x, fresh.x, rtol=0, atol=1e-12)
+    # a quarter of the poses or more changed: computed afresh
+    many = np.zeros(prob.n, dtype=bool)
+    many[: prob.n // 2] = True
+    assert _moved_normals(prob, info, free, before, many) is None

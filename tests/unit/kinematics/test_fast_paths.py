@@ -24,7 +24,9 @@ def _rich_spec(dof: int) -> ErrorModelSpec:
         terms += [Term(j, "ez", "poly", 1), Term(j, "ez", "swcos", 1),
                   Term(j, "ez", "swsin", 2), Term(j, "ez", "gravity")]
     terms += [Term(1, "ez", "map", r) for r in range(12)]
-    knots = tuple(12 if j == 1 else 0 for j in range(dof))
+    # a second map with knots missing (the data left a gap), listed out of order
+    terms += [Term(3, "ez", "map", r) for r in (17, 2, 3, 9, 10, 11, 12, 30, 31)]
+    knots = tuple({1: 12, 3: 36}.get(j, 0) for j in range(dof))
     return ErrorModelSpec(dof, tuple(terms), knots)
 
 
