@@ -132,7 +132,7 @@ def candidate_groups(f: _Fitter, q: Array) -> list[Group]:
             # support (four spacings) holds map_min_points poses on average over the arc
             # the data span; finer knots would be set by the smoothness prior alone
             h_deg = opts.map_min_points * (len(kn) * 360.0 / K) / (4.0 * max(len(q), 1))
-            if knots_for_spacing(h_deg) < K:
+            if h_deg > opts.map_spacing_deg and knots_for_spacing(h_deg) < K:
                 K = knots_for_spacing(h_deg)
                 kn = span_knots(q[:, j], K)
             counts = knot_counts(q[:, j], K)

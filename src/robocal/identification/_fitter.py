@@ -140,6 +140,8 @@ class FitOptions(EngineSettings):
             raise ConfigError("cv_folds must be at least 2")
         if self.auto_ripple_screen < 1:
             raise ConfigError("auto_ripple_screen must be at least 1")
+        if self.map_min_points < 1:
+            raise ConfigError("map_min_points must be at least 1")
         if self.point_sigma_floor_m is not None and not 0 <= self.point_sigma_floor_m < 1e-2:
             raise ConfigError("point_sigma_floor_m must be in [0, 0.01) m")
         if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0 or self.map_tie_deg <= 0 \

@@ -138,6 +138,9 @@ def test_unknown_model_and_bad_options_are_config_errors(paper_data):
         FitOptions(rank_tol=2.0)
     with pytest.raises(ConfigError):
         FitOptions(cv_folds=1)
+    # it sets how far sparse data widen the map knots: zero would divide by zero there
+    with pytest.raises(ConfigError, match="map_min_points"):
+        FitOptions(map_min_points=0)
 
 
 def test_non_convergence_raises(paper_data):

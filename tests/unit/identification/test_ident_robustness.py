@@ -180,7 +180,6 @@ def test_an_outlier_round_starts_from_the_last_normal_equations_updated() -> Non
     and plus those that joined, equal a fresh pass over the new set; and a run started from
     them gives the same solution as one that computes them."""
     from robocal.identification._engine import _moved_normals
-
     from robocal.identification._models import constant_spec
 
     base, x0 = _problem(80)
