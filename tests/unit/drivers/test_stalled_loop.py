@@ -123,11 +123,15 @@ def test_line_read_takes_a_reply_that_waited_through_a_stall(peer: PeerThread) -
         assert await stream.read_line(timeout=TIMEOUT_S) == b"1 OK"
         await t.close()
 
+    async def close() -> None:
+        # in the server's own loop: Server.close() from another thread races its wake-up
+        server.close()
+        await server.wait_closed()
+
     try:
         assert run_stalled(body).stalls == 1
     finally:
-        server.close()
-        peer.run(server.wait_closed())
+        peer.run(close())
 
 
 def test_fanuc_rmi_command_reply_waiting_after_stall(peer: PeerThread, world: SimWorld) -> None:
