@@ -144,9 +144,13 @@ class FitOptions(EngineSettings):
             raise ConfigError("map_min_points must be at least 1")
         if self.point_sigma_floor_m is not None and not 0 <= self.point_sigma_floor_m < 1e-2:
             raise ConfigError("point_sigma_floor_m must be in [0, 0.01) m")
-        if self.map_spacing_deg <= 0 or self.map_ridge_deg <= 0 or self.map_tie_deg <= 0 \
-                or self.map_weak_deg <= 0:
-            raise ConfigError("map_spacing_deg, map_ridge_deg and map_tie_deg must be positive")
+        for f in fields(self):   # NaN passes every comparison below; it is never a setting
+            v = getattr(self, f.name)
+            if isinstance(v, float) and v != v:
+                raise ConfigError(f"{f.name} must be a number, not NaN")
+        for name in ("map_spacing_deg", "map_ridge_deg", "map_tie_deg", "map_weak_deg"):
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ConfigError(f"{name} must be a positive finite number")
 
     def engine_settings(self) -> EngineSettings:
         """The subset the engine needs."""

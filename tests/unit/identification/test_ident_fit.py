@@ -141,6 +141,12 @@ def test_unknown_model_and_bad_options_are_config_errors(paper_data):
     # it sets how far sparse data widen the map knots: zero would divide by zero there
     with pytest.raises(ConfigError, match="map_min_points"):
         FitOptions(map_min_points=0)
+    # robocal fit --map-spacing-deg nan|inf reached the knot count and raised a ValueError
+    for bad in (float("nan"), float("inf"), 0.0, -2.0):
+        with pytest.raises(ConfigError, match="map_spacing_deg"):
+            FitOptions(map_spacing_deg=bad)
+    with pytest.raises(ConfigError, match="auto_min_improvement must be a number"):
+        FitOptions(auto_min_improvement=float("nan"))
 
 
 def test_non_convergence_raises(paper_data):
