@@ -40,3 +40,15 @@ def command(sub: Any, name: str, run: Handler | None, *, parent: str | None = No
     if run is not None:
         p.set_defaults(handler=run, **defaults)
     return p
+
+
+def seed(text: str) -> int:
+    """argparse type of a ``--seed``: a non-negative integer (numpy's generators refuse
+    negative seeds with a traceback)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid integer {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {value}")
+    return value

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from robocal._core.model_names import CPA, MODELS, NOMINAL
-from robocal.cli._command import command
+from robocal.cli._command import command, seed
 from robocal.cli._defaults import (
     DEFAULT_SEED,
     SCENARIO_HELP,
@@ -51,7 +51,7 @@ def register(sub: Any) -> None:
                    help="calibration poses (default 250; the high-order model needs about 64)")
     p.add_argument("--validation", type=int, default=None,
                    help=VALIDATION_HELP)
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+    p.add_argument("--seed", type=seed, default=DEFAULT_SEED,
                    help=f"seed of the virtual robot and plan (default {DEFAULT_SEED}, as plan, "
                         "simulate and sim)")
     p.add_argument("--scenario", default="paper", help=SCENARIO_HELP)

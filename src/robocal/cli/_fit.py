@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
-from robocal.cli._command import command
+from robocal.cli._command import command, seed
 
 
 def register(sub: Any) -> None:
@@ -51,7 +51,7 @@ def register(sub: Any) -> None:
     p.add_argument("--order", type=int, help="Fourier order of the high-order model")
     p.add_argument("--map-spacing-deg", type=float, help="joint-angle map knot spacing (auto)")
     p.add_argument("--cv-folds", type=int, help="cross-validation folds (auto)")
-    p.add_argument("--seed", type=int, help="seed of the CV folds (auto)")
+    p.add_argument("--seed", type=seed, help="seed of the CV folds (auto)")
     p.add_argument("--point-sigma-floor-mm", type=float, metavar="MM",
                    help="model error combined in quadrature with the data's sx,sy,sz "
                         "(default: estimated from the constant model's residuals; 0 weights "

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robocal._core.model_names import DEFAULT_MODEL, MODELS
-from robocal.cli._command import command
+from robocal.cli._command import command, seed
 from robocal.cli._defaults import DEFAULT_SEED, VALIDATION_HELP, default_validation
 
 
@@ -42,7 +42,7 @@ def register(sub: Any) -> None:
     p.add_argument("--no-iso", action="store_true", help="leave out the ISO 9283 cube poses")
     p.add_argument("--iso-cycles", type=int, default=30, metavar="N",
                    help="cycles through the ISO 9283 poses P1..P5 (the standard asks for 30)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+    p.add_argument("--seed", type=seed, default=DEFAULT_SEED,
                    help=f"random seed (default {DEFAULT_SEED}, as simulate, demo and sim)")
     p.add_argument("--candidates", type=int, default=4096,
                    help="feasible candidates to choose from (default 4096)")

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from robocal.cli._command import command
+from robocal.cli._command import command, seed
 from robocal.cli._defaults import (
     DEFAULT_SEED,
     SCENARIO_HELP,
@@ -29,7 +29,7 @@ def register(sub: Any) -> None:
                    help="built-in name or robot TOML (default: the plan's robot with --plan, "
                         "else fanuc_lrmate200i); with --plan it must be the plan's robot")
     p.add_argument("--scenario", default="paper", help=SCENARIO_HELP)
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+    p.add_argument("--seed", type=seed, default=DEFAULT_SEED,
                    help=f"seed of the planted errors and noise (default {DEFAULT_SEED}, as "
                         "plan, demo and sim)")
     p.add_argument("--plan", type=Path, help="PLAN.json whose poses to measure")

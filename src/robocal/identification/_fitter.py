@@ -142,6 +142,8 @@ class FitOptions(EngineSettings):
             raise ConfigError("auto_ripple_screen must be at least 1")
         if self.map_min_points < 1:
             raise ConfigError("map_min_points must be at least 1")
+        if self.seed < 0:
+            raise ConfigError("seed must not be negative (it seeds the CV folds)")
         if self.point_sigma_floor_m is not None and not 0 <= self.point_sigma_floor_m < 1e-2:
             raise ConfigError("point_sigma_floor_m must be in [0, 0.01) m")
         for f in fields(self):   # NaN passes every comparison below; it is never a setting

@@ -36,6 +36,19 @@ def test_simulate_rejects_bad_options(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not (tmp_path / "m.csv").exists()
 
 
+@pytest.mark.parametrize("cmd", [["simulate"], ["fit", "--robot", "fanuc_lrmate200i", "--data",
+                                                "meas.csv"], ["plan"], ["demo"]])
+def test_a_negative_seed_is_a_usage_error(cmd: list[str], tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    # numpy's generators refused it with a traceback (simulate; fit's CV folds)
+    with pytest.raises(SystemExit) as exc:
+        main([*cmd, "--seed", "-1", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --seed: must not be negative, got -1" in err and "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+
+
 # --- a plan's robot, and plans with joints no robot can reach --------------------------------
 @pytest.fixture(scope="module")
 def ur10_plan_text() -> str:

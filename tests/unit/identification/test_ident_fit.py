@@ -145,6 +145,8 @@ def test_unknown_model_and_bad_options_are_config_errors(paper_data):
     for bad in (float("nan"), float("inf"), 0.0, -2.0):
         with pytest.raises(ConfigError, match="map_spacing_deg"):
             FitOptions(map_spacing_deg=bad)
+    with pytest.raises(ConfigError, match="seed"):        # numpy refused it with a traceback
+        FitOptions(seed=-1)
     with pytest.raises(ConfigError, match="auto_min_improvement must be a number"):
         FitOptions(auto_min_improvement=float("nan"))
 
