@@ -100,18 +100,22 @@ def nice_ticks(lo: float, hi: float, max_n: int = 8) -> Array:
 
 def log_ticks(lo: float, hi: float, max_n: int = 8) -> Array:
     """Ticks of a log axis on [lo, hi] (``0 < lo < hi``): decades (every n-th when more than
-    ``max_n``); with fewer than 3 decades inside, 1, 2 and 5 times each decade; with fewer
-    than 3 of those, :func:`nice_ticks`."""
+    ``max_n``); with fewer than 3 decades inside, 1, 2 and 5 times each decade (1 and 5, or
+    1, when those are more than ``max_n``); with fewer than 3 of those, :func:`nice_ticks`."""
     a, b = math.log10(lo), math.log10(hi)
     k0, k1 = math.ceil(a - 1e-9), math.floor(b + 1e-9)
     n = k1 - k0 + 1
     if n >= 3:
         stride = -(-n // max_n)
         return 10.0 ** np.arange(k0, k1 + 1, stride, dtype=float)
-    c = (np.array([1.0, 2.0, 5.0]) * 10.0 ** np.arange(k0 - 1, k1 + 1)[:, None]).ravel()
     tol = (hi - lo) * 1e-9
-    c = c[(c >= lo - tol) & (c <= hi + tol)]
-    return c if c.size >= 3 else nice_ticks(lo, hi, max_n)
+    # just under three decades, 1-2-5 gives up to 9 values: then 1 and 5, then 1 alone
+    for mantissas in ((1.0, 2.0, 5.0), (1.0, 5.0), (1.0,)):
+        c = (np.array(mantissas) * 10.0 ** np.arange(k0 - 1, k1 + 1)[:, None]).ravel()
+        c = c[(c >= lo - tol) & (c <= hi + tol)]
+        if c.size <= max_n:
+            break
+    return c if 3 <= c.size <= max_n else nice_ticks(lo, hi, max_n)
 
 
 def tick_labels(ticks: Array, scale: Scale) -> list[str]:

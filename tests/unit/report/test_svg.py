@@ -7,7 +7,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from robocal.report._svg import Figure, log_ticks, nice_ticks, tick_labels, viridis
@@ -35,6 +35,7 @@ def test_linear_ticks_are_few_nice_and_inside(lo: float, span: float) -> None:
 
 @settings(max_examples=300, deadline=None)
 @given(a=st.floats(-9, 6), width=st.floats(0.02, 14))
+@example(a=1e-07, width=2.75)   # 1 .. 562: nine 1-2-5 values, more than max_n
 def test_log_ticks_are_decades_or_1_2_5_inside(a: float, width: float) -> None:
     lo, hi = 10.0 ** a, 10.0 ** (a + width)
     t = log_ticks(lo, hi)
