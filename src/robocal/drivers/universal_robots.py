@@ -572,16 +572,18 @@ class UniversalRobotsRobot(CompensatingRobotBase, api.ControllerCalibrationReada
         """The controller's own kinematic calibration (the kinematics info: its DH table, SI,
         per-joint checksums and calibration status); UR has no absolute-accuracy option.
 
-        Waits (at most ``reply_timeout_s``) for a kinematics info newer than the call; a
+        Waits (at most ``reply_timeout_s``) for a kinematics info sent after the call: the
+        second one to arrive (the first may have been on its way already, 10 Hz); a
         controller that sends it only when a client connects gives the one of this session
         (a new calibration takes effect after a reboot, which ends the session).
         """
         if self.kinematics is None or self._lost is not None:
             raise errors.ConnectFailed("no kinematics info received; connect first", kind=self.kind)
-        self._kin_event.clear()
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(self.options.reply_timeout_s):
-                await self._kin_event.wait()
+                for _ in range(2):
+                    self._kin_event.clear()
+                    await self._kin_event.wait()
         k = self.kinematics
         facts = {"checksums": k.fingerprint(), "calibration_status": k.calibration_status,
                  "dh_theta_rad": list(k.dh_theta), "dh_a_m": list(k.dh_a),
