@@ -327,28 +327,28 @@ def hat_statistics(prob: Problem, x: Array, free: IntArray, Ninv: Array,
                    in_fit: BoolArray) -> Array:
     """``r^T (I -/+ H_jj)^{-1} r`` per pose (whitened), minus for poses in the fit."""
     n = prob.n
-    t = np.empty(n)
-    k = len(free)
-    eye = np.eye(3)
     if has_maps(prob, free):
         # map columns are four knots per pose: the hat blocks from the factored Jacobian
         H, r = hat_blocks(prob, x, np.arange(n), free, Ninv)
-        sign = np.where(in_fit, -1.0, 1.0)[:, None, None]
-        sol = np.linalg.solve(eye + sign * H + 1e-9 * eye, r[:, :, None])[:, :, 0]
-        return np.asarray(np.einsum("ni,ni->n", r, sol), dtype=np.float64)
+        return _deletion_statistic(H, r, in_fit)
+    t = np.empty(n)
+    k = len(free)
     for ch in prob.chunks(np.arange(n)):
         Jw, rw = prob.whitened_jacobian(x, ch, free)
         c = len(ch)
         # position rows only (6-DoF poses add orientation rows after them)
         Jc = Jw.reshape(c, -1, k)[:, :3]
-        rw = rw.reshape(c, -1)[:, :3]
         H = np.einsum("nik,kl,njl->nij", Jc, Ninv, Jc, optimize=True)
-        sign = np.where(in_fit[ch], -1.0, 1.0)[:, None, None]
-        M = eye + sign * H + 1e-9 * eye
-        r = rw.reshape(c, 3)
-        sol = np.linalg.solve(M, r[:, :, None])[:, :, 0]
-        t[ch] = np.einsum("ni,ni->n", r, sol)
+        t[ch] = _deletion_statistic(H, rw.reshape(c, -1)[:, :3], in_fit[ch])
     return t
+
+
+def _deletion_statistic(H: Array, r: Array, in_fit: BoolArray) -> Array:
+    """``r^T (I -/+ H) ^{-1} r`` (n,) from hat blocks H (n, 3, 3) and residuals r (n, 3)."""
+    eye = np.eye(3)
+    sign = np.where(in_fit, -1.0, 1.0)[:, None, None]
+    sol = np.linalg.solve(eye + sign * H + 1e-9 * eye, r[:, :, None])[:, :, 0]
+    return np.asarray(np.einsum("ni,ni->n", r, sol), dtype=np.float64)
 
 
 def screen(engine: Engine, sol: Solution, data: MeasurementSet) -> Array:

@@ -3,7 +3,7 @@
 A map knot's Jacobian column is the sensitivity to its joint's ``ez`` component times the
 knot's cubic B-spline weight, and a pose has at most four non-zero weights per map. So the
 map blocks of ``J^T J`` are sums of a few products per pose (scatter-added with
-``np.bincount`` / ``np.add.reduceat``) instead of dense products over every map column: for the
+``np.bincount``) instead of dense products over every map column: for the
 ``auto`` superset (~1,100 of ~1,600 columns are map knots) that is most of the cost of the
 per-fold normal matrices (ADR 0052).
 """
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from robocal._core.arrays import Array, IntArray
 from robocal.kinematics import ParameterLayout, spline_weights
@@ -39,15 +40,12 @@ def split_columns(prob: Problem, cols: IntArray) -> tuple[IntArray, list[_Map]]:
     """Positions (into ``cols``) of the dense columns, and the map blocks."""
     spec = prob.model.spec
     comp = prob.model.term_components
-    dense: list[int] = []
+    is_map = _map_columns(prob, cols)
     by_joint: dict[int, list[tuple[int, int]]] = {}
-    for i, c in enumerate(cols):
-        c = int(c)
-        t = spec.terms[c - _OFF] if c >= _OFF else None
-        if t is not None and t.family == "map":
-            by_joint.setdefault(t.joint, []).append((i, t.index))
-        else:
-            dense.append(i)
+    for i in np.flatnonzero(is_map):
+        t = spec.terms[int(cols[i]) - _OFF]
+        by_joint.setdefault(t.joint, []).append((int(i), t.index))
+    dense = np.flatnonzero(~is_map)
     maps = []
     for j, items in sorted(by_joint.items()):
         K = spec.map_knots[j]
@@ -56,14 +54,21 @@ def split_columns(prob: Problem, cols: IntArray) -> tuple[IntArray, list[_Map]]:
         t0 = int(cols[items[0][0]]) - _OFF
         maps.append(_Map(j, int(comp[t0]), K, np.array([i for i, _ in items], dtype=np.intp),
                          col_of_knot))
-    return np.array(dense, dtype=np.intp), maps
+    return dense.astype(np.intp), maps
+
+
+def _map_columns(prob: Problem, cols: IntArray) -> NDArray[np.bool_]:
+    """Per column of ``cols``: is it a map knot."""
+    c = np.asarray(cols, dtype=np.intp)
+    out = np.zeros(len(c), dtype=bool)
+    term = c >= _OFF
+    out[term] = prob.model.term_is_map[c[term] - _OFF]
+    return out
 
 
 def has_maps(prob: Problem, cols: IntArray, minimum: int = 16) -> bool:
     """Whether ``cols`` include at least ``minimum`` map columns (worth the sparse path)."""
-    spec = prob.model.spec
-    n = sum(1 for c in cols if c >= _OFF and spec.terms[int(c) - _OFF].family == "map")
-    return n >= minimum
+    return int(np.count_nonzero(_map_columns(prob, cols))) >= minimum
 
 
 class _Accumulator:

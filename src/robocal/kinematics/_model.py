@@ -123,6 +123,7 @@ class KinematicModel:
         self.T_ref = np.eye(4) if T_ref is None else np.asarray(T_ref, dtype=float).copy()
         self._cols = component_columns(spec)
         self._plan = basis_plan(spec, robot)
+        self._is_map = np.array([t.family == "map" for t in spec.terms], dtype=bool)
         # basis plans of term subsets (basis()), by the subset's index bytes
         self._sub_plans: dict[bytes, tuple[ErrorModelSpec, BasisPlan]] = {}
         # what the last parameter vector fixes, arranged for the passes (_Prepared)
@@ -381,6 +382,11 @@ class KinematicModel:
                                   self.spec.map_knots, label=self.spec.label)
             sub = self._sub_plans[key] = (spec, basis_plan(spec, self.robot))
         return evaluate_basis(sub[0], self.robot, q, plan=sub[1])[0]
+
+    @property
+    def term_is_map(self) -> NDArray[np.bool_]:
+        """Per term: is it a joint-angle map knot (n_terms,)."""
+        return self._is_map.copy()
 
     @property
     def term_components(self) -> NDArray[np.intp]:
