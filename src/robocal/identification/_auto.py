@@ -39,7 +39,7 @@ from robocal._core.arrays import Array, IntArray
 from robocal.errors import IdentificationError
 from robocal.identification._engine import Solution
 from robocal.identification._fitter import Fitter as _Fitter
-from robocal.identification._linalg import block_diag, cholesky, spd_solve
+from robocal.identification._linalg import block_diag, spd_inverse, spd_solve
 from robocal.identification._models import (
     MapPrior,
     knot_counts,
@@ -637,8 +637,7 @@ def _solve_small(A: Array, b: Array) -> Array:
 
 def _inv_spd(A: Array) -> Array:
     try:
-        cholesky(A)   # proves definiteness; one LU inverse is cheaper than two solves with L
-        return np.asarray(np.linalg.inv(A), dtype=np.float64)
+        return spd_inverse(A)
     except np.linalg.LinAlgError:
         # numpy stub types pinv() of any float input as floating[Any]; float64 in gives float64
         return np.linalg.pinv(A, rcond=1e-12, hermitian=True)  # type: ignore[return-value]

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal.errors import NotConverged, NotIdentifiable
-from robocal.identification._linalg import cho_solve, cholesky
+from robocal.identification._linalg import spd_inverse, spd_solve
 from robocal.identification._structured import has_maps, normal_blocks
 from robocal.kinematics import KinematicModel, Term
 
@@ -366,7 +366,7 @@ def levenberg_marquardt(prob: Problem, x0: Array, free: IntArray, rows: IntArray
 def _damped_solve(As: Array, gs: Array, mu: float) -> Array:
     k = len(gs)
     try:
-        d = cho_solve(cholesky(As + mu * np.eye(k)), gs)
+        d = spd_solve(As + mu * np.eye(k), gs)
         if np.all(np.isfinite(d)):
             return d
     except np.linalg.LinAlgError:
@@ -390,7 +390,7 @@ def inverse_spd(A: Array) -> Array:
     s[s <= 1e-300] = 1.0
     As = A / np.outer(s, s)
     try:
-        inv = cho_solve(cholesky(As), np.eye(len(s)))
+        inv = spd_inverse(As)
     except np.linalg.LinAlgError:
         if not np.all(np.isfinite(As)):
             raise NotConverged("the normal matrix is not finite (non-finite model values)") \

@@ -78,6 +78,10 @@ class CalibratedModel:
     # the hash scheme of the file a model was read from: its id is recomputed, and the model
     # written again, under that scheme (an earlier one stays readable as it was sealed)
     _scheme: str = field(default=SCHEME, repr=False, compare=False)
+    # the covariance in file form and the covariance it encodes: the id is computed several
+    # times while a fit is finished, and a map model's covariance (700^2) takes 12 ms to pack
+    _cov_file: tuple[bytes, dict[str, Any]] | None = field(default=None, repr=False,
+                                                           compare=False)
 
     def __post_init__(self) -> None:
         self.params = np.asarray(self.params, dtype=float)
@@ -134,8 +138,12 @@ class CalibratedModel:
         T[:3, 3] *= 1e3
         cov = None
         if self.covariance is not None:
-            scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
-            cov = _encode_covariance(self.covariance * np.outer(scale, scale))
+            key = self.covariance.tobytes() + repr(self.model.layout.units).encode()
+            if self._cov_file is None or self._cov_file[0] != key:
+                scale = np.array([_TO_FILE[u][0] for u in self.model.layout.units])
+                self._cov_file = (key, _encode_covariance(self.covariance
+                                                          * np.outer(scale, scale)))
+            cov = self._cov_file[1]
         out = {
             "format": MODEL_FORMAT,
             "robot": self.robot.to_dict(),
