@@ -269,7 +269,10 @@ def test_random_chains_import_with_the_same_fk(joints: list[tuple], seed: int) -
         # the DH lengths, the documented limit of the standard-DH form (hypothesis found a
         # chain at 1.2e-13 x the summed lengths: axes 0.02 rad from parallel, 1.3 km normals)
         scale = 1.0 + sum(abs(j.a) + abs(j.d) for j in robot.joints)
-        assert np.abs(T[:3, 3] - o[k]).max() < 1e-12 * scale
+        # parallel axes closer than 1 nm count as one line (kinematics/_urdf.py, _MEET):
+        # hypothesis found a 0.17 nm offset between two parallel axes dropped
+        meet = 1e-9 * len(joints)
+        assert np.abs(T[:3, 3] - o[k]).max() < 1e-12 * scale + meet
         assert np.abs(T[:3, :3] - R[k]).max() < 1e-11
 
 
