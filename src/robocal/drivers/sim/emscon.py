@@ -247,7 +247,10 @@ class _State:
         }
         self.long_params: dict[int, int] = {}
         self.double_params: dict[int, float] = {}
+        # the beam's direction (hz, v) rad where GoPosition left it; while the tracker is
+        # locked and has not been sent elsewhere since, it follows the reflector
         self.direction = (0.0, math.pi / 2)
+        self.follow = True
 
 
 class _Session:
@@ -578,6 +581,7 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
             self._relock = loop.call_later(self.options.relock_after_s, self._lock_again, s)
 
     def _lock_again(self, s: _Session) -> None:
+        self.state.follow = True
         if not self.state.locked:
             self.state.locked = True
             self._track(s.event(Event.MEAS_STATUS_READY))
@@ -744,9 +748,38 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         self._lock_again(s)
 
     async def _go_position(self, c: emscon.Command, s: _Session) -> None:
-        """GoPosition, GoPositionHVD: a motion that takes ``motion_s``."""
+        """GoPosition, GoPositionHVD: a motion that takes ``motion_s``; the beam then points
+        where it was sent (FindReflector or GoBirdBath lock it onto the reflector again)."""
         await self._sleep(self.options.motion_s)
+        target = self._target_direction(c)
+        if target is not None:
+            self.state.direction, self.state.follow = target, False
         await s.reply(c.command)
+
+    def _spherical(self, x: float, y: float, z: float) -> tuple[float, float]:
+        """(hz, v) rad of a tracker-frame point, hz counted as the session's SCC counts it."""
+        sign = 1.0 if self.options.scc_hz_counterclockwise else -1.0
+        return math.atan2(sign * y, x), math.atan2(math.hypot(x, y), z)
+
+    def _target_direction(self, c: emscon.Command) -> tuple[float, float] | None:
+        """Direction (hz, v) rad a GoPosition command sends the beam to (None: a coordinate
+        system type whose targets the simulator does not convert)."""
+        p, k, a = c.params, self._len(), self._ang()
+        if c.command == Cmd.GO_POSITION_HVD:
+            return float(p["hz_angle"]) / a, float(p["vt_angle"]) / a
+        cs = self.state.coord_sys
+        if cs == emscon.CoordSys.RHR:
+            return self._spherical(*(float(p[f"val{i}"]) / k for i in (1, 2, 3)))
+        if cs == emscon.CoordSys.SCC:
+            return float(p["val1"]) / a, float(p["val2"]) / a
+        return None
+
+    def direction_rad(self) -> tuple[float, float]:
+        """The beam's direction (hz, v) rad: at the reflector while locked on it."""
+        st = self.state
+        if st.locked and st.follow:
+            st.direction = self._spherical(*map(float, self.world.true_reflector_position()))
+        return st.direction
 
     async def _find_reflector(self, c: emscon.Command, s: _Session) -> None:
         o = self.options
@@ -759,7 +792,7 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         self._lock_again(s)
 
     async def _get_direction(self, c: emscon.Command, s: _Session) -> None:
-        hz, vt = self.state.direction
+        hz, vt = self.direction_rad()
         await s.reply(c.command, hz_angle=hz * self._ang(), vt_angle=vt * self._ang())
 
     async def _get_measurement_status_info(self, c: emscon.Command, s: _Session) -> None:
