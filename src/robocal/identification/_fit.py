@@ -279,16 +279,29 @@ def _model_coverage(spec: ErrorModelSpec, robot: RobotDescription, q: Array,
     The training range of each joint widened by ``margin_deg``; the whole joint range for a
     joint without joint-dependent terms, or whose terms are all periodic in the joint angle
     (harmonics, strain wave, maps; gravity is a function of the configuration) when the data
-    cover a full revolution.
+    cover a full revolution. A linear term (pitch) extrapolates: on a joint whose other
+    dependent terms are trusted everywhere (none, or periodic over a full turn) the range
+    widens by half the data span on each side, where a fitted slope's prediction error is
+    still under twice the one at the edge of the data (uniform data: sqrt(1 + 12 (1/2 +
+    d/S)^2) over 2 at a distance d beyond a span S), instead of falling back to the constant
+    model a few degrees past the last pose.
     """
     cov = _coverage(q, margin_deg)
     lim = robot.joint_limits
     for j in range(robot.dof):
-        fams = {t.family for t in spec.terms if t.joint == j}
+        terms = [t for t in spec.terms if t.joint == j]
+        fams = {t.family for t in terms}
         dependent = fams - {"const", "gravity"}
         full_turn = cov[j, 1] - cov[j, 0] >= 2 * math.pi
+        linear = "poly" in fams and all(t.index == 1 for t in terms if t.family == "poly")
+        others_everywhere = fams - {"poly"} <= _PERIODIC and (
+            full_turn or not fams & (_PERIODIC - {"const", "gravity"}))
         if not dependent or (fams <= _PERIODIC and full_turn):
             cov[j] = lim[j]
+        elif linear and others_everywhere:
+            half = 0.5 * float(np.ptp(q[:, j])) if len(q) else 0.0
+            widen = max(half, math.radians(margin_deg))
+            cov[j] = [max(lim[j][0], q[:, j].min() - widen), min(lim[j][1], q[:, j].max() + widen)]
     return cov
 
 

@@ -201,3 +201,34 @@ def test_map_knots_widen_where_the_data_are_too_sparse_for_the_finest_spacing():
                 assert g.n_knots < 288 and per_support >= 0.95 * f.opts.map_min_points
             else:
                 assert g.n_knots == 288
+
+
+def test_coverage_extends_linear_terms_by_half_the_span():
+    from robocal.identification._fit import _model_coverage
+    from robocal.kinematics import ErrorModelSpec, Term, load_robot
+
+    robot = load_robot("fanuc_lrmate200i")
+    lim = np.asarray(robot.joint_limits)
+    rng = np.random.default_rng(0)
+    q = rng.uniform(lim[:, 0] * 0.5, lim[:, 1] * 0.5, (200, 6))
+    q[:, 5] = rng.uniform(-np.pi, np.pi, 200)            # joint 6: a full turn
+    harm = [Term(j, "ez", f, 1) for j in (2, 5) for f in ("cos", "sin")]
+    pitch = [Term(j, "ez", "poly", 1) for j in (0, 2, 5)]
+    terms = (*harm, *pitch, Term(3, "ez", "poly", 2))
+    spec = ErrorModelSpec(6, terms, (0,) * 6, label="t")
+    cov = _model_coverage(spec, robot, q, 5.0)
+    lo, hi, span = q.min(axis=0), q.max(axis=0), np.ptp(q, axis=0)
+    m = np.radians(5.0)
+    # joint 1, pitch alone: half the span beyond the data on each side, inside the limits
+    np.testing.assert_allclose(cov[0], [max(lim[0, 0], lo[0] - span[0] / 2),
+                                        min(lim[0, 1], hi[0] + span[0] / 2)])
+    assert cov[0, 1] - cov[0, 0] > span[0] + 2 * m
+    # joint 2, no dependent term: the whole range
+    np.testing.assert_allclose(cov[1], lim[1])
+    # joint 3, a harmonic over part of a turn next to the pitch: the data and the margin only
+    np.testing.assert_allclose(cov[2], [lo[2] - m, hi[2] + m])
+    # joint 4, a quadratic: the data and the margin only
+    np.testing.assert_allclose(cov[3], [lo[3] - m, hi[3] + m])
+    # joint 6, a harmonic over a full turn and the pitch: widened to the limits
+    np.testing.assert_allclose(cov[5], [max(lim[5, 0], lo[5] - span[5] / 2),
+                                        min(lim[5, 1], hi[5] + span[5] / 2)])
