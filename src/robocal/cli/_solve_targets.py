@@ -33,6 +33,10 @@ def register(sub: Any) -> None:
     p.add_argument("--tol-um", type=float, default=0.1,
                    help="position tolerance under the model, micrometres (default 0.1)")
     p.add_argument("--max-iter", type=int, default=20, help="iteration limit (default 20)")
+    p.add_argument("--temps", metavar="T1,...,TN",
+                   help="joint temperatures (degC, one per joint) to compensate for: the "
+                        "model's thermal term is applied at them (default: the model's "
+                        "reference temperatures)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -45,6 +49,26 @@ def _check_out(path: str, what: str) -> Path:
     if not out.parent.is_dir():
         raise ConfigError(f"{what}: directory {str(out.parent)!r} does not exist", source=path)
     return out
+
+
+def _temperatures(text: str, cal: Any) -> list[float] | None:
+    """``--temps``: one temperature per joint; ``cal`` is replaced in the caller by the model
+    at them. None (with a note on stderr) when the model has no thermal term."""
+    from robocal.errors import ConfigError
+
+    try:
+        temps = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--temps must be {cal.robot.dof} numbers separated by commas "
+                          f"(degC), got {text!r}") from None
+    if len(temps) != cal.robot.dof or not all(-40.0 <= v <= 150.0 for v in temps):
+        raise ConfigError(f"--temps must be {cal.robot.dof} temperatures between -40 and "
+                          f"150 degC, got {text!r}")
+    term = cal.fit.get("thermal") if isinstance(cal.fit, dict) else None
+    if not term or not term.get("selected"):
+        sys.stderr.write("note: the model has no thermal term; --temps changes nothing\n")
+        return None
+    return temps
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,11 +92,20 @@ def run(args: argparse.Namespace) -> int:
     out = _check_out(args.out, "--out")
     table_out = _check_out(args.table, "--table") if args.table else None
     cal = CalibratedModel.load(args.model)
+    temps = _temperatures(args.temps, cal) if args.temps is not None else None
+    if temps is not None:
+        from robocal.identification import at_temperatures
+
+        model_id = cal.model_id
+        cal = at_temperatures(cal, temps)
+        cal.model_id = model_id      # tables and summaries name the model as approved
     targets = read_targets_csv(args.targets, dof=cal.robot.dof)
     opts = {"start": args.start, "tol_m": args.tol_um * 1e-6, "max_iter": args.max_iter}
     res = compensate(cal, targets.p, targets.q_seed, R_targets=targets.R, **opts)
     text = compensated_joints_csv_text(res, targets)
     table = targets_table(cal, targets, res) if table_out is not None else None
+    if table is not None and temps is not None:
+        table = table.with_temperatures(temps)
     try:
         atomic_write_text(out, text)
         if table is not None and table_out is not None:
@@ -87,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
         "max_iterations": int(res.iterations.max()) if len(res) else 0,
         "outside_coverage": int(np.sum(ok & ~res.in_coverage)),
         "model_id": cal.model_id, "out": str(out),
+        "temperatures_c": temps,
     }
     if table is not None:
         from robocal.compensation import describe_table
@@ -106,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             + (f"; max model residual {resid:.3f} um" if resid is not None else "")
             + (f"; {summary['outside_coverage']} outside the calibrated range"
                if summary["outside_coverage"] else "")
+            + (f"; at {', '.join(f'{v:g}' for v in temps)} degC" if temps else "")
             + f"; wrote {out}\n")
         if table is not None:
             from robocal.compensation import summary_line

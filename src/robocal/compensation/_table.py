@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
@@ -198,6 +199,13 @@ class CompensationTable(_Model):
     def sealed(self) -> CompensationTable:
         """Return a copy with the checksum filled in."""
         return self.model_copy(update={"checksum": self.compute_checksum()})
+
+    def with_temperatures(self, temps_c: Sequence[float]) -> CompensationTable:
+        """A copy that records the joint temperatures (°C) it compensates for in its stats
+        (``temp1_c``..), sealed again when this one was sealed."""
+        stats = {**self.stats, **{f"temp{j + 1}_c": float(t) for j, t in enumerate(temps_c)}}
+        out = self.model_copy(update={"stats": stats, "checksum": ""})
+        return out.sealed() if self.checksum else out
 
     def verify(self) -> None:
         """Raise :class:`CompensationError` unless the checksum matches the content."""

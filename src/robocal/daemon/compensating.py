@@ -33,9 +33,18 @@ from robocal.daemon.pushing import Entry
 from robocal.daemon.schemas import BULKY_DETAIL, JournalRow, PushDetail, RollbackDetail
 from robocal.daemon.store import Store
 from robocal.daemon.verifying import CampaignSide, VerificationRuns
-from robocal.drivers import RobotDriver
-from robocal.errors import ApprovalRequired, CampaignError, CompensationError, RobocalError
-from robocal.kinematics import RobotDescription
+from robocal.drivers import JointTemperatureReader, RobotDriver
+from robocal.errors import (
+    ApprovalRequired,
+    CampaignError,
+    CompensationError,
+    ConnectFailed,
+    DriverError,
+    ProtocolError,
+    RobocalError,
+)
+from robocal.identification import at_temperatures
+from robocal.kinematics import CalibratedModel, RobotDescription
 
 __all__ = ["CompensationManager"]
 
@@ -115,8 +124,14 @@ class CompensationManager:
             kinds.add(entry.covers if isinstance(entry, pushing.Baseline) else entry.kind)
         return kinds
 
-    def build_push_table(self, cid: str) -> tuple[CompensationTable, dict[str, Any]]:
+    def build_push_table(self, cid: str, *, current_c: tuple[float, ...] | None = None,
+                         pushing_now: bool = False
+                         ) -> tuple[CompensationTable, dict[str, Any]]:
         """The table a push of ``cid`` would write, and its description (nothing written).
+
+        ``current_c``: the robot's joint temperatures (°C) read for this push, used when
+        ``compensation.temperatures`` is ``current`` and the model has a thermal term; a
+        preview (``pushing_now`` false) without them takes the campaign's last measured ones.
 
         Raises
         ------
@@ -130,19 +145,84 @@ class CompensationManager:
             raise CompensationError(f"campaign {cid} has no fitted model {model!r}")
         cal = load_model(text, source=f"campaign {cid}", secret=self.secret,
                          nominal=self.robot)
+        cal, temperatures = self._at_temperatures(cid, cal, current_c, pushing_now)
         kind = self.config.compensation.kind
         program = self._program(cid)
         table = pushing.build_campaign_table(
             cal, kind, targets_q=program.q if kind == "targets" else None,
             targets_p=program.p, targets_R=program.R,
             max_change_deg=self.config.limits.max_joint_correction_deg)
+        if temperatures["applied"]:
+            table = table.with_temperatures(temperatures["temps_c"])
         desc = describe_table(table)
-        desc.update(model=model, model_id=cal.model_id,
+        desc.update(model=model, model_id=cal.model_id, temperatures=temperatures,
                     program_q_deg=np.round(np.degrees(program.q), 9).tolist(),
                     target_p_mm=None if program.p is None
                     else np.round(program.p * 1e3, 6).tolist(),
                     coverage=pushing.outside_coverage(cal, program.q, table.kind))
         return table, desc
+
+    def _at_temperatures(self, cid: str, cal: CalibratedModel,
+                         current_c: tuple[float, ...] | None, pushing_now: bool
+                         ) -> tuple[CalibratedModel, dict[str, Any]]:
+        """The model at the temperatures the table compensates for (ADR 0054), and what the
+        description says of them. ``model_id`` stays the approved model's."""
+        mode = self.config.compensation.temperatures
+        term = cal.fit.get("thermal") if isinstance(cal.fit, dict) else None
+        name = mode if isinstance(mode, str) else "configured"
+        if not term or not term.get("selected"):
+            return cal, {"mode": name, "applied": False,
+                         "note": "the model has no thermal term"}
+        ref = [float(v) for v in term["t_ref_c"]]
+        if mode == "reference":
+            return cal, {"mode": name, "applied": False, "temps_c": ref, "reference_c": ref}
+        if isinstance(mode, list):
+            temps, source = tuple(mode), "compensation.temperatures"
+        elif current_c:
+            temps, source = current_c, "read from the robot"
+        elif pushing_now:
+            raise CompensationError(
+                "compensation.temperatures = \"current\" but the robot's joint temperatures "
+                f"cannot be read (the {self.config.robot.kind} driver does not read them): "
+                "configure the production temperatures, or \"reference\"; nothing written")
+        else:
+            last = [m.temps_c for m in self.store.measurements(cid) if m.temps_c]
+            if not last:
+                raise CompensationError(
+                    "compensation.temperatures = \"current\": campaign "
+                    f"{cid} has no joint temperatures to preview the table with")
+            temps, source = last[-1], f"the last measurement of campaign {cid} (preview)"
+        if len(temps) != self.robot.dof:
+            raise CompensationError(
+                f"compensation.temperatures has {len(temps)} values; {self.robot.name} has "
+                f"{self.robot.dof} joints")
+        try:
+            warm = at_temperatures(cal, temps)
+        except RobocalError as err:
+            raise CompensationError(f"compensation at {list(temps)} degC: {err}") from err
+        warm.model_id = cal.model_id
+        return warm, {"mode": name, "applied": True, "temps_c": [float(v) for v in temps],
+                      "reference_c": ref, "source": source}
+
+    async def _read_temperatures(self) -> tuple[float, ...] | None:
+        """The robot's joint temperatures (°C) now; None when its driver does not read them.
+
+        Raises
+        ------
+        ConnectFailed
+            The robot does not answer (the hub is reset); nothing written.
+        """
+        try:
+            async with self.hub.lock:
+                robot = await self.hub.robot()
+                if not isinstance(robot, JointTemperatureReader):
+                    return None
+                reading = await robot.read_joint_temperatures()
+        except (DriverError, ProtocolError, OSError, TimeoutError) as err:
+            await self.hub.reset(f"joint temperatures not read: {err}")
+            raise ConnectFailed(f"the robot's joint temperatures could not be read: {err}"
+                                ) from err
+        return tuple(float(v) for v in reading.temps_c)
 
     # --- the one journaled write ---------------------------------------------------------------
     async def _journaled_write(self, action: str, key: str, actor: str, *,
@@ -243,13 +323,16 @@ class CompensationManager:
         if rec.state != S.APPROVED:
             raise ApprovalRequired(f"campaign {cid} is {rec.state.value}; compensation is "
                                    "pushed only after an operator approves the fit")
-        table, desc = self.build_push_table(cid)
+        current = (await self._read_temperatures()
+                   if self.config.compensation.temperatures == "current" else None)
+        table, desc = self.build_push_table(cid, current_c=current, pushing_now=True)
         refusal = improvement_refusal(table, self.config.compensation.max_residual_ratio)
         refusal = refusal or pushing.coverage_refusal(
             desc["coverage"], self.config.compensation.max_outside_coverage)
         summary = {k: desc[k] for k in ("kind", "purpose", "predicted_residual_mm",
                                          "nominal_residual_mm", "model_accuracy_mm", "ratio",
-                                         "warnings", "model", "model_id", "coverage")}
+                                         "warnings", "model", "model_id", "coverage",
+                                         "temperatures")}
         if refusal is not None and not force:
             self.store.audit(actor=actor, action="compensation.push-refused", campaign=cid,
                              checksum=table.checksum, detail={"refusal": refusal, **summary})

@@ -29,7 +29,7 @@ import os
 import stat
 import urllib.parse
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -267,6 +267,12 @@ class CompensationConfig(_Model):
     max_outside_coverage
         A push is refused, unless forced, when more than this share (0..1) of the program's
         targets lies outside the joint ranges the model was calibrated on (ADR 0026).
+    temperatures
+        The joint temperatures the table compensates for when the model has a thermal term
+        (ADR 0054): ``reference`` (the model's reference temperatures, the mean of its
+        campaign's), ``current`` (read from the robot when pushing; the robot's driver must
+        read joint temperatures), or one temperature per joint (°C: the production robot's,
+        warm).
     """
 
     kind: Literal["frames", "targets", "joint"] = "targets"
@@ -274,6 +280,9 @@ class CompensationConfig(_Model):
     max_residual_ratio: float = Field(default=0.5, gt=0.0, le=1.0)
     verify_count: int = Field(default=10, ge=0, le=10000)
     max_outside_coverage: float = Field(default=0.10, ge=0.0, le=1.0)
+    temperatures: Literal["reference", "current"] | Annotated[
+        list[Annotated[float, Field(ge=-40.0, le=150.0, allow_inf_nan=False)]],
+        Field(min_length=1)] = "reference"
 
 
 class LoggingConfig(_Model):

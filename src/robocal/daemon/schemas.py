@@ -367,6 +367,8 @@ class PushDetail(_Closed):
     program_q_deg: list[list[float]] | None = None
     target_p_mm: list[list[float]] | None = Field(
         default=None, description="the program's target positions (mm), where it gives them")
+    temperatures: dict[str, Any] | None = Field(
+        default=None, description="the joint temperatures the table compensates for (ADR 0054)")
 
 
 class RollbackDetail(_Closed):

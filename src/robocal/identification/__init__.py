@@ -8,6 +8,7 @@ Public API::
 
 plus :func:`min_poses` (fewest poses a fit accepts; the planner uses it),
 :func:`thermal_shift` (what ``auto``'s thermal term adds at given joint temperatures),
+:func:`at_temperatures` (the model with that term folded in, for compensation),
 :func:`identifiability`, :func:`extrapolation` (poses a fit leaves nearly free),
 :func:`refit_frozen` (re-use joint-dependent terms on a new
 session), :func:`cpa_fit` (Circle Point Analysis baseline, classical and polished; the internal
@@ -42,7 +43,7 @@ from robocal.identification._metrics import (
     extrapolation,
 )
 from robocal.identification._solver import Identifiability, identifiability
-from robocal.identification._thermal import thermal_shift
+from robocal.identification._thermal import at_temperatures, thermal_shift
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.identification.datasets import load_ipa_series
 
@@ -62,6 +63,7 @@ __all__ = [
     "Identifiability",
     "TrackerSigma",
     "accuracy",
+    "at_temperatures",
     "cpa_fit",
     "extrapolation",
     "fit",

@@ -24,12 +24,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.thermal import thermal_components
+from robocal.errors import ConfigError
 from robocal.identification._auto import _CV, cv_folds
 from robocal.identification._engine import Solution
 from robocal.identification._fitter import Fitter
 from robocal.kinematics import CalibratedModel, KinematicModel, Term
 
-__all__ = ["MIN_VARIATION_C", "thermal_shift", "thermal_step"]
+__all__ = ["MIN_VARIATION_C", "at_temperatures", "thermal_shift", "thermal_step"]
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -61,6 +62,50 @@ def thermal_shift(model: CalibratedModel, q: Array, temps_c: Array) -> Array:
     coef = np.asarray(term["coef_mm_per_c"], dtype=float) * 1e-3
     dT = np.atleast_2d(np.asarray(temps_c, dtype=float)) - np.asarray(term["t_ref_c"])
     return np.einsum("nij,nj->ni", J[:, :, idx], dT * coef)
+
+
+def at_temperatures(model: CalibratedModel, temps_c: Any) -> CalibratedModel:
+    """The model as it predicts at joint temperatures ``temps_c`` (dof,) °C: its thermal term
+    folded into constant link lengths (``model`` itself when it has no thermal term).
+
+    The term is ``c_j (T_j - T_ref,j)`` along each link's length component, and a position
+    is affine in those constants, so the result predicts exactly ``model.predict(q) +
+    thermal_shift(model, q, temps_c)`` (to rounding), with plain kinematics: compensation,
+    tables and IK need nothing thermal. ``fit.thermal`` becomes ``fit.thermal_applied``
+    (the temperatures and the term), so the term is never applied twice.
+
+    Raises
+    ------
+    ConfigError
+        ``temps_c`` is not one finite temperature per joint.
+    """
+    term = model.fit.get("thermal") if isinstance(model.fit, dict) else None
+    if not term or not term.get("selected"):
+        return model
+    dof = model.model.robot.dof
+    try:
+        t = np.asarray(temps_c, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError(f"joint temperatures must be {dof} numbers (°C)") from None
+    if t.shape != (dof,) or not np.all(np.isfinite(t)):
+        raise ConfigError(f"joint temperatures must be {dof} finite numbers (°C), got "
+                          f"{t.size}")
+    m2, x2, idx = _with_length_terms(model.model, model.params)
+    x2[idx] += np.asarray(term["coef_mm_per_c"], dtype=float) * 1e-3 * (
+        t - np.asarray(term["t_ref_c"], dtype=float))
+    cov = None
+    if model.covariance is not None:
+        # the length terms the model lacked were held at zero: no variance
+        pos = {n: i for i, n in enumerate(model.model.names)}
+        src = np.array([pos.get(n, -1) for n in m2.names])
+        cov = np.zeros((m2.size, m2.size))
+        have = np.flatnonzero(src >= 0)
+        cov[np.ix_(have, have)] = model.covariance[np.ix_(src[have], src[have])]
+    fit_ = {k: v for k, v in model.fit.items() if k != "thermal"}
+    fit_["thermal_applied"] = {"temps_c": [float(v) for v in t], "term": term}
+    return CalibratedModel(model=m2, params=x2, covariance=cov, coverage=model.coverage,
+                           fallback=model.fallback, kind=model.kind,
+                           metrics=dict(model.metrics), fit=fit_, data=dict(model.data))
 
 
 class _Linearised(NamedTuple):

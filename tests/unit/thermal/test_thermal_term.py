@@ -103,3 +103,82 @@ def test_fit_cli_reads_temperature_columns_and_names_the_term(tmp_path, capsys):
     assert "thermal term: taken, +0.00" in out and "mm/degC per link" in out
     model = json.loads((tmp_path / "model.json").read_text())
     assert model["fit"]["thermal"]["selected"] is True
+
+
+def test_model_at_temperatures_predicts_with_the_term_folded_in():
+    """``at_temperatures`` (compensation at production temperatures): plain kinematics that
+    predict what the model plus its thermal term predicts, and the warm robot."""
+    from robocal.errors import ConfigError
+    from robocal.identification import at_temperatures
+
+    n = 250
+    temps = np.random.default_rng(7).uniform(20.0, 30.0, (n, 6))
+    cell, drift, data = _data(n, temps, planted=True)
+    cal = fit(cell.robot, data, "auto", options=FAST).calibrated
+    assert cal.fit["thermal"]["selected"]
+    hot = np.array([28.0, 27.0, 29.0, 26.0, 25.0, 24.0])
+    warm = at_temperatures(cal, hot)
+    q = cell.random_joints(40, np.random.default_rng(3), margin_rad=0.3)
+    expected = cal.predict(q) + thermal_shift(cal, q, np.tile(hot, (40, 1)))
+    np.testing.assert_allclose(warm.predict(q), expected, atol=1e-12)
+    truth = drift.positions(cell, q, np.tile(hot, (40, 1)))
+    assert (np.linalg.norm(warm.predict(q) - truth, axis=1).max()
+            < 0.5 * np.linalg.norm(cal.predict(q) - truth, axis=1).max())
+    # folded in once: no thermal term left to apply again; the reference temperatures give
+    # the model's own predictions
+    assert "thermal" not in warm.fit and warm.fit["thermal_applied"]["temps_c"] == hot.tolist()
+    assert not thermal_shift(warm, q, np.tile(hot, (40, 1))).any()
+    at_ref = at_temperatures(cal, cal.fit["thermal"]["t_ref_c"])
+    np.testing.assert_allclose(at_ref.predict(q), cal.predict(q), atol=1e-12)
+    assert at_ref.model_id != cal.model_id != warm.model_id
+    # the covariance follows the parameters it belongs to
+    names = list(warm.model.names)
+    for i, name in enumerate(cal.model.names):
+        assert warm.covariance[names.index(name), names.index(name)] == cal.covariance[i, i]
+    with pytest.raises(ConfigError, match="6 finite numbers"):
+        at_temperatures(cal, [20.0] * 5)
+    with pytest.raises(ConfigError, match="6 finite numbers"):
+        at_temperatures(cal, [20.0] * 5 + [float("nan")])
+    # a model without a thermal term is returned as it is
+    const = fit(cell.robot, data, "constant").calibrated
+    assert at_temperatures(const, hot) is const
+
+
+def test_compensate_cli_at_production_temperatures(tmp_path, capsys):
+    """``robocal compensate --temps``: the warm robot, commanded with the joints solved at its
+    temperatures, reaches the targets better than with the joints solved at the reference."""
+    from robocal.cli.main import main
+    from robocal.compensation import CompensationTable, TargetSet
+
+    n = 250
+    temps = np.random.default_rng(7).uniform(20.0, 30.0, (n, 6))
+    cell, drift, data = _data(n, temps, planted=True)
+    cal = fit(cell.robot, data, "auto", options=FAST).calibrated
+    cal.save(tmp_path / "model.json")
+    q = cell.random_joints(10, np.random.default_rng(11), margin_rad=0.4)
+    hot = [29.0, 28.0, 30.0, 27.0, 26.0, 25.0]
+    TargetSet(p=cell.reflector_position(q), q_seed=q).write_csv(tmp_path / "targets.csv")
+
+    def solve(*extra: str) -> np.ndarray:
+        out = tmp_path / "joints.csv"
+        assert main(["compensate", "--model", str(tmp_path / "model.json"), "--targets",
+                     str(tmp_path / "targets.csv"), "--out", str(out), *extra]) == 0
+        rows = out.read_text().splitlines()[1:]
+        return np.radians([[float(v) for v in r.split(",")[1:7]] for r in rows])
+
+    q_ref = solve()
+    q_hot = solve("--temps", ",".join(map(str, hot)), "--table", str(tmp_path / "t.json"))
+    assert "at 29, 28, 30, 27, 26, 25 degC" in capsys.readouterr().out
+    target = cell.reflector_position(q)
+    reach = {k: np.linalg.norm(drift.positions(cell, qq, np.tile(hot, (10, 1))) - target,
+                               axis=1).max() for k, qq in (("ref", q_ref), ("hot", q_hot))}
+    assert reach["hot"] < 0.5 * reach["ref"], reach
+    table = CompensationTable.read(tmp_path / "t.json")
+    assert [table.stats[f"temp{j}_c"] for j in range(1, 7)] == hot
+    table.verify()
+    # wrong input: one clear error, exit 2
+    assert main(["compensate", "--model", str(tmp_path / "model.json"), "--targets",
+                 str(tmp_path / "targets.csv"), "--out", str(tmp_path / "j2.csv"),
+                 "--temps", "30,30"]) == 2
+    assert "--temps must be 6 temperatures" in capsys.readouterr().err
+    assert not (tmp_path / "j2.csv").exists()

@@ -1,0 +1,105 @@
+"""A push compensates for the joint temperatures the configuration asks for (ADR 0054): the
+model's thermal term folded in at the robot's current temperatures or configured ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robocal.daemon.config import CompensationConfig
+from robocal.errors import CompensationError
+from robocal.identification import at_temperatures
+from tests.unit.daemon.conftest import ROBOT, random_plan
+
+pytestmark = pytest.mark.timeout(120)
+
+# a small auto search (constant + first harmonics), enough for the thermal term to be tried
+FAST = {"auto_maps": False, "auto_max_order": 1, "auto_ripple_orders": [],
+        "auto_strain_wave": False, "auto_gravity": False}
+
+
+async def _fitted(service, **compensation):
+    """An approved campaign measured while the robot warmed (no warm-up routine), its model
+    with a thermal term."""
+    opts = {"robot": ROBOT, "scenario": "constant", "warmup_drift_mm": 0.1}
+    svc = await service(robot={"options": opts}, tracker={"options": opts},
+                        fit={"models": ["constant", "auto"], "select": "auto",
+                             "options": FAST},
+                        compensation={"verify_count": 0, **compensation})
+    st = await svc.create(random_plan(160, seed=4, validation=20), actor="t")
+    st = await svc.wait(st["id"], ["fitted", "faulted"], timeout=100)
+    assert st["state"] == "fitted", st["reason"]
+    await svc.approve(st["id"], actor="t")
+    return svc, st["id"]
+
+
+async def test_push_at_the_robots_current_temperatures(service):
+    svc, cid = await _fitted(service, temperatures="current")
+    rows = svc.store.measurements(cid)
+    assert rows[-1].temps_c and max(rows[-1].temps_c) > min(rows[0].temps_c) + 1.0
+    # the preview takes the campaign's last measured temperatures
+    _, desc = svc.build_push_table(cid)
+    t = desc["temperatures"]
+    assert t["applied"] is True and t["mode"] == "current", t
+    assert t["temps_c"] == list(rows[-1].temps_c) and "preview" in t["source"]
+    # the model's reference is the mean temperature of the poses it was fitted on
+    fitted_on = [r.temps_c for r in rows if r.purpose == "calibration"]
+    assert t["reference_c"] == pytest.approx(np.mean(fitted_on, axis=0), abs=0.05)
+    robot = await svc.hub.robot()
+    robot.world.thermal.temps_c = np.asarray(rows[-1].temps_c) + 3.0  # type: ignore[attr-defined]
+    now = (await robot.read_joint_temperatures()).temps_c  # type: ignore[attr-defined]
+    st = await svc.push(cid, actor="t")
+    assert st["state"] == "pushed"
+    detail = svc.journal.entries()[-1].detail
+    assert detail.temperatures["source"] == "read from the robot"
+    assert detail.temperatures["temps_c"] == pytest.approx(list(now))
+    assert detail.model_id == desc["model_id"]          # the approved model's id
+    pushed = await robot.read_compensation()  # type: ignore[attr-defined]
+    assert [pushed.stats[f"temp{j}_c"] for j in range(1, 7)] == pytest.approx(list(now))
+
+
+async def test_configured_and_reference_temperatures(service):
+    svc, cid = await _fitted(service, temperatures=[35.0] * 6)
+    _, desc = svc.build_push_table(cid)
+    assert desc["temperatures"]["temps_c"] == [35.0] * 6
+    assert desc["temperatures"]["source"] == "compensation.temperatures"
+    warm_targets = svc.build_push_table(cid)[0]
+    # the same campaign at the reference temperatures: the model as fitted
+    comp = svc.compensator
+    comp.config = comp.config.model_copy(update={"compensation": CompensationConfig(
+        verify_count=0, temperatures="reference")})
+    ref_table, ref_desc = svc.build_push_table(cid)
+    assert ref_desc["temperatures"]["applied"] is False
+    assert ref_desc["temperatures"]["temps_c"] == ref_desc["temperatures"]["reference_c"]
+    assert warm_targets.checksum != ref_table.checksum
+    # a list of the wrong length is named, nothing built
+    comp.config = comp.config.model_copy(update={"compensation": CompensationConfig(
+        verify_count=0, temperatures=[30.0] * 5)})
+    with pytest.raises(CompensationError, match=r"5 values; .* 6 joints"):
+        svc.build_push_table(cid)
+    # "current" when pushing without a reading (a driver that cannot read them) refuses
+    comp.config = comp.config.model_copy(update={"compensation": CompensationConfig(
+        verify_count=0, temperatures="current")})
+    with pytest.raises(CompensationError, match="cannot be read"):
+        svc.compensator.build_push_table(cid, pushing_now=True)
+
+
+def test_temperatures_setting_is_checked():
+    assert CompensationConfig().temperatures == "reference"
+    assert CompensationConfig(temperatures=[30, 31, 32, 33, 34, 35]).temperatures[0] == 30.0
+    for bad in ("warm", [], [float("nan")] * 6, [200.0] * 6):
+        with pytest.raises(ValueError, match="temperatures"):
+            CompensationConfig(temperatures=bad)
+
+
+def test_a_model_without_a_thermal_term_is_left_alone():
+    from robocal.identification import fit
+    from robocal.simulation import VirtualCell
+
+    cell = VirtualCell.create(ROBOT, "constant", seed=1)
+    rng = np.random.default_rng(0)
+    q, p, _, _ = cell.simulate(cell.random_joints(60, rng), rng)
+    from robocal._core.measurements import MeasurementSet
+
+    cal = fit(cell.robot, MeasurementSet(q, p), "constant").calibrated
+    assert at_temperatures(cal, [30.0] * 6) is cal
