@@ -211,3 +211,18 @@ def test_console_entry_point(files: dict[str, Path]) -> None:
         capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0, proc.stderr
     assert len(_rows(out)) == 12
+
+
+def test_temps_on_a_model_without_thermal_term_is_a_note(files: dict[str, Path],
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    out = files["dir"] / "joints_temps.csv"
+    rc = main(["compensate", "--model", str(files["model"]), "--targets", str(files["targets"]),
+               "--out", str(out), "--temps", "30,30,30,30,30,30", "--json"])
+    captured = capsys.readouterr()
+    assert rc == 0 and "the model has no thermal term; --temps changes nothing" in captured.err
+    assert json.loads(captured.out)["temperatures_c"] is None
+    for bad in ("30,30,30,30,30,nan", "warm", "30,30,30,30,30,300"):
+        rc = main(["compensate", "--model", str(files["model"]), "--targets",
+                   str(files["targets"]), "--out", str(out), "--temps", bad])
+        assert rc == 2 and "--temps must be 6" in capsys.readouterr().err
