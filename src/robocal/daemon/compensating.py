@@ -641,4 +641,13 @@ def _push_summary(entries: list[dict[str, Any]]) -> dict[str, Any] | None:
             "verification": v.get("state"),
             "measured_before_rms_mm": (v.get("before") or {}).get("rms_mm"),
             "measured_after_rms_mm": (v.get("after") or {}).get("rms_mm"),
-            "measured_n": (v.get("after") or {}).get("n")}
+            "measured_n": (v.get("after") or {}).get("n"),
+            "temperatures_c": _applied_temperatures(e.get("temperatures"))}
+
+
+def _applied_temperatures(t: Any) -> list[float] | None:
+    """The joint temperatures (°C) a pushed table compensates for, None at the model's
+    reference (ADR 0054)."""
+    if isinstance(t, dict) and t.get("applied"):
+        return [float(v) for v in t.get("temps_c") or []]
+    return None

@@ -187,6 +187,9 @@ class PushSummary(_Closed):
     measured_before_rms_mm: float | None
     measured_after_rms_mm: float | None
     measured_n: int | None
+    temperatures_c: list[float] | None = Field(
+        default=None, description="joint temperatures (degC) the table compensates for; "
+                                  "None: the model's reference (ADR 0054)")
     compensation_state: CompensationStateName | None = None
     superseded_by: str | None = Field(default=None, description="key of the push on top of it")
     rolled_back_by: str | None = Field(default=None, description="key of the rollback")

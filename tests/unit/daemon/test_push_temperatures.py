@@ -13,6 +13,12 @@ from tests.unit.daemon.conftest import ROBOT, random_plan
 
 pytestmark = pytest.mark.timeout(120)
 
+
+class _Prog:
+    measured = total = 1
+    rate_per_min = eta_s = None
+    retries = beam_losses = 0
+
 # a small auto search (constant + first harmonics), enough for the thermal term to be tried
 FAST = {"auto_maps": False, "auto_max_order": 1, "auto_ripple_orders": [],
         "auto_strain_wave": False, "auto_gravity": False}
@@ -56,6 +62,18 @@ async def test_push_at_the_robots_current_temperatures(service):
     assert detail.model_id == desc["model_id"]          # the approved model's id
     pushed = await robot.read_compensation()  # type: ignore[attr-defined]
     assert [pushed.stats[f"temp{j}_c"] for j in range(1, 7)] == pytest.approx(list(now))
+    # the campaign's status and the station's page say what it was compensated for
+    st = svc.status(cid)
+    assert st["push"]["temperatures_c"] == pytest.approx(list(now))
+    from robocal.daemon.station import _pages
+    from robocal.daemon.station._auth import Session
+
+    html = _pages.campaign_live(
+        st, session=Session(id="s", role="operator", name="t", peer="local"), steps=[],
+        prog=_Prog(), fitting=False, fit_since=None,
+        active_here=True, rolled_back=None, verify_count=0, models=[], has_report=False)
+    temps = ", ".join(f"{t:.1f}" for t in now)
+    assert f"compensated for joint temperatures {temps} °C" in html
 
 
 async def test_configured_and_reference_temperatures(service):

@@ -367,8 +367,11 @@ def campaign_live(st: dict[str, Any], *, session: Session, steps: list[Step], pr
         measured = (f"measured {before:.4f} mm before → {after:.4f} mm after "
                     f"({push.get('measured_n')} poses)" if before is not None and after is not None
                     else f"verification: {e(v)}")
+        temps = push.get("temperatures_c")
+        warm = (f"; compensated for joint temperatures "
+                f"{e(', '.join(f'{t:.1f}' for t in temps))} °C" if temps else "")
         pushed = (f"<p id=\"push-summary\">Pushed model {e(push.get('model'))} at "
-                  f"{_when(push.get('at'))} by {e(push.get('actor'))}; {measured}.</p>")
+                  f"{_when(push.get('at'))} by {e(push.get('actor'))}{warm}; {measured}.</p>")
     if rolled_back:
         pushed += f"<p id=\"rolled-back\">Rolled back at {_when(rolled_back)}.</p>"
     report = ""
