@@ -168,6 +168,67 @@ class _Session:
         self.cmd.FindReflector(1000.0)
         return follows and sent
 
+    def faces(self) -> bool:
+        # face 2 points the same beam with the head turned over: hz + pi, v -> 2 pi - v
+        f1 = self.cmd.GetFace().trackerFace
+        d1 = self.cmd.GetDirection()
+        self.cmd.ChangeFace()
+        f2 = self.cmd.GetFace().trackerFace
+        d2 = self.cmd.GetDirection()
+        self.cmd.ChangeFace()
+        res = self.cmd.StartMeasurement()
+        return ((f1, f2, self.cmd.GetFace().trackerFace) == (ces.ES_TF_Face1, ces.ES_TF_Face2,
+                                                            ces.ES_TF_Face1)
+                and abs(math.remainder(d2.dHzAngle - d1.dHzAngle - math.pi, 2 * math.pi)) < 1e-9
+                and abs(d2.dVtAngle - (2 * math.pi - d1.dVtAngle)) < 1e-9
+                and _near(res, self.world.true_reflector_position() * 1e3))
+
+    def point_and_return(self) -> bool:
+        # pointing the laser elsewhere leaves the reflector (a measurement fails); the last
+        # measured point is where it still is, so GoLastMeasuredPoint locks on it again
+        self.cmd.PointLaser(2000.0, -500.0, 300.0)
+        d = self.cmd.GetDirection()
+        pointed = (abs(d.dHzAngle - math.atan2(-500.0, 2000.0)) < 1e-9
+                   and abs(d.dVtAngle - math.atan2(math.hypot(2000.0, 500.0), 300.0)) < 1e-9)
+        try:
+            self.cmd.StartMeasurement()
+            off = False
+        except Exception as err:
+            off = "with status 10004" in str(err)
+        self.cmd.GoLastMeasuredPoint()
+        res = self.cmd.StartMeasurement()
+        return pointed and off and _near(res, self.world.true_reflector_position() * 1e3)
+
+    def park(self) -> bool:
+        self.cmd.PointLaserHVD(3000.0, 0.5, 1.2)    # the client's order: distance, hz, v
+        d = self.cmd.GetDirection()
+        self.cmd.Park()
+        parked = self.cmd.GetDirection()
+        self.cmd.FindReflector(1000.0)
+        res = self.cmd.StartMeasurement()
+        return ((d.dHzAngle, d.dVtAngle) == (0.5, 1.2)
+                and (parked.dHzAngle, parked.dVtAngle) == (0.0, math.pi)
+                and _near(res, self.world.true_reflector_position() * 1e3))
+
+    def bad_angle(self) -> bool:
+        # a zenith angle beyond a turn is a wrong parameter (status 3), nothing moves
+        before = self.cmd.GetDirection()
+        try:
+            self.cmd.PointLaserHVD(3000.0, 0.5, 7.0)
+            refused = False
+        except Exception as err:
+            refused = "with status 3" in str(err)
+        after = self.cmd.GetDirection()
+        return refused and (before.dHzAngle, before.dVtAngle) == (after.dHzAngle,
+                                                                  after.dVtAngle)
+
+    def refraction(self) -> bool:
+        r = ces.RefractionDataT()
+        r.dIfmRefractionIndex, r.dAdmRefractionIndex = 1.000281, 1.000275
+        self.cmd.SetRefractionParams(r)
+        got = self.cmd.GetRefractionParams().refractionData
+        return (got.dIfmRefractionIndex, got.dAdmRefractionIndex) == (1.000281, 1.000275)
+
     def beam_break(self) -> bool:
         # a broken beam: StartMeasurement fails with a status (the client raises), and
         # after FindReflector the next measurement is good again
@@ -211,6 +272,11 @@ class _Session:
             ("StartMeasurement (RHR, mm)", self.measure_cartesian),
             ("StartMeasurement (SCC, rad, mm)", self.measure_spherical),
             ("GetDirection", self.direction),
+            ("GetFace / ChangeFace", self.faces),
+            ("PointLaser / GoLastMeasuredPoint", self.point_and_return),
+            ("PointLaserHVD / Park", self.park),
+            ("PointLaserHVD out of range", self.bad_angle),
+            ("SetRefractionParams / GetRefractionParams", self.refraction),
             ("beam break and re-acquire", self.beam_break),
             ("GetSystemSoftwareVersion", self.software_version),
             ("ExitApplication", self.exit_application),
@@ -250,6 +316,6 @@ async def test_cesapi_client_session_passes_every_step(monkeypatch, capsys):
     with capsys.disabled():
         print(f"\nCESAPI client session: {passed}/{tried} steps passed")
     assert not failures, failures
-    assert passed == tried == 16
+    assert passed == tried == 21
     names = {c.command for c in sim.commands}
     assert len(names) >= 20     # the session used the commands it claims to

@@ -100,11 +100,14 @@ class DataType(IntEnum):
 
 
 class Cmd(IntEnum):
-    """``ES_Command`` IDs a calibration campaign uses (and ExitApplication, never sent)."""
+    """``ES_Command`` IDs a calibration campaign uses (and ExitApplication, never sent), and
+    the pointing commands the simulator answers for other clients (Park, ChangeFace,
+    PointLaser, PointLaserHVD, GoLastMeasuredPoint, GetFace)."""
 
     EXIT_APPLICATION = 0
     GET_SYSTEM_STATUS = 1
     GET_TRACKER_STATUS = 2
+    PARK = 10
     SET_UNITS = 5
     GET_UNITS = 6
     INITIALIZE = 7
@@ -127,15 +130,20 @@ class Cmd(IntEnum):
     GET_SYSTEM_SETTINGS = 48
     START_MEASUREMENT = 49
     STOP_MEASUREMENT = 52
+    CHANGE_FACE = 53
     GO_BIRD_BATH = 54
     GO_POSITION = 55
     GO_POSITION_HVD = 56
     POSITION_RELATIVE_HV = 57
+    POINT_LASER = 58
+    POINT_LASER_HVD = 59
+    GO_LAST_MEASURED_POINT = 62
     FIND_REFLECTOR = 63
     GET_DIRECTION = 66
     SET_STATISTIC_MODE = 80
     GET_STATISTIC_MODE = 81
     GO_BIRD_BATH2 = 95
+    GET_FACE = 98
     SET_LONG_SYSTEM_PARAMETER = 120
     GET_LONG_SYSTEM_PARAMETER = 121
     GET_MEASUREMENT_STATUS_INFO = 122
@@ -407,6 +415,13 @@ SPECS: dict[int, CommandSpec] = {
         CommandSpec(Cmd.POSITION_RELATIVE_HV, "PositionRelativeHV",
                     params=_L("hz_val:d", "vt_val:d")),
         CommandSpec(Cmd.FIND_REFLECTOR, "FindReflector", params=_L("approx_distance:d")),
+        CommandSpec(Cmd.PARK, "Park"),
+        CommandSpec(Cmd.CHANGE_FACE, "ChangeFace"),
+        CommandSpec(Cmd.POINT_LASER, "PointLaser", params=_L("val1:d", "val2:d", "val3:d")),
+        CommandSpec(Cmd.POINT_LASER_HVD, "PointLaserHVD",
+                    params=_L("hz_angle:d", "vt_angle:d", "distance:d")),
+        CommandSpec(Cmd.GO_LAST_MEASURED_POINT, "GoLastMeasuredPoint"),
+        CommandSpec(Cmd.GET_FACE, "GetFace", reply=_L("tracker_face:i")),
         CommandSpec(Cmd.GET_DIRECTION, "GetDirection", reply=_L("hz_angle:d", "vt_angle:d")),
         CommandSpec(Cmd.SET_STATISTIC_MODE, "SetStatisticMode",
                     params=_L("stationary_mode:i", "continuous_mode:i")),

@@ -89,6 +89,14 @@ NOTE_COMMANDS: list[tuple[int, int, Fields, int, Fields]] = [
                         (152, "i", "accuracy_model"), (156, "i", "lcp_firmware_major"),
                         (160, "i", "lcp_firmware_minor")]),
     (142, 12, [], 80, [(16, "S", "version")]),
+    # pointing commands the simulator answers for other clients; not in the note: sizes and
+    # field order as in MuffinSpawn/Leica CESAPI/packet.py (PyPI CESAPI 1.1.3)
+    (10, 12, [], 16, []),
+    (53, 12, [], 16, []),
+    (58, 36, [(12, "d", "val1"), (20, "d", "val2"), (28, "d", "val3")], 16, []),
+    (59, 36, [(12, "d", "hz_angle"), (20, "d", "vt_angle"), (28, "d", "distance")], 16, []),
+    (62, 12, [], 16, []),
+    (98, 12, [], 20, [(16, "i", "tracker_face")]),
 ]
 
 

@@ -218,7 +218,8 @@ class EmsconSimOptions(BaseModel):
 
 
 _SLOW = {Cmd.INITIALIZE, Cmd.START_MEASUREMENT, Cmd.GO_POSITION, Cmd.GO_POSITION_HVD,
-         Cmd.FIND_REFLECTOR, Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2}
+         Cmd.FIND_REFLECTOR, Cmd.GO_BIRD_BATH, Cmd.GO_BIRD_BATH2, Cmd.PARK, Cmd.CHANGE_FACE,
+         Cmd.POINT_LASER, Cmd.POINT_LASER_HVD, Cmd.GO_LAST_MEASURED_POINT}
 
 
 _Handler = Callable[["EmsconTrackerSimulator", emscon.Command, "_Session"], Awaitable[None]]
@@ -251,6 +252,9 @@ class _State:
         # locked and has not been sent elsewhere since, it follows the reflector
         self.direction = (0.0, math.pi / 2)
         self.follow = True
+        self.face = 1
+        self.last_measured: tuple[float, float, float] | None = None   # tracker frame, m
+        self.refraction = (1.000272, 1.000272)     # IFM and ADM group refractive indices
 
 
 class _Session:
@@ -775,11 +779,89 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         return None
 
     def direction_rad(self) -> tuple[float, float]:
-        """The beam's direction (hz, v) rad: at the reflector while locked on it."""
+        """The head's angles (hz, v) rad: at the reflector while locked on it; in face 2 the
+        same beam has hz + pi and v = 2 pi - v."""
         st = self.state
         if st.locked and st.follow:
             st.direction = self._spherical(*map(float, self.world.true_reflector_position()))
-        return st.direction
+        hz, v = st.direction
+        if st.face == 2:
+            return math.remainder(hz + math.pi, 2 * math.pi), 2 * math.pi - v
+        return hz, v
+
+    def _point(self, s: _Session, target: tuple[float, float] | None) -> None:
+        """Send the beam to ``target`` (hz, v) rad: off the reflector unless it is there."""
+        st = self.state
+        if target is None:
+            return
+        at = self._spherical(*map(float, self.world.true_reflector_position()))
+        st.direction, st.follow = target, False
+        if st.locked and max(abs(math.remainder(target[0] - at[0], 2 * math.pi)),
+                             abs(target[1] - at[1])) > 1e-3:
+            self._beam_broken(s)
+
+    async def _point_laser(self, c: emscon.Command, s: _Session) -> None:
+        """PointLaser, PointLaserHVD: the beam points at a location (and leaves a reflector
+        that is not there); a zenith angle beyond a turn is a wrong parameter."""
+        p, a = c.params, self._ang()
+        target: tuple[float, float] | None
+        if c.command == Cmd.POINT_LASER_HVD:
+            target = float(p["hz_angle"]) / a, float(p["vt_angle"]) / a
+            if not (math.isfinite(target[0]) and 0.0 <= target[1] <= 2 * math.pi):
+                await s.reply(c.command, emscon.Status.WRONG_PARAMETER)
+                return
+        else:
+            target = self._target_direction(emscon.Command(Cmd.GO_POSITION, {**p, "use_adm": 0}))
+        await self._sleep(self.options.motion_s)
+        await s.reply(c.command)
+        self._point(s, target)
+
+    async def _park(self, c: emscon.Command, s: _Session) -> None:
+        """Park: the head turns to its rest position, pointing down; the beam is off any
+        reflector."""
+        await self._sleep(self.options.motion_s)
+        await s.reply(c.command)
+        self.state.face = 1
+        self._point(s, (0.0, math.pi))
+
+    async def _change_face(self, c: emscon.Command, s: _Session) -> None:
+        """ChangeFace: the head turns over to the other face and locks on the same beam."""
+        await self._sleep(self.options.motion_s)
+        self.state.face = 3 - self.state.face
+        await s.reply(c.command)
+
+    async def _get_face(self, c: emscon.Command, s: _Session) -> None:
+        await s.reply(c.command, tracker_face=self.state.face)
+
+    async def _go_last_measured_point(self, c: emscon.Command, s: _Session) -> None:
+        """GoLastMeasuredPoint: the beam goes back to the last measured point and locks when
+        the reflector is still there (within 1 mm); status 28 without a measurement."""
+        st = self.state
+        if st.last_measured is None:
+            await s.reply(c.command, 28)   # NoLastMeasuredPoint
+            return
+        await self._sleep(self.options.motion_s)
+        await s.reply(c.command)
+        there = np.linalg.norm(self.world.true_reflector_position()
+                               - np.asarray(st.last_measured)) <= 1e-3
+        if there:
+            self._lock_again(s)
+        else:
+            self._point(s, self._spherical(*st.last_measured))
+
+    async def _set_refraction_params(self, c: emscon.Command, s: _Session) -> None:
+        p = c.params
+        ifm, adm = float(p["ifm_refraction_index"]), float(p["adm_refraction_index"])
+        if not (1.0 <= ifm < 1.01 and 1.0 <= adm < 1.01):
+            await s.reply(c.command, emscon.Status.WRONG_PARAMETER)
+            return
+        self.state.refraction = (ifm, adm)
+        await s.reply(c.command)
+        self._ms_event(s, 3)   # RefractionParamsChanged
+
+    async def _get_refraction_params(self, c: emscon.Command, s: _Session) -> None:
+        ifm, adm = self.state.refraction
+        await s.reply(c.command, ifm_refraction_index=ifm, adm_refraction_index=adm)
 
     async def _find_reflector(self, c: emscon.Command, s: _Session) -> None:
         o = self.options
@@ -872,6 +954,7 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         await self._sleep(duration)
         n = max(1, min(20_000, round(duration / o.sample_period_s)))
         m = self.measurement(n, glitch=self.faults.fire("glitch"))
+        st.last_measured = (float(m[0][0]), float(m[0][1]), float(m[0][2]))
         await s.send(self.result_bytes(0, m))
         if not first:
             await s.reply(cmd)
@@ -935,6 +1018,14 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         Cmd.CLEAR_COMMAND_QUEUE: _ok,
         Cmd.GET_TRACKER_INFO: _get_tracker_info,
         Cmd.GET_SYSTEM_SOFTWARE_VERSION: _get_system_software_version,
+        Cmd.PARK: _park,
+        Cmd.CHANGE_FACE: _change_face,
+        Cmd.GET_FACE: _get_face,
+        Cmd.POINT_LASER: _point_laser,
+        Cmd.POINT_LASER_HVD: _point_laser,
+        Cmd.GO_LAST_MEASURED_POINT: _go_last_measured_point,
+        Cmd.SET_REFRACTION_PARAMS: _set_refraction_params,
+        Cmd.GET_REFRACTION_PARAMS: _get_refraction_params,
     }
 
     # --- TCP -----------------------------------------------------------------------------------
