@@ -26,6 +26,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from tests._peer import run_steps
 
 from robocal.drivers.sim import EmsconSimOptions, SimWorld
 from robocal.drivers.sim.emscon import EmsconTrackerSimulator
@@ -286,20 +287,10 @@ class _Session:
 def _run(sim: EmsconTrackerSimulator, port: int) -> tuple[int, int, list[str]]:
     """Run every step (a failing step does not stop the session); passed, tried, failures."""
     session = _Session(sim, port)
-    steps = session.steps()
-    passed, failures = 0, []
     try:
-        for name, step in steps:
-            try:
-                ok = bool(step())
-            except Exception as err:  # a step that raises failed; the session goes on
-                ok, name = False, f"{name}: {err!r}"
-            passed += ok
-            if not ok:
-                failures.append(name)
+        return run_steps(session.steps())
     finally:
         session.conn.disconnect()
-    return passed, len(steps), failures
 
 
 async def test_cesapi_client_session_passes_every_step(monkeypatch, capsys):

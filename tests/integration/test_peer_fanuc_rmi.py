@@ -17,6 +17,7 @@ from typing import Any
 
 import fanuc_rmi  # a test dependency: missing, the test errors rather than skips
 import numpy as np
+from tests._peer import run_steps
 
 from robocal.drivers.sim import FanucRmiSimulator, FanucSimOptions, SimWorld
 
@@ -113,16 +114,7 @@ def _session(sim: FanucRmiSimulator, world: SimWorld, out: Path) -> tuple[int, i
         ("abort", lambda: client.abort()["ErrorID"] == 0 and not sim.initialized),
         ("close", lambda: client.close() or True),
     ]
-    passed, failures = 0, []
-    for name, step in steps:
-        try:
-            ok = bool(step())
-        except Exception as err:  # a step that raises failed; the session goes on
-            ok, name = False, f"{name}: {err!r}"
-        passed += ok
-        if not ok:
-            failures.append(name)
-    return passed, len(steps), failures
+    return run_steps(steps)
 
 
 async def test_fanuc_rmi_client_session_passes_every_step(tmp_path, capsys):

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import py_openshowvar  # a test dependency: missing, the test errors rather than skips
+from tests._peer import run_steps
 
 from robocal.drivers.sim import KukaKvpSimulator, KukaSimOptions, SimWorld
 from robocal.protocols import kuka_kvp as kvp
@@ -149,16 +150,7 @@ class _Client:
 
 def _session(sim: KukaKvpSimulator, world: SimWorld) -> tuple[int, int, list[str]]:
     steps = _Client(sim, world).steps()
-    passed, failures = 0, []
-    for name, step in steps:
-        try:
-            ok = bool(step())
-        except Exception as err:  # a step that raises failed; the session goes on
-            ok, name = False, f"{name}: {err!r}"
-        passed += ok
-        if not ok:
-            failures.append(name)
-    return passed, len(steps), failures
+    return run_steps(steps)
 
 
 async def test_py_openshowvar_session_passes_every_step(capsys):
