@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -19,3 +20,18 @@ def run_steps(steps: Sequence[tuple[str, Callable[[], Any]]]) -> tuple[int, int,
         if not ok:
             failures.append(name)
     return passed, len(steps), failures
+
+
+async def session_in_thread(sim: Any, label: str, capsys: Any,
+                            session: Callable[..., tuple[int, int, list[str]]], *args: Any,
+                            timeout: float = 60.0) -> tuple[int, int, list[str]]:
+    """Run a blocking client ``session(*args)`` in a thread against the started ``sim``
+    (stopped afterwards, whatever happened); print the count under ``label``."""
+    try:
+        passed, tried, failures = await asyncio.wait_for(asyncio.to_thread(session, *args),
+                                                         timeout)
+    finally:
+        await sim.stop()
+    with capsys.disabled():
+        print(f"\n{label} client session: {passed}/{tried} steps passed")
+    return passed, tried, failures

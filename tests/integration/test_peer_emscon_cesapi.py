@@ -17,7 +17,6 @@ works around it on the client's side, never in the simulator:
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import time
@@ -26,7 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from tests._peer import run_steps
+from tests._peer import run_steps, session_in_thread
 
 from robocal.drivers.sim import EmsconSimOptions, SimWorld
 from robocal.drivers.sim.emscon import EmsconTrackerSimulator
@@ -299,13 +298,7 @@ async def test_cesapi_client_session_passes_every_step(monkeypatch, capsys):
     world = SimWorld.create(seed=5)
     sim = EmsconTrackerSimulator(world, EmsconSimOptions(time_scale=0.001))
     port = await sim.start()
-    try:
-        passed, tried, failures = await asyncio.wait_for(
-            asyncio.to_thread(_run, sim, port), 60)
-    finally:
-        await sim.stop()
-    with capsys.disabled():
-        print(f"\nCESAPI client session: {passed}/{tried} steps passed")
+    passed, tried, failures = await session_in_thread(sim, "CESAPI", capsys, _run, sim, port)
     assert not failures, failures
     assert passed == tried == 21
     names = {c.command for c in sim.commands}

@@ -9,7 +9,6 @@ instruction gets the next SequenceID (the client's default is 1 for every instru
 
 from __future__ import annotations
 
-import asyncio
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 
 import fanuc_rmi  # a test dependency: missing, the test errors rather than skips
 import numpy as np
-from tests._peer import run_steps
+from tests._peer import run_steps, session_in_thread
 
 from robocal.drivers.sim import FanucRmiSimulator, FanucSimOptions, SimWorld
 
@@ -121,13 +120,8 @@ async def test_fanuc_rmi_client_session_passes_every_step(tmp_path, capsys):
     world = SimWorld.create(seed=12)
     sim = FanucRmiSimulator(world, FanucSimOptions(time_scale=0.001))
     await sim.start()
-    try:
-        passed, tried, failures = await asyncio.wait_for(
-            asyncio.to_thread(_session, sim, world, tmp_path), 60)
-    finally:
-        await sim.stop()
-    with capsys.disabled():
-        print(f"\nfanuc-rmi client session: {passed}/{tried} steps passed")
+    passed, tried, failures = await session_in_thread(sim, "fanuc-rmi", capsys, _session, sim,
+                                                      world, tmp_path)
     assert not failures, failures
     assert passed == tried == 22
     # nothing the client sent made the controller HOLD or fault

@@ -9,7 +9,6 @@ robocal_loop's handshake (docs/protocols/kuka-kvp.md), read back, stop a move wi
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 from collections.abc import Callable
@@ -17,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import py_openshowvar  # a test dependency: missing, the test errors rather than skips
-from tests._peer import run_steps
+from tests._peer import run_steps, session_in_thread
 
 from robocal.drivers.sim import KukaKvpSimulator, KukaSimOptions, SimWorld
 from robocal.protocols import kuka_kvp as kvp
@@ -157,13 +156,8 @@ async def test_py_openshowvar_session_passes_every_step(capsys):
     world = SimWorld.create(seed=14)
     sim = KukaKvpSimulator(world, KukaSimOptions(time_scale=0.05))
     await sim.start()
-    try:
-        passed, tried, failures = await asyncio.wait_for(
-            asyncio.to_thread(_session, sim, world), 60)
-    finally:
-        await sim.stop()
-    with capsys.disabled():
-        print(f"\npy-openshowvar client session: {passed}/{tried} steps passed")
+    passed, tried, failures = await session_in_thread(sim, "py-openshowvar", capsys, _session,
+                                                      sim, world)
     assert not failures, failures
     assert passed == tried == 20
     assert sim.moves == 2 and sim.stops == 1
