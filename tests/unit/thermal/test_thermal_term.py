@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 
 from robocal._core.measurements import MeasurementSet
 from robocal.identification import FitOptions, accuracy, fit, thermal_shift
@@ -182,3 +184,26 @@ def test_compensate_cli_at_production_temperatures(tmp_path, capsys):
                  "--temps", "30,30"]) == 2
     assert "--temps must be 6 temperatures" in capsys.readouterr().err
     assert not (tmp_path / "j2.csv").exists()
+
+
+@settings(max_examples=200, deadline=None)
+@given(hs.one_of(hs.text(max_size=60),
+                 hs.lists(hs.floats(allow_nan=True, allow_infinity=True), max_size=8).map(
+                     lambda v: ",".join(map(str, v)))))
+def test_temps_argument_is_six_temperatures_or_one_error(text):
+    """``compensate --temps``: any text is either one temperature per joint in range, or a
+    ConfigError naming the option (never another exception)."""
+    from types import SimpleNamespace
+
+    from robocal.cli._solve_targets import _temperatures
+    from robocal.errors import ConfigError
+
+    cal = SimpleNamespace(robot=SimpleNamespace(dof=6),
+                          fit={"thermal": {"selected": True}})
+    try:
+        temps = _temperatures(text, cal)
+    except ConfigError as err:
+        assert "--temps" in str(err)
+    else:
+        assert temps is not None and len(temps) == 6
+        assert all(-40.0 <= t <= 150.0 for t in temps)
