@@ -63,9 +63,15 @@ def describe_table(table: CompensationTable) -> dict[str, Any]:
     n = _finite(table.stats.get("n_targets"))
     if table.kind == "targets" and n_ok is not None and n is not None and n_ok < n:
         warnings.append(f"{int(n - n_ok)} of {int(n)} targets could not be compensated")
+    temps = [table.stats[f"temp{j + 1}_c"] for j in range(len(table.stats))
+             if f"temp{j + 1}_c" in table.stats]
+    purpose = PURPOSE[table.kind]
+    if temps:
+        purpose += (", for joint temperatures "
+                    + ", ".join(f"{t:.1f}" for t in temps) + " degC")
     return {
         "kind": table.kind,
-        "purpose": PURPOSE[table.kind],
+        "purpose": purpose,
         "checksum": table.checksum or table.compute_checksum(),
         "predicted_residual_mm": round(predicted, 6),
         "nominal_residual_mm": None if nominal is None else round(nominal, 6),

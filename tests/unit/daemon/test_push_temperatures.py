@@ -62,7 +62,10 @@ async def test_push_at_the_robots_current_temperatures(service):
     assert detail.model_id == desc["model_id"]          # the approved model's id
     pushed = await robot.read_compensation()  # type: ignore[attr-defined]
     assert [pushed.stats[f"temp{j}_c"] for j in range(1, 7)] == pytest.approx(list(now))
-    # the campaign's status and the station's page say what it was compensated for
+    # the active table, the campaign's status and the station's page say what it is for
+    temps_txt = ", ".join(f"{t:.1f}" for t in now)
+    active = svc.compensation()["active"]
+    assert active["purpose"].endswith(f", for joint temperatures {temps_txt} degC")
     st = svc.status(cid)
     assert st["push"]["temperatures_c"] == pytest.approx(list(now))
     from robocal.daemon.station import _pages
