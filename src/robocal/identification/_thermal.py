@@ -77,7 +77,7 @@ def at_temperatures(model: CalibratedModel, temps_c: Any) -> CalibratedModel:
     Raises
     ------
     ConfigError
-        ``temps_c`` is not one finite temperature per joint.
+        ``temps_c`` is not one finite temperature per joint, or the term is malformed.
     """
     term = model.fit.get("thermal") if isinstance(model.fit, dict) else None
     if not term or not term.get("selected"):
@@ -90,9 +90,17 @@ def at_temperatures(model: CalibratedModel, temps_c: Any) -> CalibratedModel:
     if t.shape != (dof,) or not np.all(np.isfinite(t)):
         raise ConfigError(f"joint temperatures must be {dof} finite numbers (°C), got "
                           f"{t.size}")
+    try:
+        coef = np.asarray(term["coef_mm_per_c"], dtype=float).reshape(-1) * 1e-3
+        t_ref = np.asarray(term["t_ref_c"], dtype=float).reshape(-1)
+    except (KeyError, TypeError, ValueError):
+        coef = t_ref = np.zeros(0)
+    if coef.shape != (dof,) or t_ref.shape != (dof,) or not (
+            np.all(np.isfinite(coef)) and np.all(np.isfinite(t_ref))):
+        raise ConfigError(f"the model's thermal term is malformed: fit.thermal needs "
+                          f"{dof} finite coef_mm_per_c and t_ref_c")
     m2, x2, idx = _with_length_terms(model.model, model.params)
-    x2[idx] += np.asarray(term["coef_mm_per_c"], dtype=float) * 1e-3 * (
-        t - np.asarray(term["t_ref_c"], dtype=float))
+    x2[idx] += coef * (t - t_ref)
     cov = None
     if model.covariance is not None:
         # the length terms the model lacked were held at zero: no variance

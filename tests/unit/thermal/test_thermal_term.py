@@ -141,6 +141,12 @@ def test_model_at_temperatures_predicts_with_the_term_folded_in():
         at_temperatures(cal, [20.0] * 5)
     with pytest.raises(ConfigError, match="6 finite numbers"):
         at_temperatures(cal, [20.0] * 5 + [float("nan")])
+    import dataclasses
+
+    bad = dataclasses.replace(cal, fit={**cal.fit, "thermal": {**cal.fit["thermal"],
+                                                               "t_ref_c": [20.0] * 4}})
+    with pytest.raises(ConfigError, match="thermal term is malformed"):
+        at_temperatures(bad, hot)
     # a model without a thermal term is returned as it is
     const = fit(cell.robot, data, "constant").calibrated
     assert at_temperatures(const, hot) is const
