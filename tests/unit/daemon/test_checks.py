@@ -250,7 +250,7 @@ async def test_a_check_waits_for_a_measuring_campaign_with_wait_idle(make_config
     async with _served(make_config, tmp_path, capsys,
                        robot={"move_time_s": 0.05}) as (svc, cli):
         await _pushed(svc)
-        busy = await svc.create(program_plan(60), actor="t")  # ~3 s of moves
+        busy = await svc.create(program_plan(30), actor="t")  # ~1.5 s of moves
         assert svc.measuring() == busy["id"]
         rc, _, err = await cli()
         assert rc == 2 and f"campaign {busy['id']} is measuring" in err
@@ -258,7 +258,7 @@ async def test_a_check_waits_for_a_measuring_campaign_with_wait_idle(make_config
         rc, out, err = await cli("--wait-idle", "60")
         assert rc == 0, err
         assert f"campaign {busy['id']} is measuring; waiting up to" in err
-        assert svc.status(busy["id"])["poses_measured"] == 60  # it finished first
+        assert svc.status(busy["id"])["poses_measured"] == 30  # it finished first
         (check,) = svc.checks.log.history()
         assert check["state"] == "done" and "PASS" in out
 

@@ -63,11 +63,12 @@ async def running(world: SimWorld, shared: FaultConfig | None = None,
 
 
 @contextlib.asynccontextmanager
-async def driver(sim: EmsconTrackerSimulator, **options: Any) -> AsyncIterator[EmsconTracker]:
+async def driver(sim: EmsconTrackerSimulator, connect_timeout: float = 5.0,
+                 **options: Any) -> AsyncIterator[EmsconTracker]:
     options.setdefault("request_timeout_s", 2.0)
     tracker = EmsconTracker({"host": "127.0.0.1", "port": sim.port, **options})
     try:
-        await tracker.connect(timeout=5.0)
+        await tracker.connect(timeout=connect_timeout)
         yield tracker
     finally:
         await tracker.close()
@@ -264,8 +265,9 @@ async def test_meteo_out_of_range_and_units_verified(world):
 
 async def test_second_client_is_told_off(world):
     async with running(world) as sim, driver(sim):
+        # the refused client retries until its connect timeout, then says why
         with pytest.raises(EmsconStatusError, match="MultiConnectionsNotAllowed"):
-            async with driver(sim):
+            async with driver(sim, connect_timeout=1.0):
                 pass
     async with running(world, second_client="refuse") as sim, driver(sim):
         with pytest.raises(Exception, match=r"closed|lost|connect"):
