@@ -145,6 +145,20 @@ class _Session:
             ok = ok and isinstance(res, ces.SingleMeasResultT) and _near(res, truth)
         return ok
 
+    def measure_extended(self) -> bool:
+        # extended statistics: the type-9 result with the covariances
+        self.cmd.SetStatisticMode(ces.ES_SM_Extended, ces.ES_SM_Extended)
+        try:
+            res = self.cmd.StartMeasurement()
+        finally:
+            self.cmd.SetStatisticMode(ces.ES_SM_Standard, ces.ES_SM_Standard)
+        cov = np.array([[res.dStd1**2, res.dCovar12, res.dCovar13],
+                        [res.dCovar12, res.dStd2**2, res.dCovar23],
+                        [res.dCovar13, res.dCovar23, res.dStd3**2]])
+        return (isinstance(res, ces.SingleMeasResult2T)
+                and _near(res, self.world.true_reflector_position() * 1e3)
+                and bool(np.all(np.linalg.eigvalsh(cov) > 0)))
+
     def measure_spherical(self) -> bool:
         self.cmd.SetCoordinateSystemType(ces.ES_CS_SCC)
         try:
@@ -270,6 +284,7 @@ class _Session:
             ("SetReflector / GetReflector", self.reflector),
             ("GoBirdBath / FindReflector / GetTrackerStatus", self.find_reflector),
             ("StartMeasurement (RHR, mm)", self.measure_cartesian),
+            ("StartMeasurement, extended statistics (type 9)", self.measure_extended),
             ("StartMeasurement (SCC, rad, mm)", self.measure_spherical),
             ("GetDirection", self.direction),
             ("GetFace / ChangeFace", self.faces),
@@ -300,6 +315,6 @@ async def test_cesapi_client_session_passes_every_step(monkeypatch, capsys):
     port = await sim.start()
     passed, tried, failures = await session_in_thread(sim, "CESAPI", capsys, _run, sim, port)
     assert not failures, failures
-    assert passed == tried == 21
+    assert passed == tried == 22
     names = {c.command for c in sim.commands}
     assert len(names) >= 20     # the session used the commands it claims to
