@@ -124,3 +124,20 @@ def test_a_model_without_a_thermal_term_is_left_alone():
 
     cal = fit(cell.robot, MeasurementSet(q, p), "constant").calibrated
     assert at_temperatures(cal, [30.0] * 6) is cal
+
+
+async def test_a_failed_temperature_reading_writes_nothing(service):
+    from robocal.errors import ConnectFailed, DriverError
+
+    svc, cid = await _fitted(service, temperatures="current")
+    robot = await svc.hub.robot()
+
+    async def broken() -> None:
+        raise DriverError("temperature read timed out")
+
+    robot.read_joint_temperatures = broken  # type: ignore[method-assign]
+    with pytest.raises(ConnectFailed, match="joint temperatures could not be read"):
+        await svc.push(cid, actor="t")
+    # nothing journaled, nothing written; the campaign can be pushed when the robot answers
+    assert all(e.action != "push" for e in svc.journal.entries())
+    assert svc.status(cid)["state"] == "approved"
