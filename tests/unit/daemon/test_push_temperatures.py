@@ -141,3 +141,7 @@ async def test_a_failed_temperature_reading_writes_nothing(service):
     # nothing journaled, nothing written; the campaign can be pushed when the robot answers
     assert all(e.action != "push" for e in svc.journal.entries())
     assert svc.status(cid)["state"] == "approved"
+    robot = await svc.hub.robot()          # the hub was reset: a new connection reads them
+    assert robot.read_joint_temperatures is not broken
+    st = await svc.push(cid, actor="t")
+    assert st["state"] == "pushed" and st["push"]["temperatures_c"] is not None
