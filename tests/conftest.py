@@ -13,6 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pytest_asyncio
+from hypothesis import HealthCheck, settings
+
+# Hypothesis' per-example deadline and its "input generation is slow" health check measure
+# wall time: the suite runs one process per core on a 2-core machine, where a neighbour's fit
+# can stall a worker for a second (a fresh clone's run failed a codec round-trip test that way)
+settings.register_profile("robocal", deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("robocal")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
