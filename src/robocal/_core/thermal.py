@@ -6,7 +6,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Protocol
 
-__all__ = ["thermal_components"]
+__all__ = ["TEMPERATURE_RANGE_C", "thermal_components"]
+
+#: Joint temperatures (°C) a compensation may be asked for (ADR 0054).
+TEMPERATURE_RANGE_C = (-40.0, 150.0)
 
 
 class _Joint(Protocol):

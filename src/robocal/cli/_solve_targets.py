@@ -54,18 +54,20 @@ def _check_out(path: str, what: str) -> Path:
 def _temperatures(text: str, cal: Any) -> list[float] | None:
     """``--temps``: one temperature per joint; ``cal`` is replaced in the caller by the model
     at them. None (with a note on stderr) when the model has no thermal term."""
+    from robocal._core.thermal import TEMPERATURE_RANGE_C
     from robocal.errors import ConfigError
+    from robocal.identification import thermal_term
 
+    lo, hi = TEMPERATURE_RANGE_C
     try:
         temps = [float(v) for v in text.split(",")]
     except ValueError:
         raise ConfigError(f"--temps must be {cal.robot.dof} numbers separated by commas "
                           f"(degC), got {text!r}") from None
-    if len(temps) != cal.robot.dof or not all(-40.0 <= v <= 150.0 for v in temps):
-        raise ConfigError(f"--temps must be {cal.robot.dof} temperatures between -40 and "
-                          f"150 degC, got {text!r}")
-    term = cal.fit.get("thermal") if isinstance(cal.fit, dict) else None
-    if not term or not term.get("selected"):
+    if len(temps) != cal.robot.dof or not all(lo <= v <= hi for v in temps):
+        raise ConfigError(f"--temps must be {cal.robot.dof} temperatures between {lo:g} and "
+                          f"{hi:g} degC, got {text!r}")
+    if thermal_term(cal) is None:
         sys.stderr.write("note: the model has no thermal term; --temps changes nothing\n")
         return None
     return temps

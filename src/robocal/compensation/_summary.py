@@ -63,8 +63,7 @@ def describe_table(table: CompensationTable) -> dict[str, Any]:
     n = _finite(table.stats.get("n_targets"))
     if table.kind == "targets" and n_ok is not None and n is not None and n_ok < n:
         warnings.append(f"{int(n - n_ok)} of {int(n)} targets could not be compensated")
-    temps = [table.stats[f"temp{j + 1}_c"] for j in range(len(table.stats))
-             if f"temp{j + 1}_c" in table.stats]
+    temps = table.temperatures_c
     purpose = PURPOSE[table.kind]
     if temps:
         purpose += (", for joint temperatures "

@@ -207,6 +207,15 @@ class CompensationTable(_Model):
         out = self.model_copy(update={"stats": stats, "checksum": ""})
         return out.sealed() if self.checksum else out
 
+    @property
+    def temperatures_c(self) -> list[float]:
+        """The joint temperatures (°C) the table compensates for (see
+        :meth:`with_temperatures`); empty when it does not say."""
+        out: list[float] = []
+        while f"temp{len(out) + 1}_c" in self.stats:
+            out.append(self.stats[f"temp{len(out) + 1}_c"])
+        return out
+
     def verify(self) -> None:
         """Raise :class:`CompensationError` unless the checksum matches the content."""
         if not self.checksum:

@@ -23,7 +23,7 @@ import structlog
 from robocal.daemon.hub import DriverHub
 from robocal.daemon.store import Store, now_iso
 from robocal.drivers import ControllerCalibration, ControllerCalibrationReadable
-from robocal.errors import CompensationError, ConnectFailed, DriverError, ProtocolError
+from robocal.errors import CompensationError
 
 __all__ = ["campaign_calibration", "check_push", "model_data", "record_campaign_start"]
 
@@ -51,17 +51,14 @@ async def _read(hub: DriverHub) -> ControllerCalibration | str:
     ConnectFailed
         The robot does not answer (the hub is reset).
     """
-    try:
-        async with hub.lock:
-            robot = await hub.robot()
-            if not isinstance(robot, ControllerCalibrationReadable):
-                return (f"the {hub.config.robot.kind} driver's interface does not show the "
-                        "controller's own calibration")
-            return await robot.controller_calibration()
-    except (DriverError, ProtocolError, OSError, TimeoutError) as err:
-        await hub.reset(f"controller calibration not read: {err}")
-        raise ConnectFailed(f"the controller's own calibration could not be read: {err}"
-                            ) from err
+    async def read(robot: object) -> ControllerCalibration | str:
+        if not isinstance(robot, ControllerCalibrationReadable):
+            return (f"the {hub.config.robot.kind} driver's interface does not show the "
+                    "controller's own calibration")
+        return await robot.controller_calibration()
+
+    return await hub.read_robot(read, what="the controller's own calibration",
+                                short="controller calibration")
 
 
 def _summary(now: ControllerCalibration | str, read_at: str) -> dict[str, Any]:

@@ -38,12 +38,9 @@ from robocal.errors import (
     ApprovalRequired,
     CampaignError,
     CompensationError,
-    ConnectFailed,
-    DriverError,
-    ProtocolError,
     RobocalError,
 )
-from robocal.identification import at_temperatures
+from robocal.identification import at_temperatures, thermal_term
 from robocal.kinematics import CalibratedModel, RobotDescription
 
 __all__ = ["CompensationManager"]
@@ -168,9 +165,9 @@ class CompensationManager:
         """The model at the temperatures the table compensates for (ADR 0054), and what the
         description says of them. ``model_id`` stays the approved model's."""
         mode = self.config.compensation.temperatures
-        term = cal.fit.get("thermal") if isinstance(cal.fit, dict) else None
+        term = thermal_term(cal)
         name = mode if isinstance(mode, str) else "configured"
-        if not term or not term.get("selected"):
+        if term is None:
             return cal, {"mode": name, "applied": False,
                          "note": "the model has no thermal term"}
         ref = [float(v) for v in term["t_ref_c"]]
@@ -212,17 +209,13 @@ class CompensationManager:
         ConnectFailed
             The robot does not answer (the hub is reset); nothing written.
         """
-        try:
-            async with self.hub.lock:
-                robot = await self.hub.robot()
-                if not isinstance(robot, JointTemperatureReader):
-                    return None
-                reading = await robot.read_joint_temperatures()
-        except (DriverError, ProtocolError, OSError, TimeoutError) as err:
-            await self.hub.reset(f"joint temperatures not read: {err}")
-            raise ConnectFailed(f"the robot's joint temperatures could not be read: {err}"
-                                ) from err
-        return tuple(float(v) for v in reading.temps_c)
+        async def read(robot: object) -> tuple[float, ...] | None:
+            if not isinstance(robot, JointTemperatureReader):
+                return None
+            return tuple(float(v) for v in (await robot.read_joint_temperatures()).temps_c)
+
+        return await self.hub.read_robot(read, what="the robot's joint temperatures",
+                                         short="joint temperatures")
 
     # --- the one journaled write ---------------------------------------------------------------
     async def _journaled_write(self, action: str, key: str, actor: str, *,

@@ -43,6 +43,7 @@ from pydantic import (
 
 from robocal._core.files import read_toml
 from robocal._core.model_names import MODELS, FitModel
+from robocal._core.thermal import TEMPERATURE_RANGE_C
 from robocal.errors import ConfigError
 
 __all__ = [
@@ -281,7 +282,8 @@ class CompensationConfig(_Model):
     verify_count: int = Field(default=10, ge=0, le=10000)
     max_outside_coverage: float = Field(default=0.10, ge=0.0, le=1.0)
     temperatures: Literal["reference", "current"] | Annotated[
-        list[Annotated[float, Field(ge=-40.0, le=150.0, allow_inf_nan=False)]],
+        list[Annotated[float, Field(ge=TEMPERATURE_RANGE_C[0], le=TEMPERATURE_RANGE_C[1],
+                                    allow_inf_nan=False)]],
         Field(min_length=1)] = "reference"
 
 

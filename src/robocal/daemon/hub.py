@@ -14,7 +14,8 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from typing import Any, Literal
+from collections.abc import Awaitable, Callable
+from typing import Any, Literal, TypeVar
 
 import structlog
 
@@ -26,11 +27,13 @@ from robocal.drivers import (
     load_robot_driver,
     load_tracker_driver,
 )
+from robocal.errors import ConnectFailed, DriverError, ProtocolError
 from robocal.kinematics import RobotDescription
 
 __all__ = ["DriverHub"]
 
 _log = structlog.get_logger(__name__)
+_T = TypeVar("_T")
 
 
 def robot_options(cfg: DriverConfig, robot: RobotDescription) -> dict[str, Any]:
@@ -88,6 +91,23 @@ class DriverHub:
             _log.info("robot connected", driver=cfg.kind)
             self._clear_error_when_connected()
         return self._robot
+
+    async def read_robot(self, read: Callable[[RobotDriver], Awaitable[_T]], *, what: str,
+                         short: str) -> _T:
+        """One read from the robot under the hub's lock (connecting it if needed).
+
+        Raises
+        ------
+        ConnectFailed
+            The robot does not answer: the hub is reset (``<short> not read``) and the error
+            says ``<what> could not be read``.
+        """
+        try:
+            async with self.lock:
+                return await read(await self.robot())
+        except (DriverError, ProtocolError, OSError, TimeoutError) as err:
+            await self.reset(f"{short} not read: {err}")
+            raise ConnectFailed(f"{what} could not be read: {err}") from err
 
     async def tracker(self) -> TrackerDriver:
         """The connected tracker driver (connecting it if needed)."""

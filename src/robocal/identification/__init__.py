@@ -43,7 +43,7 @@ from robocal.identification._metrics import (
     extrapolation,
 )
 from robocal.identification._solver import Identifiability, identifiability
-from robocal.identification._thermal import at_temperatures, thermal_shift
+from robocal.identification._thermal import at_temperatures, thermal_shift, thermal_term
 from robocal.identification._weights import TrackerSigma, whitening
 from robocal.identification.datasets import load_ipa_series
 
@@ -74,5 +74,6 @@ __all__ = [
     "refit_frozen",
     "sanity_check",
     "thermal_shift",
+    "thermal_term",
     "whitening",
 ]

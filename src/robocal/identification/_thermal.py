@@ -30,7 +30,7 @@ from robocal.identification._engine import Solution
 from robocal.identification._fitter import Fitter
 from robocal.kinematics import CalibratedModel, KinematicModel, Term
 
-__all__ = ["MIN_VARIATION_C", "at_temperatures", "thermal_shift", "thermal_step"]
+__all__ = ["MIN_VARIATION_C", "at_temperatures", "thermal_shift", "thermal_step", "thermal_term"]
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -50,12 +50,19 @@ def _with_length_terms(model: KinematicModel, x: Array) -> tuple[KinematicModel,
     return m2, model.transfer(x, m2), np.array([names[t.name] for t in terms], dtype=np.intp)
 
 
+def thermal_term(model: CalibratedModel) -> dict[str, Any] | None:
+    """The model's thermal term as MODEL.json's ``fit.thermal`` holds it, or None when the
+    model has none (or it was considered and not taken)."""
+    term = model.fit.get("thermal") if isinstance(model.fit, dict) else None
+    return term if term and term.get("selected") else None
+
+
 def thermal_shift(model: CalibratedModel, q: Array, temps_c: Array) -> Array:
     """What the model's thermal term adds to its prediction (n, 3) m at joints ``q`` (n, dof)
     rad and joint temperatures ``temps_c`` (n, dof) °C; zeros without a thermal term."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    term = model.fit.get("thermal") if isinstance(model.fit, dict) else None
-    if not term or not term.get("selected"):
+    term = thermal_term(model)
+    if term is None:
         return np.zeros((q.shape[0], 3))
     m2, x2, idx = _with_length_terms(model.model, model.params)
     _, J = m2.jacobian(q, x2)
@@ -79,8 +86,8 @@ def at_temperatures(model: CalibratedModel, temps_c: Any) -> CalibratedModel:
     ConfigError
         ``temps_c`` is not one finite temperature per joint, or the term is malformed.
     """
-    term = model.fit.get("thermal") if isinstance(model.fit, dict) else None
-    if not term or not term.get("selected"):
+    term = thermal_term(model)
+    if term is None:
         return model
     dof = model.model.robot.dof
     try:

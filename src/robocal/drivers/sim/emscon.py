@@ -766,10 +766,10 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
         return math.atan2(sign * y, x), math.atan2(math.hypot(x, y), z)
 
     def _target_direction(self, c: emscon.Command) -> tuple[float, float] | None:
-        """Direction (hz, v) rad a GoPosition command sends the beam to (None: a coordinate
-        system type whose targets the simulator does not convert)."""
+        """Direction (hz, v) rad a GoPosition or PointLaser command sends the beam to (None:
+        a coordinate system type whose targets the simulator does not convert)."""
         p, k, a = c.params, self._len(), self._ang()
-        if c.command == Cmd.GO_POSITION_HVD:
+        if c.command in (Cmd.GO_POSITION_HVD, Cmd.POINT_LASER_HVD):
             return float(p["hz_angle"]) / a, float(p["vt_angle"]) / a
         cs = self.state.coord_sys
         if cs == emscon.CoordSys.RHR:
@@ -803,15 +803,11 @@ class EmsconTrackerSimulator(SessionServer["_Session"]):
     async def _point_laser(self, c: emscon.Command, s: _Session) -> None:
         """PointLaser, PointLaserHVD: the beam points at a location (and leaves a reflector
         that is not there); a zenith angle beyond a turn is a wrong parameter."""
-        p, a = c.params, self._ang()
-        target: tuple[float, float] | None
-        if c.command == Cmd.POINT_LASER_HVD:
-            target = float(p["hz_angle"]) / a, float(p["vt_angle"]) / a
-            if not (math.isfinite(target[0]) and 0.0 <= target[1] <= 2 * math.pi):
-                await s.reply(c.command, emscon.Status.WRONG_PARAMETER)
-                return
-        else:
-            target = self._target_direction(emscon.Command(Cmd.GO_POSITION, {**p, "use_adm": 0}))
+        target = self._target_direction(c)
+        if c.command == Cmd.POINT_LASER_HVD and target is not None and not (
+                math.isfinite(target[0]) and 0.0 <= target[1] <= 2 * math.pi):
+            await s.reply(c.command, emscon.Status.WRONG_PARAMETER)
+            return
         await self._sleep(self.options.motion_s)
         await s.reply(c.command)
         self._point(s, target)
