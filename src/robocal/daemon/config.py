@@ -38,6 +38,8 @@ from pydantic import (
     NonNegativeFloat,
     PositiveFloat,
     ValidationError,
+    ValidatorFunctionWrapHandler,
+    field_validator,
     model_validator,
 )
 
@@ -285,6 +287,19 @@ class CompensationConfig(_Model):
         list[Annotated[float, Field(ge=TEMPERATURE_RANGE_C[0], le=TEMPERATURE_RANGE_C[1],
                                     allow_inf_nan=False)]],
         Field(min_length=1)] = "reference"
+
+    @field_validator("temperatures", mode="wrap")
+    @classmethod
+    def _one_temperatures_error(cls, value: Any, handler: ValidatorFunctionWrapHandler
+                                ) -> Any:
+        # one message instead of one per member of the union
+        try:
+            return handler(value)
+        except ValidationError:
+            lo, hi = TEMPERATURE_RANGE_C
+            raise ValueError(f'must be "reference", "current" or a list of joint '
+                             f"temperatures in degC between {lo:g} and {hi:g}, got "
+                             f"{value!r}") from None
 
 
 class LoggingConfig(_Model):

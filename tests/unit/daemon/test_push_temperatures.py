@@ -3,6 +3,8 @@ model's thermal term folded in at the robot's current temperatures or configured
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -145,3 +147,17 @@ async def test_a_failed_temperature_reading_writes_nothing(service):
     assert robot.read_joint_temperatures is not broken
     st = await svc.push(cid, actor="t")
     assert st["state"] == "pushed" and st["push"]["temperatures_c"] is not None
+
+
+def test_a_bad_temperatures_setting_is_one_error(tmp_path):
+    from robocal.daemon.config import config_errors
+
+    example = (Path(__file__).resolve().parents[3] / "deploy" / "config"
+               / "robocal.example.toml").read_text()
+    assert 'temperatures = "reference"' in example
+    for bad in ('"hot"', '[30, 31, "warm"]', "[]", "[30, 300]"):
+        path = tmp_path / "robocal.toml"
+        path.write_text(example.replace('temperatures = "reference"', f"temperatures = {bad}"))
+        errors = config_errors(path)
+        assert len(errors) == 1 and "compensation.temperatures" in errors[0], errors
+        assert 'must be "reference", "current" or a list of joint temperatures' in errors[0]
