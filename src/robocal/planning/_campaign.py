@@ -722,13 +722,32 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
                 unreachable.extend(int(i) for i in new[~ok])
         return idx[~allowed[idx]]
 
+    strata: NDArray[np.intp] | None = None
+    cal = np.zeros(0, dtype=np.intp)
+    misses = np.zeros(count, dtype=np.intp)       # unreachable poses chosen per stratum
     for _ in range(30):
-        if design == "stratified":
-            cal = ds.select_stratified(count, allowed=allowed)
-        else:
+        near = _near_reachable(q_c, checked, allowed)
+        if design != "stratified":
             cal = ds.select(count, allowed=allowed, exchange_passes=exchange_passes)
+        else:
+            # the strata are kept while each still has an allowed member: only the strata
+            # whose pose turned out unreachable choose again (a third of a UR10's candidates
+            # in the demo cell), so the poses already checked stay
+            refilled = None
+            if strata is not None:
+                misses[~allowed[cal]] += 1
+                refilled = ds.refill_strata(cal, strata, allowed, prefer=near,
+                                            release=misses >= 2)
+            if refilled is None:
+                cal, strata = ds.stratify(count, allowed=allowed)
+                misses[:] = 0
+            else:
+                cal = refilled
         if span is not None:
-            cal = ensure_span(q_c, cal, allowed, span)
+            # an end of a joint's range often lies in such a pocket: its neighbours are
+            # tried only when no candidate there is preferred
+            ends_ok = allowed & near
+            cal = ensure_span(q_c, cal, ends_ok if ends_ok.any() else allowed, span)
         if not len(reachable(cal)) or allowed.sum() < count + validation + count:
             break
     rest = np.setdiff1d(np.arange(n_c), cal)
@@ -753,6 +772,25 @@ def _choose_poses(ds: DesignSpace, motion: MotionChecker, home: Array, max_step:
         warnings.append(f"only {len(val)} of {validation} validation poses could be chosen "
                         "among candidates reachable from home")
     return cal, val
+
+
+def _near_reachable(q: Array, checked: NDArray[np.bool_], allowed: NDArray[np.bool_]
+                    ) -> NDArray[np.bool_]:
+    """Candidates (n,) whose nearest checked candidate (joint values scaled by their range)
+    was reachable from home. Straight moves from home to nearby configurations sweep nearly
+    the same space, so a pocket that one move cannot reach usually holds its neighbours too:
+    refilling a stratum elsewhere saves checking them one after another."""
+    idx = np.flatnonzero(checked)
+    if not len(idx):
+        return np.ones(len(q), dtype=bool)
+    span = np.ptp(q, axis=0)
+    x = q / np.where(span > 0, span, 1.0)
+    xc = x[idx]
+    # |x - c|^2 up to |x|^2, which is the same for every checked c
+    d = x @ xc.T
+    d *= -2.0
+    d += np.sum(xc**2, axis=1)
+    return np.asarray(allowed[idx[np.argmin(d, axis=1)]], dtype=bool)
 
 
 def _cpa_extras(checker: FeasibilityChecker, rob: RobotDescription, q_c: Array,

@@ -423,17 +423,76 @@ class DesignSpace:
         cannot describe every error needs: its fit is then the best average approximation
         over the region it will be used in) and as informative as that constraint allows.
         """
-        n = len(self.q)
-        ok = np.ones(n, dtype=bool) if allowed is None else np.asarray(allowed, dtype=bool)
-        pool = np.flatnonzero(ok)
+        ok = (np.ones(len(self.q), dtype=bool) if allowed is None
+              else np.asarray(allowed, dtype=bool))
+        return self.stratify(count, allowed=ok, exchange_passes=exchange_passes,
+                             iterations=iterations, delta=delta)[0]
+
+    @single_threaded
+    def stratify(self, count: int, *, allowed: NDArray[np.bool_], exchange_passes: int = 3,
+                 iterations: int = 12, delta: float = 1e-6) -> tuple[Index, Index]:
+        """:meth:`select_stratified`, and the stratum of every candidate (n,), -1 for those
+        not allowed: :meth:`refill_strata` reuses them."""
+        pool = np.flatnonzero(allowed)
+        strata = np.full(len(self.q), -1, dtype=np.intp)
         if count > len(pool):
             raise ConfigError(f"{count} poses requested but only {len(pool)} feasible "
                               "candidates are available")
         if count <= 0:
-            return np.zeros(0, dtype=np.intp)
-        labels, members = _kmeans_strata(self.q[pool], count, iterations)
-        local = _exchange_within(self.J[pool], labels, members, exchange_passes, delta)
-        return pool[local]
+            return np.zeros(0, dtype=np.intp), strata
+        labels, start = _kmeans_strata(self.q[pool], count, iterations)
+        members = [np.flatnonzero(labels == i) for i in range(count)]
+        local = _exchange_within(self.J[pool], members, start, exchange_passes, delta)
+        strata[pool] = labels
+        return pool[local], strata
+
+    @single_threaded
+    def refill_strata(self, chosen: Index, strata: Index, allowed: NDArray[np.bool_], *,
+                      prefer: NDArray[np.bool_] | None = None,
+                      release: NDArray[np.bool_] | None = None, exchange_passes: int = 3,
+                      delta: float = 1e-6) -> Index | None:
+        """Replace the chosen poses (k,) that are no longer allowed, D-optimally given the
+        other poses, which stay. Each takes an allowed member of its own stratum (``strata``
+        (n,) from :meth:`stratify`), one of the ``prefer`` (n,) candidates when the stratum
+        has any; a slot marked in ``release`` (k,), or whose stratum has no allowed member
+        left, takes any allowed candidate (preferred ones first). None when none is left.
+
+        A campaign finds some chosen poses unreachable only after choosing them; stratifying
+        the remaining candidates again would move most of the other poses too, and each
+        moved pose must then be checked again. A stratum lying in a pocket no move reaches
+        is released rather than tried member by member.
+        """
+        chosen = np.array(chosen, dtype=np.intp)
+        redo = np.flatnonzero(~allowed[chosen])
+        if not len(redo):
+            return chosen
+        pref = allowed if prefer is None else allowed & prefer
+        anywhere = np.setdiff1d(np.flatnonzero(pref) if pref.any() else np.flatnonzero(allowed),
+                                chosen)
+        span = np.ptp(self.q, axis=0)
+        x = self.q / np.where(span > 0, span, 1.0)
+        members = [np.zeros(0, dtype=np.intp) for _ in chosen]
+        for i in redo:
+            own = np.flatnonzero(allowed & (strata == i))
+            if len(own) and (release is None or not release[i]):
+                cand = np.setdiff1d(own[pref[own]] if pref[own].any() else own, chosen)
+            else:
+                # the stratum is given up: the candidates nearest its centre elsewhere
+                other = anywhere[strata[anywhere] != i]
+                if not len(other):
+                    return None
+                centre = x[strata == i].mean(axis=0)
+                d = np.sum((x[other] - centre) ** 2, axis=1)
+                cand = other[np.argsort(d)[:_RELEASED_POOL]]
+            if not len(cand):
+                return None
+            members[i] = cand
+            chosen[i] = cand[0]
+        return _exchange_within(self.J, members, chosen, exchange_passes, delta)
+
+
+# candidates a released stratum's pose is chosen from (nearest its centre)
+_RELEASED_POOL = 16
 
 
 def _kmeans_strata(q: Array, k: int, iterations: int) -> tuple[Index, Index]:
@@ -482,18 +541,18 @@ def _kmeans_strata(q: Array, k: int, iterations: int) -> tuple[Index, Index]:
     return labels, members
 
 
-def _exchange_within(J: Array, labels: Index, chosen: Index, passes: int, delta: float
-                     ) -> Index:
-    """Exchange each chosen pose for the member of its stratum that maximises det(M).
+def _exchange_within(J: Array, members: list[Index], chosen: Index, passes: int,
+                     delta: float) -> Index:
+    """Exchange each chosen pose for the candidate of its slot that maximises det(M).
 
-    ``J`` (m, 3, L) candidates, ``labels`` (m,) stratum of each, ``chosen`` (k,) one
-    candidate per stratum (stratum i holds ``chosen[i]``). Only a stratum's members are
-    evaluated for its pose (the members' 3 x 3 blocks under the information without that
-    pose, by a rank-3 downdate), so a pass costs O(m L^2) however many strata there are.
+    ``J`` (m, 3, L) candidates, ``chosen`` (k,) one candidate per slot and ``members`` (k,)
+    the candidates each slot may take (its stratum; none: the slot keeps its pose), never
+    one another slot holds. Only a slot's members are evaluated for its pose (the members'
+    3 x 3 blocks under the information without that pose, by a rank-3 downdate), so a pass
+    over strata costs O(m L^2) however many there are.
     """
     L = J.shape[2]
     chosen = np.array(chosen, dtype=np.intp)
-    members = [np.flatnonzero(labels == i) for i in range(len(chosen))]
     I3 = np.eye(3)
     for _ in range(passes):
         Js = J[chosen].reshape(-1, L)
@@ -514,7 +573,7 @@ def _exchange_within(J: Array, labels: Index, chosen: Index, passes: int, delta:
             X = (Jm.reshape(-1, L) @ Minv).reshape(Jm.shape)
             B = X @ Jm.transpose(0, 2, 1) + JV @ JV.transpose(0, 2, 1)
             gain = _logdet3(I3 + B)
-            gain[mem == s] = -np.inf
+            gain[np.isin(mem, chosen)] = -np.inf
             j = int(np.argmax(gain))
             if math.log(det_s) + gain[j] <= 1e-9:
                 continue

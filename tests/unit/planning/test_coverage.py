@@ -199,3 +199,32 @@ def test_program_file_missing_is_one_data_error_and_semicolons_are_read(tmp_path
     prog.write_text("pose_id;x;y;z;q1;q2;q3;q4;q5;q6\nA;1;2;3;0;-90;0;-90;0;250\n")
     q = read_program_joints(prog, dof=6)
     assert q.shape == (1, 6) and np.degrees(q[0, 5]) == pytest.approx(250.0)
+
+
+def test_unreachable_poses_are_replaced_stratum_by_stratum() -> None:
+    # a third of a UR10's candidates in the demo cell lie where no straight move from home
+    # reaches: only those strata choose again, so the poses already checked stay chosen
+    from robocal.planning import cell_design_space, draw_candidates, model_spec
+    from robocal.planning._campaign import _choose_poses, _home, _round_deg
+
+    robot = load_robot("ur10")
+    demo = load_cell("demo")
+    checker = FeasibilityChecker(robot, demo)
+    motion = MotionChecker(robot, demo, limits=checker.ranges)
+    q, f, _ = draw_candidates(checker, target=1024, seed=0)
+    ds = cell_design_space(checker, model_spec(robot, "constant"), q, f)
+    unreachable: list[int] = []
+    home = _round_deg(_home(robot, demo, checker.ranges))
+    max_step = math.radians(demo.motion.max_joint_step_deg)
+    cal, _ = _choose_poses(ds, motion, home, max_step, count=40, validation=0,
+                           seed=0, design="stratified", exchange_passes=2, warnings=[],
+                           unreachable=unreachable)
+    assert len(unreachable) >= 8 and len(set(cal.tolist())) == 40
+    assert not set(cal.tolist()) & set(unreachable)
+    # each leg was checked once; choosing all strata again after each round checked 734
+    # legs here, and still ended with 10 unreachable poses after its 30 rounds
+    assert len(motion.leg_verdicts) == 40 + len(unreachable) <= 4 * 40
+    fresh = MotionChecker(robot, demo, limits=checker.ranges)
+    from robocal.planning._campaign import _legs_safe
+
+    assert _legs_safe(fresh, home, q[cal], max_step)[0].all()

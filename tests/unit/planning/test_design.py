@@ -191,3 +191,44 @@ def test_stratified_selection_covers_the_workspace(rng: np.random.Generator) -> 
     assert np.all(allowed[sel]) and len(set(sel.tolist())) == k
     with pytest.raises(ConfigError, match="401 poses requested but only 400"):
         ds.select_stratified(401)
+
+
+def test_refilling_strata_replaces_only_the_poses_no_longer_allowed(
+        rng: np.random.Generator) -> None:
+    n, L, k = 300, 5, 12
+    J = rng.normal(size=(n, 3, L)) * rng.uniform(0.2, 2.0, (n, 1, 1))
+    ds = _space(J)
+    ds.q = rng.uniform(-1.0, 1.0, (n, 2))
+    allowed = np.ones(n, dtype=bool)
+    chosen, strata = ds.stratify(k, allowed=allowed)
+    assert sorted(strata[chosen].tolist()) == list(range(k))
+    assert np.array_equal(ds.refill_strata(chosen, strata, allowed), chosen)
+    # two chosen poses turn out unreachable: only their slots change, each to an allowed
+    # member of its own stratum, D-optimally given the poses that stay
+    gone = chosen[[2, 7]]
+    allowed[gone] = False
+    new = ds.refill_strata(chosen, strata, allowed)
+    assert new is not None and len(set(new.tolist())) == k
+    assert np.array_equal(np.delete(new, [2, 7]), np.delete(chosen, [2, 7]))
+    assert np.all(allowed[new]) and np.array_equal(strata[new], strata[chosen])
+    for pos in (2, 7):
+        for c in np.flatnonzero(allowed & (strata == strata[chosen[pos]])):
+            trial = new.copy()
+            trial[pos] = c
+            assert _logdet(J, trial, 1e-6) <= _logdet(J, new, 1e-6) + 1e-7
+    # a preferred member wins over a better one that is not preferred
+    prefer = np.ones(n, dtype=bool)
+    prefer[new[2]] = False
+    again = ds.refill_strata(chosen, strata, allowed, prefer=prefer)
+    assert again is not None and again[2] != new[2] and strata[again[2]] == strata[chosen[2]]
+    # a released stratum takes a candidate near its centre from elsewhere
+    release = np.zeros(k, dtype=bool)
+    release[7] = True
+    rel = ds.refill_strata(chosen, strata, allowed, release=release)
+    assert rel is not None and strata[rel[7]] != strata[chosen[7]] and allowed[rel[7]]
+    assert rel[7] not in np.delete(rel, 7)
+    # a stratum with no member left is released too; None when nothing is left at all
+    allowed_one = np.zeros(n, dtype=bool)
+    allowed_one[chosen] = True
+    allowed_one[chosen[0]] = False
+    assert ds.refill_strata(chosen, strata, allowed_one) is None
