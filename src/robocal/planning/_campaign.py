@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -561,7 +562,9 @@ def plan_campaign(
     baseline = np.random.default_rng([seed, 2]).choice(len(q_c), size=count, replace=False)
     obs = ObservabilitySection(calibration=_obs_info(ds.observability(cal)),
                                random_baseline=_obs_info(ds.observability(baseline)))
-    sweeps = _cpa_extras(checker, rob, q_c, cpa_points, seed, warnings) if cpa else []
+    sweeps = (_cpa_extras(checker, rob, q_c, cpa_points, seed, warnings,
+                          reachable=lambda q: _legs_safe(motion, home, q, max_step)[0])
+              if cpa else [])
     cube = iso_cube(checker, q_c, feas_c) if iso else None
     if iso and cube is None:
         warnings.append("no feasible ISO 9283 cube was found; iso-P1..P5 left out")
@@ -794,9 +797,13 @@ def _near_reachable(q: Array, checked: NDArray[np.bool_], allowed: NDArray[np.bo
 
 
 def _cpa_extras(checker: FeasibilityChecker, rob: RobotDescription, q_c: Array,
-                cpa_points: int, seed: int, warnings: list[str]) -> list[CpaSweep]:
-    """CPA sweeps, with a warning per missing joint, short arc and small circle."""
-    sweeps = cpa_sweeps(checker, q_c, points=cpa_points, rng=np.random.default_rng([seed, 3]))
+                cpa_points: int, seed: int, warnings: list[str],
+                reachable: Callable[[Array], NDArray[np.bool_]] | None = None
+                ) -> list[CpaSweep]:
+    """CPA sweeps, with a warning per missing joint, short arc and small circle;
+    ``reachable``: see :func:`cpa_sweeps`."""
+    sweeps = cpa_sweeps(checker, q_c, points=cpa_points, rng=np.random.default_rng([seed, 3]),
+                        reachable=reachable)
     got = {s.joint for s in sweeps}
     missing = [j for j in range(1, rob.dof + 1) if j not in got]
     if missing:

@@ -13,6 +13,7 @@ strain-wave terms at multiples of the gear ratio.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,7 +62,9 @@ def _longest_run(mask: NDArray[np.bool_]) -> tuple[int, int]:
 @single_threaded
 def cpa_sweeps(checker: FeasibilityChecker, q_feasible: Array, *, points: int,
                rng: np.random.Generator, bases: int = 32,
-               grid_step: float = math.radians(2.0)) -> list[CpaSweep]:
+               grid_step: float = math.radians(2.0),
+               reachable: Callable[[Array], NDArray[np.bool_]] | None = None,
+               tries: int = 16, min_width_ratio: float = 0.25) -> list[CpaSweep]:
     """Plan one sweep per joint.
 
     Parameters
@@ -78,6 +81,11 @@ def cpa_sweeps(checker: FeasibilityChecker, q_feasible: Array, *, points: int,
         Base configurations tried per joint.
     grid_step
         Resolution of the sweep grid, rad.
+    reachable
+        Whether each of the poses (m, dof) rad is reachable (from home, by a safe move).
+        Then of the ``tries`` widest sweeps per joint the widest whose points are all
+        reachable is taken, if it is at least ``min_width_ratio`` as wide as the widest;
+        otherwise the widest (the router may still find detours to it).
 
     Returns
     -------
@@ -88,7 +96,7 @@ def cpa_sweeps(checker: FeasibilityChecker, q_feasible: Array, *, points: int,
     robot = checker.robot
     dof = robot.dof
     C = robot.coupling_matrix
-    Cinv = np.linalg.inv(C)
+    Cinv = np.asarray(np.linalg.inv(C), dtype=np.float64)
     ranges = checker.ranges
     if len(q_feasible) == 0:
         return []
@@ -108,30 +116,48 @@ def cpa_sweeps(checker: FeasibilityChecker, q_feasible: Array, *, points: int,
         if ok.any():
             ok[ok] = checker.check(flat[ok]).ok
         ok = ok.reshape(len(base), g)
-        best: tuple[int, int, int] | None = None
+        runs = []
         for b in range(len(base)):
             i0, i1 = _longest_run(ok[b])
-            if i1 - i0 + 1 >= max(points, 2) and (best is None or i1 - i0 > best[2] - best[1]):
-                best = (b, i0, i1)
-        if best is None:
+            if i1 - i0 + 1 >= max(points, 2):
+                runs.append((b, i0, i1))
+        if not runs:
             continue
-        b, i0, i1 = best
-        t0, t1 = float(dtheta[b, i0]), float(dtheta[b, i1])
-        a, c = min(t0, t1), max(t0, t1)
-        edges = np.linspace(a, c, points + 1)
-        t = edges[:-1] + rng.uniform(0.2, 0.8, points) * np.diff(edges)
-        t[0], t[-1] = a, c  # use the full feasible width for the circle fit
-        q = base[b] + t[:, None] * direction[None, :]
-        feas = checker.check(q)
-        if not feas.ok.all():
-            # between grid points a check may fail: fall back to the nearest feasible grid point
-            grid_t = dtheta[b, i0:i1 + 1]
-            for m in np.flatnonzero(~feas.ok):
-                t[m] = grid_t[np.argmin(np.abs(grid_t - t[m]))]
-            t = np.unique(t)
-            q = base[b] + t[:, None] * direction[None, :]
-            feas = checker.check(q)
-        order = np.argsort(q[:, k])
-        out.append(CpaSweep(joint=k + 1, q=q[order], span=(a, c),
-                            feasibility=feas.subset(order)))
+        # widest first (stable: the earlier base among equals)
+        runs.sort(key=lambda r: -(r[2] - r[1]))
+        draw = rng.uniform(0.2, 0.8, points)       # the same jitter for every base tried
+        sweep = None
+        for b, i0, i1 in runs[:max(1, tries) if reachable is not None else 1]:
+            if i1 - i0 < min_width_ratio * (runs[0][2] - runs[0][1]):
+                break
+            cand = _sweep(checker, base[b], direction, dtheta[b, i0:i1 + 1], draw, k)
+            if reachable is None or reachable(cand.q).all():
+                sweep = cand
+                break
+        out.append(sweep if sweep is not None
+                   else _sweep(checker, base[runs[0][0]], direction,
+                               dtheta[runs[0][0], runs[0][1]:runs[0][2] + 1], draw, k))
     return out
+
+
+def _sweep(checker: FeasibilityChecker, base: Array, direction: Array, grid_t: Array,
+           draw: Array, k: int) -> CpaSweep:
+    """The sweep of joint ``k`` (0-based) from ``base`` (dof,) rad over the feasible run of
+    chain-angle changes ``grid_t`` (rad, in grid order): one point per equal slice at the
+    relative positions ``draw`` (points,), the run's ends included."""
+    points = len(draw)
+    a, c = float(min(grid_t[0], grid_t[-1])), float(max(grid_t[0], grid_t[-1]))
+    edges = np.linspace(a, c, points + 1)
+    t = edges[:-1] + draw * np.diff(edges)
+    t[0], t[-1] = a, c  # use the full feasible width for the circle fit
+    q = base + t[:, None] * direction[None, :]
+    feas = checker.check(q)
+    if not feas.ok.all():
+        # between grid points a check may fail: fall back to the nearest feasible grid point
+        for m in np.flatnonzero(~feas.ok):
+            t[m] = grid_t[np.argmin(np.abs(grid_t - t[m]))]
+        t = np.unique(t)
+        q = base + t[:, None] * direction[None, :]
+        feas = checker.check(q)
+    order = np.argsort(q[:, k])
+    return CpaSweep(joint=k + 1, q=q[order], span=(a, c), feasibility=feas.subset(order))

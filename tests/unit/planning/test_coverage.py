@@ -228,3 +228,18 @@ def test_unreachable_poses_are_replaced_stratum_by_stratum() -> None:
     from robocal.planning._campaign import _legs_safe
 
     assert _legs_safe(fresh, home, q[cal], max_step)[0].all()
+
+
+def test_kr210_cpa_sweeps_are_all_routed_in_the_demo_cell() -> None:
+    # the widest J4 and J5 sweeps of the KR210 lie in a pocket no move from home reaches (the
+    # forearm folded over the shoulder): routing dropped all 24 of their targets. A base whose
+    # sweep points are reachable is preferred now.
+    from robocal.planning import plan_campaign
+
+    plan = plan_campaign("kuka_kr210_r3100", "demo", count=30, model="constant",
+                         validation=10, cpa=True, cpa_points=12, candidates=512, iso=False,
+                         seed=0)
+    cpa = [p for p in plan.poses if p.purpose.startswith("cpa-")]
+    assert not plan.dropped
+    assert sorted({p.purpose for p in cpa}) == [f"cpa-j{j}" for j in range(1, 7)]
+    assert len(cpa) == 72

@@ -68,3 +68,34 @@ def test_cpa_sweeps_move_one_axis(robot: RobotDescription, checker: FeasibilityC
     # coupled FANUC J2/J3: sweeping axis 2 moves the controller's J3 the other way
     s2 = sweeps[1]
     np.testing.assert_allclose(np.diff(s2.q[:, 2]), -np.diff(s2.q[:, 1]), atol=1e-9)
+
+
+def test_cpa_sweeps_prefer_bases_whose_points_are_reachable(
+        checker: FeasibilityChecker, pool: Pool) -> None:
+    rng = np.random.default_rng
+    plain = cpa_sweeps(checker, pool[0], points=9, rng=rng(3), bases=12)
+    # a predicate that accepts everything changes nothing
+    same = cpa_sweeps(checker, pool[0], points=9, rng=rng(3), bases=12,
+                      reachable=lambda q: np.ones(len(q), dtype=bool))
+    for a, b in zip(plain, same, strict=True):
+        np.testing.assert_array_equal(a.q, b.q)
+    # the widest sweep of each joint declared unreachable: the widest reachable one at least
+    # a quarter as wide is taken instead, from another base
+    widest = {s.joint: s for s in plain}
+
+    def not_the_widest(q: np.ndarray) -> np.ndarray:
+        return np.array([not any(np.allclose(p, w.q[0]) or np.allclose(p, w.q[-1])
+                                 for w in widest.values()) for p in q])
+
+    other = cpa_sweeps(checker, pool[0], points=9, rng=rng(3), bases=12,
+                       reachable=not_the_widest)
+    assert [s.joint for s in other] == [s.joint for s in plain]
+    for s in other:
+        w = widest[s.joint]
+        assert not np.allclose(s.q[0], w.q[0]) and s.width <= w.width + 1e-12
+        assert s.width >= 0.25 * w.width and not_the_widest(s.q).all()
+    # nothing reachable at all: the widest, as without the predicate (routing may detour)
+    none = cpa_sweeps(checker, pool[0], points=9, rng=rng(3), bases=12,
+                      reachable=lambda q: np.zeros(len(q), dtype=bool))
+    for a, b in zip(plain, none, strict=True):
+        np.testing.assert_array_equal(a.q, b.q)
