@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 import dashboard_client
+import rtde_control
 import rtde_io
 import rtde_receive
 
@@ -117,6 +118,53 @@ if io is not None and r is not None:
          lambda: until(r.getSpeedScaling, lambda s: abs(s - 0.5) < 1e-9),
          lambda v: abs(v - 0.5) < 1e-9)
     io.disconnect()
+
+# RTDEControlInterface: uploads ur-rtde's control program (port 30003) and commands it through
+# RTDE registers; moves run at the speed slider's 50 % set above
+Q_A = [v + 0.1 for v in EXPECTED_Q]
+Q_B = [v - 0.1 for v in EXPECTED_Q]
+
+
+def close_to(target: list[float]) -> Callable[[list[float]], bool]:
+    return lambda q: len(q) == 6 and max(abs(a - b) for a, b in zip(q, target, strict=True)) < 1e-3
+
+
+c = step("rtde_control.RTDEControlInterface", lambda: rtde_control.RTDEControlInterface(HOST),
+         lambda v: v.isConnected() and v.isProgramRunning())
+if c is not None and r is not None:
+    step("rtde_control.moveJ (A)", lambda: c.moveJ(Q_A, 1.0, 1.4), lambda v: v is True)
+    # the receive interface's own stream may be a cycle behind the control interface's
+    step("rtde_receive.getActualQ (at A)", lambda: until(r.getActualQ, close_to(Q_A)),
+         close_to(Q_A))
+    step("rtde_control.moveJ (B, asynchronous)", lambda: c.moveJ(Q_B, 0.01, 1.4, True),
+         lambda v: v is True)
+    step("rtde_control.getAsyncOperationProgressEx (running)",
+         c.getAsyncOperationProgressEx, lambda v: v.isAsyncOperationRunning())
+    step("rtde_control.getAsyncOperationProgressEx (finished)",
+         lambda: until(c.getAsyncOperationProgressEx,
+                       lambda st: not st.isAsyncOperationRunning(), timeout=10.0),
+         lambda v: not v.isAsyncOperationRunning() and v.operationId() >= 1)
+    step("rtde_receive.getActualQ (at B)", lambda: until(r.getActualQ, close_to(Q_B)),
+         close_to(Q_B))
+    step("rtde_control.moveJ (A, asynchronous, slow)", lambda: c.moveJ(Q_A, 0.005, 1.4, True),
+         lambda v: v is True)
+    time.sleep(0.05)
+    step("rtde_control.stopJ", lambda: c.stopJ(2.0), lambda v: True)
+    step("rtde_receive.getActualQ (stopped between B and A)", r.getActualQ,
+         lambda q: all(b + 1e-4 < x < a - 1e-4 for x, a, b in zip(q, Q_A, Q_B, strict=True)))
+    step("rtde_control.moveJ (outside the joint limits)",
+         lambda: c.moveJ([9.0, *Q_A[1:]], 1.0, 1.4), lambda v: v is False)
+    step("rtde_control.isProgramRunning (ended by the error)", c.isProgramRunning,
+         lambda v: v is False)
+    step("rtde_control.reuploadScript", c.reuploadScript, lambda v: v is True)
+    step("rtde_control.isProgramRunning (uploaded again)",
+         lambda: until(c.isProgramRunning, lambda v: v is True), lambda v: v is True)
+    step("rtde_control.stopScript", c.stopScript, lambda v: True)
+    step("rtde_control.isProgramRunning (stopped)",
+         lambda: until(c.isProgramRunning, lambda v: v is False), lambda v: v is False)
+    step("rtde_receive.getRuntimeState (stopped)",
+         lambda: until(r.getRuntimeState, lambda s: s == 1), lambda v: v == 1)
+    c.disconnect()
 if r is not None:
     r.disconnect()
 step("dashboard.powerOff", d.powerOff, lambda v: True)

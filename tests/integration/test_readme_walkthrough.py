@@ -23,8 +23,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 ACTIVATE = ". .venv/bin/activate"
-# sim all --port 17001: ..., UR 17006/08/09/11, KUKA 17007, ABB 17010
-SIM_PORTS = range(17001, 17012)
+# sim all --port 17001: ..., UR 17006/08/09/11/12, KUKA 17007, ABB 17010
+SIM_PORTS = range(17001, 17013)
 
 
 def _using_blocks() -> list[str]:

@@ -1,8 +1,9 @@
 """The third-party ``ur-rtde`` client drives the UR simulator through a realistic session.
 
-ur-rtde reaches RTDE on port 30004 only (no port argument), so the simulator listens on a
-loopback address of its own (127.0.0.N, N chosen at random among those whose ports 29999,
-30001, 30002 and 30004 are free) with the real port numbers. The client runs in a child
+ur-rtde reaches RTDE on port 30004 only (no port argument), and RTDEControlInterface sends
+its control program to 30003, so the simulator listens on a loopback address of its own
+(127.0.0.N, N chosen at random among those whose ports 29999 and 30001-30004 are free) with
+the real port numbers. The client runs in a child
 process: its calls block holding the GIL.
 """
 
@@ -22,7 +23,7 @@ pytest.importorskip("rtde_receive", reason="ur-rtde has no wheel for this platfo
 
 SESSION = Path(__file__).with_name("_ur_rtde_session.py")
 REAL_PORTS = {"ur_dashboard": 29999, "ur_primary": 30001, "ur_secondary": 30002,
-              "ur_rtde": 30004}
+              "ur_realtime": 30003, "ur_rtde": 30004}
 
 
 async def _start_on_free_loopback(world: SimWorld) -> SimCell:
@@ -36,7 +37,7 @@ async def _start_on_free_loopback(world: SimWorld) -> SimCell:
             return await cell.start()
         except OSError:
             continue  # a port is taken on that address (start() cleaned up)
-    pytest.skip("no loopback address with ports 29999/30001/30002/30004 free")
+    pytest.skip("no loopback address with ports 29999 and 30001-30004 free")
 
 
 async def test_ur_rtde_session_passes_every_step():
@@ -66,12 +67,15 @@ async def test_ur_rtde_session_passes_every_step():
         failed = [f"{s['step']}: {s['detail']}" for s in steps if not s["ok"]]
         assert proc.returncode == 0, err.decode()[-2000:]
         assert not failed, failed
-        assert len(steps) == 43
+        assert len(steps) == 60
         # What the client set arrived in the controller.
         assert sim.int_in[18] == 42
         assert sim.double_in[19] == 1.25
         assert sim.speed_slider == 0.5
         assert sim.digital_out & (1 << 3) == 0
         assert sim.robot_mode == 3  # powered off at the end
+        # ur-rtde's control program ran twice (uploaded, then uploaded again after the error)
+        assert sum(p.startswith("def rtde_control():") for p in sim.scripts) == 2
+        assert any("outside the joint limits" in e for e in sim.runtime_errors)
     finally:
         await cell.stop()

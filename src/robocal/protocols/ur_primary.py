@@ -289,6 +289,8 @@ class Statement:
 
 
 _BLOCK_START = re.compile(r"^\s*(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:\s*$")
+# a line opening a nested block (closed by its own ``end``); ``elif``/``else`` continue one
+_INNER_BLOCK = re.compile(r"^(def|thread|sec)\s+\w+\s*\(.*\)\s*:$|^(if|while|for)\b.*:$")
 _ASSIGN = re.compile(r"^\s*(?:global\s+|local\s+)?([A-Za-z_]\w*)\s*=(?!=)\s*(.+)$")
 _CALL = re.compile(r"^\s*([A-Za-z_]\w*)\s*\((.*)\)\s*$")
 _POSE = re.compile(r"\bp\[")
@@ -297,8 +299,10 @@ _POSE = re.compile(r"\bp\[")
 def split_programs(buffer: str) -> tuple[list[str], str]:
     """Split received text into complete programs and the incomplete rest.
 
-    A ``def``/``sec`` header starts a program that ends at its matching ``end`` line (no
-    nesting in robocal's subset); any other non-empty line is a program of its own.
+    A ``def``/``sec`` header starts a program that ends at its matching ``end`` line:
+    blocks inside it (``def``, ``thread``, ``if``, ``while``, ``for``) each end with an ``end``
+    of their own, as in ur-rtde's control program. Any other non-empty line is a program of
+    its own.
     """
     programs: list[str] = []
     lines = buffer.split("\n")
@@ -310,8 +314,15 @@ def split_programs(buffer: str) -> tuple[list[str], str]:
             i += 1
             continue
         if _BLOCK_START.match(line):
-            j = i + 1
-            while j < rest_start and lines[j].strip() != "end":
+            depth, j = 1, i + 1
+            while j < rest_start:
+                code = lines[j].split("#", 1)[0].strip()
+                if code == "end":
+                    depth -= 1
+                    if depth == 0:
+                        break
+                elif _INNER_BLOCK.match(code):
+                    depth += 1
                 j += 1
             if j >= rest_start:
                 return programs, "\n".join(lines[i:])

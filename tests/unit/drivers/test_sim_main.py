@@ -140,8 +140,11 @@ def test_ur_ports_keep_the_real_spacing():
     from robocal.drivers.sim import _fixed_ports
 
     assert _fixed_ports("ur", 29999) == {"ur_dashboard": 29999, "ur_primary": 30001,
-                                         "ur_secondary": 30002, "ur_rtde": 30004}
-    assert _fixed_ports("all", 17001)["ur_rtde"] == 17011
+                                         "ur_secondary": 30002, "ur_realtime": 30003,
+                                         "ur_rtde": 30004}
+    ports = _fixed_ports("all", 17001)
+    assert ports["ur_rtde"] == 17011 and ports["ur_realtime"] == 17012
+    assert len(set(ports.values())) == len(ports)            # no two simulators share one
 
 
 def test_drift_rates_are_checked():

@@ -183,3 +183,62 @@ async def test_rtde_outputs_registers_and_32_bit_register_words():
         values = sim.output_values(names)
         assert values[:6] == [0b10, 0b10, 0b1, 7, 0.5, True]
         assert values[6] == 0b01  # powered, no program running
+
+
+async def test_ur_rtde_control_program_runs_its_register_protocol():
+    # the program as ur-rtde 1.6 sends it to 30003 (its body is not interpreted), with the
+    # upper register range: every register the client and the program share is offset by 24
+    body = ("    global reg_offset_float = # float register offset\n24"
+            "    global reg_offset_int = # int register offset\n24"
+            "    while keep_running:\n        sync()\n    end\n")
+    async with ur_sim(time_scale=0.05) as sim:
+        assert "realtime" in sim.ports
+        _, writer = await asyncio.open_connection(sim.host, sim.ports["realtime"])
+        try:
+            writer.write(f"def rtde_control():\n{body}end\n".encode())
+            await eventually(lambda: sim.int_out[24] == 1, 5, what="ready for a command")
+            assert sim.runtime_state == rtde.RuntimeState.PLAYING
+            progress0 = sim.int_out[26]
+            assert progress0 & 32768 == 0                      # no operation running
+
+            async def command(cmd: int, ints: dict[int, int], doubles: list[float]) -> None:
+                for i, v in ints.items():
+                    sim.int_in[24 + i] = v
+                sim.double_in[24:24 + len(doubles)] = doubles
+                sim.int_in[24] = cmd
+                await eventually(lambda: sim.int_out[24] == 2, 5, what=f"command {cmd} done")
+                sim.int_in[24] = 0
+                await eventually(lambda: sim.int_out[24] == 1, 5, what="ready again")
+
+            target = [0.3, -1.0, 1.0, -0.5, 0.2, 0.1]
+            await command(1, {1: 0}, [*target, 1.0, 1.4])      # moveJ, synchronous
+            assert list(sim.world.q_cmd_rad) == pytest.approx(target)
+            # asynchronous: done at once, the progress register says it runs, then ends
+            back = [0.0, -1.2, 1.1, -0.4, 0.3, 0.2]
+            await command(1, {1: 1}, [*back, 0.2, 1.4])
+            reg = sim.int_out[26]
+            assert reg & 32768 and (reg >> 24) == (progress0 >> 24) + 1
+            await eventually(lambda: not sim.int_out[26] & 32768, 10, what="async move ended")
+            assert list(sim.world.q_actual_rad) == pytest.approx(back, abs=1e-3)
+            # stopJ halts an asynchronous move where it is
+            await command(1, {1: 1}, [*target, 0.05, 1.4])
+            await command(34, {1: 0}, [2.0])
+            q = list(sim.world.q_actual_rad)
+            assert q != pytest.approx(target, abs=1e-3) and not sim.int_out[26] & 32768
+            # a command the emulation does not know is a runtime exception that ends it
+            sim.int_in[24] = 3                                 # moveL
+            await eventually(lambda: sim.runtime_state == rtde.RuntimeState.STOPPED, 5,
+                             what="program ended")
+            assert "command 3 is not simulated" in sim.runtime_errors[-1]
+            # uploaded again, command 255 ends it without an error
+            sim.int_in[24] = 0
+            writer.write(f"def rtde_control():\n{body}end\n".encode())
+            await eventually(lambda: sim.runtime_state == rtde.RuntimeState.PLAYING, 5,
+                             what="running again")
+            errors = len(sim.runtime_errors)
+            sim.int_in[24] = 255
+            await eventually(lambda: sim.runtime_state == rtde.RuntimeState.STOPPED, 5,
+                             what="stopped by command 255")
+            assert len(sim.runtime_errors) == errors
+        finally:
+            writer.close()

@@ -221,3 +221,22 @@ def test_dashboard_commands_and_replies():
 def test_dashboard_parse_command_never_crashes(text):
     cmd = dash.parse_command(text)
     assert cmd is None or isinstance(cmd.word, str)
+
+
+def test_programs_with_nested_blocks_end_at_their_own_end():
+    # ur-rtde's control program: functions, threads, loops and branches inside the program,
+    # each closed by an end of its own; elif/else continue a block
+    text = ("def rtde_control():\n"
+            "    global reg_offset_int = # int register offset\n0\n"
+            "    thread move_thread():\n        while (True):\n            sync()\n"
+            "        end\n    end\n"
+            "    def process_cmd(cmd):\n        if cmd == 1:\n            x = 1\n"
+            "        elif cmd == 2:  # a comment: end\n            x = 2\n        else:\n"
+            "            x = 3\n        end\n    end\n"
+            "    while keep_running:\n        sync()\n    end\nend\nstopj(2)\ndef b():\n"
+            "    if x:\n")
+    programs, rest = prim.split_programs(text)
+    assert len(programs) == 2 and programs[1] == "stopj(2)"
+    assert programs[0].startswith("def rtde_control():") and programs[0].endswith("    end\nend")
+    assert programs[0] == text[:text.index("\nstopj")]
+    assert rest == "def b():\n    if x:\n"      # incomplete: waits for both ends

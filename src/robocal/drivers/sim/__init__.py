@@ -92,8 +92,8 @@ class SimCell:
         Listening address (loopback).
     ports : dict, optional
         Fixed ports: ``fanuc_connect``, ``fanuc_main``, ``modbus``, ``ltp``, ``emscon``,
-        ``kuka``, ``abb``, ``ur_dashboard``, ``ur_primary``, ``ur_secondary``, ``ur_rtde``
-        (0: free port).
+        ``kuka``, ``abb``, ``ur_dashboard``, ``ur_primary``, ``ur_secondary``,
+        ``ur_realtime``, ``ur_rtde`` (0: free port).
     ur_host : str, optional
         Listening address of the UR simulator (default ``host``); ur-rtde reaches RTDE on
         port 30004 only, so tests give it a loopback address of its own.
@@ -191,7 +191,7 @@ class SimCell:
                 await self.ur_sim.start(
                     self.ur_host, dashboard=p.get("ur_dashboard", 0),
                     primary=p.get("ur_primary", 0), secondary=p.get("ur_secondary", 0),
-                    rtde_port=p.get("ur_rtde", 0),
+                    rtde_port=p.get("ur_rtde", 0), realtime=p.get("ur_realtime", 0),
                 )
         except BaseException:
             await self.stop()
@@ -414,6 +414,7 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
         return _ur_ports(port)
     return {
         **_ur_ports(port + 5),
+        "ur_realtime": port + 11,  # port + 9 (the real spacing) is ABB's
         "fanuc_connect": port,
         "fanuc_main": port + 1,
         "modbus": port + 2,
@@ -427,7 +428,7 @@ def _fixed_ports(which: str, port: int) -> dict[str, int]:
 def _ur_ports(port: int) -> dict[str, int]:
     """The UR ports from the dashboard's, with the real controller's spacing."""
     return {"ur_dashboard": port, "ur_primary": port + 2, "ur_secondary": port + 3,
-            "ur_rtde": port + 5}
+            "ur_realtime": port + 4, "ur_rtde": port + 5}
 
 
 async def _serve(args: argparse.Namespace) -> int:

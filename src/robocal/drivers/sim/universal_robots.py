@@ -1,6 +1,6 @@
 """An asyncio Universal Robots controller simulator (docs/protocols/universal-robots.md).
 
-Four listening sockets around one :class:`SimWorld` robot, as an e-Series controller has:
+Five listening sockets around one :class:`SimWorld` robot, as an e-Series controller has:
 
 * Dashboard server (29999): power on/off, brake release, load/play/stop/pause of ``.urp``
   programs, robot mode, safety status and mode, remote control, program state.
@@ -13,6 +13,9 @@ Four listening sockets around one :class:`SimWorld` robot, as an e-Series contro
   pause, data packages streamed at the recipe frequency (capped by ``rtde_max_hz``), inputs
   applied to the standard, configurable and tool digital outputs, the speed slider and the
   input registers.
+* Real-time interface (30003): URScript in, as on 30001/30002 (no state stream out).
+  ur-rtde's control program (``def rtde_control():``) runs as an emulation of its command
+  loop (:class:`_RtdeControl`): ``moveJ``, ``stopJ``, ``stopL``, stop.
 
 Installation variables are the names assigned by a program that start with
 ``installation_prefix``; they keep their values after the program ends (as variables
@@ -26,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import re
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
@@ -240,12 +244,14 @@ class UrSimulator(WorldSimulator):
 
     # --- lifecycle -----------------------------------------------------------------------------
     async def start(self, host: str = "127.0.0.1", *, dashboard: int = 0, primary: int = 0,
-                    secondary: int = 0, rtde_port: int = 0) -> dict[str, int]:
-        """Listen on the four ports (0: free ones); return them by name."""
+                    secondary: int = 0, rtde_port: int = 0, realtime: int = 0
+                    ) -> dict[str, int]:
+        """Listen on the five ports (0: free ones); return them by name."""
         for name, handler, port in (
             ("dashboard", self._on_dashboard, dashboard),
             ("primary", self._on_primary, primary),
             ("secondary", self._on_primary, secondary),
+            ("realtime", self._on_realtime, realtime),
             ("rtde", self._on_rtde, rtde_port),
         ):
             self.ports[name] = port_of(await self._listen(handler, host, port))
@@ -567,17 +573,26 @@ class UrSimulator(WorldSimulator):
         writer.write(self._state_message())
         await writer.drain()
         self._state_writers.add(writer)
-        buffer = ""
         try:
-            async for data in received(reader):
-                buffer += data.decode("utf-8", errors="replace").replace("\r", "")
-                programs, buffer = prim.split_programs(buffer)
-                for program in programs:
-                    await self._run_script(program)
-                if len(buffer) > 1 << 20:
-                    buffer = ""
+            await self._read_programs(reader)
         finally:
             self._state_writers.discard(writer)
+
+    async def _on_realtime(self, reader: asyncio.StreamReader,
+                           writer: asyncio.StreamWriter) -> None:
+        # URScript in, as on 30001/30002 (ur-rtde's ScriptClient sends its control program
+        # here); the realtime state stream a controller also sends on 30003 is not simulated
+        await self._read_programs(reader)
+
+    async def _read_programs(self, reader: asyncio.StreamReader) -> None:
+        buffer = ""
+        async for data in received(reader):
+            buffer += data.decode("utf-8", errors="replace").replace("\r", "")
+            programs, buffer = prim.split_programs(buffer)
+            for program in programs:
+                await self._run_script(program)
+            if len(buffer) > 1 << 20:
+                buffer = ""
 
     async def _broadcast_state(self) -> None:
         period = 1.0 / self.options.state_hz
@@ -603,6 +618,13 @@ class UrSimulator(WorldSimulator):
 
     async def _run_script(self, program: str) -> None:
         self.scripts.append(program)
+        offsets = _RtdeControl.offsets(program)
+        if offsets is not None:
+            # ur-rtde's control program: run as an emulation of its command loop
+            if await self._may_start("rtde_control"):
+                control = _RtdeControl(self, *offsets)
+                self._program = asyncio.create_task(control.run())
+            return
         try:
             name, statements = prim.parse_script(program)
         except prim.ScriptError as err:
@@ -615,16 +637,21 @@ class UrSimulator(WorldSimulator):
                 return
             await self._execute(statements, name)
             return
+        if await self._may_start(name or "<line>"):
+            self._program = asyncio.create_task(self._execute(statements, name))
+
+    async def _may_start(self, name: str) -> bool:
+        """End the running program; whether a new one may start (else a runtime exception)."""
         await self._end_program()
         if self.robot_mode != RobotMode.RUNNING or self.safety_mode != SafetyMode.NORMAL:
             self._runtime_exception(
-                f"program {name or '<line>'} not started: robot mode "
+                f"program {name} not started: robot mode "
                 f"{RobotMode.NAMES.get(self.robot_mode)}, safety "
                 f"{SafetyMode.NAMES.get(self.safety_mode)}")
-            return
+            return False
         self.program_state = "STOPPED"
         self.script_runs += 1
-        self._program = asyncio.create_task(self._execute(statements, name))
+        return True
 
     async def _end_program(self) -> None:
         task, self._program = self._program, None
@@ -792,3 +819,131 @@ def _zero(t: str) -> Any:
     if t == "BOOL":
         return False
     return 0
+
+
+class _RtdeControl:
+    """ur-rtde's control program (``def rtde_control():``), emulated.
+
+    RTDEControlInterface (ur-rtde 1.6) uploads a URScript program of about 1,200 lines
+    (threads, loops), beyond the subset this simulator interprets, and drives it through
+    RTDE registers; this runs its command loop with the program's register protocol. With
+    the program's register offsets ``oi`` (integers) and ``of`` (doubles), 0 or 24:
+
+    * ``output_int_register_<oi>``: 1 ready for a command, 2 done with it; the client then
+      clears the command (``input_int_register_<oi>`` = 0) and the program signals ready;
+    * commands in ``input_int_register_<oi>``: 1 ``moveJ`` (joints in the double registers
+      ``of``..``of + 5``, speed ``of + 6``, acceleration ``of + 7``, asynchronous when
+      ``input_int_register_<oi + 1>`` is 1), 33 ``stopL`` and 34 ``stopJ`` (halt; also
+      asynchronous), 255 end the program;
+    * ``output_int_register_<oi + 2>``: asynchronous progress. Bits 24-30 count the
+      operations started and bits 16-23 the writes (both modulo 128); while an operation
+      runs, bit 15 is set and bits 0-14 hold its progress (0 here).
+
+    Any other command is a runtime exception naming it: the program ends, as a real one
+    does on an error, and ur-rtde's call returns false.
+    """
+
+    PERIOD_S = 0.002        # one controller cycle (sync()) of an e-Series controller
+    STOP_SCRIPT = 255
+
+    def __init__(self, sim: UrSimulator, oi: int, of: int) -> None:
+        self.sim, self.oi, self.of = sim, oi, of
+        self.writes = 0
+        self.operations = 0
+        self.move: asyncio.Task[None] | None = None
+
+    @staticmethod
+    def offsets(program: str) -> tuple[int, int] | None:
+        """The integer and double register offsets of ur-rtde's control program, or None
+        when ``program`` is not that program. ur-rtde writes each offset on the line after
+        its marker comment (``global reg_offset_int = # int register offset``)."""
+        if not re.match(r"\s*def\s+rtde_control\s*\(\s*\)\s*:", program):
+            return None
+        found = []
+        for kind in ("int", "float"):
+            m = re.search(rf"#\s*{kind} register offset\s*\n\s*(\d+)", program)
+            found.append(int(m.group(1)) if m else 0)
+        return found[0], found[1]
+
+    def _signal(self, value: int) -> None:
+        self.sim.int_out[self.oi] = value
+
+    def _progress(self, value: int) -> None:
+        """Write the asynchronous progress register: ``value`` >= 0 running, < 0 finished."""
+        self.writes = (self.writes + 1) % 128
+        if value == 0:
+            self.operations = (self.operations + 1) % 128
+        reg = self.writes * 65536 + self.operations * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self.sim.int_out[self.oi + 2] = reg
+
+    async def run(self) -> None:
+        """The command loop, until command 255 or a runtime exception."""
+        sim = self.sim
+        self._progress(-1)
+        self._signal(1)
+        executing = False
+        try:
+            while True:
+                cmd = sim.int_in[self.oi]
+                if cmd == 0:
+                    executing = False
+                    self._signal(1)
+                elif not executing:
+                    executing = True
+                    if cmd == self.STOP_SCRIPT:
+                        return
+                    await self._command(cmd)
+                    self._signal(2)
+                await asyncio.sleep(self.PERIOD_S)
+        except _RuntimeError as err:
+            sim._runtime_exception(f"rtde_control: {err}", err.line)
+        except _ProgramHalted:
+            pass
+        finally:
+            await self._stop_move()
+
+    async def _command(self, cmd: int) -> None:
+        sim, of = self.sim, self.of
+        asynchronous = sim.int_in[self.oi + 1] == 1
+        if cmd == 1:
+            q = sim.double_in[of:of + 6]
+            v, a = sim.double_in[of + 6], sim.double_in[of + 7]
+            await self._stop_move()
+            if asynchronous:
+                self._progress(0)
+                self.move = asyncio.create_task(self._async_move(q, a, v))
+            else:
+                await sim._movej(q, a, v, 0)
+        elif cmd in (33, 34):
+            await self._stop_move()
+            sim.world.halt()          # the simulated robot stops at once
+            if asynchronous:
+                self._progress(0)
+                self._progress(-1)
+        else:
+            raise _RuntimeError(f"command {cmd} is not simulated (moveJ, stopJ, stopL and "
+                                "stopScript are)", 0)
+
+    async def _async_move(self, q: list[float], a: float, v: float) -> None:
+        try:
+            await self.sim._movej(q, a, v, 0)
+        except (_RuntimeError, _ProgramHalted) as err:
+            if isinstance(err, _RuntimeError):
+                self.sim._runtime_exception(f"rtde_control: {err}", err.line)
+            program = self.sim._program
+            if program is not None:
+                program.cancel()       # an error in a thread ends the whole program
+        else:
+            self.move = None
+            self._progress(-1)
+
+    async def _stop_move(self) -> None:
+        task, self.move = self.move, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            self.sim.world.halt()
+            self._progress(-1)       # a killed move thread cannot signal it
