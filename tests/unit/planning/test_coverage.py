@@ -11,6 +11,7 @@ import pytest
 from robocal.kinematics import RobotDescription, load_robot
 from robocal.planning import (
     Cell,
+    DesignSpace,
     FeasibilityChecker,
     MotionChecker,
     Plan,
@@ -168,18 +169,27 @@ def test_plan_cli_prints_coverage_and_exclusions(tmp_path: Path,
     assert "link capsules: 48, 48, 48, 30, 30, 30 mm (default" in out
 
 
-def test_candidates_unreachable_from_home_are_counted() -> None:
-    # the KR210's folded forearm: feasible poses in pockets no straight move from home reaches;
-    # plan_campaign reports them as an excluded family
+def _demo_cell_design(robot_name: str, candidates: int) -> tuple[
+        RobotDescription, Cell, FeasibilityChecker, MotionChecker, np.ndarray, DesignSpace]:
+    """A robot in the demo cell, its checkers, feasible candidates and their design space
+    for the constant model."""
     from robocal.planning import cell_design_space, draw_candidates, model_spec
-    from robocal.planning._campaign import _choose_poses
 
-    robot = load_robot("kuka_kr210_r3100")
+    robot = load_robot(robot_name)
     demo = load_cell("demo")
     checker = FeasibilityChecker(robot, demo)
     motion = MotionChecker(robot, demo, limits=checker.ranges)
-    q, f, _ = draw_candidates(checker, target=256, seed=0)
-    ds = cell_design_space(checker, model_spec(robot, "constant"), q, f)
+    q, f, _ = draw_candidates(checker, target=candidates, seed=0)
+    return robot, demo, checker, motion, q, cell_design_space(
+        checker, model_spec(robot, "constant"), q, f)
+
+
+def test_candidates_unreachable_from_home_are_counted() -> None:
+    # the KR210's folded forearm: feasible poses in pockets no straight move from home reaches;
+    # plan_campaign reports them as an excluded family
+    from robocal.planning._campaign import _choose_poses
+
+    robot, demo, checker, motion, q, ds = _demo_cell_design("kuka_kr210_r3100", 256)
     unreachable: list[int] = []
     cal, _ = _choose_poses(ds, motion, np.zeros(6), math.radians(90.0), count=15,
                            validation=0, seed=0, design="stratified", exchange_passes=2,
@@ -204,15 +214,9 @@ def test_program_file_missing_is_one_data_error_and_semicolons_are_read(tmp_path
 def test_unreachable_poses_are_replaced_stratum_by_stratum() -> None:
     # a third of a UR10's candidates in the demo cell lie where no straight move from home
     # reaches: only those strata choose again, so the poses already checked stay chosen
-    from robocal.planning import cell_design_space, draw_candidates, model_spec
     from robocal.planning._campaign import _choose_poses, _home, _round_deg
 
-    robot = load_robot("ur10")
-    demo = load_cell("demo")
-    checker = FeasibilityChecker(robot, demo)
-    motion = MotionChecker(robot, demo, limits=checker.ranges)
-    q, f, _ = draw_candidates(checker, target=1024, seed=0)
-    ds = cell_design_space(checker, model_spec(robot, "constant"), q, f)
+    robot, demo, checker, motion, q, ds = _demo_cell_design("ur10", 1024)
     unreachable: list[int] = []
     home = _round_deg(_home(robot, demo, checker.ranges))
     max_step = math.radians(demo.motion.max_joint_step_deg)

@@ -31,6 +31,14 @@ def _space(J: np.ndarray) -> DesignSpace:
     return ds
 
 
+def _random_space(rng: np.random.Generator, n: int, L: int) -> DesignSpace:
+    """n random candidates with L parameters, of unequal information, over a 2-D joint
+    space."""
+    ds = _space(rng.normal(size=(n, 3, L)) * rng.uniform(0.2, 2.0, (n, 1, 1)))
+    ds.q = rng.uniform(-1.0, 1.0, (n, 2))
+    return ds
+
+
 def test_observability_indices_follow_their_definitions(rng: np.random.Generator) -> None:
     U, _ = np.linalg.qr(rng.normal(size=(12, 4)))
     V, _ = np.linalg.qr(rng.normal(size=(4, 4)))
@@ -153,9 +161,8 @@ def test_stratified_selection_takes_one_pose_per_stratum_and_is_exchange_optimal
     from robocal.planning._design import _kmeans_strata
 
     n, L, k = 120, 5, 8
-    J = rng.normal(size=(n, 3, L)) * rng.uniform(0.2, 2.0, (n, 1, 1))
-    ds = _space(J)
-    ds.q = rng.uniform(-1.0, 1.0, (n, 2))
+    ds = _random_space(rng, n, L)
+    J = ds.J
     sel = ds.select_stratified(k, exchange_passes=10)
     labels, _ = _kmeans_strata(ds.q, k, 12)
     assert len(set(sel.tolist())) == k
@@ -196,9 +203,8 @@ def test_stratified_selection_covers_the_workspace(rng: np.random.Generator) -> 
 def test_refilling_strata_replaces_only_the_poses_no_longer_allowed(
         rng: np.random.Generator) -> None:
     n, L, k = 300, 5, 12
-    J = rng.normal(size=(n, 3, L)) * rng.uniform(0.2, 2.0, (n, 1, 1))
-    ds = _space(J)
-    ds.q = rng.uniform(-1.0, 1.0, (n, 2))
+    ds = _random_space(rng, n, L)
+    J = ds.J
     allowed = np.ones(n, dtype=bool)
     chosen, strata = ds.stratify(k, allowed=allowed)
     assert sorted(strata[chosen].tolist()) == list(range(k))

@@ -655,11 +655,7 @@ class UrSimulator(WorldSimulator):
 
     async def _end_program(self) -> None:
         task, self._program = self._program, None
-        if task is not None and not task.done():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-            self.world.halt()
+        await _cancel_and_halt(task, self.world)
 
     async def _execute(self, statements: Sequence[prim.Statement], name: str) -> None:
         local: dict[str, Any] = {}
@@ -941,9 +937,16 @@ class _RtdeControl:
 
     async def _stop_move(self) -> None:
         task, self.move = self.move, None
-        if task is not None and not task.done():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-            self.sim.world.halt()
+        if await _cancel_and_halt(task, self.sim.world):
             self._progress(-1)       # a killed move thread cannot signal it
+
+
+async def _cancel_and_halt(task: asyncio.Task[None] | None, world: SimWorld) -> bool:
+    """Cancel ``task`` if it still runs and stop the robot where it is; whether it ran."""
+    if task is None or task.done():
+        return False
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+    world.halt()
+    return True
