@@ -350,8 +350,8 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         help="first port (0: free ports). all: fanuc P, P+1; modbus P+2; ltp P+3; emscon P+4; "
-        "ur P+5, P+7, P+8, P+10; kuka P+6; abb P+9. ur: dashboard P, primary P+2, "
-        "secondary P+3, RTDE P+5 (P=29999 gives the real ports)",
+        "ur P+5, P+7, P+8, P+10, P+11; kuka P+6; abb P+9. ur: dashboard P, primary P+2, "
+        "secondary P+3, real-time P+4, RTDE P+5 (P=29999 gives the real ports)",
     )
     p.add_argument("--pty", action="store_true", help="also serve the tracker on a pty")
     p.add_argument("--fault-rate", type=float, default=0.0,
