@@ -11,6 +11,7 @@ Prints one JSON line per step: ``{"step": ..., "ok": bool, "detail": ...}``.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -152,12 +153,44 @@ if c is not None and r is not None:
     step("rtde_control.stopJ", lambda: c.stopJ(2.0), lambda v: True)
     step("rtde_receive.getActualQ (stopped between B and A)", r.getActualQ,
          lambda q: all(b + 1e-4 < x < a - 1e-4 for x, a, b in zip(q, Q_A, Q_B, strict=True)))
+    # the controller's kinematics: the receive interface's TCP pose is its forward
+    # kinematics; a TCP offset along the flange's z moves the point, not the orientation
+    fk = step("rtde_control.getForwardKinematics ()", c.getForwardKinematics,
+              lambda p: close_to(p)(until(r.getActualTCPPose, close_to(p))))
+    shifted = step("rtde_control.getForwardKinematics (q, tcp 0.1 m along z)",
+                   lambda: c.getForwardKinematics(r.getActualQ(), [0, 0, 0.1, 0, 0, 0]),
+                   lambda p: fk is not None and abs(math.dist(p[:3], fk[:3]) - 0.1) < 1e-9
+                   and math.dist(p[3:], fk[3:]) < 1e-9)
+    step("rtde_control.setTcp (0.1 m along z)", lambda: c.setTcp([0, 0, 0.1, 0, 0, 0]),
+         lambda v: v is True)
+    step("rtde_receive.getActualTCPPose (with the TCP)",
+         lambda: until(r.getActualTCPPose, close_to(shifted or [])),
+         lambda p: shifted is not None and close_to(shifted)(p))
+    step("rtde_control.setTcp (back to the flange)", lambda: c.setTcp([0.0] * 6),
+         lambda v: v is True)
+    step("rtde_control.setPayload", lambda: c.setPayload(1.5, [0.0, 0.0, 0.05]),
+         lambda v: v is True)
+    step("rtde_control.isJointsWithinSafetyLimits",
+         lambda: (c.isJointsWithinSafetyLimits(Q_A), c.isJointsWithinSafetyLimits([9.0, *Q_A[1:]])),
+         lambda v: v == (True, False))
+    step("rtde_control.isSteady", c.isSteady, lambda v: v is True)
     step("rtde_control.moveJ (outside the joint limits)",
          lambda: c.moveJ([9.0, *Q_A[1:]], 1.0, 1.4), lambda v: v is False)
     step("rtde_control.isProgramRunning (ended by the error)", c.isProgramRunning,
          lambda v: v is False)
     step("rtde_control.reuploadScript", c.reuploadScript, lambda v: v is True)
     step("rtde_control.isProgramRunning (uploaded again)",
+         lambda: until(c.isProgramRunning, lambda v: v is True), lambda v: v is True)
+    step("rtde_control.triggerProtectiveStop", c.triggerProtectiveStop, lambda v: True)
+    step("rtde_receive.isProtectiveStopped",
+         lambda: until(r.isProtectiveStopped, lambda v: v is True), lambda v: v is True)
+    step("rtde_control.isProgramRunning (ended by the protective stop)",
+         lambda: until(c.isProgramRunning, lambda v: v is False), lambda v: v is False)
+    step("dashboard.unlockProtectiveStop", d.unlockProtectiveStop, lambda v: True)
+    step("rtde_receive.isProtectiveStopped (unlocked)",
+         lambda: until(r.isProtectiveStopped, lambda v: v is False), lambda v: v is False)
+    step("rtde_control.reuploadScript (after the stop)", c.reuploadScript, lambda v: v is True)
+    step("rtde_control.isProgramRunning (uploaded a third time)",
          lambda: until(c.isProgramRunning, lambda v: v is True), lambda v: v is True)
     step("rtde_control.stopScript", c.stopScript, lambda v: True)
     step("rtde_control.isProgramRunning (stopped)",

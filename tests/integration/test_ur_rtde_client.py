@@ -67,15 +67,17 @@ async def test_ur_rtde_session_passes_every_step():
         failed = [f"{s['step']}: {s['detail']}" for s in steps if not s["ok"]]
         assert proc.returncode == 0, err.decode()[-2000:]
         assert not failed, failed
-        assert len(steps) == 60
+        assert len(steps) == 75
         # What the client set arrived in the controller.
         assert sim.int_in[18] == 42
         assert sim.double_in[19] == 1.25
         assert sim.speed_slider == 0.5
         assert sim.digital_out & (1 << 3) == 0
         assert sim.robot_mode == 3  # powered off at the end
-        # ur-rtde's control program ran twice (uploaded, then uploaded again after the error)
-        assert sum(p.startswith("def rtde_control():") for p in sim.scripts) == 2
+        # ur-rtde's control program ran three times (uploaded, then again after the error and
+        # after the protective stop); the payload it set arrived
+        assert sum(p.startswith("def rtde_control():") for p in sim.scripts) == 3
+        assert sim.payload == (1.5, [0.0, 0.0, 0.05]) and sim.tcp == [0.0] * 6
         assert any("outside the joint limits" in e for e in sim.runtime_errors)
     finally:
         await cell.stop()

@@ -1,4 +1,5 @@
-"""Small transform helpers (numpy only): Euler angles, FANUC WPR, rigid registration."""
+"""Small transform helpers (numpy only): Euler angles, FANUC WPR, rotation vectors, rigid
+registration."""
 
 from __future__ import annotations
 
@@ -47,6 +48,38 @@ def matrix_to_wpr(R: Array) -> tuple[float, float, float]:
     w = float(np.arctan2(R[2, 1], R[2, 2]))
     r = float(np.arctan2(R[1, 0], R[0, 0]))
     return w, p, r
+
+
+def rotvec_to_matrix(v: Array) -> Array:
+    """Rotation matrix (3, 3) of a rotation vector ``v`` (3,) rad (axis times angle, as UR
+    poses ``p[x, y, z, rx, ry, rz]`` give orientations)."""
+    v = np.asarray(v, dtype=float)
+    ang = float(np.linalg.norm(v))
+    if ang < 1e-12:
+        return np.eye(3)
+    k = v / ang
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(ang) * K + (1.0 - np.cos(ang)) * (K @ K)
+
+
+def matrix_to_rotvec(R: Array) -> Array:
+    """Rotation vectors (..., 3) of rotation matrices R (..., 3, 3), angles in [0, pi]; at pi
+    the axis is read from ``R + I`` (the skew part vanishes there)."""
+    R = np.asarray(R, dtype=float)
+    w = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                        R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    s = np.linalg.norm(w, axis=-1)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    ang = np.arctan2(s, c)
+    out = w * np.where(s > 1e-12, ang / np.maximum(s, 1e-300), 1.0)[..., None]
+    near_pi = (s < 1e-6) & (c < 0.0)
+    if np.any(near_pi):
+        B = (R[near_pi] + np.eye(3)) / 2.0           # = k k^T at pi
+        col = np.argmax(np.diagonal(B, axis1=-2, axis2=-1), axis=-1)
+        k = B[np.arange(len(B)), :, col]
+        k /= np.linalg.norm(k, axis=-1, keepdims=True)
+        out[near_pi] = k * ang[near_pi][..., None]
+    return out
 
 
 def rigid_fit(src: Array, dst: Array, weights: Array | None = None) -> Array:

@@ -22,7 +22,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robocal._core.threads import single_threaded
-from robocal.kinematics import ErrorModelSpec, KinematicModel, ParameterLayout, RobotDescription
+from robocal.kinematics import (
+    ErrorModelSpec,
+    KinematicModel,
+    ParameterLayout,
+    RobotDescription,
+    matrix_to_rotvec,
+)
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
 
 Array = NDArray[np.float64]
@@ -32,17 +38,6 @@ ISO_CORNERS = np.array([[-1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0], 
 
 #: Cycles of P1..P5 that ISO 9283 asks for to state pose accuracy and repeatability.
 ISO_CYCLES = 30
-
-
-def _rotvec(R: Array) -> Array:
-    """Rotation vectors (n, 3) of rotation matrices R (n, 3, 3) (angle < pi)."""
-    w = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0],
-                        R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    s = np.linalg.norm(w, axis=1)
-    c = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
-    ang = np.arctan2(s, c)
-    f = np.where(s > 1e-12, ang / np.maximum(s, 1e-300), 1.0)
-    return w * f[:, None]
 
 
 @single_threaded
@@ -89,7 +84,8 @@ def solve_ik(robot: RobotDescription, tool_offset: Array, p_target: Array, R_tar
     stall = np.zeros(n, dtype=int)
     for _ in range(iterations):
         p, R, J = model.joint_jacobian(q, x)
-        e = np.concatenate([p_target - p, _rotvec(R_target @ np.transpose(R, (0, 2, 1)))], 1)
+        e = np.concatenate(
+            [p_target - p, matrix_to_rotvec(R_target @ np.transpose(R, (0, 2, 1)))], 1)
         err = np.maximum(np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1))
         done = err < tol
         # give up on targets whose error has not dropped by 1 % in 25 iterations

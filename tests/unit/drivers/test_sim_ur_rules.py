@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 from collections.abc import AsyncIterator
 
+import numpy as np
 import pytest
 
 from robocal.drivers.sim import SimCell, SimWorld, UrSimOptions, UrSimulator
@@ -242,3 +243,25 @@ async def test_ur_rtde_control_program_runs_its_register_protocol():
             assert len(sim.runtime_errors) == errors
         finally:
             writer.close()
+
+
+async def test_the_controllers_tcp_pose_is_its_dh_tables_forward_kinematics():
+    from robocal.kinematics import ErrorModelSpec, KinematicModel, matrix_to_rotvec
+
+    async with ur_sim() as sim:
+        robot = sim.world.cell.robot
+        model = KinematicModel(robot, ErrorModelSpec(robot.dof, ()), np.eye(4))
+        q = np.array([[0.3, -1.0, 1.0, -0.5, 0.2, 0.1], [-2.0, -0.5, 2.2, 1.0, -1.5, 3.0]])
+        _, R, o = model.flange_poses(q, model.nominal_params())
+        for i in range(len(q)):
+            pose = sim.tcp_pose(q[i])
+            np.testing.assert_allclose(pose[:3], o[i], atol=1e-12)
+            np.testing.assert_allclose(pose[3:], matrix_to_rotvec(R[i]), atol=1e-12)
+        # the active TCP shifts the point along the flange axes, not the orientation
+        sim.tcp = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
+        pose = sim.tcp_pose(q[0])
+        np.testing.assert_allclose(pose[:3], o[0] + 0.1 * R[0][:, 2], atol=1e-12)
+        # a new calibration (set_kinematics) changes what the controller computes
+        k = sim.kinematics()
+        sim.set_kinematics(k.dh_theta, k.dh_a, [k.dh_d[0] + 0.001, *k.dh_d[1:]], k.dh_alpha)
+        assert sim.tcp_pose(q[0])[2] == pytest.approx(pose[2] + 0.001, abs=1e-12)

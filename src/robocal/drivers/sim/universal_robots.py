@@ -15,7 +15,10 @@ Five listening sockets around one :class:`SimWorld` robot, as an e-Series contro
   input registers.
 * Real-time interface (30003): URScript in, as on 30001/30002 (no state stream out).
   ur-rtde's control program (``def rtde_control():``) runs as an emulation of its command
-  loop (:class:`_RtdeControl`): ``moveJ``, ``stopJ``, ``stopL``, stop.
+  loop (:class:`_RtdeControl`).
+
+The TCP pose (RTDE ``actual_TCP_pose``, ``target_TCP_pose``) is the controller's forward
+kinematics: the DH table it reports and the active TCP offset.
 
 Installation variables are the names assigned by a program that start with
 ``installation_prefix``; they keep their values after the program ends (as variables
@@ -34,6 +37,7 @@ import time
 from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 
+import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -41,6 +45,7 @@ from robocal.drivers.sim._server import WorldSimulator, port_of, received
 from robocal.drivers.sim.faults import FaultConfig
 from robocal.drivers.sim.world import SimWorld
 from robocal.errors import FramingError, ProtocolError
+from robocal.kinematics import matrix_to_rotvec, rotvec_to_matrix
 from robocal.protocols import ur_dashboard as dash
 from robocal.protocols import ur_primary as prim
 from robocal.protocols import ur_rtde as rtde
@@ -222,6 +227,8 @@ class UrSimulator(WorldSimulator):
         self.digital_out = 0  # bits 0-7 standard, 8-15 configurable, 16-17 tool
         self.speed_slider = 1.0
         self.analog_out = [0.0, 0.0]
+        self.tcp = [0.0] * 6               # active TCP offset p[x, y, z, rx, ry, rz] (m, rad)
+        self.payload: tuple[float, list[float]] = (0.0, [0.0, 0.0, 0.0])   # kg, CoG m
         self.script_runs = 0
         self.runtime_errors: list[str] = []
         self.ports: dict[str, int] = {}
@@ -284,6 +291,27 @@ class UrSimulator(WorldSimulator):
         """Replace the controller's DH table (as a new factory calibration would)."""
         self._dh = (tuple(theta), tuple(a), tuple(d), tuple(alpha))
 
+    def tcp_pose(self, q: Sequence[float], tcp: Sequence[float] | None = None) -> list[float]:
+        """The controller's forward kinematics: the TCP pose ``p[x, y, z, rx, ry, rz]`` (m,
+        rotation vector) in the base frame for joints ``q`` (6,) rad, from the DH table it
+        reports (:meth:`kinematics`) and the TCP offset ``tcp`` (default: the active one)."""
+        theta, a, d, alpha = self._dh
+        signs = [j.sign for j in self.world.cell.robot.joints][:6]
+        signs += [1] * (6 - len(signs))
+        T = np.eye(4)
+        for i in range(6):
+            th = signs[i] * float(q[i]) + theta[i]
+            ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(alpha[i]), math.sin(alpha[i])
+            T = T @ np.array([[ct, -st * ca, st * sa, a[i] * ct],
+                              [st, ct * ca, -ct * sa, a[i] * st],
+                              [0.0, sa, ca, d[i]], [0.0, 0.0, 0.0, 1.0]])
+        off = self.tcp if tcp is None else [float(v) for v in tcp]
+        T_tcp = np.eye(4)
+        T_tcp[:3, :3] = rotvec_to_matrix(np.array(off[3:6]))
+        T_tcp[:3, 3] = off[:3]
+        T = T @ T_tcp
+        return [float(v) for v in T[:3, 3]] + [float(v) for v in matrix_to_rotvec(T[:3, :3])]
+
     @property
     def runtime_state(self) -> int:
         """RTDE ``runtime_state``: a script program or the loaded .urp playing, or stopped."""
@@ -323,6 +351,8 @@ class UrSimulator(WorldSimulator):
             "timestamp": time.monotonic() - self._t0,
             "actual_q": self._q6(world.q_actual_rad),
             "target_q": self._q6(world.q_cmd_rad),
+            "actual_TCP_pose": self.tcp_pose(self._q6(world.q_actual_rad)),
+            "target_TCP_pose": self.tcp_pose(self._q6(world.q_cmd_rad)),
             "actual_qd": qd,
             "target_qd": qd,
             "robot_mode": self.robot_mode,
@@ -830,7 +860,11 @@ class _RtdeControl:
     * commands in ``input_int_register_<oi>``: 1 ``moveJ`` (joints in the double registers
       ``of``..``of + 5``, speed ``of + 6``, acceleration ``of + 7``, asynchronous when
       ``input_int_register_<oi + 1>`` is 1), 33 ``stopL`` and 34 ``stopJ`` (halt; also
-      asynchronous), 255 end the program;
+      asynchronous), 17 ``setPayload``, 29 ``setTcp``, 31 ``triggerProtectiveStop`` (ends
+      the program), 37 ``isJointsWithinSafetyLimits`` and 47 ``isSteady`` (answer in
+      ``output_int_register_<oi + 1>``), 43/44 ``getForwardKinematics`` (pose in the double
+      output registers ``of``..``of + 5``, from :meth:`UrSimulator.tcp_pose`), 255 end the
+      program;
     * ``output_int_register_<oi + 2>``: asynchronous progress. Bits 24-30 count the
       operations started and bits 16-23 the writes (both modulo 128); while an operation
       runs, bit 15 is set and bits 0-14 hold its progress (0 here).
@@ -918,9 +952,30 @@ class _RtdeControl:
             if asynchronous:
                 self._progress(0)
                 self._progress(-1)
+        elif cmd == 17:               # setPayload: a zero CoG keeps the current one
+            cog = sim.double_in[of + 1:of + 4]
+            sim.payload = (sim.double_in[of], cog if any(cog) else sim.payload[1])
+        elif cmd == 29:               # setTcp
+            sim.tcp = sim.double_in[of:of + 6]
+        elif cmd == 31:               # triggerProtectiveStop
+            await self._stop_move()
+            sim.world.halt()
+            sim.safety_mode = SafetyMode.PROTECTIVE_STOP
+            raise _ProgramHalted
+        elif cmd == 37:               # isJointsWithinSafetyLimits
+            q = sim.double_in[of:of + sim.world.dof]
+            sim.int_out[self.oi + 1] = int(bool(sim.world.within_limits(q)))
+        elif cmd in (43, 44):         # getForwardKinematics(), (q, tcp_offset)
+            if cmd == 43:
+                pose = sim.tcp_pose(sim._q6(sim.world.q_actual_rad))
+            else:
+                pose = sim.tcp_pose(sim.double_in[of:of + 6], sim.double_in[of + 6:of + 12])
+            sim.double_out[of:of + 6] = pose
+        elif cmd == 47:               # isSteady
+            sim.int_out[self.oi + 1] = 0 if sim.world.moving else 1
         else:
-            raise _RuntimeError(f"command {cmd} is not simulated (moveJ, stopJ, stopL and "
-                                "stopScript are)", 0)
+            raise _RuntimeError(f"command {cmd} is not simulated (see "
+                                "docs/protocols/universal-robots.md, section 6)", 0)
 
     async def _async_move(self, q: list[float], a: float, v: float) -> None:
         try:
