@@ -52,6 +52,11 @@ def until(fn: Callable[[], Any], check: Callable[[Any], bool], timeout: float = 
     return value
 
 
+def becomes(name: str, fn: Callable[[], Any], value: bool) -> Any:
+    """A step that polls ``fn`` (bounded) until it returns ``value``."""
+    return step(name, lambda: until(fn, lambda v: v is value), lambda v: v is value)
+
+
 d = dashboard_client.DashboardClient(HOST, 29999, False)
 step("dashboard.connect", d.connect, lambda v: d.isConnected())
 step("dashboard.polyscopeVersion", d.polyscopeVersion, lambda v: v.startswith("5."))
@@ -179,22 +184,17 @@ if c is not None and r is not None:
     step("rtde_control.isProgramRunning (ended by the error)", c.isProgramRunning,
          lambda v: v is False)
     step("rtde_control.reuploadScript", c.reuploadScript, lambda v: v is True)
-    step("rtde_control.isProgramRunning (uploaded again)",
-         lambda: until(c.isProgramRunning, lambda v: v is True), lambda v: v is True)
+    becomes("rtde_control.isProgramRunning (uploaded again)", c.isProgramRunning, True)
     step("rtde_control.triggerProtectiveStop", c.triggerProtectiveStop, lambda v: True)
-    step("rtde_receive.isProtectiveStopped",
-         lambda: until(r.isProtectiveStopped, lambda v: v is True), lambda v: v is True)
-    step("rtde_control.isProgramRunning (ended by the protective stop)",
-         lambda: until(c.isProgramRunning, lambda v: v is False), lambda v: v is False)
+    becomes("rtde_receive.isProtectiveStopped", r.isProtectiveStopped, True)
+    becomes("rtde_control.isProgramRunning (ended by the protective stop)", c.isProgramRunning,
+            False)
     step("dashboard.unlockProtectiveStop", d.unlockProtectiveStop, lambda v: True)
-    step("rtde_receive.isProtectiveStopped (unlocked)",
-         lambda: until(r.isProtectiveStopped, lambda v: v is False), lambda v: v is False)
+    becomes("rtde_receive.isProtectiveStopped (unlocked)", r.isProtectiveStopped, False)
     step("rtde_control.reuploadScript (after the stop)", c.reuploadScript, lambda v: v is True)
-    step("rtde_control.isProgramRunning (uploaded a third time)",
-         lambda: until(c.isProgramRunning, lambda v: v is True), lambda v: v is True)
+    becomes("rtde_control.isProgramRunning (uploaded a third time)", c.isProgramRunning, True)
     step("rtde_control.stopScript", c.stopScript, lambda v: True)
-    step("rtde_control.isProgramRunning (stopped)",
-         lambda: until(c.isProgramRunning, lambda v: v is False), lambda v: v is False)
+    becomes("rtde_control.isProgramRunning (stopped)", c.isProgramRunning, False)
     step("rtde_receive.getRuntimeState (stopped)",
          lambda: until(r.getRuntimeState, lambda s: s == 1), lambda v: v == 1)
     c.disconnect()
