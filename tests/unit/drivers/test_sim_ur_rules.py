@@ -191,6 +191,7 @@ async def test_ur_rtde_control_program_runs_its_register_protocol():
     # upper register range: every register the client and the program share is offset by 24
     body = ("    global reg_offset_float = # float register offset\n24"
             "    global reg_offset_int = # int register offset\n24"
+            "    global force_mode_type = 2\n"
             "    while keep_running:\n        sync()\n    end\n")
     async with ur_sim(time_scale=0.05) as sim:
         assert "realtime" in sim.ports
@@ -198,6 +199,7 @@ async def test_ur_rtde_control_program_runs_its_register_protocol():
         try:
             writer.write(f"def rtde_control():\n{body}end\n".encode())
             await eventually(lambda: sim.int_out[24] == 1, 5, what="ready for a command")
+            assert not sim.runtime_errors            # one program, split at its own end
             assert sim.runtime_state == rtde.RuntimeState.PLAYING
             progress0 = sim.int_out[26]
             assert progress0 & 32768 == 0                      # no operation running
@@ -241,6 +243,12 @@ async def test_ur_rtde_control_program_runs_its_register_protocol():
             await eventually(lambda: sim.runtime_state == rtde.RuntimeState.STOPPED, 5,
                              what="stopped by command 255")
             assert len(sim.runtime_errors) == errors
+            # offsets other than the two ranges are refused, not run into other registers
+            writer.write(f"def rtde_control():\n{body.replace('24', '40')}end\n".encode())
+            await eventually(lambda: len(sim.runtime_errors) == errors + 1, 5,
+                             what="bad offsets refused")
+            assert "neither 0" in sim.runtime_errors[-1]
+            assert sim.runtime_state == rtde.RuntimeState.STOPPED
         finally:
             writer.close()
 

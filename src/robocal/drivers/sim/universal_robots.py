@@ -651,6 +651,10 @@ class UrSimulator(WorldSimulator):
         offsets = _RtdeControl.offsets(program)
         if offsets is not None:
             # ur-rtde's control program: run as an emulation of its command loop
+            if not set(offsets) <= {0, 24}:
+                self._runtime_exception(f"rtde_control: register offsets {offsets} are "
+                                        "neither 0 (lower range) nor 24 (upper range)")
+                return
             if await self._may_start("rtde_control"):
                 control = _RtdeControl(self, *offsets)
                 self._program = asyncio.create_task(control.run())
