@@ -36,7 +36,7 @@ from robocal.planning._design import (
     model_spec,
 )
 from robocal.planning._feasibility import Feasibility, FeasibilityChecker
-from robocal.planning._geometry import link_frames
+from robocal.planning._geometry import link_frames, nearest_rows, range_scaled
 from robocal.planning._iso import ISO_CYCLES, IsoCube, iso_cube
 from robocal.planning._motion import MotionChecker
 from robocal.planning._order import (
@@ -786,14 +786,8 @@ def _near_reachable(q: Array, checked: NDArray[np.bool_], allowed: NDArray[np.bo
     idx = np.flatnonzero(checked)
     if not len(idx):
         return np.ones(len(q), dtype=bool)
-    span = np.ptp(q, axis=0)
-    x = q / np.where(span > 0, span, 1.0)
-    xc = x[idx]
-    # |x - c|^2 up to |x|^2, which is the same for every checked c
-    d = x @ xc.T
-    d *= -2.0
-    d += np.sum(xc**2, axis=1)
-    return np.asarray(allowed[idx[np.argmin(d, axis=1)]], dtype=bool)
+    x = range_scaled(q)
+    return np.asarray(allowed[idx[nearest_rows(x, x[idx])]], dtype=bool)
 
 
 def _cpa_extras(checker: FeasibilityChecker, rob: RobotDescription, q_c: Array,

@@ -19,7 +19,7 @@ from robocal._core.measurements import read_joints_csv, read_table
 from robocal.compensation import read_targets_csv
 from robocal.kinematics import RobotDescription
 from robocal.planning._feasibility import FeasibilityChecker, one_revolution
-from robocal.planning._geometry import segment_box_distance, segment_distance
+from robocal.planning._geometry import range_scaled, segment_box_distance, segment_distance
 from robocal.planning._motion import MotionChecker
 
 Array = NDArray[np.float64]
@@ -127,8 +127,7 @@ def ensure_span(q_c: Array, chosen: Index, allowed: NDArray[np.bool_], need: Arr
     ndarray of int, shape (len(chosen),)
     """
     chosen = np.array(chosen, dtype=np.intp)
-    span = np.ptp(q_c, axis=0)
-    x = q_c / np.where(span > 0, span, 1.0)
+    x = range_scaled(q_c)
     dof = q_c.shape[1]
     for j in range(dof):
         for end in (0, 1):

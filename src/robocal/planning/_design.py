@@ -39,7 +39,7 @@ from robocal.kinematics import (
     RobotDescription,
     Term,
 )
-from robocal.planning._geometry import Array, Index
+from robocal.planning._geometry import Array, Index, nearest_rows, range_scaled
 
 #: Equations per identifiable parameter the recommended pose count aims for (3 per pose).
 REDUNDANCY = 3.0
@@ -469,8 +469,7 @@ class DesignSpace:
         pref = allowed if prefer is None else allowed & prefer
         anywhere = np.setdiff1d(np.flatnonzero(pref) if pref.any() else np.flatnonzero(allowed),
                                 chosen)
-        span = np.ptp(self.q, axis=0)
-        x = self.q / np.where(span > 0, span, 1.0)
+        x = range_scaled(self.q)
         members = [np.zeros(0, dtype=np.intp) for _ in chosen]
         for i in redo:
             own = np.flatnonzero(allowed & (strata == i))
@@ -508,21 +507,14 @@ def _kmeans_strata(q: Array, k: int, iterations: int) -> tuple[Index, Index]:
     n, dof = x.shape
     centres = x[:k].copy()
 
-    def nearest(c: Array) -> Index:
-        # argmin_c |x - c|^2 = argmin_c (|c|^2 - 2 x.c): |x|^2 is the same for every centre
-        d = x @ c.T
-        d *= -2.0
-        d += np.sum(c**2, axis=1)
-        return np.argmin(d, axis=1)
-
     for _ in range(iterations):
-        labels = nearest(centres)
+        labels = nearest_rows(x, centres)
         counts = np.bincount(labels, minlength=k)
         filled = counts > 0
         for j in range(dof):
             sums = np.bincount(labels, weights=x[:, j], minlength=k)
             centres[filled, j] = sums[filled] / counts[filled]
-    labels = nearest(centres)
+    labels = nearest_rows(x, centres)
     d_own = np.sum((x - centres[labels]) ** 2, axis=1)
     # nearest row to each centre, among the stratum's members; a stratum that lost all its
     # members takes the nearest row not yet taken

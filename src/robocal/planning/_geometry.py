@@ -37,6 +37,22 @@ _EPS = 1e-12
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
+def range_scaled(q: Array) -> Array:
+    """Joint values (n, dof) divided by each joint's range over the rows, so that distances
+    weigh every joint alike (a joint that does not vary keeps its values)."""
+    span = np.ptp(q, axis=0)
+    return np.asarray(q / np.where(span > 0, span, 1.0), dtype=np.float64)
+
+
+def nearest_rows(x: Array, c: Array) -> Index:
+    """For each row of ``x`` (n, d) the index of the nearest row of ``c`` (m, d)."""
+    # argmin_c |x - c|^2 = argmin_c (|c|^2 - 2 x.c): |x|^2 is the same for every c
+    d = x @ c.T
+    d *= -2.0
+    d += np.sum(c**2, axis=1)
+    return np.argmin(d, axis=1)
+
+
 def map_rows(fn: Callable[[slice], T], n: int, chunk: int) -> list[T]:
     """``fn`` over consecutive slices that cover rows 0..n, each at most ``chunk`` rows.
 

@@ -239,6 +239,8 @@ class UrSimulator(WorldSimulator):
         self._mode_task: asyncio.Task[None] | None = None
         self._t0 = time.monotonic()
         self._dh = self._nominal_dh()
+        signs = [j.sign for j in world.cell.robot.joints][:6]
+        self._signs = signs + [1] * (6 - len(signs))
 
     def _declared(self) -> dict[str, Any]:
         o = self.options
@@ -296,11 +298,9 @@ class UrSimulator(WorldSimulator):
         rotation vector) in the base frame for joints ``q`` (6,) rad, from the DH table it
         reports (:meth:`kinematics`) and the TCP offset ``tcp`` (default: the active one)."""
         theta, a, d, alpha = self._dh
-        signs = [j.sign for j in self.world.cell.robot.joints][:6]
-        signs += [1] * (6 - len(signs))
         T = np.eye(4)
         for i in range(6):
-            th = signs[i] * float(q[i]) + theta[i]
+            th = self._signs[i] * float(q[i]) + theta[i]
             ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(alpha[i]), math.sin(alpha[i])
             T = T @ np.array([[ct, -st * ca, st * sa, a[i] * ct],
                               [st, ct * ca, -ct * sa, a[i] * st],
@@ -332,6 +332,8 @@ class UrSimulator(WorldSimulator):
             t = rtde.output_type(n)
             if n in state:
                 out.append(state[n])
+            elif n in _TCP_POSE_OF:    # forward kinematics only for the recipes asking
+                out.append(self.tcp_pose(state[_TCP_POSE_OF[n]]))
             elif "_register" in n:
                 out.append(self._register_value(n, t))
             else:
@@ -351,8 +353,6 @@ class UrSimulator(WorldSimulator):
             "timestamp": time.monotonic() - self._t0,
             "actual_q": self._q6(world.q_actual_rad),
             "target_q": self._q6(world.q_cmd_rad),
-            "actual_TCP_pose": self.tcp_pose(self._q6(world.q_actual_rad)),
-            "target_TCP_pose": self.tcp_pose(self._q6(world.q_cmd_rad)),
             "actual_qd": qd,
             "target_qd": qd,
             "robot_mode": self.robot_mode,
@@ -778,6 +778,9 @@ class UrSimulator(WorldSimulator):
         await asyncio.sleep(duration)
         world.finish_motion(motion)
 
+
+# RTDE TCP pose outputs and the joint outputs (same snapshot) they are computed from
+_TCP_POSE_OF = {"actual_TCP_pose": "actual_q", "target_TCP_pose": "target_q"}
 
 _REMOTE_ONLY = frozenset({"power on", "power off", "brake release", "load", "play",
                           "unlock protective stop", "restart safety"})
